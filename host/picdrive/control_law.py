@@ -1,0 +1,152 @@
+"""The firmware's speed-control law, in floating point: the reference.
+
+Every design method (fuzzy H-inf, mixed H2/H-inf PID, Ziegler-Nichols) ends
+in this one law, which is what the firmware runs.  It is a gain-scheduled,
+two-degree-of-freedom PID with optional current feedback:
+
+* premise ``s = |y|`` (measured mechanical speed, rad/s), clamped to the
+  premise range ``[N1, N2]``;
+* memberships ``mu_j(s)``: a triangular partition of ``[N1, N2]`` with
+  ``r`` rules at equally spaced centres ``c_j = N1 + j (N2 - N1)/(r - 1)``
+  (``r = 2`` gives the 2016 paper's linear M1, M2; ``r = 1`` gives mu = 1,
+  i.e. plain PID);
+* blended gains ``K = sum_j mu_j K_j`` for K in (kp, ki, kd, kc);
+* per sample k, period ``Ts``::
+
+      e   = r - y
+      P   = Kp (b r - y)                       setpoint weight b
+      D   = Kd (y[k-1] - y) / Ts, then first-order filtered (derivative on measurement)
+      I'  = I + Ki Ts e                         scheduled gain inside the integral (bumpless)
+      v   = P + I' + D - Kc i
+      I   = I  if (v > u_max and e > 0) or (v < u_min and e < 0)   conditional integration
+            I' otherwise, then clamped to [u_min, u_max]
+      u   = clamp(P + I + D - Kc i, u_min, u_max)
+
+Units: speeds rad/s (mechanical), current A, output u in volts of the
+six-step DC-equivalent line voltage (duty = u / bus voltage; a negative u
+reverses the commutation table).  kp in V/(rad/s), ki in V/rad, kd in
+V s^2/rad, kc in V/A.
+
+The firmware's fixed-point implementation (``picdrive.fixedpoint``) and its C
+are checked against this reference.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+__all__ = ["Rule", "ScheduledLaw", "LawState", "memberships", "law_step", "law_from_dict"]
+
+
+@dataclass(frozen=True)
+class Rule:
+    """Gains of one fuzzy rule (SI: V/(rad/s), V/rad, V s^2/rad, V/A)."""
+
+    kp: float
+    ki: float
+    kd: float = 0.0
+    kc: float = 0.0
+
+
+@dataclass(frozen=True)
+class ScheduledLaw:
+    """The complete control law the firmware runs (see module docstring)."""
+
+    rules: tuple[Rule, ...]
+    premise_rad_s: tuple[float, float]
+    sample_time_s: float
+    u_min_v: float
+    u_max_v: float
+    setpoint_weight: float = 1.0
+    derivative_filter_hz: float | None = None   # None: unfiltered backward difference
+    notes: str = ""
+
+    def __post_init__(self):
+        if not self.rules:
+            raise ValueError("a scheduled law needs at least one rule")
+        n1, n2 = self.premise_rad_s
+        if len(self.rules) > 1 and not n2 > n1:
+            raise ValueError(f"premise range {self.premise_rad_s} must be increasing")
+        if not self.u_min_v < self.u_max_v:
+            raise ValueError(f"output limits [{self.u_min_v}, {self.u_max_v}] must be increasing")
+        if not self.sample_time_s > 0:
+            raise ValueError("sample_time_s must be positive")
+
+    @property
+    def n_rules(self) -> int:
+        return len(self.rules)
+
+    def gains_at(self, speed_rad_s: float) -> Rule:
+        """Blended gains at a speed."""
+        mu = memberships(self, speed_rad_s)
+        return Rule(*(float(sum(m * getattr(r, k) for m, r in zip(mu, self.rules)))
+                      for k in ("kp", "ki", "kd", "kc")))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["rules"] = [asdict(r) for r in self.rules]
+        d["premise_rad_s"] = list(self.premise_rad_s)
+        d["form"] = "picdrive.scheduled_pid/1"
+        return d
+
+
+def law_from_dict(d: dict) -> ScheduledLaw:
+    if d.get("form") != "picdrive.scheduled_pid/1":
+        raise ValueError(f"unknown control-law form {d.get('form')!r}; expected 'picdrive.scheduled_pid/1'")
+    return ScheduledLaw(
+        rules=tuple(Rule(**r) for r in d["rules"]),
+        premise_rad_s=tuple(d["premise_rad_s"]),
+        sample_time_s=d["sample_time_s"], u_min_v=d["u_min_v"], u_max_v=d["u_max_v"],
+        setpoint_weight=d.get("setpoint_weight", 1.0),
+        derivative_filter_hz=d.get("derivative_filter_hz"), notes=d.get("notes", ""))
+
+
+def memberships(law: ScheduledLaw, speed_rad_s: float) -> np.ndarray:
+    """Rule memberships mu_j at a measured speed (premise |y|, clamped)."""
+    r = law.n_rules
+    if r == 1:
+        return np.ones(1)
+    n1, n2 = law.premise_rad_s
+    s = min(max(abs(speed_rad_s), n1), n2)
+    x = (s - n1) / (n2 - n1) * (r - 1)       # position in rule-spacing units
+    j = min(int(math.floor(x)), r - 2)
+    frac = x - j
+    mu = np.zeros(r)
+    mu[j] = 1.0 - frac
+    mu[j + 1] = frac
+    return mu
+
+
+@dataclass
+class LawState:
+    """Controller memory between samples."""
+
+    integ_v: float = 0.0
+    y_prev: float | None = None
+    d_filt_v: float = 0.0
+    log: list = field(default_factory=list, repr=False)
+
+
+def law_step(law: ScheduledLaw, st: LawState, r: float, y: float, i: float = 0.0) -> float:
+    """One sample of the law: setpoint r and speed y (rad/s), current i (A) -> u (V)."""
+    g = law.gains_at(y)
+    ts = law.sample_time_s
+    e = r - y
+    p = g.kp * (law.setpoint_weight * r - y)
+    y_prev = y if st.y_prev is None else st.y_prev
+    d_raw = g.kd * (y_prev - y) / ts
+    if law.derivative_filter_hz:
+        tf = 1.0 / (2.0 * math.pi * law.derivative_filter_hz)
+        a = ts / (ts + tf)
+        st.d_filt_v += a * (d_raw - st.d_filt_v)
+    else:
+        st.d_filt_v = d_raw
+    i_new = st.integ_v + g.ki * ts * e
+    v = p + i_new + st.d_filt_v - g.kc * i
+    if not ((v > law.u_max_v and e > 0) or (v < law.u_min_v and e < 0)):
+        st.integ_v = min(max(i_new, law.u_min_v), law.u_max_v)
+    st.y_prev = y
+    u = p + st.integ_v + st.d_filt_v - g.kc * i
+    return min(max(u, law.u_min_v), law.u_max_v)

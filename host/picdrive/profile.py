@@ -1,0 +1,538 @@
+"""Drive profile: one TOML file describing one BLDC drive.
+
+A profile holds the motor, the inverter, the sensors, the loop rates, the
+speed range and the controller-design settings.  Everything downstream
+(design, firmware, twin, console) reads its numbers from here and nowhere
+else.  The schema is documented field by field in ``docs/profile.md``; the
+table :data:`SCHEMA` below is the single source of truth for names, units,
+defaults and accepted ranges.
+
+All quantities are SI with the unit in the field name (``_ohm``, ``_h``,
+``_kg_m2``...).  Speeds at the user interface are in rpm (mechanical);
+inside the models they are rad/s.
+
+Winding basis: ``motor.winding_basis = "phase"`` means ``resistance_ohm`` and
+``inductance_h`` (or ``ld_h``/``lq_h``) are per-phase values of a
+wye-connected machine (the 2016 paper's dq model); ``"line-to-line"`` means
+terminal-to-terminal values, i.e. two phases in series, which is what the DC
+equivalent transfer function of a six-step drive uses (the 2008 paper's
+eq. 1).  :class:`Motor` exposes both forms.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+import re
+import tomllib
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import PicdriveError
+
+SCHEMA_ID = "picdrive.profile/1"
+
+__all__ = [
+    "ProfileError", "ProfileWarning", "Profile", "Motor", "Inverter",
+    "Sensors", "Control", "Uart", "load_profile", "loads_profile",
+    "bundled_profiles", "resolve_profile_path", "SCHEMA",
+]
+
+
+class ProfileError(PicdriveError, ValueError):
+    """A profile field is missing, mistyped or non-physical.
+
+    The message names the field, the value found and the accepted range.
+    """
+
+
+class ProfileWarning(UserWarning):
+    """A profile is valid but asks for something the drive cannot deliver."""
+
+
+# ---------------------------------------------------------------------------
+# Schema: section -> field -> (kind, default, lo, hi, doc)
+#   kind: "float", "int", "str", "bool", "enum:a|b", "range" (2-list of float),
+#         "list-int"
+#   default REQUIRED means the field must be given.
+#   lo/hi are inclusive physical bounds (None = unbounded); for "range" they
+#   bound both ends.
+# ---------------------------------------------------------------------------
+REQUIRED = object()
+
+SCHEMA: dict[str, dict[str, tuple]] = {
+    "drive": {
+        "name": ("str", REQUIRED, None, None, "identifier used for file and folder names: lowercase letters, digits, '_' and '-'"),
+        "description": ("str", "", None, None, "one line describing the drive"),
+        "source": ("str", "", None, None, "where the numbers come from"),
+    },
+    "motor": {
+        "pole_pairs": ("int", REQUIRED, 1, 64, "number of pole pairs P"),
+        "winding_basis": ("enum:phase|line-to-line", "phase", None, None, "basis of resistance_ohm / inductance_h"),
+        "resistance_ohm": ("float", REQUIRED, 1e-4, 1e3, "stator resistance on winding_basis, ohm"),
+        "inductance_h": ("float", None, 1e-7, 10.0, "stator inductance on winding_basis, H (sets ld_h = lq_h)"),
+        "ld_h": ("float", None, 1e-7, 10.0, "d-axis inductance on winding_basis, H"),
+        "lq_h": ("float", None, 1e-7, 10.0, "q-axis inductance on winding_basis, H"),
+        "inertia_kg_m2": ("float", REQUIRED, 1e-9, 100.0, "rotor + load inertia J, kg m^2"),
+        "viscous_friction_n_m_s": ("float", REQUIRED, 0.0, 100.0, "viscous friction B, N m s/rad"),
+        "flux_linkage_v_s": ("float", None, 1e-5, 10.0, "permanent-magnet flux linkage lambda_m, V s/rad (electrical), phase peak"),
+        "torque_constant_n_m_per_a": ("float", None, 1e-5, 100.0, "six-step DC-equivalent torque constant Kt, N m/A"),
+        "back_emf_constant_v_s": ("float", None, 1e-5, 100.0, "six-step DC-equivalent back-EMF constant Kb, V s/rad (mechanical), line-to-line"),
+        "back_emf_shape": ("enum:trapezoidal|sinusoidal", "trapezoidal", None, None, "back-EMF waveform"),
+        "rated_current_a": ("float", REQUIRED, 1e-3, 500.0, "continuous current rating, A"),
+    },
+    "inverter": {
+        "bus_voltage_v": ("float", REQUIRED, 1.0, 600.0, "DC bus voltage, V"),
+        "current_limit_a": ("float", REQUIRED, 1e-3, 500.0, "firmware current limit, A"),
+        "overcurrent_trip_a": ("float", REQUIRED, 1e-3, 1000.0, "hardware comparator trip level on FLTA, A"),
+        "pwm_frequency_hz": ("float", 20000.0, 1000.0, 100000.0, "PCPWM switching frequency, Hz"),
+        "dead_time_ns": ("float", 1000.0, 0.0, 10000.0, "dead time inserted by DTCON between complementary switches, ns"),
+        "bootstrap_refresh_ns": ("float", 2000.0, 0.0, 50000.0, "minimum low-side on-time per PWM period that keeps the IR2101 bootstrap capacitor charged, ns"),
+        "current_sense_v_per_a": ("float", 0.1, 1e-4, 10.0, "bus-current sense gain at the ADC pin, V/A"),
+        "gate_driver": ("str", "IR2101", None, None, "gate driver part"),
+        "switch": ("str", "IRF540", None, None, "MOSFET part"),
+        "switch_vds_max_v": ("float", 100.0, 1.0, 2000.0, "MOSFET drain-source rating, V"),
+    },
+    "sensors": {
+        "hall_spacing_deg": ("int", 120, 60, 120, "electrical spacing of the hall sensors: 60 or 120"),
+        "hall_offset_deg": ("float", 0.0, -180.0, 180.0, "electrical angle of hall A's rising edge after phase A back-EMF zero crossing, deg"),
+        "encoder_lines": ("int", 0, 0, 65535, "encoder lines per revolution (0 = no encoder)"),
+        "speed_source": ("enum:encoder|hall", "encoder", None, None, "speed feedback for the speed loop"),
+        "speed_noise_rpm": ("float", 0.0, 0.0, 1000.0, "standard deviation of speed-measurement noise in the twin, rpm"),
+    },
+    "control": {
+        "speed_loop_hz": ("float", 1000.0, 10.0, 20000.0, "speed-loop rate, Hz"),
+        "speed_min_rpm": ("float", 0.0, 0.0, 1e5, "lowest commanded speed, rpm"),
+        "speed_max_rpm": ("float", REQUIRED, 1.0, 1e5, "highest commanded speed, rpm"),
+        "reference_rpm": ("float", REQUIRED, 0.0, 1e5, "nominal speed step target, rpm"),
+        "load_torque_n_m": ("float", 0.0, 0.0, 1e3, "load-torque step used by demos and tests, N m"),
+        "stall_timeout_ms": ("float", 500.0, 10.0, 60000.0, "commanded with no motion for this long = stall fault, ms"),
+    },
+    "uart": {
+        "baud": ("int", 115200, 1200, 1000000, "EUSART baud rate"),
+        "link_timeout_ms": ("float", 500.0, 20.0, 60000.0, "link-loss watchdog timeout while running, ms"),
+    },
+    "design": {
+        # common
+        "premise_rpm": ("range", [0.0, 3000.0], 0.0, 1e5, "fuzzy premise (speed) range [N1, N2], rpm"),
+        "rules": ("int", 2, 1, 8, "number of fuzzy rules r (1 = plain PID)"),
+        # fuzzy H-inf (2016)
+        "gamma": ("float", 1.0, 1e-6, 1e6, "prescribed H-inf level gamma"),
+        "delta": ("float", 1.0, 1e-6, 1e6, "Theorem 1 scaling delta"),
+        "alpha": ("float", 2.0, 1e-6, 1e6, "Theorem 1 weight alpha"),
+        "rho": ("float", 1.0, 0.0, 1e6, "uncertainty bound rho on ||F||"),
+        "resistance_uncertainty": ("float", 0.1, 0.0, 1.0, "relative bound of R uncertainty (0.1 = +-10 %)"),
+        # mixed H2/H-inf PID (2008)
+        "kp_range": ("range", [0.0, 200.0], -1e6, 1e6, "GA search bounds of kp"),
+        "ki_range": ("range", [0.0, 10.0], -1e6, 1e6, "GA search bounds of ki"),
+        "kd_range": ("range", [0.0, 0.1], -1e6, 1e6, "GA search bounds of kd"),
+        "perturbation_d": ("float", 0.1, 0.0, 1e6, "plant perturbation parameter d of xi(s) = d/(s^2+0.1s+10)"),
+        "ga_population": ("int", 200, 4, 100000, "GA population size"),
+        "ga_generations": ("int", 20, 1, 100000, "GA generations"),
+        "ga_seed": ("int", 1, 0, 2**31 - 1, "GA random seed"),
+    },
+}
+
+_NAME_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,47}$")
+
+
+# ---------------------------------------------------------------------------
+# Dataclasses (frozen): the validated profile
+# ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Motor:
+    pole_pairs: int
+    winding_basis: str
+    resistance_ohm: float
+    ld_h: float
+    lq_h: float
+    inertia_kg_m2: float
+    viscous_friction_n_m_s: float
+    flux_linkage_v_s: float | None
+    torque_constant_n_m_per_a: float | None
+    back_emf_constant_v_s: float | None
+    back_emf_shape: str
+    rated_current_a: float
+
+    # -- per-phase and line-to-line forms ---------------------------------
+    @property
+    def _to_phase(self) -> float:
+        return 0.5 if self.winding_basis == "line-to-line" else 1.0
+
+    @property
+    def r_phase_ohm(self) -> float:
+        """Per-phase resistance of the equivalent wye winding, ohm."""
+        return self.resistance_ohm * self._to_phase
+
+    @property
+    def ld_phase_h(self) -> float:
+        return self.ld_h * self._to_phase
+
+    @property
+    def lq_phase_h(self) -> float:
+        return self.lq_h * self._to_phase
+
+    @property
+    def r_line_ohm(self) -> float:
+        """Terminal (two phases in series) resistance, ohm: the six-step DC equivalent."""
+        return 2.0 * self.r_phase_ohm
+
+    @property
+    def l_line_h(self) -> float:
+        """Terminal inductance (two phases in series, average of Ld and Lq), H."""
+        return self.ld_phase_h + self.lq_phase_h
+
+    # -- EMF / torque constants ------------------------------------------
+    @property
+    def _dc_factor(self) -> float:
+        # Six-step DC-equivalent line-to-line EMF per (P * lambda_m * w_mech):
+        # trapezoidal: two flat tops in series -> 2; sinusoidal: mean of the
+        # line-to-line sine over each 60 deg conduction window -> 3*sqrt(3)/pi.
+        return 2.0 if self.back_emf_shape == "trapezoidal" else 3.0 * math.sqrt(3.0) / math.pi
+
+    @property
+    def kb_v_s_per_rad(self) -> float:
+        """Six-step DC-equivalent back-EMF constant, V per mechanical rad/s."""
+        if self.back_emf_constant_v_s is not None:
+            return self.back_emf_constant_v_s
+        if self.torque_constant_n_m_per_a is not None:
+            return self.torque_constant_n_m_per_a  # ideal machine, SI: Kb = Kt
+        return self._dc_factor * self.pole_pairs * self.flux_linkage_v_s  # type: ignore[operator]
+
+    @property
+    def kt_n_m_per_a(self) -> float:
+        """Six-step DC-equivalent torque constant, N m per A of line current."""
+        if self.torque_constant_n_m_per_a is not None:
+            return self.torque_constant_n_m_per_a
+        return self.kb_v_s_per_rad
+
+    @property
+    def lambda_m_v_s(self) -> float:
+        """PM flux linkage, V s per electrical rad (phase peak), for the dq model."""
+        if self.flux_linkage_v_s is not None:
+            return self.flux_linkage_v_s
+        return self.kb_v_s_per_rad / (self._dc_factor * self.pole_pairs)
+
+
+@dataclass(frozen=True)
+class Inverter:
+    bus_voltage_v: float
+    current_limit_a: float
+    overcurrent_trip_a: float
+    pwm_frequency_hz: float
+    dead_time_ns: float
+    bootstrap_refresh_ns: float
+    current_sense_v_per_a: float
+    gate_driver: str
+    switch: str
+    switch_vds_max_v: float
+
+
+@dataclass(frozen=True)
+class Sensors:
+    hall_spacing_deg: int
+    hall_offset_deg: float
+    encoder_lines: int
+    speed_source: str
+    speed_noise_rpm: float
+
+    @property
+    def has_encoder(self) -> bool:
+        return self.encoder_lines > 0
+
+
+@dataclass(frozen=True)
+class Control:
+    speed_loop_hz: float
+    speed_min_rpm: float
+    speed_max_rpm: float
+    reference_rpm: float
+    load_torque_n_m: float
+    stall_timeout_ms: float
+
+
+@dataclass(frozen=True)
+class Uart:
+    baud: int
+    link_timeout_ms: float
+
+
+@dataclass(frozen=True)
+class Profile:
+    """A validated drive profile.  Build with :func:`load_profile`."""
+
+    name: str
+    description: str
+    source: str
+    motor: Motor
+    inverter: Inverter
+    sensors: Sensors
+    control: Control
+    uart: Uart
+    design: dict[str, Any]
+    path: Path | None = None
+    sha256: str = ""
+    raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    # -- derived quantities used in several places ------------------------
+    def max_reachable_rpm(self, load_torque_n_m: float = 0.0) -> float:
+        """Highest steady speed the bridge can hold against a load torque, rpm.
+
+        Back-EMF plus the IR drop of the current that carries friction and
+        load equals the usable bus voltage (bus voltage x :meth:`max_duty`):
+        ``V = Kb w + R_line (B w + T_load) / Kt``.
+        """
+        m, inv = self.motor, self.inverter
+        v = inv.bus_voltage_v * self.max_duty() - m.r_line_ohm * load_torque_n_m / m.kt_n_m_per_a
+        w = v / (m.kb_v_s_per_rad + m.r_line_ohm * m.viscous_friction_n_m_s / m.kt_n_m_per_a)
+        return max(0.0, w) * 60.0 / (2.0 * math.pi)
+
+    def max_duty(self) -> float:
+        """Largest PWM duty (0..1) that leaves dead time plus the bootstrap
+        refresh time as low-side on-time in every period."""
+        inv = self.inverter
+        period_ns = 1e9 / inv.pwm_frequency_hz
+        return max(0.0, 1.0 - (inv.bootstrap_refresh_ns + 2.0 * inv.dead_time_ns) / period_ns)
+
+    def speed_step_rpm(self) -> float:
+        """Speed step target used by demos and tests: the reference speed, or,
+        where the bridge cannot hold it under the profile's load torque, 95 %
+        of the speed it can hold (5 % voltage headroom for the speed loop)."""
+        return min(self.control.reference_rpm,
+                   0.95 * self.max_reachable_rpm(self.control.load_torque_n_m))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The profile as plain data (all fields resolved, defaults filled in)."""
+        return {
+            "schema": SCHEMA_ID,
+            "drive": {"name": self.name, "description": self.description, "source": self.source},
+            "motor": dataclasses.asdict(self.motor),
+            "inverter": dataclasses.asdict(self.inverter),
+            "sensors": dataclasses.asdict(self.sensors),
+            "control": dataclasses.asdict(self.control),
+            "uart": dataclasses.asdict(self.uart),
+            "design": dict(self.design),
+        }
+
+    def replace(self, **sections: dict[str, Any]) -> "Profile":
+        """A copy with some fields changed, re-validated.
+
+        ``p.replace(motor={"resistance_ohm": 0.55})`` gives the same profile
+        with R changed (useful for perturbation studies).
+        """
+        raw = {k: dict(v) if isinstance(v, dict) else v for k, v in self.raw.items()}
+        for sec, fields_ in sections.items():
+            raw.setdefault(sec, {}).update(fields_)
+        return _build(raw, self.path, _hash_raw(raw))
+
+
+# ---------------------------------------------------------------------------
+# Loading and validation
+# ---------------------------------------------------------------------------
+def _fail(where: str, value: Any, expect: str) -> ProfileError:
+    return ProfileError(f"profile field '{where}' = {value!r}: {expect}")
+
+
+def _range_text(lo, hi) -> str:
+    if lo is not None and hi is not None:
+        return f"a number in [{lo:g}, {hi:g}]"
+    if lo is not None:
+        return f"a number >= {lo:g}"
+    if hi is not None:
+        return f"a number <= {hi:g}"
+    return "a number"
+
+
+def _check_number(where: str, v: Any, kind: str, lo, hi) -> float | int:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise _fail(where, v, f"expected {'an integer' if kind == 'int' else _range_text(lo, hi)}"
+                    f"{'' if kind != 'int' else f' in [{lo}, {hi}]'}; write it without quotes")
+    if kind == "int" and not (isinstance(v, int) or float(v).is_integer()):
+        raise _fail(where, v, f"expected an integer in [{lo}, {hi}]")
+    if not math.isfinite(float(v)):
+        raise _fail(where, v, f"expected a finite value, {_range_text(lo, hi)}")
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        raise _fail(where, v, f"outside the accepted range: expected {_range_text(lo, hi)}")
+    return int(v) if kind == "int" else float(v)
+
+
+def _check_field(sec: str, key: str, v: Any, spec: tuple) -> Any:
+    kind, _default, lo, hi, _doc = spec
+    where = f"{sec}.{key}"
+    if kind in ("float", "int"):
+        return _check_number(where, v, kind, lo, hi)
+    if kind == "str":
+        if not isinstance(v, str):
+            raise _fail(where, v, "expected a string in quotes")
+        return v
+    if kind == "bool":
+        if not isinstance(v, bool):
+            raise _fail(where, v, "expected true or false")
+        return v
+    if kind.startswith("enum:"):
+        choices = kind[5:].split("|")
+        if v not in choices:
+            raise _fail(where, v, f"expected one of {', '.join(repr(c) for c in choices)}")
+        return v
+    if kind == "range":
+        if not isinstance(v, list) or len(v) != 2:
+            raise _fail(where, v, f"expected a list of two numbers [low, high], each {_range_text(lo, hi)}")
+        a = _check_number(where + "[0]", v[0], "float", lo, hi)
+        b = _check_number(where + "[1]", v[1], "float", lo, hi)
+        if not a < b:
+            raise _fail(where, v, "expected low < high")
+        return [a, b]
+    raise AssertionError(kind)  # schema bug
+
+
+def _hash_raw(raw: dict) -> str:
+    # Hash of the canonical resolved content, not the file bytes, so that
+    # comments and formatting do not change the profile's identity.
+    import json
+    return hashlib.sha256(json.dumps(raw, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def _build(raw: dict[str, Any], path: Path | None, sha: str) -> Profile:
+    if not isinstance(raw, dict):
+        raise ProfileError("profile must be a TOML table")
+    schema = raw.get("schema", SCHEMA_ID)
+    if schema != SCHEMA_ID:
+        raise _fail("schema", schema, f"this picdrive reads {SCHEMA_ID!r}")
+    unknown_sections = sorted(set(raw) - set(SCHEMA) - {"schema"})
+    if unknown_sections:
+        raise ProfileError(
+            f"profile has unknown section(s) {unknown_sections}; known sections are {sorted(SCHEMA)}")
+    vals: dict[str, dict[str, Any]] = {}
+    for sec, spec in SCHEMA.items():
+        given = raw.get(sec, {})
+        if not isinstance(given, dict):
+            raise _fail(sec, given, f"expected a [{sec}] table")
+        unknown = sorted(set(given) - set(spec))
+        if unknown:
+            import difflib
+            hints = [f"{u!r} (did you mean {m[0]!r}?)" if (m := difflib.get_close_matches(u, spec, 1)) else repr(u)
+                     for u in unknown]
+            raise ProfileError(f"profile section [{sec}] has unknown field(s) {', '.join(hints)}; "
+                               f"known fields: {', '.join(spec)}")
+        out: dict[str, Any] = {}
+        for key, fspec in spec.items():
+            if key in given:
+                out[key] = _check_field(sec, key, given[key], fspec)
+            elif fspec[1] is REQUIRED:
+                raise ProfileError(f"profile field '{sec}.{key}' is missing: {fspec[4]}"
+                                   f"{'' if fspec[0] not in ('float', 'int') else ', ' + _range_text(fspec[2], fspec[3])}")
+            else:
+                out[key] = fspec[1]
+        vals[sec] = out
+
+    d, mo = vals["drive"], vals["motor"]
+    if not _NAME_RE.match(d["name"]):
+        raise _fail("drive.name", d["name"], "expected lowercase letters, digits, '_' or '-' (max 48 chars), starting with a letter or digit")
+
+    # inductance: either inductance_h or both ld_h and lq_h
+    if mo["inductance_h"] is not None:
+        if mo["ld_h"] is not None or mo["lq_h"] is not None:
+            raise ProfileError("profile fields 'motor.inductance_h' and 'motor.ld_h'/'motor.lq_h' are exclusive: "
+                               "give inductance_h for a non-salient machine, or both ld_h and lq_h")
+        mo["ld_h"] = mo["lq_h"] = mo["inductance_h"]
+    elif mo["ld_h"] is None or mo["lq_h"] is None:
+        raise ProfileError("profile field 'motor.inductance_h' is missing: give inductance_h, "
+                           "or both ld_h and lq_h, in H, a number in [1e-07, 10]")
+    del mo["inductance_h"]
+    # EMF: flux linkage, or Kt/Kb
+    if mo["flux_linkage_v_s"] is None and mo["torque_constant_n_m_per_a"] is None and mo["back_emf_constant_v_s"] is None:
+        raise ProfileError("profile field 'motor.flux_linkage_v_s' is missing: give flux_linkage_v_s (V s/rad electrical), "
+                           "or torque_constant_n_m_per_a and back_emf_constant_v_s")
+    if mo["flux_linkage_v_s"] is not None and (mo["torque_constant_n_m_per_a"] is not None or mo["back_emf_constant_v_s"] is not None):
+        raise ProfileError("profile fields 'motor.flux_linkage_v_s' and 'motor.torque_constant_n_m_per_a'/'back_emf_constant_v_s' "
+                           "are exclusive: give one form of the EMF constant")
+
+    inv, se, co, de = vals["inverter"], vals["sensors"], vals["control"], vals["design"]
+    if se["hall_spacing_deg"] not in (60, 120):
+        raise _fail("sensors.hall_spacing_deg", se["hall_spacing_deg"], "expected 60 or 120")
+    if se["speed_source"] == "encoder" and se["encoder_lines"] == 0:
+        raise _fail("sensors.speed_source", "encoder",
+                    "no encoder is fitted (sensors.encoder_lines = 0): set encoder_lines or speed_source = \"hall\"")
+    if inv["current_limit_a"] > inv["overcurrent_trip_a"]:
+        raise _fail("inverter.current_limit_a", inv["current_limit_a"],
+                    f"must not exceed inverter.overcurrent_trip_a = {inv['overcurrent_trip_a']:g} A")
+    if inv["bus_voltage_v"] > inv["switch_vds_max_v"]:
+        raise _fail("inverter.bus_voltage_v", inv["bus_voltage_v"],
+                    f"exceeds the switch rating inverter.switch_vds_max_v = {inv['switch_vds_max_v']:g} V")
+    period_ns = 1e9 / inv["pwm_frequency_hz"]
+    if inv["bootstrap_refresh_ns"] + 2 * inv["dead_time_ns"] >= 0.5 * period_ns:
+        raise _fail("inverter.dead_time_ns", inv["dead_time_ns"],
+                    f"dead time x2 plus bootstrap refresh ({inv['bootstrap_refresh_ns']:g} ns) leaves less than half "
+                    f"of the {period_ns:g} ns PWM period: lower the PWM frequency or the dead time")
+    if co["speed_min_rpm"] >= co["speed_max_rpm"]:
+        raise _fail("control.speed_min_rpm", co["speed_min_rpm"],
+                    f"must be below control.speed_max_rpm = {co['speed_max_rpm']:g}")
+    if co["reference_rpm"] > co["speed_max_rpm"]:
+        raise _fail("control.reference_rpm", co["reference_rpm"],
+                    f"must not exceed control.speed_max_rpm = {co['speed_max_rpm']:g}")
+    if co["speed_loop_hz"] > inv["pwm_frequency_hz"]:
+        raise _fail("control.speed_loop_hz", co["speed_loop_hz"],
+                    f"must not exceed inverter.pwm_frequency_hz = {inv['pwm_frequency_hz']:g}")
+    p = Profile(
+        name=d["name"], description=d["description"], source=d["source"],
+        motor=Motor(**mo), inverter=Inverter(**inv), sensors=Sensors(**se),
+        control=Control(**co), uart=Uart(**vals["uart"]), design=de,
+        path=path, sha256=sha, raw=raw,
+    )
+    reach = p.max_reachable_rpm()
+    if co["speed_max_rpm"] > reach:
+        warnings.warn(
+            f"profile '{p.name}': control.speed_max_rpm = {co['speed_max_rpm']:g} rpm cannot be reached: "
+            f"back-EMF (Kb = {p.motor.kb_v_s_per_rad:.4g} V s/rad) plus IR drop exceeds the usable bus voltage "
+            f"{inv['bus_voltage_v']:g} V x max duty {p.max_duty():.3f}; the no-load limit is about {reach:.0f} rpm",
+            ProfileWarning, stacklevel=3)
+    return p
+
+
+def loads_profile(text: str, path: Path | None = None) -> Profile:
+    """Parse and validate a profile from TOML text."""
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        where = f"{path}: " if path else ""
+        raise ProfileError(f"{where}not valid TOML: {e}") from None
+    return _build(raw, path, _hash_raw(raw))
+
+
+def load_profile(path: str | Path) -> Profile:
+    """Load and validate a profile file (a path, or the name of a bundled profile)."""
+    p = resolve_profile_path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as e:
+        raise ProfileError(f"cannot read profile {p}: {e.strerror}") from None
+    try:
+        return loads_profile(text, p)
+    except ProfileError as e:
+        if str(e).startswith(str(p)):
+            raise
+        raise ProfileError(f"{p}: {e}") from None
+
+
+def examples_dir() -> Path:
+    """Folder of the bundled example profiles (``examples/`` at the repository root)."""
+    from .paths import repo_root
+    return repo_root() / "examples"
+
+
+def bundled_profiles() -> dict[str, Path]:
+    """Bundled profiles by name."""
+    return {p.stem: p for p in sorted(examples_dir().glob("*.toml"))}
+
+
+def resolve_profile_path(path: str | Path) -> Path:
+    p = Path(path)
+    if p.exists():
+        return p
+    b = bundled_profiles()
+    if str(path) in b:
+        return b[str(path)]
+    raise ProfileError(f"no profile file {str(path)!r}; give a path to a .toml file or one of the bundled "
+                       f"profiles: {', '.join(b) or '(none found)'}")
