@@ -140,3 +140,10 @@ def test_hash_ignores_formatting():
     a = loads_profile(MIN)
     b = loads_profile("# a comment\n" + MIN.replace("pole_pairs = 2", "pole_pairs   =   2"))
     assert a.sha256 == b.sha256
+
+
+def test_profile_doc_is_current():
+    from picdrive.paths import repo_root
+    from picdrive.profile import schema_markdown
+    doc = (repo_root() / "docs" / "profile.md").read_text()
+    assert doc == schema_markdown(), "docs/profile.md is stale: regenerate it with picdrive.profile.schema_markdown()"
