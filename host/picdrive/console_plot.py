@@ -1,0 +1,318 @@
+"""Live telemetry views for the console: a plot window and a compact text view.
+
+:class:`LivePlot` draws the selected telemetry signals in a matplotlib window
+that updates while the console prompt stays responsive: the window lives in a
+separate process (``multiprocessing``, spawn start method, so no state of the
+console's threads or serial port is inherited) fed through a bounded queue.
+Samples are sent in batches of at most ``batch_s`` seconds; if the plot
+process falls behind, whole batches are dropped (counted in
+:attr:`LivePlot.dropped_batches`) rather than ever blocking the telemetry
+reader.
+
+Where no display exists (no ``DISPLAY``/``WAYLAND_DISPLAY`` on Linux, or
+only non-interactive matplotlib backends installed), the same process renders
+with the Agg backend into a PNG file that it rewrites (atomically) about once
+a second; an image viewer that reloads on change then shows a live plot, e.g.
+over ssh.
+
+:class:`TextView` is the compact text alternative: one line per refresh with
+the time, each signal's latest value with its unit and its min..max over the
+window, and a sparkline of the first signal.
+"""
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import os
+import queue
+import sys
+import time
+from collections import deque
+from pathlib import Path
+from typing import Sequence
+
+from .errors import PicdriveError
+
+__all__ = ["PlotError", "LivePlot", "TextView", "display_available", "sparkline"]
+
+_NON_INTERACTIVE = {"agg", "pdf", "ps", "svg", "pgf", "cairo", "template", "module://matplotlib_inline.backend_inline"}
+
+
+class PlotError(PicdriveError):
+    """The plot process could not be started."""
+
+
+def display_available() -> bool:
+    """True when a GUI window can be opened (Windows/macOS, or X11/Wayland on Linux)."""
+    if sys.platform in ("win32", "darwin"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+# ---------------------------------------------------------------------------
+# plot process
+# ---------------------------------------------------------------------------
+
+def _plot_main(q, status, signals, window_s, png_path, backend, png_interval_s):
+    """Body of the plot process: drain the queue, redraw, until None or window closed."""
+    try:
+        import matplotlib
+        if backend:
+            matplotlib.use(backend, force=True)
+        import matplotlib.pyplot as plt
+        import numpy as np
+        be = matplotlib.get_backend().lower()
+        interactive = be not in _NON_INTERACTIVE
+        if not interactive and not png_path:
+            status.put(("error", f"matplotlib backend {be!r} cannot open a window and no PNG file was given"))
+            return
+        n = len(signals)
+        fig, axes = plt.subplots(n, 1, sharex=True, squeeze=False, figsize=(8, 1.8 + 1.6 * n))
+        axes = axes[:, 0]
+        lines = []
+        for ax, (name, unit) in zip(axes, signals):
+            (ln,) = ax.plot([], [], lw=1.0)
+            ax.set_ylabel(f"{name}\n[{unit or '1'}]")
+            ax.grid(True, alpha=0.3)
+            lines.append(ln)
+        axes[-1].set_xlabel("t [s]")
+        fig.suptitle("picdrive telemetry (live)")
+        fig.tight_layout()
+        if interactive:
+            plt.show(block=False)
+        status.put(("ready", be))
+    except Exception as e:                      # report, never hang the console
+        status.put(("error", f"{type(e).__name__}: {e}"))
+        return
+
+    cap = 200_000
+    ts: deque = deque(maxlen=cap)
+    ys = [deque(maxlen=cap) for _ in signals]
+    total = 0
+    last_png = 0.0
+    dirty = False
+    running = True
+    while running:
+        if interactive and not plt.fignum_exists(fig.number):
+            break                               # the user closed the window
+        try:
+            item = q.get(timeout=0.05)
+        except queue.Empty:
+            item = ()
+        while item is not None:
+            for t, vals in item:
+                ts.append(t)
+                for d, v in zip(ys, vals):
+                    d.append(v)
+                total += 1
+                dirty = True
+            try:
+                item = q.get_nowait()
+            except queue.Empty:
+                break
+        if item is None:
+            running = False
+        if dirty and ts:
+            t_end = ts[-1]
+            t = np.fromiter(ts, float)
+            sel = t >= t_end - window_s
+            for ax, ln, d in zip(axes, lines, ys):
+                y = np.fromiter(d, float)[sel]
+                ln.set_data(t[sel], y)
+                if y.size:
+                    lo, hi = float(np.nanmin(y)), float(np.nanmax(y))
+                    pad = 0.05 * (hi - lo) if hi > lo else max(1.0, abs(hi) * 0.05)
+                    ax.set_ylim(lo - pad, hi + pad)
+            axes[-1].set_xlim(max(t_end - window_s, float(t[0])), t_end if t_end > t[0] else t[0] + window_s)
+            dirty = False
+            if interactive:
+                fig.canvas.draw_idle()
+        if interactive:
+            plt.pause(0.01)
+        now = time.monotonic()
+        if png_path and (now - last_png >= png_interval_s or not running) and ts:
+            _save_png(fig, png_path)
+            last_png = now
+    status.put(("done", total))
+    plt.close(fig)
+
+
+def _save_png(fig, path: str) -> None:
+    p = Path(path)
+    tmp = p.with_name(f".{p.name}.tmp.png")
+    fig.savefig(tmp, dpi=90)
+    os.replace(tmp, p)
+
+
+class LivePlot:
+    """A live plot of telemetry signals in a separate process.
+
+    ``signals``: ``(name, unit)`` pairs; ``window_s``: seconds of history
+    shown; ``png_path``: where to render when there is no display (or in
+    addition to the window when given); ``backend``: force a matplotlib
+    backend (``"Agg"`` for headless).  Call :meth:`feed` from the telemetry
+    reader, :meth:`close` to end.
+    """
+
+    def __init__(self, signals: Sequence[tuple[str, str]], *, window_s: float = 5.0,
+                 png_path: str | Path | None = None, backend: str | None = None,
+                 png_interval_s: float = 1.0, batch_s: float = 0.05, start_timeout_s: float = 30.0):
+        if not signals:
+            raise PlotError("no telemetry signals selected; choose some with 'telemetry signals NAME,...'")
+        self.signals = [(str(n), str(u)) for n, u in signals]
+        self.png_path = str(png_path) if png_path else None
+        self.batch_s = batch_s
+        self.dropped_batches = 0
+        self.sent_samples = 0
+        self._batch: list = []
+        self._batch_t = time.monotonic()
+        ctx = mp.get_context("spawn")
+        self._q = ctx.Queue(maxsize=64)
+        self._status = ctx.Queue()
+        self._proc = ctx.Process(target=_plot_main, name="picdrive-plot", daemon=True,
+                                 args=(self._q, self._status, self.signals, float(window_s), self.png_path,
+                                       backend, float(png_interval_s)))
+        self._proc.start()
+        deadline = time.monotonic() + start_timeout_s
+        while True:
+            try:
+                kind, info = self._status.get(timeout=0.1)
+                break
+            except queue.Empty:
+                if not self._proc.is_alive():
+                    self._kill()
+                    raise PlotError(f"the plot process ended at start (exit code {self._proc.exitcode})") from None
+                if time.monotonic() > deadline:
+                    self._kill()
+                    raise PlotError(f"the plot process did not start within {start_timeout_s:.0f} s") from None
+        if kind != "ready":
+            self._kill()
+            raise PlotError(f"cannot open a plot: {info}")
+        self.backend = info
+        self.total_drawn: int | None = None
+
+    @property
+    def alive(self) -> bool:
+        return self._proc.is_alive()
+
+    def feed(self, t_s: float, values: Sequence[float]) -> None:
+        """Queue one sample (never blocks; drops a batch if the plot lags)."""
+        self._batch.append((float(t_s), [float(v) for v in values]))
+        now = time.monotonic()
+        if now - self._batch_t >= self.batch_s:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self._batch:
+            return
+        batch, self._batch = self._batch, []
+        self._batch_t = time.monotonic()
+        try:
+            self._q.put_nowait(batch)
+            self.sent_samples += len(batch)
+        except queue.Full:
+            self.dropped_batches += 1
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Flush, ask the process to end (final PNG written), wait for it."""
+        if self._proc.is_alive():
+            self.flush()
+            try:
+                self._q.put(None, timeout=1.0)
+            except queue.Full:
+                pass
+            deadline = time.monotonic() + timeout_s
+            while time.monotonic() < deadline:
+                try:
+                    kind, info = self._status.get(timeout=0.1)
+                except queue.Empty:
+                    if not self._proc.is_alive():
+                        break
+                    continue
+                if kind == "done":
+                    self.total_drawn = int(info)
+                    break
+            self._proc.join(timeout=max(0.1, deadline - time.monotonic()))
+        self._kill()
+
+    def _kill(self) -> None:
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(timeout=2.0)
+        for q in (self._q, self._status):
+            q.cancel_join_thread()
+            q.close()
+
+
+# ---------------------------------------------------------------------------
+# text view
+# ---------------------------------------------------------------------------
+
+_BARS = "▁▂▃▄▅▆▇█"
+
+
+def sparkline(values: Sequence[float], width: int = 24, ascii_only: bool = False) -> str:
+    """A one-line sketch of ``values`` (resampled to ``width`` characters)."""
+    vals = [v for v in values if v == v]
+    if not vals:
+        return ""
+    if len(vals) > width:
+        step = len(vals) / width
+        vals = [vals[min(len(vals) - 1, int(i * step))] for i in range(width)]
+    lo, hi = min(vals), max(vals)
+    bars = "_.-=+*#@" if ascii_only else _BARS
+    if hi - lo <= 1e-12 * max(1.0, abs(hi)):
+        return bars[0] * len(vals)
+    k = len(bars) - 1
+    return "".join(bars[int(round((v - lo) / (hi - lo) * k))] for v in vals)
+
+
+def _num(v: float) -> str:
+    if not math.isfinite(v):
+        return str(v)
+    a = abs(v)
+    if a >= 1000 or a == 0:
+        return f"{v:.0f}"
+    if a >= 10:
+        return f"{v:.1f}"
+    if a >= 1:
+        return f"{v:.2f}"
+    return f"{v:.3g}"
+
+
+class TextView:
+    """Compact text view of telemetry: keeps ``window_s`` of samples, renders one line."""
+
+    def __init__(self, signals: Sequence[tuple[str, str]], window_s: float = 2.0, spark_width: int = 24,
+                 ascii_only: bool | None = None):
+        self.signals = [(str(n), str(u)) for n, u in signals]
+        self.window_s = window_s
+        self.spark_width = spark_width
+        if ascii_only is None:
+            enc = (getattr(sys.stdout, "encoding", "") or "").lower()
+            ascii_only = "utf" not in enc
+        self.ascii_only = ascii_only
+        self._t: deque = deque()
+        self._v: deque = deque()
+        self.count = 0
+
+    def feed(self, t_s: float, values: Sequence[float]) -> None:
+        self._t.append(float(t_s))
+        self._v.append([float(v) for v in values])
+        self.count += 1
+        while self._t and self._t[0] < self._t[-1] - self.window_s:
+            self._t.popleft()
+            self._v.popleft()
+
+    def render(self) -> str:
+        """One line: time, each signal latest [min..max] unit, sparkline of the first signal."""
+        if not self._t:
+            return "(no telemetry yet)"
+        parts = [f"t {self._t[-1]:8.3f} s"]
+        cols = list(zip(*self._v))
+        for (name, unit), col in zip(self.signals, cols):
+            u = f" {unit}" if unit and unit != "1" else ""
+            parts.append(f"{name} {_num(col[-1])}{u} [{_num(min(col))}..{_num(max(col))}]")
+        if cols:
+            parts.append(sparkline(cols[0], self.spark_width, self.ascii_only))
+        return " | ".join(parts)
