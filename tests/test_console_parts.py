@@ -140,7 +140,7 @@ def test_sparkline_and_text_view():
     for k in range(3000):
         tv.feed(k / 1000, [float(k), 0.5])
     line = tv.render()
-    assert line.startswith("t    2.999 s | speed_rpm 2999 rpm [1999..2999] | current_a 0.500 A [0.500..0.500]")
+    assert line.startswith("t    2.999 s | speed_rpm 2999 rpm [1999..2999] | current_a 0.5 A [0.5..0.5] | ")
 
 
 def test_live_plot_process_renders_png(tmp_path):
