@@ -439,6 +439,7 @@ OPTIONS: dict[str, str] = {
     "integral_weight_rad_s": "weight of the speed-error integral in z (tracking variants)",
     "solver": f"cvxpy solver (default {DEFAULT_SOLVER})",
     "simulate": "run the nonlinear verification simulation (default true)",
+    "setpoint_weight": "six-step: law's b (default 0 if the integrator headroom allows, else 1)",
     "zero_gain_states": "six-step: states with zero gain (default [2], i_d; [0, 1, 2] is integral-only)",
 }
 
@@ -468,7 +469,36 @@ def default_pole_disk(profile, ts) -> float:
     return max(math.pi / (2.0 * ts_s), 1.25 * plant)
 
 
-def _law_from_gains(profile, ts, K) -> "ScheduledLaw":
+def integrator_headroom(profile, rules, b: float) -> tuple[float, str]:
+    """Smallest ``u_max - I*`` over the operating region, V, and where.
+
+    At an equilibrium the law's integrator holds ``I* = u* + kp (1 - b) w* +
+    kc i*``; law_step clamps it to ``[u_min, u_max]``, so ``I* > u_max`` means
+    the drive never reaches the setpoint.  Checked at the top speed and at
+    standstill, with and without the load, blended gains.
+    """
+    from .control_law import Rule, ScheduledLaw
+    from .dqmodel import dq_params, equilibrium
+    from .tsfuzzy import operating_region
+    p = dq_params(profile)
+    reg = operating_region(profile)
+    law = ScheduledLaw(rules=tuple(rules), premise_rad_s=tuple(reg.get("premise_rad_s", (0.0, 1.0)))
+                       if False else (0.0, max(reg["omega_top_rad_s"], 1.0)), sample_time_s=1.0,
+                       u_min_v=-1.0, u_max_v=1.0) if len(rules) == 1 else None
+    worst, where = math.inf, ""
+    for w in (0.0, reg["omega_top_rad_s"]):
+        for load in (0.0, reg["load_n_m"]):
+            iq, id_, vq = equilibrium(p, w, load)
+            u = vq / p.kv_vq_per_u
+            for g in rules:
+                I = u + g.kp * (1.0 - b) * w + g.kc * p.ki_ibus_per_iq * iq
+                room = reg["u_max_v"] - I
+                if room < worst:
+                    worst, where = room, f"{w * 60 / (2 * math.pi):.0f} rpm, load {load:g} N m"
+    return worst, where
+
+
+def _law_from_gains(profile, ts, K, setpoint_weight: float | None = None) -> "ScheduledLaw":
     """Six-step gains ``u = K [d_omega, d_i_q, d_i_d, d_z]`` -> the firmware's law.
 
     ``u = K_w w + K_iq i_q + K_z z`` with ``i_bus = k_i i_q`` is the law's
@@ -486,10 +516,18 @@ def _law_from_gains(profile, ts, K) -> "ScheduledLaw":
             raise FuzzyHinfError(f"six-step gain has a nonzero i_d weight {k[2]:g}: the structure constraint failed")
         rules.append(Rule(kp=float(-k[0]), ki=float(k[3]), kd=0.0, kc=float(-k[1] / p.ki_ibus_per_iq)))
     u_max = profile.inverter.bus_voltage_v * profile.max_duty()
+    if setpoint_weight is None:
+        # b = 0 is the designed state feedback u = -kp w - kc i + int ki e; b only moves the zero of
+        # the reference response (the certified loop w -> z is the same).  law_step clamps the
+        # integrator to the output limits, so b = 0 needs u* + kp w* + kc i* <= u_max; use b = 1
+        # (the P term then carries kp (r - w), zero at equilibrium) when b = 0 does not fit.
+        room0, _ = integrator_headroom(profile, rules, 0.0)
+        setpoint_weight = 0.0 if room0 >= 0 else 1.0
+    b = float(setpoint_weight)
     return ScheduledLaw(rules=tuple(rules), premise_rad_s=tuple(ts.premise_rad_s),
                         sample_time_s=1.0 / profile.control.speed_loop_hz, u_min_v=-u_max, u_max_v=u_max,
-                        setpoint_weight=0.0, derivative_filter_hz=None,
-                        notes="fuzzy-hinf six-step: u = -kp w - kc i_bus + int ki (r - w) per rule (b = 0)")
+                        setpoint_weight=b, derivative_filter_hz=None,
+                        notes=f"fuzzy-hinf six-step: u = kp ({b:g} r - w) - kc i_bus + int ki (r - w) per rule")
 
 
 def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: float | None = None, **options):
@@ -556,7 +594,17 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
     cert.pop("ellipsoid_P", None)
     res.certificate = cert
     if variant == "six-step":
-        res.law = _law_from_gains(profile, ts, sol.K)
+        sw = options.get("setpoint_weight")
+        res.law = _law_from_gains(profile, ts, sol.K, None if sw is None else float(sw))
+        room, where = integrator_headroom(profile, res.law.rules, res.law.setpoint_weight)
+        res.certificate["integrator_headroom_v"] = room
+        res.verification["integrator_headroom_v"] = {
+            "value": room, "limit": 0.0, "ok": bool(room >= 0.0), "unit": "V",
+            "note": f"u_max - (u* + kp (1-b) w* + kc i*) at the worst equilibrium ({where}); b = "
+                    f"{res.law.setpoint_weight:g}"}
+        if room < 0:
+            res.fail(f"verification 'integrator_headroom_v' failed: the law's integrator would need {-room:.3g} V "
+                     f"more than u_max at {where} (law_step clamps it to the output limits)")
     elif variant == "tracking":
         res.certificate["why_no_law"] = ("two inputs (v_q, v_d) and full dq state feedback: needs a field-oriented "
                                          "drive; the six-step firmware commands one voltage and measures speed and "
