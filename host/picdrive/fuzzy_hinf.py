@@ -221,10 +221,11 @@ class _Problem:
     """
 
     def __init__(self, ts, delta, alpha, rho, *, zero_gain_states=(), input_bound=None, pole_disk_rad_s=None,
-                 margin=1e-7, solver=DEFAULT_SOLVER, state_scale=None, input_scale=None):
+                 margin=1e-7, solver=DEFAULT_SOLVER, state_scale=None, input_scale=None, fixed_gamma=False):
         import cvxpy as cp
         self.cp, self.ts, self.solver = cp, ts, solver
         self.delta = None if delta is None else float(delta)
+        self.fixed_gamma = bool(fixed_gamma) or self.delta is not None
         self.alpha, self.rho = float(alpha), float(ts.rho if rho is None else rho)
         n, m, r = ts.n, ts.m, ts.r
         sx = np.asarray(state_scale if state_scale is not None else ts.info.get("state_scale", np.ones(n)), float)
@@ -260,7 +261,11 @@ class _Problem:
         else:
             self.tau = cp.Variable(pos=True)
             cons.append(self.tau >= eps)
-            if self.bounded:
+            if self.fixed_gamma and not self.bounded:
+                self.gamma = cp.Parameter(pos=True, value=1.0)
+                g_w = g_z = self.gamma
+                objective = cp.Minimize(0)
+            elif self.bounded:
                 self.g_w, self.g_z = cp.Variable(pos=True), cp.Variable(pos=True)
                 g_w, g_z = self.g_w, self.g_z
                 objective = cp.Minimize(g_w + g_z)
@@ -310,7 +315,7 @@ class _Problem:
     def solve(self, gamma: float | None = None) -> Theorem1Solution:
         """Solve (``gamma`` is required in the paper's form and ignored otherwise)."""
         cp, ts = self.cp, self.ts
-        if self.delta is not None:
+        if self.fixed_gamma:
             self.gamma.value = float(gamma)
         t0 = time.perf_counter()
         try:
@@ -319,7 +324,7 @@ class _Problem:
         except cp.error.SolverError as e:
             status = f"solver error: {e}"
         dt = time.perf_counter() - t0
-        g0 = float(gamma) if self.delta is not None else math.nan
+        g0 = float(gamma) if self.fixed_gamma else math.nan
         sol = Theorem1Solution(False, str(status), g0, self.delta if self.delta is not None else math.nan,
                                self.alpha, self.rho, solve_time_s=dt)
         if status not in ("optimal", "optimal_inaccurate"):
@@ -338,7 +343,7 @@ class _Problem:
                 sol.extra.update(gamma_w=gw, gamma_z=gz, ellipsoid_scale=t,
                                  ellipsoid_P=np.asarray(self.P.value, float))
             else:
-                t, g = 1.0, float(self.gamma.value)
+                t, g = 1.0, (float(gamma) if self.fixed_gamma else float(self.gamma.value))
             sol.gamma = g
             sol.delta = math.sqrt(g * tau * t)
             sol.extra["tau"] = tau
@@ -362,14 +367,8 @@ def solve_theorem1(ts, gamma: float, delta: float | None = 1.0, alpha: float = 2
     (``max_eig < 0``).  ``delta=None`` searches the best delta for this gamma
     (free S-procedure multiplier; the gamma is then fixed by a constraint).
     """
-    if delta is None:
-        pr = _Problem(ts, None, alpha, rho, zero_gain_states=tuple(zero_gain_states),
-                      pole_disk_rad_s=pole_disk_rad_s, solver=solver)
-        pr.prob = pr.cp.Problem(pr.cp.Minimize(0), pr.prob.constraints + [pr.gamma == float(gamma)])
-        s = pr.solve()
-        return s
     pr = _Problem(ts, delta, alpha, rho, zero_gain_states=tuple(zero_gain_states),
-                  pole_disk_rad_s=pole_disk_rad_s, solver=solver)
+                  pole_disk_rad_s=pole_disk_rad_s, solver=solver, fixed_gamma=True)
     return pr.solve(gamma)
 
 
@@ -387,16 +386,22 @@ def minimise_gamma(ts, delta: float | None = None, alpha: float = 2.0, rho: floa
     ``gamma_infeasible`` (the largest gamma found infeasible) and ``n_solves``.
     """
     t0 = time.perf_counter()
+    n_solves = 0
     if delta is None:
         pr = _Problem(ts, None, alpha, rho, zero_gain_states=tuple(zero_gain_states), input_bound=input_bound,
                       pole_disk_rad_s=pole_disk_rad_s, solver=solver)
         s = pr.solve()
-        s.extra.update(n_solves=1, bisection_time_s=time.perf_counter() - t0)
-        return s
+        n_solves += 1
+        if input_bound is not None or not s.feasible:
+            s.extra.update(n_solves=n_solves, bisection_time_s=time.perf_counter() - t0)
+            return s
+        # the SDP optimum is often not attained (gains grow without bound towards the infimum) and
+        # interior-point solvers stop early there; refine by bisection on fixed-gamma feasibility
+        gamma_hi = s.gamma
     pr = _Problem(ts, delta, alpha, rho, zero_gain_states=tuple(zero_gain_states),
-                  pole_disk_rad_s=pole_disk_rad_s, solver=solver)
-    n_solves = 1
+                  pole_disk_rad_s=pole_disk_rad_s, solver=solver, fixed_gamma=True)
     hi = pr.solve(gamma_hi)
+    n_solves += 1
     if not hi.feasible:
         hi.extra.update(n_solves=n_solves, gamma_infeasible=gamma_hi, bisection_time_s=time.perf_counter() - t0)
         return hi

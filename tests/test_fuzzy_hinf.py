@@ -1,0 +1,105 @@
+"""Theorem 1 (LMIs 12-15 as derived from the proof), gamma minimisation, the paper's printed numbers."""
+import warnings
+
+import numpy as np
+import pytest
+
+from picdrive.fuzzy_hinf import (assemble_xi, certified_gain, lmi_margins, minimise_gamma, solve_theorem1)
+from picdrive.profile import load_profile
+from picdrive.repro2016 import PRINTED, paper_as_printed_model, printed_checks
+from picdrive.tsfuzzy import paper_model
+from picdrive.verify import hinf_norm
+
+
+@pytest.fixture(scope="module", params=["assawinchaichote2016", "duy2008"])
+def prof(request):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return load_profile(request.param)
+
+
+@pytest.fixture(scope="module")
+def gmin(prof):
+    ts = paper_model(prof)
+    return ts, minimise_gamma(ts, delta=None)
+
+
+def _all_xi(ts, s):
+    for i in range(ts.r):
+        yield assemble_xi(ts, s.P, s.Y, i, i, s.gamma, s.delta, s.alpha, s.rho)
+        for j in range(i + 1, ts.r):
+            yield (assemble_xi(ts, s.P, s.Y, i, j, s.gamma, s.delta, s.alpha, s.rho)
+                   + assemble_xi(ts, s.P, s.Y, j, i, s.gamma, s.delta, s.alpha, s.rho))
+
+
+def test_solution_satisfies_assembled_inequality(gmin):
+    ts, s = gmin
+    assert s.feasible
+    assert np.linalg.eigvalsh(s.P).min() > 0
+    # the inequality in the paper's form (unscaled), assembled block by block
+    for X in _all_xi(ts, s):
+        assert np.allclose(X, X.T)
+        assert np.linalg.eigvalsh(X).max() < 0
+    for k, y in zip(s.K, s.Y):
+        assert k == pytest.approx(y @ np.linalg.inv(s.P))
+
+
+def test_gains_stabilise_every_vertex_and_meet_the_bound(gmin):
+    ts, s = gmin
+    for i in range(ts.r):
+        for j in range(ts.r):
+            for f in (-1.0, 0.0, 1.0):              # R at -10 %, nominal, +10 %
+                Acl = ts.A[i] + f * ts.H1[i] + ts.B[i] @ s.K[j]
+                assert np.linalg.eigvals(Acl).real.max() < 0
+        h, _ = hinf_norm(ts.A[i] + ts.B[i] @ s.K[i], ts.Bw, ts.C[i])
+        assert h <= certified_gain(ts, s.gamma, s.alpha)
+
+
+def test_gamma_min_is_tight(gmin):
+    ts, s = gmin
+    assert solve_theorem1(ts, 1.05 * s.gamma, delta=None).feasible
+    assert not solve_theorem1(ts, 0.9 * s.gamma, delta=None).feasible
+
+
+def test_paper_form_bisection_brackets_the_minimum(prof):
+    ts = paper_model(prof)
+    s = minimise_gamma(ts, delta=float(prof.design.get("delta", 1.0)) * 1e3, gamma_hi=1e4, rel_tol=0.05)
+    assert s.feasible
+    g_bad = s.extra["gamma_infeasible"]
+    assert g_bad is not None and s.gamma / g_bad <= 1.05 + 1e-9
+    assert not solve_theorem1(ts, g_bad, delta=s.delta).feasible
+    assert solve_theorem1(ts, s.gamma, delta=s.delta).feasible
+
+
+def test_paper_parameters_are_infeasible_on_the_corrected_model(prof):
+    # gamma = delta = 1, alpha = 2 (the paper's choice) -- see docs/design-fuzzy.md
+    s = solve_theorem1(paper_model(prof), 1.0, delta=1.0, alpha=2.0)
+    assert not s.feasible
+
+
+def test_printed_P_cannot_satisfy_theorem1_and_printed_K_is_unstable():
+    ts = paper_as_printed_model()
+    c = printed_checks(ts)
+    # row 1 of B_i is zero, so Psi_1ij(1,1) = 2 (A_i P)_11 = 2(-B/J 0.2987 + 311 x 0.0041) > 0 for every Y_j
+    assert c["psi1_11"] > 0
+    assert max(c["lmi_margins"][k] for k in c["lmi_margins"] if k.startswith("Xi")) > 0
+    # the printed K is not Y P^-1 of the printed Y, P ...
+    assert c["K_from_Y_max_abs_diff"] > 0.2
+    # ... and neither stabilises any vertex (u = K x, the paper's sign)
+    assert c["max_real_eig_printed_K"] > 0
+    assert c["max_real_eig_Y_P_inv"] > 0
+    # but Theorem 1 itself does have solutions for the printed model (with delta optimised)
+    s = minimise_gamma(ts, delta=None)
+    assert s.feasible and all(np.linalg.eigvals(ts.A[i] + ts.B[i] @ s.K[j]).real.max() < 0
+                              for i in range(2) for j in range(2))
+
+
+def test_hinf_norm_against_frequency_sweep():
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(4, 4)) - 4 * np.eye(4)
+    B, C = rng.normal(size=(4, 2)), rng.normal(size=(3, 4))
+    h, w = hinf_norm(A, B, C)
+    ws = np.logspace(-3, 3, 20000)
+    sweep = max(np.linalg.svd(C @ np.linalg.solve(1j * x * np.eye(4) - A, B), compute_uv=False)[0] for x in ws)
+    assert sweep <= h * (1 + 1e-5) and h <= sweep * 1.001
+    assert hinf_norm(np.diag([1.0, -1.0]), np.ones((2, 1)), np.ones((1, 2)))[0] == np.inf
