@@ -456,6 +456,9 @@ def model_for(profile, model: str, options: dict | None = None):
     kw = {k: o[k] for k in ("rules", "resistance_uncertainty", "rho") if o.get(k) is not None}
     if model == "paper":
         return paper_model(profile, **kw)
+    if model == "paper-as-printed":
+        from .repro2016 import paper_as_printed_model
+        return paper_as_printed_model()
     if model in ("tracking-dq", "tracking-six-step"):
         if o.get("integral_weight_rad_s") is not None:
             kw["integral_weight_rad_s"] = o["integral_weight_rad_s"]
