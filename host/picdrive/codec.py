@@ -28,7 +28,7 @@ from .protocol import ProtocolError
 
 __all__ = [
     "crc16", "Frame", "encode_frame", "StreamDecoder", "encode_command", "decode_reply",
-    "decode_nack", "decode_event", "decode_telemetry", "telemetry_payload_len", "eeprom_image",
+    "reply_payload", "command_payload", "decode_nack", "decode_event", "decode_telemetry", "telemetry_payload_len", "eeprom_image",
     "parse_eeprom_image", "decode_param_info",
 ]
 
@@ -204,6 +204,23 @@ def encode_command(cmd: str | P.Command, seq: int, args: Mapping[str, Any] | Non
     """Frame bytes of a command."""
     c = _command(cmd)
     return encode_frame(c.code, seq, command_payload(c, args))
+
+
+def reply_payload(cmd: str | P.Command, fields: Mapping[str, Any] | None = None) -> bytes:
+    """ACK payload of a command from its named reply fields (the inverse of :func:`decode_reply`)."""
+    c = _command(cmd)
+    fields = dict(fields or {})
+    try:
+        out = struct.pack(_fmt(c.reply), *(fields.pop(f.name) for f in c.reply))
+        if c.reply_tail is not None:
+            t = c.reply_tail
+            items = fields.pop(t.name)
+            out += items.encode("ascii") if t.fmt == "s" else struct.pack("<" + t.fmt * len(items), *items)
+    except KeyError as e:
+        raise ProtocolError(f"{c.name} reply: field {e.args[0]!r} missing") from None
+    if fields:
+        raise ProtocolError(f"{c.name} reply: unexpected field(s) {', '.join(fields)}")
+    return out
 
 
 def decode_reply(cmd: str | P.Command, payload: bytes) -> dict[str, Any]:

@@ -214,6 +214,7 @@ uint8_t peer_boot(uint32_t baud, uint32_t hz, uint16_t txq_bytes)
         link_event(LINK_EVENT_FAULT, LINK_FAULT_EEPROM_CRC);
     }
     n_param_changed = 0u;
+    link_poll();                      /* the main loop's first pass */
     return r;
 }
 
