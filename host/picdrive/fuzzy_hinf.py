@@ -581,6 +581,26 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
     else:
         sol = solve_theorem1(ts, float(gamma), delta=delta, alpha=alpha, rho=rho, zero_gain_states=zero,
                              pole_disk_rad_s=disk, solver=solver)
+    gamma_search = []
+    if variant == "six-step" and gamma is None and sol.feasible:
+        # The minimal-gamma point has large kp, kc; law_step clamps the integrator to the output
+        # limits, so with b = 0 the law needs u* + kp w* + kc i* <= u_max.  Relax gamma on a x2 grid
+        # (the solver's point at a larger gamma has smaller gains) until the law fits.
+        sw = options.get("setpoint_weight")
+        b = 0.0 if sw is None else float(sw)
+        g = sol.gamma
+        for _ in range(16):
+            rules = _law_from_gains(profile, ts, sol.K, b).rules
+            room, _w = integrator_headroom(profile, rules, b)
+            gamma_search.append({"gamma": sol.gamma, "integrator_headroom_v": room})
+            if room >= 0:
+                break
+            g *= 2.0
+            s2 = solve_theorem1(ts, g, delta=None, alpha=alpha, rho=rho, zero_gain_states=zero,
+                                pole_disk_rad_s=disk, solver=solver)
+            if not s2.feasible:
+                break
+            sol = s2
     t_lmi = _t.perf_counter() - t1
     res = DesignResult(method="fuzzy-hinf", variant=variant, status="verified", profile_name=profile.name,
                        profile_sha256=profile.sha256, law=None,
@@ -600,6 +620,8 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
                 pole_disk_rad_s=disk, premise_rad_s=list(ts.premise_rad_s),
                 state_names=list(ts.state_names), input_names=list(ts.input_names))
     cert.pop("ellipsoid_P", None)
+    if gamma_search:
+        cert["gamma_search"] = gamma_search
     res.certificate = cert
     if variant == "six-step":
         sw = options.get("setpoint_weight")
