@@ -1,0 +1,170 @@
+"""Fixed-point plan, the Python model by hand, bit-exactness against the compiled C,
+and the fixed-point loop against the float law in closed loop.
+
+The laws here are TEST FIXTURES (hand-picked gains for the duy2008 motor), not
+designs from picdrive.design: they exercise the formats, the shifts (both
+signs), one to three rules, the derivative filter, current feedback and both
+speed sources.
+"""
+import math
+import re
+import shutil
+
+import pytest
+
+from picdrive import codegen, fixedpoint as fx, pcpwm
+from picdrive.control_law import LawState, Rule, ScheduledLaw, law_step
+from picdrive.profile import load_profile
+from picdrive.result import DesignResult, save_design
+
+RPM = math.pi / 30
+PROFILE = load_profile("duy2008")
+HALL_PROFILE = PROFILE.replace(sensors={"encoder_lines": 0, "speed_source": "hall"})
+
+
+def fixture_law(kind: str) -> ScheduledLaw:
+    base = dict(premise_rad_s=(0.0, 2600 * RPM), sample_time_s=1e-3, u_min_v=-44.16, u_max_v=44.16)
+    if kind == "fuzzy2":
+        return ScheduledLaw(rules=(Rule(0.5, 20.0, 0.001), Rule(0.3, 10.0, 0.0005)), **base)
+    if kind == "pid1-big":      # kp large enough for a negative (left, saturating) shift
+        return ScheduledLaw(rules=(Rule(5000.0, 40.0, 0.02),), **base)
+    if kind == "fuzzy3-filter":
+        return ScheduledLaw(rules=(Rule(0.4, 15.0, 0.002, 2.0), Rule(0.3, 10.0, 0.001, 1.0),
+                                   Rule(0.2, 6.0, 0.0005, 0.5)), derivative_filter_hz=200.0,
+                            setpoint_weight=0.6, **base)
+    if kind == "pi1":
+        return ScheduledLaw(rules=(Rule(0.2, 5.0),), **base)
+    raise ValueError(kind)
+
+
+def make_firmware(tmp_path, kind: str, profile=PROFILE):
+    law = fixture_law(kind)
+    d = DesignResult(method="zn", status="verified", profile_name=profile.name, profile_sha256=profile.sha256,
+                     law=law, variant="test-fixture")
+    dp = save_design(d, tmp_path / f"{kind}.design.json")
+    fw = codegen.generate(profile, dp)
+    out = codegen.write_firmware(fw, tmp_path / f"fw-{kind}", check=False)
+    return fw, out
+
+
+# ---------------------------------------------------------------------------
+def test_plan_formats_and_quantisation_report():
+    law = fixture_law("fuzzy2")
+    plan = fx.plan_fixed_point(PROFILE, law, pcpwm.plan_pwm(PROFILE))
+    # speed: 2600 rpm = 272 rad/s with 25 % headroom -> +-512 rad/s -> Q6
+    assert plan.qs == 6 and 32768 * 2 ** -plan.qs >= 1.25 * 2600 * RPM
+    # voltage: +-44.16 V with 2x headroom -> +-128 V -> Q8; integrator 16 bits finer
+    assert plan.qu == 8 and plan.qi == 24
+    assert plan.kp == (8192, 4915) and plan.q_kp == 14
+    assert plan.shift_p == plan.q_kp + plan.qs - plan.qu
+    for c in plan.coefs:
+        assert c.rel_error < 1e-3, c
+    text = "\n".join(plan.lines())
+    assert "rule2_kp" in text and "error" in text and "QEI velocity mode" in text
+    assert plan.loop_hz == 1000.0 and plan.t2_pre * (plan.pr2 + 1) * plan.t2_post * plan.loop_div == 10000
+
+
+def test_refuses_what_cannot_be_represented():
+    pwm = pcpwm.plan_pwm(PROFILE)
+    base = dict(premise_rad_s=(0.0, 272.0), sample_time_s=1e-3, u_min_v=-44.0, u_max_v=44.0)
+    with pytest.raises(fx.FixedPointError, match=r"rule 2 kp = 0.0001 .* cannot be represented.*error"):
+        fx.plan_fixed_point(PROFILE, ScheduledLaw(rules=(Rule(100.0, 1.0), Rule(1e-4, 1.0)), **base), pwm)
+    with pytest.raises(fx.FixedPointError, match="too small to act"):
+        fx.plan_fixed_point(PROFILE, ScheduledLaw(rules=(Rule(1.0, 1e-14),), **base), pwm)
+    with pytest.raises(fx.FixedPointError, match="too large"):
+        fx.plan_fixed_point(PROFILE, ScheduledLaw(rules=(Rule(1e9, 1.0),), **base), pwm)
+    with pytest.raises(fx.FixedPointError, match="setpoint weight b = 2.5"):
+        fx.plan_fixed_point(PROFILE, ScheduledLaw(rules=(Rule(1.0, 1.0),), setpoint_weight=2.5, **base), pwm)
+    with pytest.raises(fx.FixedPointError, match="re-run 'picdrive design'"):
+        fx.plan_fixed_point(PROFILE, ScheduledLaw(rules=(Rule(1.0, 1.0),), **{**base, "sample_time_s": 5e-4}), pwm)
+
+
+def test_model_against_a_hand_computed_sample_and_the_float_law():
+    law = fixture_law("fuzzy2")
+    plan = fx.plan_fixed_point(PROFILE, law, pcpwm.plan_pwm(PROFILE))
+    p = fx.law_params_from_plan(plan)
+    p.controller = 0                         # rule 1 only: kp 0.5, ki 20, kd 0.001
+    st = fx.LawState()
+    r = plan.to_speed_raw(10.0)              # 640 = 10 rad/s in Q6
+    assert r == 640
+    u = fx.law_step(plan, p, st, r, 0, 0, plan.u_min, plan.u_max)
+    # P = 8192 * 640 >> 12 = 1280 (5 V); I = 10486 * 640 >> 1 = 3355520 (Q24), >> 16 = 51; D = 0 (first sample)
+    assert st.integ == 3355520 and u == 1280 + 51
+    f = law_step(ScheduledLaw(rules=(law.rules[0],), premise_rad_s=law.premise_rad_s, sample_time_s=1e-3,
+                              u_min_v=-44.16, u_max_v=44.16), LawState(), 10.0, 0.0)
+    assert abs(u / 256 - f) < 2 / 256       # 5.2 V
+    # memberships at half the premise: mu1 = 0.5, gains blended
+    p.controller = 1
+    st = fx.LawState()
+    y = (plan.premise_lo + plan.premise_hi) // 2
+    fx.law_step(plan, p, st, y, y, 0, plan.u_min, plan.u_max)
+    assert abs(st.mu1 - 2048) <= 1
+
+
+def test_integer_primitives():
+    assert fx.asr32(-1, 1) == -1 and fx.asr32(-2, 1) == -1 and fx.asr32(5, 1) == 2
+    assert fx.shl_sat32(1 << 30, 1) == fx.INT32_MAX and fx.shl_sat32(-(1 << 30), 1) == fx.INT32_MIN
+    assert fx.mul_q15(-32768, 32768) == -32768 and fx.mul_q15(fx.INT32_MIN, 32768) == fx.INT32_MIN
+    assert fx.premise_k(0, 17425, 2, 14) == (1 << 26) // 17425 and fx.premise_k(5, 5, 2, 14) == 0xFFFF
+
+
+def _bit_exact(tmp_path, kind, n, profile=PROFILE, seed=0):
+    fw, out = make_firmware(tmp_path, kind, profile)
+    lib = fx.build_core_lib(out, tmp_path / f"lib-{kind}")
+    res = fx.compare_with_c(fw.plan, lib, n, seed=seed)
+    return fw, res
+
+
+@pytest.mark.parametrize("kind,profile", [("fuzzy2", PROFILE), ("pid1-big", PROFILE),
+                                          ("fuzzy3-filter", HALL_PROFILE)])
+def test_c_matches_python_model_bit_for_bit(tmp_path, kind, profile):
+    fw, res = _bit_exact(tmp_path, kind, 4000, profile)
+    if kind == "pid1-big":
+        assert fw.plan.shift_p < 0            # the saturating left-shift path is exercised
+    if kind == "fuzzy3-filter":
+        assert fw.plan.dfilt_a > 0 and fw.plan.speed_source == "hall" and any(fw.plan.kc)
+    for name, r in res.items():
+        assert r["mismatches"] == 0, (name, r["first"])
+    assert res["total"]["vectors"] == 5 * 4000
+
+
+def test_the_comparison_catches_a_one_lsb_change(tmp_path):
+    fw, out = make_firmware(tmp_path, "fuzzy2")
+    src = (out / "drive_core.c").read_text()
+    bad = src.replace("return (int16_t)core_asr32(v, 12u);", "return (int16_t)core_asr32(v + 1, 12u);")
+    assert bad != src
+    (out / "drive_core.c").write_text(bad)
+    lib = fx.build_core_lib(out, tmp_path / "lib-bad")
+    res = fx.compare_with_c(fw.plan, lib, 2000, seed=3)
+    assert res["law"]["mismatches"] > 0 and res["premise_k"]["mismatches"] == 0
+
+
+@pytest.mark.slow
+def test_c_matches_python_model_on_1e5_vectors(tmp_path):
+    fw, res = _bit_exact(tmp_path, "fuzzy2", 100_000, seed=11)
+    assert res["total"]["mismatches"] == 0, res["total"]["first"]
+
+
+@pytest.mark.parametrize("kind", ["fuzzy2", "pi1"])
+def test_fixed_point_loop_follows_the_float_law(kind):
+    law = fixture_law(kind)
+    plan = fx.plan_fixed_point(PROFILE, law, pcpwm.plan_pwm(PROFILE))
+    r = fx.closed_loop_compare(PROFILE, law, plan, t_end_s=0.6)
+    assert r["rms_dev"] <= 0.005, r["rms_dev"]
+    # and the loop really ran: the float law reaches the setpoint, the load step happened
+    assert abs(r["w_float"][-1] - r["setpoint_rad_s"]) < 0.01 * r["setpoint_rad_s"]
+    assert r["w_fixed"].max() > 0.9 * r["setpoint_rad_s"]
+
+
+def test_param_and_signal_scales():
+    plan = fx.plan_fixed_point(PROFILE, fixture_law("fuzzy2"), pcpwm.plan_pwm(PROFILE))
+    ps = fx.param_specs(plan, PROFILE)
+    assert ps["rule1_kp"].to_eng(ps["rule1_kp"].default_raw) == pytest.approx(0.5)
+    assert ps["rule1_ki"].to_eng(ps["rule1_ki"].default_raw) == pytest.approx(20.0, rel=1e-4)
+    assert ps["rule2_kd"].to_eng(ps["rule2_kd"].default_raw) == pytest.approx(0.0005, rel=1e-4)
+    assert ps["speed_setpoint"].to_raw(2400.0) == plan.to_speed_raw(2400 * RPM) or \
+        abs(ps["speed_setpoint"].to_raw(2400.0) - plan.to_speed_raw(2400 * RPM)) <= 1
+    assert ps["speed_setpoint"].to_raw(1e6) == ps["speed_setpoint"].max_raw     # clamped to the limit
+    assert ps["u_max"].to_eng(ps["u_max"].max_raw) <= PROFILE.inverter.bus_voltage_v * PROFILE.max_duty()
+    sg = fx.signal_specs(plan)
+    assert sg["voltage"].scale == 2 ** -plan.qu and sg["mu1"].scale == 1 / 4096
