@@ -241,7 +241,10 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
         _d("FW_TCY_PER_TICK_MOD", f"{plan.tcy_per_tick % 10000}u", "and the remainder, accumulated"),
     ]})
     S.append({"title": "ADC (bus current AN0, bus voltage AN1)", "defines": [
-        _d("FW_ADCON2", "0x96u", "ADFM right-justified, ACQT = 0010 (4 TAD), ADCS = 110 (Fosc/64, TAD 1.6 us)"),
+        _d("FW_ADCON2", "0x92u", "ADFM right-justified, ACQT = 0010 (4 TAD), ADCS = 010 (Fosc/32, TAD 0.8 us): "
+           "a conversion takes 4 + 12 TAD = 12.8 us"),
+        _d("FW_ADC_POLLS", "200u", "GO_DONE polls before a conversion is given up (> 12.8 us at >= 4 cycles a poll)"),
+        _d("FW_EE_POLLS", "60000u", "EECON1.WR polls before an EEPROM write is given up (> 4 ms)"),
         _d("FW_ADCON0_CUR", "0x01u", "ADON, single shot, single channel, group A (AN0)"),
         _d("FW_ADCON0_BUS", "0x05u", "ADON, single shot, single channel, group B (AN1)"),
         _d("FW_ADC_TRIP", f"{plan.itrip}u", f"inverter.overcurrent_trip_a = {inv.overcurrent_trip_a:g} A x "
