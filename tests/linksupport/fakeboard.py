@@ -224,8 +224,8 @@ class FakeBoard:
     def _serve_loop(self, speed: float) -> None:
         conn: socket.socket | None = None
         t0 = time.perf_counter()
-        sim0 = self.now_s
-        max_step = 0.02
+        sim0_ns = self.lib.peer_now_ns()
+        max_step_ns = 20_000_000
         try:
             while not self._stop.is_set():
                 socks = [self._lsock] + ([conn] if conn is not None else [])
@@ -253,12 +253,12 @@ class FakeBoard:
                     elif data:
                         self.peer_rx_bytes += len(data)
                         self.rx(data)
-                target = sim0 + (time.perf_counter() - t0) * speed
+                target_ns = sim0_ns + int((time.perf_counter() - t0) * speed * 1e9)
                 while True:
-                    dt = target - self.now_s
-                    if dt <= 0:
+                    dt_ns = target_ns - self.lib.peer_now_ns()
+                    if dt_ns <= 0:
                         break
-                    out = self.advance(min(dt, max_step))
+                    out = self.advance(min(dt_ns, max_step_ns) / 1e9)
                     if out and conn is not None:
                         try:
                             conn.setblocking(True)

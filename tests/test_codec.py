@@ -1,0 +1,235 @@
+"""The Python codec: properties (Hypothesis) and the error paths."""
+import binascii
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from picdrive import codec, protocol as P
+from picdrive.protocol import ProtocolError
+
+TABLE = P.build_table(2)
+SETTINGS = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+payloads = st.binary(max_size=P.MAX_PAYLOAD)
+bytes8 = st.integers(0, 255)
+frames = st.builds(codec.Frame, bytes8, bytes8, payloads)
+
+
+def reference(stream: bytes, gaps: set[int]) -> list[codec.Frame]:
+    """Whole-array statement of the rule: at each SOF, a candidate of LEN + 6 bytes that lies
+    in the stream, crosses no gap (a gap sits before byte index g) and has a good CRC is a
+    frame (skip it); otherwise skip one byte."""
+    out, i, n = [], 0, len(stream)
+    while i < n:
+        if stream[i] != P.SOF:
+            i += 1
+            continue
+        if i + 1 >= n or (i + 1) in gaps or stream[i + 1] > P.MAX_PAYLOAD:
+            i += 1
+            continue
+        need = stream[i + 1] + 6
+        if i + need > n or any(g in gaps for g in range(i + 1, i + need)):
+            i += 1
+            continue
+        body = stream[i + 1:i + need - 2]
+        if binascii.crc_hqx(body, 0xFFFF) != struct.unpack(">H", stream[i + need - 2:i + need])[0]:
+            i += 1
+            continue
+        out.append(codec.Frame(stream[i + 2], stream[i + 3], bytes(stream[i + 4:i + need - 2])))
+        i += need
+    return out
+
+
+def stream_decode(stream: bytes, cuts: list[int], gaps: set[int]) -> list[codec.Frame]:
+    d = codec.StreamDecoder()
+    out = []
+    bounds = sorted(set(c for c in cuts if 0 < c < len(stream)) | set(g for g in gaps if 0 < g < len(stream)))
+    prev = 0
+    for b in bounds + [len(stream)]:
+        if prev in gaps and prev > 0:
+            out += d.gap()
+        out += d.feed(stream[prev:b])
+        prev = b
+    out += d.gap()                       # the end of the stream is a gap
+    return out
+
+
+@SETTINGS
+@given(frames)
+def test_frame_round_trip(f):
+    data = f.encode()
+    assert len(data) == len(f.payload) + P.FRAME_OVERHEAD and data[0] == P.SOF and data[1] == len(f.payload)
+    assert codec.StreamDecoder().feed(data) == [f]
+
+
+# streams built from frames, corrupted frames and garbage that is rich in SOF and LEN bytes
+garbage = st.lists(st.one_of(st.just(P.SOF), st.integers(0, P.MAX_PAYLOAD + 5), bytes8), max_size=60).map(bytes)
+
+
+@st.composite
+def streams(draw):
+    parts = draw(st.lists(st.one_of(
+        frames.map(lambda f: f.encode()),
+        st.tuples(frames, st.integers(1, 10_000)).map(lambda t: t[0].encode()[:max(1, t[1] % len(t[0].encode()))]),
+        st.tuples(frames, st.integers(0, 10_000)).map(
+            lambda t: (lambda b, k: b[:k] + bytes([b[k] ^ 0x10]) + b[k + 1:])(t[0].encode(), t[1] % len(t[0].encode()))),
+        garbage), max_size=12))
+    s = b"".join(parts)
+    n = max(1, len(s))
+    cuts = draw(st.lists(st.integers(0, n), max_size=8))
+    gaps = set(draw(st.lists(st.integers(1, n), max_size=3)))
+    return s, cuts, gaps
+
+
+@SETTINGS
+@given(streams())
+def test_stream_decoder_applies_the_rule_for_any_chunking_and_gaps(case):
+    s, cuts, gaps = case
+    assert stream_decode(s, cuts, gaps) == reference(s, gaps)
+
+
+@SETTINGS
+@given(st.lists(frames, min_size=1, max_size=6), st.binary(max_size=80).map(lambda b: b.replace(bytes([P.SOF]), b"")))
+def test_sof_free_garbage_never_hides_a_frame(fs, junk):
+    data = junk + b"".join(f.encode() for f in fs)
+    assert codec.StreamDecoder().feed(data) == fs
+
+
+@SETTINGS
+@given(garbage, frames, frames)
+def test_resync_within_one_frame(junk, f, g):
+    """After any garbage, the second of two frames is always recovered, and the first is
+    recovered unless a candidate from the garbage that passed its CRC covers it: the decoder
+    never needs more than MAX_FRAME - 2 bytes beyond a frame's SOF to decide it."""
+    data = junk + f.encode() + g.encode()
+    ref = reference(data, set())
+    got = codec.StreamDecoder().feed(data + bytes(P.MAX_FRAME))   # + bytes that contain no SOF
+    assert got[:len(ref)] == ref
+    assert g in got
+    # no gap needed: the frame is out once MAX_FRAME - 2 bytes past its SOF have arrived
+    d = codec.StreamDecoder()
+    out = d.feed(junk + f.encode() + bytes(max(0, P.MAX_FRAME - 2 - len(f.encode()) + 1)))
+    if f not in reference(junk + f.encode(), set()):
+        return
+    assert f in out
+
+
+@SETTINGS
+@given(frames, st.lists(st.integers(16, 8 * (P.MAX_FRAME) - 1), min_size=1, max_size=3, unique=True))
+def test_one_to_three_bit_flips_outside_sof_and_len_are_rejected(f, bits):
+    data = bytearray(f.encode())
+    bits = [b for b in bits if b < 8 * len(data)]
+    for b in bits:
+        data[b // 8] ^= 1 << (b % 8)
+    if not bits:
+        return
+    d = codec.StreamDecoder()
+    assert d.feed(bytes(data)) == [] and d.crc_errors == 1
+
+
+def _value_for(fmt, draw):
+    lo, hi = {"B": (0, 255), "b": (-128, 127), "H": (0, 65535), "h": (-32768, 32767),
+              "I": (0, 2**32 - 1), "i": (-2**31, 2**31 - 1)}[fmt]
+    return draw(st.integers(lo, hi))
+
+
+@st.composite
+def command_cases(draw):
+    c = draw(st.sampled_from(P.COMMANDS))
+    args = {f.name: _value_for(f.fmt, draw) for f in c.args}
+    if c.args_tail is not None:
+        args[c.args_tail.name] = draw(st.lists(st.integers(0, 255), min_size=1, max_size=P.PARAM_GET_MAX))
+    reply = {f.name: _value_for(f.fmt, draw) for f in c.reply}
+    if c.reply_tail is not None:
+        if c.reply_tail.fmt == "s":
+            reply[c.reply_tail.name] = draw(st.text("abcdefghijklmnopqrstuvwxyz_0123456789", max_size=P.NAME_MAX))
+        else:
+            n = (P.MAX_PAYLOAD - c.reply_size) // struct.calcsize("<" + c.reply_tail.fmt)
+            reply[c.reply_tail.name] = draw(st.lists(_int_strategy(c.reply_tail.fmt), max_size=n))
+    return c, args, reply, draw(bytes8)
+
+
+def _int_strategy(fmt):
+    lo, hi = {"h": (-32768, 32767), "i": (-2**31, 2**31 - 1), "B": (0, 255)}[fmt]
+    return st.integers(lo, hi)
+
+
+@SETTINGS
+@given(command_cases())
+def test_command_and_reply_payloads_round_trip(case):
+    c, args, reply, seq = case
+    data = codec.encode_command(c.name, seq, args)
+    (f,) = codec.StreamDecoder().feed(data)
+    assert f.type == c.code and f.seq == seq
+    assert len(f.payload) == c.args_size + (len(args.get(c.args_tail.name, [])) if c.args_tail else 0)
+    rp = codec.reply_payload(c, reply)
+    assert len(rp) <= P.MAX_PAYLOAD
+    assert codec.decode_reply(c, rp) == reply
+    ack = codec.Frame(P.ack_type(c.code), seq, rp)
+    assert ack.is_ack and ack.command_code == c.code
+
+
+@SETTINGS
+@given(st.dictionaries(st.sampled_from([e.name for e in TABLE.persisted]), st.integers(-40000, 70000)))
+def test_eeprom_image_round_trip_and_corruption(values):
+    values = {k: v for k, v in values.items() if TABLE[k].min_raw <= v <= TABLE[k].max_raw}
+    img = codec.eeprom_image(TABLE, values)
+    assert len(img) == TABLE.eeprom_image_bytes
+    res, got = codec.parse_eeprom_image(TABLE, img + b"\xff" * 10)
+    assert res == P.EepromResult.OK
+    assert got == {**{e.name: e.default_raw for e in TABLE.persisted}, **values}
+    for i in range(len(img)):
+        bad = bytearray(img)
+        bad[i] ^= 0x5A
+        assert codec.parse_eeprom_image(TABLE, bytes(bad))[0] != P.EepromResult.OK
+
+
+def test_eeprom_layout_by_hand():
+    t = P.build_table(1)
+    img = codec.eeprom_image(t, {"controller": 0})
+    n = t.eeprom_data_bytes
+    assert img[:2] == b"PD" and img[2] == 1 and struct.unpack("<I", img[3:7])[0] == t.hash and img[7] == n
+    assert img[8] == 0                                      # controller (uint8) is the first persisted entry
+    assert struct.unpack(">H", img[-2:])[0] == binascii.crc_hqx(img[:-2], 0xFFFF)
+    assert codec.parse_eeprom_image(t, b"\xff" * 64)[0] == P.EepromResult.BLANK
+    assert codec.parse_eeprom_image(P.build_table(2), img)[0] == P.EepromResult.OTHER_BUILD
+
+
+def test_telemetry_decode():
+    vals = np.array([[1, -2, 3], [4, 5, -32768]], dtype="<i2")
+    payload = struct.pack("<H", 65535) + vals.tobytes()
+    counter, got = codec.decode_telemetry(payload, 3)
+    assert counter == 65535 and (got == vals).all()
+    with pytest.raises(ProtocolError, match="whole samples"):
+        codec.decode_telemetry(payload + b"\0", 3)
+    assert codec.telemetry_payload_len(4, 4) == 34
+
+
+def test_param_info_decode():
+    e = TABLE["rule1_kp"]
+    rp = codec.reply_payload("param_info", dict(id=e.id, ctype=e.ct.code, flags=e.flags, unit=e.unit_index,
+                                                 scale_bits=e.scale_bits, min=e.min_raw, max=e.max_raw,
+                                                 default=e.default_raw, name=e.name))
+    got = codec.decode_param_info(rp)
+    assert got.name == e.name and got.scale == e.scale and got.unit == e.unit and got.writable and got.persisted
+    bad = bytearray(rp)
+    bad[3] = 200
+    with pytest.raises(ProtocolError, match="unit index 200"):
+        codec.decode_param_info(bytes(bad))
+
+
+@pytest.mark.parametrize("call, words", [
+    (lambda: codec.encode_frame(1, 0, bytes(P.MAX_PAYLOAD + 1)), "exceeds the frame limit"),
+    (lambda: codec.encode_frame(256, 0), "must be bytes"),
+    (lambda: codec.encode_command("nope", 0), "unknown command 'nope'"),
+    (lambda: codec.encode_command("param_set", 0, {"id": 1}), "argument 'value' missing"),
+    (lambda: codec.encode_command("param_set", 0, {"id": 1, "value": 2, "x": 3}), "unexpected argument"),
+    (lambda: codec.encode_command("param_set", 0, {"id": 300, "value": 2}), "does not fit"),
+    (lambda: codec.decode_reply("hello", b"\0" * 3), "expected 20 B"),
+    (lambda: codec.decode_nack(b"\0"), "expected 2"),
+])
+def test_codec_errors_name_the_problem(call, words):
+    with pytest.raises(ProtocolError, match=words):
+        call()
