@@ -51,9 +51,43 @@ def test_law_saturation_and_conditional_integration():
     for _ in range(100):
         u = law_step(lw, st, r=1.0, y=0.0)
     assert u == 10.0
-    assert st.integ_v == 0.0      # integration frozen while saturated in the error's direction
+    assert st.integ_v == 0.0      # P alone saturates: no headroom, integrator stays put
     u = law_step(lw, st, r=0.0, y=0.05)   # error reversed: integrates again
     assert st.integ_v < 0.0
+
+
+def test_law_integrates_only_into_headroom_and_never_discharges_by_force():
+    lw = law(rules=(Rule(4.0, 1000.0),))
+    st = LawState()
+    law_step(lw, st, r=2.0, y=0.0)        # P = 8, headroom 2: I' = 2 -> 2
+    assert st.integ_v == pytest.approx(2.0)
+    law_step(lw, st, r=2.5, y=0.0)        # P = 10: no headroom left, I keeps 2 (not pulled to 0)
+    assert st.integ_v == pytest.approx(2.0)
+
+
+def test_law_state_feedback_integrator_holds_equilibrium_beyond_output_range():
+    # b = 0: at equilibrium y* = r, I* = u* + kp y*, which is far above u_max = 10 V
+    kp, ki, r = 2.0, 50.0, 4.0
+    lw = law(rules=(Rule(kp, ki),), setpoint_weight=0.0, integrator_limit_v=100.0)
+    st = LawState()
+    y = 0.0
+    for _ in range(20000):                # first-order plant dy/dt = -y + 0.5 u
+        u = law_step(lw, st, r=r, y=y)
+        y += 1e-3 * (-y + 0.5 * u)
+    assert y == pytest.approx(r, rel=1e-3)
+    u_star = r / 0.5                      # 8 V, inside the output range
+    assert st.integ_v == pytest.approx(u_star + kp * r, rel=1e-3)    # 16 V
+    assert st.integ_v > lw.u_max_v
+
+
+def test_law_integrator_limit():
+    lw = law(rules=(Rule(0.0, 1000.0),), integrator_limit_v=3.0, u_max_v=10.0)
+    st = LawState()
+    for _ in range(50):
+        law_step(lw, st, r=1.0, y=0.0)
+    assert st.integ_v == 3.0
+    with pytest.raises(ValueError, match="integrator_limit_v"):
+        law(integrator_limit_v=0.0)
 
 
 def test_law_derivative_on_measurement_and_state_feedback_form():

@@ -40,7 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
             if e.name == modname:      # command not built yet in this checkout
                 continue
             raise
-        mod.register(sub)
+        if hasattr(mod, "register"):   # a command module still being built has none yet
+            mod.register(sub)
     return ap
 
 

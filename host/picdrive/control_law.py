@@ -16,11 +16,20 @@ two-degree-of-freedom PID with optional current feedback:
       e   = r - y
       P   = Kp (b r - y)                       setpoint weight b
       D   = Kd (y[k-1] - y) / Ts, then first-order filtered (derivative on measurement)
-      I'  = I + Ki Ts e                         scheduled gain inside the integral (bumpless)
-      v   = P + I' + D - Kc i
-      I   = I  if (v > u_max and e > 0) or (v < u_min and e < 0)   conditional integration
-            I' otherwise, then clamped to [u_min, u_max]
-      u   = clamp(P + I + D - Kc i, u_min, u_max)
+      Q   = P + D - Kc i                        everything but the integral
+      dI  = Ki Ts e                             scheduled gain inside the integral (bumpless)
+      I   = min(I + dI, max(I, u_max - Q))  if dI > 0     integrate only into the output headroom,
+            max(I + dI, min(I, u_min - Q))  if dI < 0     never discharge the integrator by force
+      I   = clamp(I, -I_lim, I_lim)                        I_lim = integrator_limit_v
+      u   = clamp(Q + I, u_min, u_max)
+
+The headroom rule is conditional integration measured against the output
+limits: the integrator stops where the unsaturated output would leave
+``[u_min, u_max]``.  It does not bound I itself to the output range, which a
+state-feedback law (b = 0) needs: at equilibrium its integrator holds
+``u* + Kp y* + Kc i*``, far outside ``[u_min, u_max]``.  ``I_lim`` is the
+integrator's own range (what the firmware's fixed-point integrator must
+hold); it defaults to ``max(|u_min|, |u_max|)``, which suits b = 1 PIDs.
 
 Units: speeds rad/s (mechanical), current A, output u in volts of the
 six-step DC-equivalent line voltage (duty = u / bus voltage; a negative u
@@ -61,6 +70,7 @@ class ScheduledLaw:
     u_max_v: float
     setpoint_weight: float = 1.0
     derivative_filter_hz: float | None = None   # None: unfiltered backward difference
+    integrator_limit_v: float | None = None     # None: max(|u_min|, |u_max|)
     notes: str = ""
 
     def __post_init__(self):
@@ -73,6 +83,15 @@ class ScheduledLaw:
             raise ValueError(f"output limits [{self.u_min_v}, {self.u_max_v}] must be increasing")
         if not self.sample_time_s > 0:
             raise ValueError("sample_time_s must be positive")
+        if self.integrator_limit_v is not None and not self.integrator_limit_v > 0:
+            raise ValueError("integrator_limit_v must be positive")
+
+    @property
+    def i_lim_v(self) -> float:
+        """Integrator range +-I_lim, V."""
+        if self.integrator_limit_v is not None:
+            return self.integrator_limit_v
+        return max(abs(self.u_min_v), abs(self.u_max_v))
 
     @property
     def n_rules(self) -> int:
@@ -100,7 +119,8 @@ def law_from_dict(d: dict) -> ScheduledLaw:
         premise_rad_s=tuple(d["premise_rad_s"]),
         sample_time_s=d["sample_time_s"], u_min_v=d["u_min_v"], u_max_v=d["u_max_v"],
         setpoint_weight=d.get("setpoint_weight", 1.0),
-        derivative_filter_hz=d.get("derivative_filter_hz"), notes=d.get("notes", ""))
+        derivative_filter_hz=d.get("derivative_filter_hz"),
+        integrator_limit_v=d.get("integrator_limit_v"), notes=d.get("notes", ""))
 
 
 def memberships(law: ScheduledLaw, speed_rad_s: float) -> np.ndarray:
@@ -143,10 +163,13 @@ def law_step(law: ScheduledLaw, st: LawState, r: float, y: float, i: float = 0.0
         st.d_filt_v += a * (d_raw - st.d_filt_v)
     else:
         st.d_filt_v = d_raw
-    i_new = st.integ_v + g.ki * ts * e
-    v = p + i_new + st.d_filt_v - g.kc * i
-    if not ((v > law.u_max_v and e > 0) or (v < law.u_min_v and e < 0)):
-        st.integ_v = min(max(i_new, law.u_min_v), law.u_max_v)
+    q = p + st.d_filt_v - g.kc * i
+    d_i = g.ki * ts * e
+    if d_i > 0:
+        st.integ_v = min(st.integ_v + d_i, max(st.integ_v, law.u_max_v - q))
+    elif d_i < 0:
+        st.integ_v = max(st.integ_v + d_i, min(st.integ_v, law.u_min_v - q))
+    lim = law.i_lim_v
+    st.integ_v = min(max(st.integ_v, -lim), lim)
     st.y_prev = y
-    u = p + st.integ_v + st.d_filt_v - g.kc * i
-    return min(max(u, law.u_min_v), law.u_max_v)
+    return min(max(q + st.integ_v, law.u_min_v), law.u_max_v)
