@@ -100,7 +100,7 @@ def test_sampled_plant_dc_gain_and_step(duy, measurement, delay):
     P = motor_tf(duy)
     ts = 1e-3
     sp = sampled_plant(P, ts, delay_samples=delay, measurement=measurement)
-    z = sp.tf_z()
+    z = sp.tf_z
     assert np.polyval(z.num, 1.0) / np.polyval(z.den, 1.0) == pytest.approx(P.dcgain(), rel=1e-9)
     # simulate a unit voltage step; compare with the continuous step response
     t = np.linspace(0, 0.05, 50001)

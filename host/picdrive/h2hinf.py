@@ -36,6 +36,7 @@ Stability: ``routh_hurwitz`` (Step 1 of the paper, batched Routh array) and
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -46,8 +47,13 @@ __all__ = [
     "j3_jury_dewey", "h2_lyapunov", "routh_hurwitz", "hinf_exact", "hinf_grid", "hinf_statespace",
     "robust_constraint", "sensitivity_peak", "tracking_error_polys",
     "sampled_loop", "sampled_loop_polys", "schur_stable", "j3_discrete", "hinf_exact_z",
-    "xi_tustin", "robust_constraint_z", "sensitivity_peak_z",
+    "xi_tustin", "robust_constraint_z", "sensitivity_peak_z", "schur_char",
 ]
+
+
+# A pole within this distance of the unit circle counts as unstable: the
+# integrator of a loop with ki = 0 sits at z = 1 exactly and rounds either way.
+SCHUR_MARGIN = 1e-9
 
 
 # ---------------------------------------------------------------------------
@@ -235,7 +241,7 @@ def routh_hurwitz(den) -> np.ndarray:
 def schur_stable(A) -> tuple[np.ndarray, np.ndarray]:
     """Batched: (stable, spectral radius) of closed-loop matrices A (..., N, N)."""
     rho = np.max(np.abs(np.linalg.eigvals(A)), axis=-1)
-    return rho < 1.0, rho
+    return rho < 1.0 - SCHUR_MARGIN, rho
 
 
 # ---------------------------------------------------------------------------
@@ -379,6 +385,20 @@ def hinf_statespace(num, den, *, rtol: float = 1e-10) -> tuple[float, float]:
     return float(g_lb), float(w_pk * w0)
 
 
+def _on_stable(fn, stable, num, den):
+    """Apply a batched peak function to the stable rows only: (value, where) with inf/nan elsewhere."""
+    stable = np.asarray(stable, bool)
+    shape = stable.shape
+    num = np.broadcast_to(num, shape + np.shape(num)[-1:])
+    den = np.broadcast_to(den, shape + np.shape(den)[-1:])
+    val = np.full(shape, np.inf)
+    at = np.full(shape, np.nan)
+    if stable.any():
+        v, w = fn(num[stable], den[stable])
+        val[stable], at[stable] = v, w
+    return val, at
+
+
 def robust_constraint(plant: TF, kp, ki, kd, d: float):
     """Batched || P C xi / (1 + P C) ||_inf (eq 6) and the nominal stability (Step 1).
 
@@ -388,8 +408,8 @@ def robust_constraint(plant: TF, kp, ki, kd, d: float):
     stable = routh_hurwitz(char)
     num = float(d) * lnum
     den = _bmul_asc(char[..., ::-1], np.array([10.0, 0.1, 1.0]))[..., ::-1]
-    val, wpk = hinf_exact(num, den)
-    return np.where(stable, val, np.inf), stable, wpk
+    val, wpk = _on_stable(hinf_exact, stable, num, den)
+    return val, stable, wpk
 
 
 def sensitivity_peak(plant: TF, kp, ki, kd):
@@ -397,8 +417,8 @@ def sensitivity_peak(plant: TF, kp, ki, kd):
     char, _ = loop_polys(plant, kp, ki, kd)
     stable = routh_hurwitz(char)
     num = np.append(plant.den, 0.0)                 # s m(s)
-    val, wpk = hinf_exact(np.broadcast_to(num, char.shape), char)
-    return np.where(stable, val, np.inf), wpk
+    val, wpk = _on_stable(hinf_exact, stable, np.broadcast_to(num, char.shape), char)
+    return val, wpk
 
 
 # ---------------------------------------------------------------------------
@@ -442,7 +462,7 @@ def sampled_loop_polys(sp: SampledPlant, kp, ki, kd):
     T = Cn np / char, S = z (z-1) dp / char.  (Derivative on measurement
     changes only the reference path, not T or S.)
     """
-    ptf = sp.tf_z()
+    ptf = sp.tf_z
     kp, ki, kd = np.broadcast_arrays(np.asarray(kp, float), np.asarray(ki, float), np.asarray(kd, float))
     ts = sp.ts
     cn = (kp[..., None] * np.array([1.0, -1.0, 0.0]) + (ki * ts)[..., None] * np.array([1.0, 0.0, 0.0])
@@ -456,28 +476,43 @@ def sampled_loop_polys(sp: SampledPlant, kp, ki, kd):
     return char, lnum, np.broadcast_to(snum, char.shape)
 
 
-def j3_discrete(Acl, Bcl, Cy, ts: float):
+def j3_discrete(Acl, Bcl, Cy, ts: float, *, stable=None):
     """Batched Ts * sum_k e[k]^2 for a unit step of r from rest (discrete H2 cost).
 
     e[k] = 1 - Cy X[k], X[0] = 0.  With X_ss = (I - Acl)^-1 Bcl (Cy X_ss = 1
     by integral action), e[k] = -Cy A^k (-X_ss), so J = Ts X_ss^T W X_ss with
-    W = A^T W A + Cy^T Cy (solved in Kronecker form).  inf where unstable.
+    W = A^T W A + Cy^T Cy (solved in Kronecker form).  inf where unstable
+    (``stable``, if given, saves the eigenvalue computation).
     """
     Acl = np.asarray(Acl, float)
     shape = Acl.shape[:-2]
     N = Acl.shape[-1]
-    stable, _ = schur_stable(Acl)
+    if stable is None:
+        stable, _ = schur_stable(Acl)
     eye = np.eye(N)
     Ause = np.where(stable[..., None, None], Acl, 0.5 * eye)
     AT = np.swapaxes(Ause, -1, -2)
     kron = np.eye(N * N) - np.einsum("...ij,...kl->...ikjl", AT, AT).reshape(shape + (N * N, N * N))
     Q = np.outer(Cy, Cy).reshape(-1)
-    W = np.linalg.solve(kron, np.broadcast_to(Q, shape + (N * N,))[..., None])[..., 0].reshape(shape + (N, N))
-    xss = np.linalg.solve(eye - Ause, np.asarray(Bcl, float)[..., None])[..., 0]
+    rhs = np.broadcast_to(Q, shape + (N * N,))[..., None]
+    Bcl = np.broadcast_to(np.asarray(Bcl, float), shape + (N,))[..., None]
+    try:
+        W = np.linalg.solve(kron, rhs)[..., 0].reshape(shape + (N, N))
+        xss = np.linalg.solve(eye - Ause, Bcl)[..., 0]
+    except np.linalg.LinAlgError:             # a (numerically) marginal row: solve row by row
+        W = np.full(shape + (N, N), np.nan)
+        xss = np.full(shape + (N,), np.nan)
+        for idx in np.ndindex(*shape):
+            try:
+                W[idx] = np.linalg.solve(kron[idx], rhs[idx])[:, 0].reshape(N, N)
+                xss[idx] = np.linalg.solve(eye - Ause[idx], Bcl[idx])[:, 0]
+            except np.linalg.LinAlgError:
+                pass
     j = ts * np.einsum("...i,...ij,...j->...", xss, W, xss)
-    return np.where(stable, j, np.inf)
+    return np.where(stable & np.isfinite(j), j, np.inf)
 
 
+@functools.lru_cache(maxsize=None)
 def _bilinear_matrix(n: int) -> np.ndarray:
     """M with (p(z) at z = (1+w)/(1-w)) * (1-w)^n = p_desc @ M for degree-n p (descending).
 
@@ -518,29 +553,32 @@ def xi_tustin(d: float, ts: float) -> TF:
     return TF(float(d) * np.polymul(zp1, zp1), den)
 
 
-def robust_constraint_z(sp: SampledPlant, kp, ki, kd, d: float):
+def robust_constraint_z(sp: SampledPlant, kp, ki, kd, d: float, *, polys=None, stable=None):
     """Batched || T(z) xi_d(z) ||_inf of the sampled loop (eq 6 for the firmware's loop).
 
     Returns ``(value, schur_stable, w_peak rad/s)``; inf where unstable.
+    ``polys`` (from :func:`sampled_loop_polys`) and ``stable`` may be passed in.
     """
-    char, lnum, _ = sampled_loop_polys(sp, kp, ki, kd)
-    stable = _schur_char(char)
+    char, lnum, _ = sampled_loop_polys(sp, kp, ki, kd) if polys is None else polys
+    if stable is None:
+        stable = schur_char(char)
     xi = xi_tustin(d, sp.ts)
     num = _bmul_asc(lnum[..., ::-1], xi.num[::-1])[..., ::-1]
     den = _bmul_asc(char[..., ::-1], xi.den[::-1])[..., ::-1]
-    val, th = hinf_exact_z(num, den)
-    return np.where(stable, val, np.inf), stable, th / sp.ts
+    val, th = _on_stable(hinf_exact_z, stable, num, den)
+    return val, stable, th / sp.ts
 
 
-def sensitivity_peak_z(sp: SampledPlant, kp, ki, kd):
+def sensitivity_peak_z(sp: SampledPlant, kp, ki, kd, *, polys=None, stable=None):
     """Batched ||S(z)||_inf of the sampled loop; inf where unstable. Returns (value, w_peak rad/s)."""
-    char, _, snum = sampled_loop_polys(sp, kp, ki, kd)
-    stable = _schur_char(char)
-    val, th = hinf_exact_z(snum, char)
-    return np.where(stable, val, np.inf), th / sp.ts
+    char, _, snum = sampled_loop_polys(sp, kp, ki, kd) if polys is None else polys
+    if stable is None:
+        stable = schur_char(char)
+    val, th = _on_stable(hinf_exact_z, stable, snum, char)
+    return val, th / sp.ts
 
 
-def _schur_char(char: np.ndarray) -> np.ndarray:
+def schur_char(char: np.ndarray) -> np.ndarray:
     """Batched: all roots of the descending polynomial strictly inside the unit circle."""
     c = np.asarray(char, float)
     shape = c.shape[:-1]
@@ -551,4 +589,4 @@ def _schur_char(char: np.ndarray) -> np.ndarray:
     if m > 1:
         comp[:, 1:, :-1] = np.eye(m - 1)
     rho = np.max(np.abs(np.linalg.eigvals(comp)), axis=-1)
-    return (rho < 1.0).reshape(shape)
+    return (rho < 1.0 - SCHUR_MARGIN).reshape(shape)

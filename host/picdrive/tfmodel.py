@@ -26,6 +26,7 @@ differencing) used by the "drive" design variant.
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -35,7 +36,8 @@ from scipy.linalg import expm
 __all__ = [
     "TF", "motor_tf", "xi_tf", "XI_DEN", "perturbed_plant", "load_gains", "load_tf",
     "pid_num", "loop_polys", "closed_loop_tf", "tracking_error_tf", "perturbed_loop_tf",
-    "SampledPlant", "sampled_plant", "speed_quantum_rad_s",
+    "SampledPlant", "sampled_plant", "speed_quantum_rad_s", "motor_ss", "simulate_sampled",
+    "simulate_sampled_batch",
 ]
 
 # xi(s) = d / (s^2 + 0.1 s + 10), eq 19
@@ -226,8 +228,9 @@ class SampledPlant:
     def n(self) -> int:
         return self.Ad.shape[0]
 
+    @functools.cached_property
     def tf_z(self) -> TF:
-        """Pulse transfer function y/u_cmd in z (descending powers)."""
+        """Pulse transfer function y/u_cmd in z (descending powers); computed once."""
         from scipy.signal import ss2tf
         num, den = ss2tf(self.Ad, self.Bd, self.Cd, np.zeros((1, 1)))
         num = np.atleast_1d(np.squeeze(num))
@@ -288,3 +291,127 @@ def speed_quantum_rad_s(profile) -> float:
     else:
         counts = 6 * profile.motor.pole_pairs
     return 2.0 * math.pi / (counts * ts)
+
+
+# ---------------------------------------------------------------------------
+# nonlinear (saturating) simulation of the sampled speed loop on eq 1
+# ---------------------------------------------------------------------------
+def motor_ss(profile):
+    """Physical state space of eq 1: x = [i (A), w (rad/s)], inputs [v (V), T_L (N m)].
+
+    ``L di/dt = v - R i - Kb w``, ``J dw/dt = Kt i - D w - T_L``.  Returns (A, B) with B (2, 2).
+    """
+    m = getattr(profile, "motor", profile)
+    L, R, J, D = m.l_line_h, m.r_line_ohm, m.inertia_kg_m2, m.viscous_friction_n_m_s
+    kt, kb = m.kt_n_m_per_a, m.kb_v_s_per_rad
+    A = np.array([[-R / L, -kb / L], [kt / J, -D / J]])
+    B = np.array([[1.0 / L, 0.0], [0.0, -1.0 / J]])
+    return A, B
+
+
+def simulate_sampled(profile, law, *, t_end_s: float, ref_rad_s: float, load_n_m: float = 0.0,
+                     t_load_s: float | None = None, delay_samples: int = 1, measurement: str = "average",
+                     x0=None) -> dict:
+    """Simulate picdrive's law (``control_law.law_step``, with its saturation and
+    anti-windup) sampled at ``law.sample_time_s`` around the eq 1 motor.
+
+    The plant is integrated exactly between samples (zero-order hold on the
+    voltage and on the load torque, which steps at the first sample at or
+    after ``t_load_s``).  Returns arrays at the sample instants: ``t_s``,
+    ``speed_rad_s`` (true), ``speed_meas_rad_s``, ``u_v`` (applied voltage),
+    ``current_a``.
+    """
+    from .control_law import LawState, law_step
+
+    if delay_samples not in (0, 1) or measurement not in ("average", "instant"):
+        raise ValueError("delay_samples must be 0 or 1 and measurement 'average' or 'instant'")
+    ts = law.sample_time_s
+    A, B = motor_ss(profile)
+    M = np.zeros((5, 5))
+    M[:2, :2] = A
+    M[:2, 3:] = B
+    M[2, 1] = 1.0                                     # q' = w
+    E = expm(M * ts)
+    phi, gam = E[:2, :2], E[:2, 3:]
+    qx, qu = E[2, :2], E[2, 3:]
+    n = int(round(t_end_s / ts)) + 1
+    x = np.zeros(2) if x0 is None else np.asarray(x0, float).copy()
+    y_avg = x[1]
+    u_app = 0.0
+    st = LawState()
+    out = {k: np.zeros(n) for k in ("t_s", "speed_rad_s", "speed_meas_rad_s", "u_v", "current_a")}
+    for k in range(n):
+        t = k * ts
+        tl = load_n_m if (t_load_s is not None and t >= t_load_s - 1e-12) else 0.0
+        y = y_avg if measurement == "average" else x[1]
+        u_cmd = law_step(law, st, ref_rad_s, y)
+        if delay_samples == 0:
+            u_app = u_cmd
+        out["t_s"][k] = t
+        out["speed_rad_s"][k] = x[1]
+        out["speed_meas_rad_s"][k] = y
+        out["u_v"][k] = u_app
+        out["current_a"][k] = x[0]
+        inp = np.array([u_app, tl])
+        y_avg = float(qx @ x + qu @ inp) / ts
+        x = phi @ x + gam @ inp
+        if delay_samples == 1:
+            u_app = u_cmd
+    return out
+
+
+@functools.lru_cache(maxsize=32)
+def _zoh_motor(L, R, J, D, kt, kb, ts):
+    """Exact ZOH discretisation of eq 1 with the speed integral: (phi, gam, qx, qu)."""
+    A = np.array([[-R / L, -kb / L], [kt / J, -D / J]])
+    M = np.zeros((4, 4))
+    M[:2, :2] = A
+    M[0, 3] = 1.0 / L
+    M[2, 1] = 1.0
+    E = expm(M * ts)
+    return E[:2, :2], E[:2, 3], E[2, :2], E[2, 3]
+
+
+def simulate_sampled_batch(profile, kp, ki, kd, *, ts: float, u_max_v: float, t_end_s: float, ref_rad_s: float,
+                           delay_samples: int = 1, measurement: str = "average") -> dict:
+    """:func:`simulate_sampled` for many one-rule PID laws at once (no load torque).
+
+    The law is ``control_law.law_step`` written out for arrays (one rule,
+    b = 1, unfiltered derivative on measurement, conditional integration,
+    output clamp to +-``u_max_v``), so that a GA can judge the saturated step
+    of every chromosome.  Returns ``speed_rad_s`` and ``current_a`` of shape
+    (samples, batch) at the sample instants.
+    """
+    kp, ki, kd = (np.atleast_1d(np.asarray(v, float)) for v in (kp, ki, kd))
+    kp, ki, kd = np.broadcast_arrays(kp, ki, kd)
+    m_ = getattr(profile, "motor", profile)
+    phi, gam, qx, qu = _zoh_motor(m_.l_line_h, m_.r_line_ohm, m_.inertia_kg_m2, m_.viscous_friction_n_m_s,
+                                  m_.kt_n_m_per_a, m_.kb_v_s_per_rad, float(ts))
+    n = int(round(t_end_s / ts)) + 1
+    m = kp.size
+    x = np.zeros((2, m))
+    y_avg = np.zeros(m)
+    u_app = np.zeros(m)
+    integ = np.zeros(m)
+    y_prev = None
+    r = float(ref_rad_s)
+    w_out = np.zeros((n, m)); i_out = np.zeros((n, m))
+    for k in range(n):
+        w_out[k] = x[1]; i_out[k] = x[0]
+        y = y_avg if measurement == "average" else x[1]
+        e = r - y
+        p = kp * e                                   # b = 1
+        d = kd * ((y if y_prev is None else y_prev) - y) / ts
+        i_new = integ + ki * ts * e
+        v = p + i_new + d
+        hold = ((v > u_max_v) & (e > 0)) | ((v < -u_max_v) & (e < 0))
+        integ = np.where(hold, integ, np.minimum(np.maximum(i_new, -u_max_v), u_max_v))
+        u_cmd = np.minimum(np.maximum(p + integ + d, -u_max_v), u_max_v)
+        y_prev = y
+        if delay_samples == 0:
+            u_app = u_cmd
+        y_avg = (qx[0] * x[0] + qx[1] * x[1] + qu * u_app) / ts
+        x = phi @ x + gam[:, None] * u_app
+        if delay_samples == 1:
+            u_app = u_cmd
+    return {"speed_rad_s": w_out, "current_a": i_out}
