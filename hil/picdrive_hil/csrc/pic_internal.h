@@ -1,0 +1,152 @@
+/* Internal state of the PIC18F4431 peripheral model and the event loop
+ * (pic.c, twin.c).  Register offsets and bit numbers come from pic_regs.h,
+ * generated at build time from Microchip's p18f4431.inc (picdrive_hil.regs). */
+#ifndef PICDRIVE_PIC_INTERNAL_H
+#define PICDRIVE_PIC_INTERNAL_H
+
+#include <stdint.h>
+#include "twin.h"
+#include "pic_regs.h"
+
+#define NEVER INT64_MAX
+#define PS_PER_S 1000000000000.0
+
+extern volatile uint8_t picsim_sfr[256];
+void picsim_sfr_written(uint16_t addr);
+void picsim_sfr_read(uint16_t addr);
+
+/* firmware entry points (architecture.md seam 4) */
+void fw_init(void);
+void fw_poll(void);
+void fw_isr_high(void);
+void fw_isr_low(void);
+
+typedef struct {
+    int on;
+    int64_t t_ref;        /* time of the last anchor */
+    uint32_t cnt_ref;     /* count at t_ref */
+    int64_t tick_ps;      /* one count */
+    uint32_t modulus;     /* counts per wrap (256, 65536, PR+1) */
+    int64_t next;         /* next wrap/match */
+    uint32_t post;        /* Timer2 postscaler counter */
+} timer_t_;
+
+#define HOSTQ 65536       /* host <-> board byte rings (power of two) */
+
+typedef struct {
+    twin_config_t cfg;
+    plant_params_t pp;
+    plant_state_t ps;
+    int initialised;
+    int64_t now;
+    int64_t tosc_ps, tcy_ps;
+    uint8_t shadow[256];
+    int in_fw;
+    uint32_t errors;
+
+    /* PCPWM */
+    int pwm_on;
+    int64_t pwm_start, pwm_period, pwm_next;
+    uint32_t pwm_post;
+    uint16_t ptper_act, pdc_act[4];
+    uint8_t ovd_act, ovs_act;
+    int flt_latched;          /* FLTAS, inactive mode */
+    int flt_cbc;              /* cycle-by-cycle: outputs off to the end of the period */
+    leg_t leg[3];
+    uint8_t gate_hi[3], gate_lo[3];
+    double duty[4], dead_frac;
+    uint32_t shoot_through;
+
+    timer_t_ t0, t1, t2, t5;
+
+    /* QEI */
+    int64_t enc_count;        /* x4 count from the (measured) angle, unwrapped */
+    int64_t enc_prev;
+    int64_t enc_index_count;  /* count at the last index pulse */
+    int32_t poscnt;
+    int64_t vel_last_t;       /* last velocity capture */
+    uint32_t vel_pdec;
+    int qei_dir;
+    int enc_frozen;
+    int64_t enc_frozen_at;
+
+    /* EUSART */
+    int64_t bit_ps;           /* board bit time */
+    int tx_busy, txreg_full;
+    uint8_t tsr, txbuf;
+    int64_t tx_done;
+    uint8_t rxfifo[2];
+    int rx_n;
+    uint8_t hq_in[HOSTQ];     /* host -> board, not yet on the wire */
+    uint32_t hin_head, hin_tail;
+    uint8_t hq_out[HOSTQ];    /* board -> host, off the wire */
+    uint32_t hout_head, hout_tail;
+    int64_t rx_arrive;        /* arrival of the byte on the wire, NEVER if none */
+    uint8_t rx_byte;
+    int64_t host_frame_ps;
+    uint32_t rx_overruns, rx_framing, rx_dropped, tx_overwrites;
+    int baud_bad;
+
+    /* EEPROM */
+    uint8_t ee[256];
+    int ee_unlock;
+    int64_t ee_done;
+    uint8_t ee_addr, ee_data;
+    uint32_t ee_writes, ee_rejected;
+
+    /* ADC */
+    int64_t adc_done;
+    uint8_t adc_ch;
+
+    /* pins and inputs */
+    uint8_t ext[5];           /* external pin levels A..E */
+    uint8_t hall_pins;        /* code on the hall pins */
+    int hall_override;        /* -1 = none */
+    int64_t hall_override_until;
+    int64_t oc_until;         /* forced comparator until */
+    int flta_asserted;
+
+    /* load */
+    double load_t[1024], load_v[1024];
+    int load_n;
+    int load_k;               /* index of the next knot after now */
+
+    /* noise */
+    uint64_t rng;
+    int64_t noise_bucket;
+    double noise_theta;
+
+    /* trace */
+    trace_rec_t *trace;
+    int trace_cap, trace_n;
+    int64_t trace_period, trace_next;
+
+    /* bookkeeping */
+    uint32_t isr_high_calls, isr_low_calls, poll_calls;
+} twin_t;
+
+/* one twin per loaded copy of the library; prefixed names keep clear of the firmware's */
+#define g picsim_twin
+#define hw_write picsim_hw_write
+#define hw_setbit picsim_hw_setbit
+#define hw_clrbit picsim_hw_clrbit
+extern twin_t g;
+
+/* pic.c */
+void pic_reset(void);
+void pic_sync_inputs(void);
+void pic_process_writes(void);
+void pic_compute_legs(void);
+int64_t pic_next_event(void);
+void pic_events_due(void);
+void pic_after_plant_step(int64_t t_prev, double theta_meas);
+int pic_irq_pending(void);            /* 0 none, 1 high, 2 low */
+void pic_set_pins_from_plant(void);
+void pic_uart_rx_schedule(void);
+double pic_board_baud(void);
+void hw_write(uint8_t idx, uint8_t v);
+void hw_setbit(uint8_t idx, int bit);
+void hw_clrbit(uint8_t idx, int bit);
+static inline int sfr_bit(uint8_t idx, int bit) { return (picsim_sfr[idx] >> bit) & 1; }
+
+#endif

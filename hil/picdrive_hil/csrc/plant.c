@@ -1,0 +1,330 @@
+/* BLDC plant: three-phase wye winding, back-EMF, six-switch inverter with
+ * body diodes, rotor mechanics.  docs/twin.md "Plant" gives the equations;
+ * hil/picdrive_hil/reference.py is the scipy model of the same equations
+ * that the tests compare this against.
+ *
+ * Phase x (a, b, c):   L di_x/dt = v_x - v_n - e_x - R i_x,   sum i_x = 0
+ * back-EMF:            e_x = lambda_m * P * w * f(P theta - k 2pi/3)
+ *                      f = 120-degree flat-top trapezoid, or sin (2016 eq 2)
+ * torque:              T_e = P lambda_m sum f_x i_x
+ * rotor:               J dw/dt = T_e - B w - T_load
+ *
+ * Inverter leg x over a step (PWM-period average): the high switch conducts
+ * a fraction f_hi, the low switch f_lo, neither the rest (dead time, off
+ * time, floating phase); then the body diode carrying the current sets the
+ * node: 0 V for i_x > 0, V_bus for i_x < 0, and with i_x = 0 the leg is open
+ * and its node floats at v_n + e_x.  So each leg is a monotone set-valued
+ * source  v_x(i) = v+ (i > 0), v- (i < 0), [v+, v-] (i = 0)  with
+ *   v+ = V_bus f_hi - V_d f_off,   v- = V_bus (1 - f_lo) + V_d f_off.
+ * A step of length h holds v+, v-, e constant (e at mid-step) and solves
+ * the RL equations exactly (exponential) with the diode states taken at the
+ * end of the step (implicit): the star-point voltage v_n is the root of a
+ * piecewise-linear monotone function, found exactly.  A floating phase's
+ * decay through the diodes, discontinuous conduction and diode
+ * rectification with all switches off all come out of the same rule.
+ */
+#include "twin.h"
+
+#include <math.h>
+#include <string.h>
+
+#define TWO_PI 6.283185307179586476925286766559
+#define PI_3   1.0471975511965977461542144610932
+#define PI_6   0.52359877559829887307710723054658
+
+static double wrap2pi(double x)
+{
+    x -= TWO_PI * floor(x * (1.0 / TWO_PI));
+    return x >= TWO_PI ? x - TWO_PI : (x < 0.0 ? 0.0 : x);
+}
+
+/* trapezoid of an angle already in [0, 2pi) */
+static double trap_w(double th)
+{
+    double t = th + PI_6;
+    if (t >= TWO_PI) t -= TWO_PI;
+    if (t < PI_3) return (t - PI_6) / PI_6;
+    if (t < M_PI) return 1.0;
+    if (t < M_PI + PI_3) return 1.0 - (t - M_PI) / PI_6;
+    return -1.0;
+}
+
+double plant_emf_shape(const plant_params_t *p, double th_e)
+{
+    if (p->emf_shape == EMF_SINUSOIDAL)
+        return sin(th_e);
+    /* trapezoid: rising zero at 0, flat +1 over [30, 150] deg, flat -1 over [210, 330] */
+    double t = wrap2pi(th_e + PI_6);
+    if (t < PI_3) return (t - PI_6) / PI_6;
+    if (t < M_PI) return 1.0;
+    if (t < M_PI + PI_3) return 1.0 - (t - M_PI) / PI_6;
+    return -1.0;
+}
+
+double plant_theta_e(const plant_params_t *p, const plant_state_t *s)
+{
+    return (double)p->pole_pairs * s->theta_rad;
+}
+
+static void shapes(const plant_params_t *p, double th_e, double f[3])
+{
+    if (p->emf_shape == EMF_SINUSOIDAL) {
+        double s = sin(th_e), c = cos(th_e);
+        const double h = 0.86602540378443864676;          /* sin 120 deg */
+        f[0] = s;
+        f[1] = -0.5 * s - h * c;                          /* sin(th - 120) */
+        f[2] = -0.5 * s + h * c;                          /* sin(th + 120) */
+        return;
+    }
+    double a = wrap2pi(th_e);
+    double b = a - 2.0 * PI_3; if (b < 0.0) b += TWO_PI;
+    double c = a + 2.0 * PI_3; if (c >= TWO_PI) c -= TWO_PI;
+    f[0] = trap_w(a);
+    f[1] = trap_w(b);
+    f[2] = trap_w(c);
+}
+
+int plant_hall_code(const plant_params_t *p, double theta_mech)
+{
+    double x = wrap2pi((double)p->pole_pairs * theta_mech - p->hall_offset_rad);
+    int code = 0;
+    for (int k = 0; k < 3; k++) {
+        double y = x - k * p->hall_spacing_rad;
+        if (y < 0.0) y += TWO_PI;
+        if (y < M_PI) code |= 1 << k;
+    }
+    return code;
+}
+
+void plant_reset(plant_state_t *s)
+{
+    memset(s, 0, sizeof *s);
+}
+
+static double torque_at(const plant_params_t *p, double theta_mech, const double i[3])
+{
+    double f[3];
+    shapes(p, (double)p->pole_pairs * theta_mech, f);
+    return (double)p->pole_pairs * p->lambda_m_v_s * (f[0] * i[0] + f[1] * i[1] + f[2] * i[2]);
+}
+
+/* end-of-step current of one leg for a star-point voltage vn */
+static double leg_current(double A, double k, double cp, double cm, double vn)
+{
+    double up = A + k * (cp - vn);
+    double dn = A + k * (cm - vn);
+    return (up > 0.0 ? up : 0.0) + (dn < 0.0 ? dn : 0.0);
+}
+
+static void solve_currents(const plant_params_t *p, const double i0[3], const double vp[3],
+                           const double vm[3], const double e[3], double h,
+                           double i1[3], double *vn_out)
+{
+    double R = p->r_phase_ohm, L = p->l_phase_h;
+    double a = exp(-h * R / L);
+    double k = -expm1(-h * R / L) / R;          /* (1 - a) / R, accurate for small h */
+    double A[3], cp[3], cm[3], bp[6], g[6];
+    for (int x = 0; x < 3; x++) {
+        A[x] = a * i0[x];
+        cp[x] = vp[x] - e[x];
+        cm[x] = vm[x] - e[x];
+        bp[2 * x] = cp[x] + A[x] / k;
+        bp[2 * x + 1] = cm[x] + A[x] / k;
+    }
+    /* insertion sort of the six breakpoints */
+    for (int m = 1; m < 6; m++) {
+        double v = bp[m];
+        int n = m - 1;
+        while (n >= 0 && bp[n] > v) { bp[n + 1] = bp[n]; n--; }
+        bp[n + 1] = v;
+    }
+    for (int m = 0; m < 6; m++) {
+        g[m] = 0.0;
+        for (int x = 0; x < 3; x++) g[m] += leg_current(A[x], k, cp[x], cm[x], bp[m]);
+    }
+    /* G is nonincreasing, G(bp[0]) >= 0 >= G(bp[5]); find the sign change */
+    double vn;
+    if (g[0] <= 0.0) {
+        /* G(v) = G(bp0) - 3k (v - bp0) left of bp0 */
+        vn = bp[0] + g[0] / (3.0 * k);
+    } else if (g[5] >= 0.0) {
+        vn = bp[5] + g[5] / (3.0 * k);
+    } else {
+        int m = 0;
+        while (m < 5 && g[m + 1] > 0.0) m++;
+        /* g[m] > 0 >= g[m+1] */
+        double d = g[m] - g[m + 1];
+        vn = bp[m] + (bp[m + 1] - bp[m]) * (d > 0.0 ? g[m] / d : 0.5);
+    }
+    double sum = 0.0, nz = 0.0;
+    for (int x = 0; x < 3; x++) {
+        i1[x] = leg_current(A[x], k, cp[x], cm[x], vn);
+        sum += i1[x];
+        if (i1[x] != 0.0) nz += 1.0;
+    }
+    /* the root is exact up to rounding; put the residue on the conducting legs */
+    if (nz > 0.0 && sum != 0.0)
+        for (int x = 0; x < 3; x++)
+            if (i1[x] != 0.0) i1[x] -= sum / nz;
+    *vn_out = vn;
+}
+
+/* rotor speed after a step, trapezoidal in torque, implicit in B w */
+static double next_speed(const plant_params_t *p, double w0, double te_avg, double tl,
+                         double h, double *tl_applied)
+{
+    double J = p->inertia_kg_m2, hb = 0.5 * h * p->friction_n_m_s / J;
+    if (p->load_mode == LOAD_ACTIVE) {
+        *tl_applied = tl;
+        return (w0 * (1.0 - hb) + h / J * (te_avg - tl)) / (1.0 + hb);
+    }
+    double mag = fabs(tl);
+    if (w0 == 0.0) {
+        if (fabs(te_avg) <= mag) { *tl_applied = te_avg; return 0.0; }
+        double sg = te_avg > 0.0 ? 1.0 : -1.0;
+        *tl_applied = sg * mag;
+        return h / J * (te_avg - sg * mag) / (1.0 + hb);
+    }
+    double sg = w0 > 0.0 ? 1.0 : -1.0;
+    *tl_applied = sg * mag;
+    double w1 = (w0 * (1.0 - hb) + h / J * (te_avg - sg * mag)) / (1.0 + hb);
+    if (w1 * sg < 0.0) w1 = 0.0;       /* friction-like load stops the rotor, never reverses it */
+    return w1;
+}
+
+static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
+                    double t_load_n_m, double h)
+{
+    double P = (double)p->pole_pairs, J = p->inertia_kg_m2, vbus = p->bus_voltage_v;
+    double vp[3], vm[3], foff[3], i0[3], f[3], e[3], i1[3], vn, tl_applied;
+    for (int x = 0; x < 3; x++) {
+        double fh = leg[x].f_hi, fl = leg[x].f_lo;
+        double fo = 1.0 - fh - fl;
+        if (fo < 0.0) {               /* shoot-through: counted by the caller; share the time */
+            double tot = fh + fl;
+            fh /= tot; fl /= tot; fo = 0.0;
+        }
+        foff[x] = fo;
+        vp[x] = vbus * fh - p->diode_drop_v * fo;
+        vm[x] = vbus * (1.0 - fl) + p->diode_drop_v * fo;
+        i0[x] = s->i_a[x];
+    }
+    double w0 = s->w_rad_s, th0 = s->theta_rad;
+    double te0 = torque_at(p, th0, i0);
+    double w_mid;
+    if (s->locked) {
+        w_mid = 0.0;
+    } else {
+        double tmp;
+        w_mid = next_speed(p, w0, te0, t_load_n_m, 0.5 * h, &tmp);
+    }
+    double th_mid = th0 + 0.25 * h * (w0 + w_mid);
+    shapes(p, P * th_mid, f);
+    for (int x = 0; x < 3; x++) e[x] = p->lambda_m_v_s * P * w_mid * f[x];
+    solve_currents(p, i0, vp, vm, e, h, i1, &vn);
+
+    double w1;
+    double te1p = torque_at(p, th0 + h * w_mid, i1);
+    if (s->locked) {
+        w1 = 0.0;
+        tl_applied = 0.0;
+    } else {
+        w1 = next_speed(p, w0, 0.5 * (te0 + te1p), t_load_n_m, h, &tl_applied);
+    }
+    double th1 = th0 + 0.5 * h * (w0 + w1);
+    (void)J;
+
+    double ibus = 0.0, ilink = 0.0, ipk = 0.0;
+    for (int x = 0; x < 3; x++) {
+        double im = 0.5 * (i0[x] + i1[x]);
+        double hi = leg[x].f_hi > 1.0 ? 1.0 : leg[x].f_hi;
+        ibus += im * (hi + (im < 0.0 ? foff[x] : 0.0));
+        if (leg[x].f_hi > 0.0) ilink += i1[x];
+        if (fabs(i1[x]) > ipk) ipk = fabs(i1[x]);
+        double v;
+        if (i1[x] > 0.0) v = vp[x];
+        else if (i1[x] < 0.0) v = vm[x];
+        else {
+            v = vn + e[x];
+            if (v < vp[x]) v = vp[x];
+            if (v > vm[x]) v = vm[x];
+        }
+        s->v_term[x] = v;
+        s->e_v[x] = e[x];
+        s->i_a[x] = i1[x];
+    }
+    s->v_neutral = vn;
+    s->i_bus_a = ibus;
+    s->i_link_on_a = ilink;
+    s->i_peak_a = ipk;
+    s->energy_j += vbus * ibus * h;
+    s->w_rad_s = w1;
+    s->theta_rad = th1;
+    s->torque_e_n_m = te1p;          /* at th0 + h w_mid, within O(h^2) of th1 */
+    s->torque_load_n_m = tl_applied;
+    s->t_s += h;
+}
+
+/* struct sizes, so Python can check its ctypes mirrors */
+int plant_sizeof(int which)
+{
+    switch (which) {
+    case 0: return (int)sizeof(plant_params_t);
+    case 1: return (int)sizeof(plant_state_t);
+    case 2: return (int)sizeof(leg_t);
+    default: return -1;
+    }
+}
+
+/* A step, split once where a conducting phase's current reaches zero: the
+ * implicit diode rule alone would switch that phase off at the end of the
+ * step (first-order error in the other phases); locating the crossing keeps
+ * the step second order.  The crossing time comes from the exponential
+ * solution of that phase with the conduction mode at the start of the step. */
+void plant_step(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
+                double t_load_n_m, double h)
+{
+    if (!(h > 0.0)) return;
+    plant_state_t save = *s;
+    substep(p, s, leg, t_load_n_m, h);
+    double best = h;
+    int bx = -1;
+    for (int x = 0; x < 3; x++) {
+        double i0 = save.i_a[x], i1 = s->i_a[x];
+        if (i0 == 0.0 || (i1 != 0.0 && (i1 > 0.0) == (i0 > 0.0)))
+            continue;
+        /* start-of-step mode: legs with current conduct at their current's rail */
+        double vn = 0.0, n = 0.0, v[3];
+        for (int y = 0; y < 3; y++) {
+            double fh = leg[y].f_hi, fl = leg[y].f_lo, fo = 1.0 - fh - fl;
+            if (fo < 0.0) fo = 0.0;
+            v[y] = save.i_a[y] > 0.0 ? p->bus_voltage_v * fh - p->diode_drop_v * fo
+                                     : p->bus_voltage_v * (1.0 - fl) + p->diode_drop_v * fo;
+            if (save.i_a[y] != 0.0) { vn += v[y] - s->e_v[y]; n += 1.0; }
+        }
+        if (n < 2.0) continue;
+        vn /= n;
+        double R = p->r_phase_ohm, tau = p->l_phase_h / R;
+        double ss = (v[x] - vn - s->e_v[x]) / R;       /* steady-state current of that mode */
+        double q = ss / (ss - i0);
+        if (!(q > 0.0 && q < 1.0)) continue;
+        double ts = -tau * log(q);
+        if (ts < best) { best = ts; bx = x; }
+    }
+    if (bx < 0 || best < 1e-3 * h || best > 0.999 * h)
+        return;
+    *s = save;
+    substep(p, s, leg, t_load_n_m, best);
+    /* the crossing phase ends at zero; the rest keep the sum at zero */
+    double r = s->i_a[bx];
+    if (fabs(r) > 0.02 * fabs(save.i_a[bx])) {   /* estimate off: leave it to the implicit rule */
+        substep(p, s, leg, t_load_n_m, h - best);
+        return;
+    }
+    s->i_a[bx] = 0.0;
+    int others = 0;
+    for (int y = 0; y < 3; y++) if (y != bx && s->i_a[y] != 0.0) others++;
+    for (int y = 0; y < 3; y++) if (y != bx && s->i_a[y] != 0.0) s->i_a[y] += r / others;
+    if (others == 1) for (int y = 0; y < 3; y++) if (y != bx) s->i_a[y] = 0.0;
+    substep(p, s, leg, t_load_n_m, h - best);
+}

@@ -1,0 +1,173 @@
+"""Plant parameters of the twin from a drive profile, with perturbations.
+
+The twin's plant is a per-phase model of the wye winding (docs/twin.md), so
+it takes the profile's *derived* per-phase quantities (architecture.md,
+seam 1): ``r_phase_ohm``, ``(ld_phase_h + lq_phase_h) / 2``,
+``lambda_m_v_s``, ``pole_pairs``, ``back_emf_shape``.  With those, the
+six-step DC equivalent of the plant has exactly the profile's
+``kb_v_s_per_rad``/``kt_n_m_per_a`` and ``r_line_ohm``/``l_line_h``.
+
+Perturbations multiply a parameter: ``{"resistance": 1.1}`` is R + 10 %
+(the 2016 paper's uncertainty).  Keys: resistance, inductance, flux,
+inertia, friction, bus_voltage.
+"""
+from __future__ import annotations
+
+import ctypes as C
+import math
+from dataclasses import dataclass, field, replace
+from typing import Mapping
+
+from picdrive.errors import PicdriveError
+
+from . import cmodel
+
+PERTURB_KEYS = {
+    "resistance": "r_phase_ohm",
+    "inductance": "l_phase_h",
+    "flux": "lambda_m_v_s",
+    "inertia": "inertia_kg_m2",
+    "friction": "friction_n_m_s",
+    "bus_voltage": "bus_voltage_v",
+}
+LOAD_MODES = {"active": cmodel.LOAD_ACTIVE, "passive": cmodel.LOAD_PASSIVE}
+
+
+class PlantError(PicdriveError, ValueError):
+    """A plant perturbation or option is not valid."""
+
+
+@dataclass(frozen=True)
+class PlantModel:
+    """Parameters of the twin's BLDC plant (SI units, per phase)."""
+
+    r_phase_ohm: float
+    l_phase_h: float
+    lambda_m_v_s: float
+    pole_pairs: int
+    emf_shape: str                 # "trapezoidal" | "sinusoidal"
+    inertia_kg_m2: float
+    friction_n_m_s: float
+    bus_voltage_v: float
+    hall_offset_deg: float = 0.0
+    hall_spacing_deg: float = 120.0
+    encoder_lines: int = 0
+    load_mode: str = "passive"
+    diode_drop_v: float = 0.0
+    perturb: Mapping[str, float] = field(default_factory=dict)
+
+    # -- six-step DC equivalents (for limits and checks) --------------------
+    @property
+    def dc_factor(self) -> float:
+        return 2.0 if self.emf_shape == "trapezoidal" else 3.0 * math.sqrt(3.0) / math.pi
+
+    @property
+    def kb_v_s_per_rad(self) -> float:
+        return self.dc_factor * self.pole_pairs * self.lambda_m_v_s
+
+    @property
+    def kt_n_m_per_a(self) -> float:
+        # two phases carry the line current; at the flat tops T = 2 P lambda_m i
+        return self.kb_v_s_per_rad
+
+    @property
+    def r_line_ohm(self) -> float:
+        return 2.0 * self.r_phase_ohm
+
+    def to_c(self) -> cmodel.PlantParams:
+        return cmodel.PlantParams(
+            r_phase_ohm=self.r_phase_ohm, l_phase_h=self.l_phase_h,
+            lambda_m_v_s=self.lambda_m_v_s, pole_pairs=self.pole_pairs,
+            emf_shape=cmodel.EMF_SINUSOIDAL if self.emf_shape == "sinusoidal" else cmodel.EMF_TRAPEZOIDAL,
+            inertia_kg_m2=self.inertia_kg_m2, friction_n_m_s=self.friction_n_m_s,
+            bus_voltage_v=self.bus_voltage_v, diode_drop_v=self.diode_drop_v,
+            hall_offset_rad=math.radians(self.hall_offset_deg),
+            hall_spacing_rad=math.radians(self.hall_spacing_deg),
+            encoder_lines=self.encoder_lines, load_mode=LOAD_MODES[self.load_mode])
+
+    def with_(self, **kw) -> "PlantModel":
+        return replace(self, **kw)
+
+
+def parse_perturb(items) -> dict[str, float]:
+    """``["resistance=1.1", ...]`` or a mapping -> validated ``{key: factor}``."""
+    if items is None:
+        return {}
+    if isinstance(items, Mapping):
+        pairs = list(items.items())
+    else:
+        pairs = []
+        for it in items:
+            if "=" not in str(it):
+                raise PlantError(f"perturbation {it!r}: expected KEY=FACTOR, e.g. resistance=1.1 (R + 10 %)")
+            k, v = str(it).split("=", 1)
+            try:
+                pairs.append((k.strip(), float(v)))
+            except ValueError:
+                raise PlantError(f"perturbation {it!r}: FACTOR must be a number, e.g. resistance=1.1") from None
+    out: dict[str, float] = {}
+    for k, v in pairs:
+        if k not in PERTURB_KEYS:
+            raise PlantError(f"unknown perturbation {k!r}; known: {', '.join(PERTURB_KEYS)}")
+        v = float(v)
+        if not (math.isfinite(v) and 0.1 <= v <= 10.0):
+            raise PlantError(f"perturbation {k}={v!r}: the factor must be in [0.1, 10] (1.1 = +10 %)")
+        out[k] = v
+    return out
+
+
+def plant_from_profile(profile, perturb=None, *, load_mode: str = "passive",
+                       diode_drop_v: float = 0.0) -> PlantModel:
+    """The twin plant of a profile, with multiplicative perturbations applied."""
+    if load_mode not in LOAD_MODES:
+        raise PlantError(f"load mode {load_mode!r}: choose 'active' (signed torque, 2016 eq 5) "
+                         "or 'passive' (opposes motion, holds a standing rotor)")
+    if not (0.0 <= diode_drop_v < 5.0):
+        raise PlantError(f"diode drop {diode_drop_v!r} V: expected 0 .. 5 V")
+    pert = parse_perturb(perturb)
+    m, inv, se = profile.motor, profile.inverter, profile.sensors
+    base = dict(
+        r_phase_ohm=m.r_phase_ohm,
+        l_phase_h=0.5 * (m.ld_phase_h + m.lq_phase_h),
+        lambda_m_v_s=m.lambda_m_v_s,
+        inertia_kg_m2=m.inertia_kg_m2,
+        friction_n_m_s=m.viscous_friction_n_m_s,
+        bus_voltage_v=inv.bus_voltage_v,
+    )
+    for k, f in pert.items():
+        base[PERTURB_KEYS[k]] *= f
+    return PlantModel(pole_pairs=m.pole_pairs, emf_shape=m.back_emf_shape,
+                      hall_offset_deg=se.hall_offset_deg, hall_spacing_deg=float(se.hall_spacing_deg),
+                      encoder_lines=se.encoder_lines, load_mode=load_mode,
+                      diode_drop_v=diode_drop_v, perturb=pert, **base)
+
+
+class CPlant:
+    """The compiled plant alone, stepped from Python (for cross-checks)."""
+
+    def __init__(self, model: PlantModel):
+        from .build import plant_library
+        self._lib = cmodel.bind_plant(C.CDLL(str(plant_library())))
+        for i, st in enumerate((cmodel.PlantParams, cmodel.PlantState, cmodel.Leg)):
+            if self._lib.plant_sizeof(i) != C.sizeof(st):
+                raise RuntimeError(f"ctypes mirror {st.__name__} ({C.sizeof(st)} B) differs from the C struct "
+                                   f"({self._lib.plant_sizeof(i)} B): update cmodel.py")
+        self.model = model
+        self.params = model.to_c()
+        self.state = cmodel.PlantState()
+        self._lib.plant_reset(C.byref(self.state))
+        self._legs = (cmodel.Leg * 3)()
+
+    def step(self, legs, load_n_m: float, h_s: float) -> None:
+        """Advance h_s with legs = [(f_hi, f_lo)] * 3 held over the step."""
+        for k, (fh, fl) in enumerate(legs):
+            self._legs[k].f_hi = fh
+            self._legs[k].f_lo = fl
+        self._lib.plant_step(C.byref(self.params), C.byref(self.state), self._legs, load_n_m, h_s)
+
+    def hall_code(self, theta_mech: float | None = None) -> int:
+        th = self.state.theta_rad if theta_mech is None else theta_mech
+        return self._lib.plant_hall_code(C.byref(self.params), th)
+
+    def emf_shape(self, theta_e: float) -> float:
+        return self._lib.plant_emf_shape(C.byref(self.params), theta_e)

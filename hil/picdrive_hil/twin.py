@@ -1,0 +1,451 @@
+"""The motor twin: firmware C + PIC18F4431 peripheral model + BLDC plant,
+compiled into one shared library and driven from Python (architecture.md,
+seam 5).
+
+    from picdrive_hil.twin import Twin
+    tw = Twin(profile, firmware_dir, perturb={"resistance": 1.1}, seed=0)
+    tw.run(0.5)                         # simulated seconds, as fast as possible
+    s = tw.state()                      # true plant state
+    tw.set_load_torque(0.015)
+    tw.inject("hall", code=0)
+    tw.uart_write(b"...")               # host -> board at the baud rate
+    tw.uart_read()                      # board -> host bytes off the wire
+    srv = tw.serve(port=0, realtime=True)
+
+The inner loop runs in C (``csrc/``); Python only sets it up and moves bytes.
+Each Twin loads a private copy of the library, so several twins (different
+perturbations, different firmware) can live in one process.
+"""
+from __future__ import annotations
+
+import ctypes as C
+import math
+import os
+import shutil
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from picdrive.errors import PicdriveError
+
+from . import build, cmodel, regs
+from .plant import PlantModel, plant_from_profile
+
+PORTS = "ABCDE"
+PS = 1_000_000_000_000
+
+
+class TwinError(PicdriveError):
+    """The twin could not be built or started, or the firmware did something
+    the twin reports as an error (interrupt storm, wrong baud rate...)."""
+
+
+@dataclass(frozen=True)
+class BoardConfig:
+    """How the board is wired: what the firmware's pin map says.
+
+    Pins are ``(port letter, bit)``.  ``analog`` maps ADC channel numbers
+    (AN0..AN8) to the signal on that pin: ``"current"`` (the current-sense
+    amplifier) or ``"bus_voltage"`` (the bus divider).  ``current_signal``
+    is what the current-sense amplifier shows: ``"link_on"`` (the DC-link
+    current while the PWM'd high switch conducts, what a shunt in the bus
+    return shows when sampled in the on-time), ``"bus_avg"`` (an RC-filtered
+    shunt) or ``"peak"`` (largest phase current)."""
+
+    hall_pins: tuple[tuple[str, int], ...] = (("C", 3), ("C", 4), ("C", 5))
+    flta_pin: tuple[str, int] | None = ("C", 1)
+    phase_pairs: tuple[int, int, int] = (0, 1, 2)
+    analog: Mapping[int, str] = field(default_factory=dict)
+    current_signal: str = "link_on"
+    current_sense_offset_v: float = 0.0
+    bus_sense_v_per_v: float = 0.0
+    adc_vref_v: float = 5.0
+    fosc_hz: float = 40e6
+
+    def pin(self, p) -> cmodel.Pin:
+        if p is None:
+            return cmodel.Pin(0xFF, 0)
+        port, bit = p
+        if port not in PORTS or not 0 <= bit <= 7:
+            raise TwinError(f"board pin {p!r}: expected (port letter A..E, bit 0..7)")
+        return cmodel.Pin(PORTS.index(port), bit)
+
+
+_SIGNALS = {"current": cmodel.ASIG_CURRENT, "bus_voltage": cmodel.ASIG_BUS_VOLTAGE}
+_CURSIG = {"link_on": cmodel.CURSIG_LINK_ON, "bus_avg": cmodel.CURSIG_BUS_AVG, "peak": cmodel.CURSIG_PEAK}
+_INJECT = {"hall": cmodel.INJ_HALL, "overcurrent": cmodel.INJ_OVERCURRENT, "lock_rotor": cmodel.INJ_LOCK_ROTOR,
+           "encoder": cmodel.INJ_ENCODER, "bus_voltage": cmodel.INJ_BUS_VOLTAGE}
+
+
+def shim_dir() -> Path:
+    """Folder holding the host ``xc.h``: the firmware generator's shim when
+    ``picdrive.p18f4431`` provides one, else the twin's own rendering of the
+    same contract (for the twin's test firmware)."""
+    d = build.cache_dir() / "shim"
+    d.mkdir(parents=True, exist_ok=True)
+    text = None
+    try:                                   # the firmware generator's shim is the authority
+        from picdrive import p18f4431      # type: ignore[attr-defined]
+        for name in ("render_shim", "render_xc_h", "host_shim", "render_host_shim"):
+            fn = getattr(p18f4431, name, None)
+            if callable(fn):
+                text = fn()
+                break
+    except ImportError:
+        pass
+    if text is None:
+        text = regs.render_test_shim()
+    dst = d / "xc.h"
+    if not dst.exists() or dst.read_text() != text:
+        tmp = d / "xc.h.tmp"
+        tmp.write_text(text)
+        os.replace(tmp, dst)
+    return d
+
+
+def gen_dir() -> Path:
+    d = build.cache_dir() / "gen"
+    regs.write_header(d)
+    return d
+
+
+def firmware_sources(firmware_dir: Path) -> list[Path]:
+    """The firmware's C files that the host builds: all ``*.c`` except the
+    XC8-only ones (``main()`` and the config bits)."""
+    fw = Path(firmware_dir)
+    if not fw.is_dir():
+        raise TwinError(f"firmware folder {fw} does not exist: generate it with "
+                        "'picdrive firmware --profile P --design D -o <folder>'")
+    manifest = fw / "host_sources.txt"
+    if manifest.exists():
+        names = [ln.strip() for ln in manifest.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+        return [fw / n for n in names]
+    skip = {"main.c", "config_bits.c", "config.c", "xc8_main.c", "main_xc8.c"}
+    srcs = [p for p in sorted(fw.glob("*.c")) if p.name not in skip]
+    if not srcs:
+        raise TwinError(f"firmware folder {fw} has no C sources")
+    return srcs
+
+
+class Twin:
+    """A virtual board: firmware + peripherals + plant (see module docstring)."""
+
+    def __init__(self, profile, firmware_dir: str | Path | None = None, *,
+                 sources: Sequence[str | Path] | None = None,
+                 include_dirs: Sequence[str | Path] = (),
+                 board: BoardConfig | None = None,
+                 perturb: Mapping[str, float] | Sequence[str] | None = None,
+                 seed: int = 0, load_mode: str = "passive",
+                 speed_noise_rpm: float | None = None,
+                 eeprom: bytes | None = None, diode_drop_v: float = 0.0,
+                 power_on: bool = True):
+        from picdrive.profile import Profile, load_profile
+        self.profile = profile if isinstance(profile, Profile) else load_profile(profile)
+        self.firmware_dir = Path(firmware_dir) if firmware_dir is not None else None
+        if sources is None:
+            if self.firmware_dir is None:
+                raise TwinError("give the firmware folder (or sources=[...])")
+            sources = firmware_sources(self.firmware_dir)
+        self.sources = [Path(s) for s in sources]
+        incs = [Path(d) for d in include_dirs]
+        if self.firmware_dir is not None:
+            incs.insert(0, self.firmware_dir)
+        incs += [shim_dir(), gen_dir(), build.CSRC]
+        self.board = board or BoardConfig()
+        self.model: PlantModel = plant_from_profile(self.profile, perturb, load_mode=load_mode,
+                                                    diode_drop_v=diode_drop_v)
+        lib_path = build.build_library(
+            [*self.sources, *(build.CSRC / s for s in build.TWIN_SOURCES)],
+            include_dirs=incs, extra_inputs=[build.CSRC / "twin.h", build.CSRC / "pic_internal.h"])
+        self._copy = build.private_copy(lib_path)
+        self._lib = cmodel.bind_twin(C.CDLL(str(self._copy)))
+        for i, st in enumerate((cmodel.TwinConfig, cmodel.TwinState, cmodel.TraceRec,
+                                cmodel.PlantParams, cmodel.PlantState, cmodel.Leg)):
+            n = self._lib.twin_sizeof(i)
+            if n != C.sizeof(st):
+                raise TwinError(f"ctypes mirror {st.__name__} ({C.sizeof(st)} B) differs from the C struct ({n} B)")
+        self._lock = threading.RLock()
+        self._trace_buf = None
+        noise_rpm = self.profile.sensors.speed_noise_rpm if speed_noise_rpm is None else speed_noise_rpm
+        cfg = self._config(seed, noise_rpm)
+        if self._lib.twin_init(C.byref(cfg)) != 0:
+            raise TwinError("twin_init refused the configuration (ABI mismatch)")
+        if eeprom is not None:
+            self.eeprom_write_all(eeprom)
+        self._load = (np.array([0.0]), np.array([0.0]))
+        if power_on:
+            self.power_on()
+
+    # -- setup --------------------------------------------------------------
+    def _config(self, seed: int, noise_rpm: float) -> cmodel.TwinConfig:
+        b, p = self.board, self.profile
+        cfg = cmodel.TwinConfig()
+        cfg.abi_version = cmodel.ABI_VERSION
+        cfg.plant = self.model.to_c()
+        cfg.fosc_hz = b.fosc_hz
+        if len(b.hall_pins) != 3:
+            raise TwinError("board.hall_pins must list three pins (hall A, B, C)")
+        for k, pn in enumerate(b.hall_pins):
+            cfg.hall_pin[k] = b.pin(pn)
+        cfg.flta_pin = b.pin(b.flta_pin)
+        for k, pair in enumerate(b.phase_pairs):
+            if pair not in (0, 1, 2, 3):
+                raise TwinError(f"board.phase_pairs[{k}] = {pair!r}: a PWM output pair 0..3")
+            cfg.phase_pair[k] = pair
+        for ch, sig in b.analog.items():
+            if not 0 <= int(ch) <= 8 or sig not in _SIGNALS:
+                raise TwinError(f"board.analog {ch!r}: {sig!r}: channels 0..8, signals {sorted(_SIGNALS)}")
+            cfg.analog_signal[int(ch)] = _SIGNALS[sig]
+        if b.current_signal not in _CURSIG:
+            raise TwinError(f"board.current_signal {b.current_signal!r}: one of {sorted(_CURSIG)}")
+        cfg.current_signal = _CURSIG[b.current_signal]
+        cfg.current_sense_v_per_a = p.inverter.current_sense_v_per_a
+        cfg.current_sense_offset_v = b.current_sense_offset_v
+        cfg.bus_sense_v_per_v = b.bus_sense_v_per_v
+        cfg.adc_vref_v = b.adc_vref_v
+        cfg.overcurrent_trip_a = p.inverter.overcurrent_trip_a
+        cfg.host_baud = float(p.uart.baud)
+        cfg.max_step_s = 50e-6
+        cfg.speed_noise_rad_s = noise_rpm * 2 * math.pi / 60.0
+        cfg.noise_sample_s = 1.0 / p.control.speed_loop_hz
+        cfg.seed = (int(seed) * 0x9E3779B97F4A7C15 + 1) & 0xFFFFFFFFFFFFFFFF
+        cfg.eeprom_write_s = 4e-3
+        return cfg
+
+    def power_on(self) -> None:
+        """Chip reset and ``fw_init()`` (the motor keeps turning)."""
+        with self._lock:
+            self._check(self._lib.twin_power_on())
+
+    def close(self) -> None:
+        """Forget the library copy (the process keeps it mapped; the file is removed)."""
+        d = getattr(self, "_copy", None)
+        if d is not None:
+            shutil.rmtree(d.parent, ignore_errors=True)
+            self._copy = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    # -- time ---------------------------------------------------------------
+    def _check(self, err: int) -> None:
+        if err:
+            msgs = [m for bit, m in cmodel.TWIN_ERRORS.items() if err & bit]
+            raise TwinError("twin stopped: " + "; ".join(msgs or [f"error bits 0x{err:x}"]))
+
+    @property
+    def t(self) -> float:
+        """Simulated time, s."""
+        s = cmodel.TwinState()
+        with self._lock:
+            self._lib.twin_get_state(C.byref(s))
+        return s.now_ps / PS
+
+    def run(self, seconds: float) -> None:
+        """Advance the simulation by ``seconds`` (free-running)."""
+        if not (seconds >= 0 and math.isfinite(seconds)):
+            raise ValueError(f"run({seconds!r}): seconds must be finite and >= 0")
+        with self._lock:
+            s = cmodel.TwinState()
+            self._lib.twin_get_state(C.byref(s))
+            self._check(self._lib.twin_run_until(s.now_ps + int(round(seconds * PS))))
+
+    def run_until(self, t_s: float) -> None:
+        with self._lock:
+            self._check(self._lib.twin_run_until(int(round(t_s * PS))))
+
+    # -- plant --------------------------------------------------------------
+    def state(self) -> dict:
+        """True plant and board state (SI units)."""
+        s = cmodel.TwinState()
+        with self._lock:
+            self._lib.twin_get_state(C.byref(s))
+        ps = s.plant
+        return {
+            "t_s": s.now_ps / PS,
+            "speed_rad_s": ps.w_rad_s,
+            "speed_rpm": ps.w_rad_s * 60.0 / (2 * math.pi),
+            "angle_rad": ps.theta_rad,
+            "i_abc_a": tuple(ps.i_a),
+            "i_bus_a": ps.i_bus_a,
+            "i_peak_a": ps.i_peak_a,
+            "v_term_v": tuple(ps.v_term),
+            "torque_e_n_m": ps.torque_e_n_m,
+            "torque_load_n_m": ps.torque_load_n_m,
+            "energy_j": ps.energy_j,
+            "hall": s.hall_code,
+            "hall_true": s.hall_true,
+            "encoder_count": s.enc_count,
+            "legs": tuple((lg.f_hi, lg.f_lo) for lg in s.leg),
+            "gate_hi": tuple(s.gate_hi),
+            "gate_lo": tuple(s.gate_lo),
+            "outputs_active": bool(s.pwm_outputs_active),
+            "flta_asserted": bool(s.flta_asserted),
+            "pwm_fault_latched": bool(s.pwm_fault_latched),
+            "shoot_through": s.shoot_through,
+            "duty": tuple(s.duty),
+            "pwm_period_s": s.pwm_period_s,
+            "dead_time_s": s.dead_time_s,
+            "board_baud": s.board_baud,
+            "uart_rx_overruns": s.uart_rx_overruns,
+            "uart_rx_framing_errors": s.uart_rx_framing,
+            "isr_high_calls": s.isr_high_calls,
+            "isr_low_calls": s.isr_low_calls,
+            "poll_calls": s.poll_calls,
+            "eeprom_writes": s.eeprom_writes,
+            "eeprom_rejected": s.eeprom_rejected,
+            "rotor_locked": bool(ps.locked),
+        }
+
+    def set_plant_state(self, speed_rad_s: float, angle_rad: float | None = None) -> None:
+        """Put the rotor at a speed (and angle) — e.g. a load spinning it."""
+        with self._lock:
+            th = self.state()["angle_rad"] if angle_rad is None else angle_rad
+            self._lib.twin_set_plant_state(float(speed_rad_s), float(th))
+
+    def set_load_torque(self, torque_n_m: float) -> None:
+        """A load-torque step, applied from now on."""
+        self.set_load_profile([0.0], [torque_n_m])
+
+    def set_load_profile(self, t_s: Sequence[float], torque_n_m: Sequence[float], *,
+                         relative: bool = False) -> None:
+        """Piecewise-linear load torque through (t, T) points (absolute simulated
+        time, or relative to now); constant before the first and after the last."""
+        t = np.asarray(t_s, dtype=float).ravel()
+        v = np.asarray(torque_n_m, dtype=float).ravel()
+        if t.size != v.size or t.size == 0:
+            raise TwinError("load profile: t and torque need the same, nonzero, number of points")
+        if t.size > 1024:
+            raise TwinError(f"load profile has {t.size} points; the twin takes up to 1024")
+        if np.any(np.diff(t) < 0) or not np.all(np.isfinite(t)) or not np.all(np.isfinite(v)):
+            raise TwinError("load profile: times must be increasing and all values finite")
+        if relative:
+            t = t + self.t
+        elif t.size == 1:
+            t = np.array([self.t])
+        tc = (C.c_double * t.size)(*t)
+        vc = (C.c_double * v.size)(*v)
+        with self._lock:
+            self._lib.twin_set_load_table(tc, vc, t.size)
+        self._load = (t, v)
+
+    def load_profile_file(self, path: str | Path, *, relative: bool = True) -> None:
+        """Load torque from a CSV file of ``t_s,torque_n_m`` rows (header optional)."""
+        try:
+            data = np.genfromtxt(path, delimiter=",", comments="#", dtype=float)
+        except OSError as e:
+            raise TwinError(f"cannot read load profile {path}: {e}") from None
+        data = np.atleast_2d(data)
+        data = data[~np.isnan(data).any(axis=1)]
+        if data.ndim != 2 or data.shape[1] != 2 or data.shape[0] == 0:
+            raise TwinError(f"load profile {path}: expected rows of 't_s,torque_n_m'")
+        self.set_load_profile(data[:, 0], data[:, 1], relative=relative)
+
+    # -- faults ---------------------------------------------------------------
+    def inject(self, kind: str, **kw) -> None:
+        """Inject a fault.
+
+        * ``hall``: ``code=0..7`` forces the hall pins (``code=None`` releases);
+          ``duration_s`` optional.
+        * ``overcurrent``: the comparator asserts FLTA for ``duration_s`` (1 ms).
+        * ``lock_rotor``: ``locked=True/False``.
+        * ``encoder``: ``connected=False`` freezes the encoder, True reconnects.
+        * ``bus_voltage``: ``volts=...``.
+        """
+        if kind not in _INJECT:
+            raise TwinError(f"unknown injection {kind!r}; known: {', '.join(_INJECT)}")
+        dur = float(kw.pop("duration_s", 0.0))
+        if kind == "hall":
+            code = kw.pop("code")
+            value = -1.0 if code is None else float(int(code) & 7)
+        elif kind == "overcurrent":
+            value = 1.0
+        elif kind == "lock_rotor":
+            value = 1.0 if kw.pop("locked", True) else 0.0
+        elif kind == "encoder":
+            value = 1.0 if kw.pop("connected", False) else 0.0
+        else:
+            value = float(kw.pop("volts"))
+        if kw:
+            raise TwinError(f"inject({kind!r}): unknown argument(s) {sorted(kw)}")
+        with self._lock:
+            self._lib.twin_inject(_INJECT[kind], value, dur)
+
+    # -- UART -----------------------------------------------------------------
+    def uart_write(self, data: bytes) -> int:
+        """Queue host -> board bytes; they arrive one frame time apart at the host's baud."""
+        data = bytes(data)
+        with self._lock:
+            return self._lib.twin_uart_host_write(data, len(data))
+
+    def uart_read(self, max_bytes: int = 65536) -> bytes:
+        """Board -> host bytes that have left the wire."""
+        buf = C.create_string_buffer(max_bytes)
+        with self._lock:
+            n = self._lib.twin_uart_host_read(buf, max_bytes)
+        return buf.raw[:n]
+
+    def uart_pending(self) -> int:
+        """Host bytes not yet received by the board."""
+        with self._lock:
+            return self._lib.twin_uart_host_pending()
+
+    # -- EEPROM ---------------------------------------------------------------
+    def eeprom(self) -> bytes:
+        buf = C.create_string_buffer(256)
+        with self._lock:
+            self._lib.twin_eeprom_get(buf)
+        return buf.raw
+
+    def eeprom_write_all(self, data: bytes) -> None:
+        data = bytes(data)
+        if len(data) != 256:
+            raise TwinError(f"EEPROM image must be 256 bytes, got {len(data)}")
+        with self._lock:
+            self._lib.twin_eeprom_set(data)
+
+    def sfr(self, name: str) -> int:
+        """Current value of an SFR by its p18f4431.inc name (for tests)."""
+        r, _ = regs.parse_inc()
+        if name not in r:
+            raise TwinError(f"no SFR named {name!r} in p18f4431.inc")
+        with self._lock:
+            return self._lib.twin_sfr_get(r[name] - 0xF00)
+
+    # -- traces ---------------------------------------------------------------
+    def record(self, seconds: float, period_s: float = 1e-3) -> dict[str, np.ndarray]:
+        """Run ``seconds`` and return the plant sampled every ``period_s``
+        (exactly, in simulated time): t_s, w_rad_s, i_a/b/c, i_bus_a, ..."""
+        n = int(math.floor(seconds / period_s + 1e-9)) + 1
+        buf = (cmodel.TraceRec * n)()
+        with self._lock:
+            self._lib.twin_trace_start(period_s, buf, n)
+            try:
+                self.run(seconds)
+            finally:
+                cnt = self._lib.twin_trace_count()
+                self._lib.twin_trace_start(0.0, None, 0)
+        arr = np.ctypeslib.as_array(buf)[:cnt]
+        return {name: np.array(arr[name]) for name in cmodel.TRACE_FIELDS}
+
+    # -- endpoint -------------------------------------------------------------
+    def serve(self, port: int = 0, *, realtime: bool = True, pty: bool = False,
+              host: str = "127.0.0.1"):
+        """Start the serial endpoint in a background thread: socket://host:port
+        (and a pty path with pty=True).  Returns the running TwinServer."""
+        from .endpoint import TwinServer
+        srv = TwinServer(self, port=port, host=host, realtime=realtime, pty=pty)
+        srv.start()
+        return srv

@@ -1,0 +1,255 @@
+"""The twin's compiled BLDC plant (hil/picdrive_hil/csrc/plant.c) against
+independent references: the scipy model of the same equations
+(picdrive_hil.reference, event-located continuous time), the dq model at
+steady operating points, and the profile's six-step constants."""
+import math
+import warnings
+
+import numpy as np
+import pytest
+from scipy.optimize import fsolve
+
+from picdrive.profile import ProfileWarning, load_profile
+from picdrive_hil import reference as ref
+from picdrive_hil.plant import CPlant, PlantError, parse_perturb, plant_from_profile
+
+warnings.simplefilter("ignore", ProfileWarning)
+
+PROFILES = ("duy2008", "assawinchaichote2016")
+
+
+def _profile(name):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ProfileWarning)
+        return load_profile(name)
+
+
+def run_cplant(model, legs_of_code, t_eval, load, h=50e-6, w0=0.0):
+    """Step the C plant with the open-loop commutator, cutting steps at the
+    hall edges the way the twin's event loop does."""
+    cp = CPlant(model)
+    cp.state.w_rad_s = w0
+    out = np.zeros((5, len(t_eval)))
+    P, off, sec = model.pole_pairs, math.radians(model.hall_offset_deg), math.pi / 3
+    t = 0.0
+    for k, tn in enumerate(t_eval):
+        while t < tn - 1e-15:
+            st = cp.state
+            we, the = P * st.w_rad_s, P * st.theta_rad
+            step = min(h, tn - t)
+            if abs(we) > 1e-9:
+                x = (the - off) / sec
+                nxt = (math.floor(x) + 1 if we > 0 else math.ceil(x) - 1) * sec + off
+                dt = (nxt - the) / we + 1e-12
+                if 0 < dt < step:
+                    step = dt
+            code = cp.hall_code(st.theta_rad + math.copysign(1e-12, st.w_rad_s or 1.0))
+            cp.step(legs_of_code(code), load(t + step / 2), step)
+            t += step
+        st = cp.state
+        out[:, k] = [st.i_a[0], st.i_a[1], st.i_a[2], st.w_rad_s, st.theta_rad]
+    return out
+
+
+def rel_errors(c, r):
+    w_err = np.max(np.abs(c[3] - r.w)) / np.max(np.abs(r.w))
+    i_err = np.max(np.abs(c[:3] - r.i_abc)) / np.max(np.abs(r.i_abc))
+    return w_err, i_err
+
+
+@pytest.mark.parametrize("name, duty, complementary, t_end", [
+    ("duy2008", 0.9, False, 0.3),
+    ("duy2008", 0.6, True, 0.2),
+    ("assawinchaichote2016", 0.9, False, 0.6),
+])
+def test_plant_matches_scipy_reference_six_step(name, duty, complementary, t_end):
+    """Start from rest, six-step at a fixed duty, load-torque step half way:
+    speed and phase currents within 1 % of the scipy model, same inputs."""
+    p = _profile(name)
+    m = plant_from_profile(p, load_mode="active")
+    dead = p.inverter.dead_time_ns * 1e-9 * p.inverter.pwm_frequency_hz
+    legs = ref.sixstep_legs(ref.ideal_commutation_table(m), duty, dead, complementary)
+    tl = p.control.load_torque_n_m
+    load = lambda t: tl if t >= t_end / 2 else 0.0
+    te = np.linspace(0, t_end, int(round(t_end / 1e-4)) + 1)
+    r = ref.simulate_reference(m, legs, t_end, te, load=load, load_breaks=[t_end / 2])
+    assert r.n_events > 50            # commutations, zero crossings: the modes really switch
+    c = run_cplant(m, legs, te, load)
+    w_err, i_err = rel_errors(c, r)
+    print(f"{name} duty {duty} compl {complementary}: speed err {w_err:.3%}, current err {i_err:.3%}")
+    assert w_err < 0.01 and i_err < 0.01
+
+
+def test_plant_matches_scipy_reference_diode_rectification():
+    """All switches off, rotor spun above the bus voltage's speed: the body
+    diodes rectify the back-EMF into the bus and brake the rotor (the
+    floating-phase logic with no switch at all)."""
+    p = _profile("duy2008")
+    m = plant_from_profile(p, load_mode="active")
+    w_bus = p.inverter.bus_voltage_v / m.kb_v_s_per_rad
+    w0 = 1.6 * w_bus
+    off = lambda code: [(0.0, 0.0)] * 3
+    te = np.linspace(0, 0.05, 501)
+    r = ref.simulate_reference(m, off, 0.05, te, w0=w0)
+    c = run_cplant(m, off, te, lambda t: 0.0, w0=w0)
+    w_err, i_err = rel_errors(c, r)
+    assert np.max(np.abs(r.i_abc)) > 0.1           # the diodes really conduct
+    assert r.w[-1] < w0 * 0.99                     # and brake the rotor
+    assert w_err < 0.01 and i_err < 0.01
+
+
+def test_floating_phase_decays_through_the_diodes_then_stays_open():
+    """Commutation a+b- -> c+b-: the outgoing phase a, switched off entirely,
+    keeps its current through its low-side body diode (node at 0 V) until the
+    current reaches zero, then stays open (exactly zero, terminal floating
+    between the rails) while c and b carry the current."""
+    p = _profile("assawinchaichote2016")
+    m = plant_from_profile(p, load_mode="active")
+    cp = CPlant(m)
+    for _ in range(200):
+        cp.step([(0.9, 0.0), (0.0, 1.0), (0.0, 0.0)], 0.0, 50e-6)
+    assert cp.state.i_a[0] > 1.0
+    seen_diode = seen_open = False
+    for _ in range(200):
+        was_open = seen_open
+        cp.step([(0.0, 0.0), (0.0, 1.0), (0.9, 0.0)], 0.0, 50e-6)
+        st = cp.state
+        if st.i_a[0] > 0:
+            assert not was_open                               # no chatter once open
+            assert st.v_term[0] == pytest.approx(0.0, abs=1e-12)
+            seen_diode = True
+        elif st.i_a[0] == 0.0:
+            assert 0.0 <= st.v_term[0] <= p.inverter.bus_voltage_v
+            seen_open = True
+        else:
+            # the open terminal (v_n + e_a) reached the bus: the high-side diode conducts
+            assert was_open and st.v_term[0] == pytest.approx(p.inverter.bus_voltage_v)
+        assert sum(st.i_a) == pytest.approx(0.0, abs=1e-9)
+    assert seen_diode and seen_open
+    assert cp.state.i_a[2] > 1.0                              # c took over
+    assert cp.state.w_rad_s * m.kb_v_s_per_rad < p.inverter.bus_voltage_v
+    # everything off below the bus speed: all currents die and stay exactly zero
+    for _ in range(400):
+        cp.step([(0.0, 0.0)] * 3, 0.0, 50e-6)
+    assert abs(m.kb_v_s_per_rad * cp.state.w_rad_s) < p.inverter.bus_voltage_v
+    assert list(cp.state.i_a) == [0.0, 0.0, 0.0]
+
+
+def test_emf_and_torque_constants_match_the_profile_six_step_equivalents():
+    """Line-to-line EMF of the conducting pair, averaged over its 60-degree
+    window, is the profile's Kb; the torque per line ampere is Kt."""
+    for name in PROFILES:
+        p = _profile(name)
+        m = plant_from_profile(p)
+        cp = CPlant(m)
+        # window centred on the line-to-line peak of (a - b): 60 deg around 60 deg electrical
+        th = np.linspace(math.radians(30), math.radians(90), 2001)
+        eab = np.array([cp.emf_shape(x) - cp.emf_shape(x - 2 * math.pi / 3) for x in th])
+        kb = m.pole_pairs * m.lambda_m_v_s * float(np.mean(eab))
+        assert kb == pytest.approx(p.motor.kb_v_s_per_rad, rel=1e-4)
+        assert m.kt_n_m_per_a == pytest.approx(p.motor.kt_n_m_per_a, rel=1e-9)
+        assert m.r_line_ohm == pytest.approx(p.motor.r_line_ohm)
+
+
+def test_hall_codes_follow_the_profile_placement():
+    p = _profile("duy2008")
+    m = plant_from_profile(p)
+    cp = CPlant(m)
+    P = m.pole_pairs
+    th = np.linspace(0, 2 * math.pi, 3600, endpoint=False) / P
+    codes = [cp.hall_code(x) for x in th]
+    seq = [c for k, c in enumerate(codes) if k == 0 or c != codes[k - 1]]
+    assert sorted(set(codes)) == [1, 2, 3, 4, 5, 6]           # 120-degree halls: 000/111 never valid
+    for a, b in zip(seq, seq[1:]):
+        assert bin(a ^ b).count("1") == 1                     # Gray sequence
+    # hall A rises hall_offset_deg after e_a's rising zero crossing
+    for off in (0.0, 30.0, -20.0):
+        mo = m.with_(hall_offset_deg=off)
+        c2 = CPlant(mo)
+        eps = 1e-6
+        x = math.radians(off) / P
+        assert c2.hall_code(x - eps) & 1 == 0 and c2.hall_code(x + eps) & 1 == 1
+        assert ref.hall_code(mo, x + eps) == c2.hall_code(x + eps)
+    # 60-degree spacing: 000 and 111 are valid codes of that geometry
+    c60 = CPlant(m.with_(hall_spacing_deg=60.0))
+    assert {0, 7} <= {c60.hall_code(x) for x in th}
+
+
+def test_passive_load_holds_a_standing_rotor_and_never_reverses_it():
+    p = _profile("duy2008")
+    m = plant_from_profile(p, load_mode="passive")
+    cp = CPlant(m)
+    off = [(0.0, 0.0)] * 3
+    cp.step(off, 0.01, 0.1)
+    assert cp.state.w_rad_s == 0.0
+    cp.state.w_rad_s = 50.0
+    for _ in range(4000):
+        cp.step(off, 0.01, 50e-6)
+    assert cp.state.w_rad_s == 0.0
+    # active load: the same torque turns a free rotor backwards (2016 eq 5 as written)
+    ca = CPlant(m.with_(load_mode="active"))
+    for _ in range(100):
+        ca.step(off, 0.01, 50e-6)
+    assert ca.state.w_rad_s < 0.0
+
+
+def _dq_steady_state(m, vq, vd, tl):
+    """Steady state of the dq model (q axis on e_a's sine, P pole pairs):
+    v_q = R i_q - w_e L i_d + w_e lambda,  v_d = R i_d + w_e L i_q,
+    1.5 P lambda i_q = B w + T_L."""
+    P, R, L, lam, B = m.pole_pairs, m.r_phase_ohm, m.l_phase_h, m.lambda_m_v_s, m.friction_n_m_s
+
+    def f(x):
+        w, iq, idd = x
+        we = P * w
+        return [R * iq - we * L * idd + we * lam - vq,
+                R * idd + we * L * iq - vd,
+                1.5 * P * lam * iq - B * w - tl]
+    w_guess = vq / (P * lam)
+    return fsolve(f, [w_guess, 0.0, 0.0], xtol=1e-12)
+
+
+@pytest.mark.parametrize("vq, vd, tl", [(20.0, 0.0, 0.5), (15.0, -5.0, 1.0)])
+def test_plant_matches_the_dq_model_at_steady_operating_points(vq, vd, tl):
+    """Sinusoidal PWM synchronous with the rotor (complementary legs, no dead
+    time: average node voltage = V_bus x duty exactly) on the 2016 motor."""
+    p = _profile("assawinchaichote2016")
+    m = plant_from_profile(p, load_mode="active")
+    w_ss, iq_ss, id_ss = _dq_steady_state(m, vq, vd, tl)
+    cp = CPlant(m)
+    cp.state.w_rad_s = 0.9 * w_ss
+    vbus, P = m.bus_voltage_v, m.pole_pairs
+    h = 50e-6
+    iq_hist, id_hist = [], []
+    for k in range(int(1.5 / h)):
+        th = P * (cp.state.theta_rad + 0.5 * h * cp.state.w_rad_s)   # mid-step angle: no hold lag
+        legs = []
+        for ph in range(3):
+            a = th - ph * 2 * math.pi / 3
+            v = vq * math.sin(a) + vd * math.cos(a)          # phase voltage wanted
+            d = 0.5 + v / vbus
+            legs.append((d, 1.0 - d))
+        cp.step(legs, tl, h)
+        if k * h > 1.3:
+            th = P * cp.state.theta_rad
+            i = cp.state.i_a
+            iq_hist.append(2 / 3 * sum(i[ph] * math.sin(th - ph * 2 * math.pi / 3) for ph in range(3)))
+            id_hist.append(2 / 3 * sum(i[ph] * math.cos(th - ph * 2 * math.pi / 3) for ph in range(3)))
+    assert cp.state.w_rad_s == pytest.approx(w_ss, rel=0.01)
+    assert np.mean(iq_hist) == pytest.approx(iq_ss, rel=0.01)
+    assert np.mean(id_hist) == pytest.approx(id_ss, abs=0.01 * math.hypot(iq_ss, id_ss))
+
+
+def test_perturbations():
+    p = _profile("duy2008")
+    base = plant_from_profile(p)
+    m = plant_from_profile(p, {"resistance": 1.1, "inertia": 0.9})
+    assert m.r_phase_ohm == pytest.approx(1.1 * base.r_phase_ohm)
+    assert m.inertia_kg_m2 == pytest.approx(0.9 * base.inertia_kg_m2)
+    assert parse_perturb(["resistance=0.9"]) == {"resistance": 0.9}
+    with pytest.raises(PlantError, match="unknown perturbation 'resistnce'"):
+        parse_perturb(["resistnce=1.1"])
+    with pytest.raises(PlantError, match=r"\[0.1, 10\]"):
+        parse_perturb({"resistance": 0.0})
+    with pytest.raises(PlantError, match="KEY=FACTOR"):
+        parse_perturb(["resistance"])
