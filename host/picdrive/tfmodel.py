@@ -373,13 +373,16 @@ def _zoh_motor(L, R, J, D, kt, kb, ts):
 
 
 def simulate_sampled_batch(profile, kp, ki, kd, *, ts: float, u_max_v: float, t_end_s: float, ref_rad_s: float,
-                           delay_samples: int = 1, measurement: str = "average") -> dict:
+                           delay_samples: int = 1, measurement: str = "average",
+                           i_lim_v: float | None = None) -> dict:
     """:func:`simulate_sampled` for many one-rule PID laws at once (no load torque).
 
     The law is ``control_law.law_step`` written out for arrays (one rule,
-    b = 1, unfiltered derivative on measurement, conditional integration,
-    output clamp to +-``u_max_v``), so that a GA can judge the saturated step
-    of every chromosome.  Returns ``speed_rad_s`` and ``current_a`` of shape
+    b = 1, unfiltered derivative on measurement, integration only into the
+    output headroom, integrator range +-``i_lim_v`` (default ``u_max_v``, the
+    law's default), output clamp to +-``u_max_v``), so that a GA can judge
+    the saturated step of every chromosome.  A test keeps it equal to
+    :func:`simulate_sampled` with ``law_step``.  Returns ``speed_rad_s`` and ``current_a`` of shape
     (samples, batch) at the sample instants.
     """
     kp, ki, kd = (np.atleast_1d(np.asarray(v, float)) for v in (kp, ki, kd))
@@ -395,18 +398,19 @@ def simulate_sampled_batch(profile, kp, ki, kd, *, ts: float, u_max_v: float, t_
     integ = np.zeros(m)
     y_prev = None
     r = float(ref_rad_s)
+    i_lim = float(u_max_v if i_lim_v is None else i_lim_v)
     w_out = np.zeros((n, m)); i_out = np.zeros((n, m))
     for k in range(n):
         w_out[k] = x[1]; i_out[k] = x[0]
         y = y_avg if measurement == "average" else x[1]
         e = r - y
-        p = kp * e                                   # b = 1
-        d = kd * ((y if y_prev is None else y_prev) - y) / ts
-        i_new = integ + ki * ts * e
-        v = p + i_new + d
-        hold = ((v > u_max_v) & (e > 0)) | ((v < -u_max_v) & (e < 0))
-        integ = np.where(hold, integ, np.minimum(np.maximum(i_new, -u_max_v), u_max_v))
-        u_cmd = np.minimum(np.maximum(p + integ + d, -u_max_v), u_max_v)
+        q = kp * e + kd * ((y if y_prev is None else y_prev) - y) / ts      # b = 1, kc = 0
+        di = ki * ts * e
+        up = np.minimum(integ + di, np.maximum(integ, u_max_v - q))       # headroom rule of law_step
+        dn = np.maximum(integ + di, np.minimum(integ, -u_max_v - q))
+        integ = np.where(di > 0, up, np.where(di < 0, dn, integ))
+        integ = np.minimum(np.maximum(integ, -i_lim), i_lim)
+        u_cmd = np.minimum(np.maximum(q + integ, -u_max_v), u_max_v)
         y_prev = y
         if delay_samples == 0:
             u_app = u_cmd
