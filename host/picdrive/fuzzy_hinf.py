@@ -392,12 +392,13 @@ def minimise_gamma(ts, delta: float | None = None, alpha: float = 2.0, rho: floa
                       pole_disk_rad_s=pole_disk_rad_s, solver=solver)
         s = pr.solve()
         n_solves += 1
-        if input_bound is not None or not s.feasible:
+        if input_bound is not None or not (s.feasible or math.isfinite(s.gamma)):
             s.extra.update(n_solves=n_solves, bisection_time_s=time.perf_counter() - t0)
             return s
         # the SDP optimum is often not attained (gains grow without bound towards the infimum) and
-        # interior-point solvers stop early there; refine by bisection on fixed-gamma feasibility
-        gamma_hi = s.gamma
+        # interior-point solvers stop early there (sometimes a hair outside the strict LMIs); refine
+        # by bisection on fixed-gamma feasibility
+        gamma_hi = s.gamma if s.feasible else 2.0 * s.gamma
     pr = _Problem(ts, delta, alpha, rho, zero_gain_states=tuple(zero_gain_states),
                   pole_disk_rad_s=pole_disk_rad_s, solver=solver, fixed_gamma=True)
     hi = pr.solve(gamma_hi)
