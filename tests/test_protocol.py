@@ -169,3 +169,16 @@ def test_markdown_lists_every_command_code_and_entry():
         assert f"| {int(n)} | {n.name} |" in md
     for e in P.build_table(2):
         assert f"| {e.name} |" in md
+
+
+@pytest.mark.skipif(shutil.which("avr-nm") is None, reason="avr-gcc/avr-nm not installed")
+@pytest.mark.parametrize("rules,capture", [(2, P.CAPTURE_BYTES_DEFAULT), (5, 64)])
+def test_stated_ram_budget_is_what_avr_gcc_allocates(tmp_path, rules, capture):
+    t = P.build_table(rules)
+    files = P.render_c(t, build_id=1, profile_hash=2, capture_bytes=capture)
+    sym = build.avr_ram_bytes(build.avr_object(files, tmp_path))
+    budget = P.ram_budget(t, capture)
+    assert sym["S"] == P.STATE_BYTES
+    assert sym["cap_buf"] == capture and sym["link_params"] == budget["param_store"]
+    assert sum(sym.values()) == sum(budget.values()) + P.STATE_BYTES
+    assert re.search(rf"\*\s+total\s+{sum(budget.values()) + P.STATE_BYTES}\n", files["link_fw.h"])

@@ -218,6 +218,11 @@ class Link:
             raise
         return link
 
+    HOST_GAP_S = 0.1
+    """Idle time after which the host abandons a partial frame.  Longer than the board's
+    FRAME_GAP_MS: USB-serial adapters and the OS deliver bytes in bursts (an FTDI chip holds
+    them up to its 16 ms latency timer), so a pause inside a frame is normal on the host."""
+
     def __init__(self, port, *, url: str = "", timeout: float = 0.25, retries: int = 3,
                  telemetry_buffer: int = 1_000_000):
         if timeout <= 0 or retries < 0:
@@ -251,7 +256,7 @@ class Link:
         self._events: collections.deque = collections.deque(maxlen=1000)
         self.on_event: Callable[[float, P.Event | int, int], None] | None = None
         self.stats = {"tx_bytes": 0, "rx_bytes": 0, "requests": 0, "retries": 0, "stale_replies": 0,
-                      "bad_crc_nacks": 0, "keepalive_errors": 0}
+                      "bad_crc_nacks": 0, "keepalive_errors": 0, "crc_errors": 0}
         self.last_keepalive_error: LinkError | None = None
         self._keepalive: threading.Thread | None = None
         self._reader = threading.Thread(target=self._read_loop, name=f"picdrive-link-reader {url}", daemon=True)
@@ -287,7 +292,7 @@ class Link:
     # ---------------------------------------------------------------- reader
     def _read_loop(self) -> None:
         last_rx = time.monotonic()
-        gap = P.FRAME_GAP_MS / 1000.0
+        gap = self.HOST_GAP_S
         while not self._closing:
             try:
                 data = self._port.read(4096)
@@ -303,6 +308,7 @@ class Link:
                 frames = self._dec.gap() if self._dec.pending and now - last_rx > gap else []
                 if not frames:
                     self._wait(0.005)
+            self.stats["crc_errors"] = self._dec.crc_errors
             for f in frames:
                 try:
                     self._route(f, now)

@@ -50,7 +50,7 @@ __all__ = [
     "ParamDef", "PARAMS", "RULE_GAINS", "SIGNALS", "SIGNAL_BASE_ID", "RULE_BASE_ID",
     "ParamOverride", "Entry", "Table", "static_defs", "build_table", "render_c",
     "render_markdown", "ram_budget", "DEFAULT_TELEMETRY_SIGNALS", "DEFAULT_SAMPLES_PER_FRAME",
-    "TELEMETRY_HEADER_BYTES", "CAPTURE_READ_HEADER_BYTES", "float32_bits", "float32_from_bits",
+    "TELEMETRY_HEADER_BYTES", "CAPTURE_READ_HEADER_BYTES", "STATE_BYTES", "float32_bits", "float32_from_bits",
 ]
 
 
@@ -109,6 +109,10 @@ EEPROM_HEADER_BYTES = 8
 """EEPROM image: 'P' 'D', layout version, table hash (u32 LE), data length,
 then the persisted parameters in table order (little-endian, C-type width),
 then CRC-16/CCITT-FALSE of everything before it, high byte first."""
+
+STATE_BYTES = 82
+"""Scalar state of the C module (struct S in link_fw.c), bytes, as avr-nm measures it;
+checked by tests/test_protocol.py."""
 
 TELEMETRY_HEADER_BYTES = 2            # u16 counter of the frame's first sample
 CAPTURE_READ_HEADER_BYTES = 7         # state u8, total u16, trigger index u16, start u16
@@ -745,13 +749,13 @@ def ram_budget(table: Table, capture_bytes: int = CAPTURE_BYTES_DEFAULT) -> dict
     """Bytes of the C module's buffers for a table: RX ring, TX frame buffer,
     telemetry frame buffer, replay store, parameter store, capture buffer.
     The scalar state (indices, counters, capture and telemetry settings) is
-    about 60 B more; ``bench/link.py`` measures the total from the avr-gcc
+    :data:`STATE_BYTES` more; ``bench/link.py`` measures the total from the avr-gcc
     build (``avr-nm --size-sort -S``)."""
     return {
         "rx_ring": RX_RING_BYTES,
         "tx_frame": MAX_FRAME,
         "telemetry_frame": MAX_PAYLOAD,
-        "replay": REPLAY_BYTES + 5,
+        "replay": REPLAY_BYTES,
         "param_store": table.param_store_bytes,
         "capture": capture_bytes,
     }
@@ -824,7 +828,7 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
         flag_writable=FLAG_WRITABLE, flag_persisted=FLAG_PERSISTED, flag_signal=FLAG_SIGNAL,
         ee_magic=EEPROM_MAGIC, ee_version=EEPROM_LAYOUT_VERSION, ee_header=EEPROM_HEADER_BYTES,
         ee_image=table.eeprom_image_bytes, telem_header=TELEMETRY_HEADER_BYTES,
-        capread_header=CAPTURE_READ_HEADER_BYTES, budget=ram_budget(table, capture_bytes),
+        capread_header=CAPTURE_READ_HEADER_BYTES, budget=ram_budget(table, capture_bytes), state_bytes=STATE_BYTES,
         critical_begin=critical_begin, critical_end=critical_end, c_int=_c_int,
         cmd=COMMAND_BY_NAME, hexu=lambda v: f"0x{v:08X}UL",
     )
@@ -987,10 +991,11 @@ def render_markdown(table: Table | None = None) -> str:
         a(f"| {k} | {v} |")
     a(f"| **buffers total** | **{sum(budget.values())}** |")
     a("")
-    a("Scalar state (indices, counters, telemetry and capture settings) adds about 60 B; `bench/link.py` "
-      "measures the total from the avr-gcc build (`avr-nm --size-sort -S`).  That leaves the firmware about "
-      f"{768 - sum(budget.values()) - 60} B of the PIC18F4431's 768 B for its own state, UART TX queue and "
-      "compiled stack.")
+    a(f"Scalar state (indices, counters, telemetry and capture settings) adds {STATE_BYTES} B: "
+      f"**{sum(budget.values()) + STATE_BYTES} B** in all, as `bench/link.py` measures from the avr-gcc build "
+      "(`avr-nm --size-sort -S`).  That leaves the firmware "
+      f"{768 - sum(budget.values()) - STATE_BYTES} B of the PIC18F4431's 768 B for its own state, UART TX queue "
+      "and compiled stack; a smaller capture buffer gives more.")
     a("")
     a("## C interface (`link_fw.h`)")
     a("")
