@@ -1,11 +1,13 @@
 """Compile the twin's C (plant, peripheral model, event loop) with a firmware
 into a shared library, cached by content hash.
 
-The cache key covers every source byte, every header the firmware folder
-holds, the compiler flags and the compiler's version, so a change to any of
-them rebuilds and nothing else does.  Builds go to a temporary name and are
-renamed into place (whole or not at all), so parallel test workers can share
-the cache.
+The firmware is compiled with its own flags and include folders (the ones
+``picdrive.codegen.host_build`` gives, shim first) and the twin's C with the
+twin's; the objects are linked into one library.  The cache key covers every
+source and header byte, the flags and the compiler's version, so a change
+to any of them rebuilds and nothing else does.  Builds go to a temporary
+name and are renamed into place (whole or not at all), so parallel test
+workers can share the cache.
 
 Cache folder: ``$PICDRIVE_CACHE`` or ``$XDG_CACHE_HOME/picdrive`` or
 ``~/.cache/picdrive``, sub-folder ``twin/``.
@@ -18,8 +20,9 @@ import os
 import shutil
 import subprocess
 import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Sequence
 
 from picdrive.errors import PicdriveError
 
@@ -28,12 +31,22 @@ CSRC = Path(__file__).resolve().parent / "csrc"
 PLANT_SOURCES = ("plant.c",)
 TWIN_SOURCES = ("plant.c", "pic.c", "twin.c")
 
-CFLAGS = ("-std=c99", "-O2", "-fPIC", "-shared", "-Wall", "-Wextra",
-          "-fno-strict-aliasing", "-D_DEFAULT_SOURCE")
+TWIN_CFLAGS = ("-std=c99", "-O2", "-Wall", "-Wextra", "-fno-strict-aliasing", "-D_DEFAULT_SOURCE")
+COMMON = ("-fPIC",)
 
 
 class TwinBuildError(PicdriveError):
     """The twin's shared library could not be built (compiler missing or the C did not compile)."""
+
+
+@dataclass(frozen=True)
+class Group:
+    """C sources compiled with the same include folders and flags."""
+
+    sources: tuple[Path, ...]
+    include_dirs: tuple[Path, ...] = ()
+    cflags: tuple[str, ...] = TWIN_CFLAGS
+    extra_inputs: tuple[Path, ...] = field(default=())
 
 
 def cache_dir() -> Path:
@@ -57,48 +70,59 @@ def _compiler_id(cc: str) -> str:
     return out.splitlines()[0] if out else cc
 
 
-def _hash_inputs(files: Iterable[Path], extra: Sequence[str]) -> str:
-    h = hashlib.sha256()
-    for f in sorted(set(Path(p).resolve() for p in files)):
-        h.update(str(f.name).encode() + b"\0")
-        h.update(f.read_bytes())
-        h.update(b"\0")
-    for x in extra:
-        h.update(x.encode() + b"\0")
-    return h.hexdigest()[:24]
+def _group_inputs(g: Group) -> list[Path]:
+    files = list(g.sources) + list(g.extra_inputs)
+    for d in g.include_dirs:
+        files.extend(sorted(Path(d).glob("*.h")))
+    return files
 
 
-def build_library(sources: Sequence[Path], *, include_dirs: Sequence[Path] = (),
-                  extra_inputs: Sequence[Path] = (), defines: Sequence[str] = (),
-                  name: str = "libtwin", cflags: Sequence[str] = CFLAGS) -> Path:
-    """Compile ``sources`` into one shared library (cached); returns its path."""
+def build_library(groups: Sequence[Group], *, name: str = "libtwin") -> Path:
+    """Compile each group with its flags and link all into one shared library
+    (cached); returns its path."""
     cc = os.environ.get("CC", "gcc")
-    headers: list[Path] = []
-    for d in include_dirs:
-        headers.extend(sorted(Path(d).glob("*.h")))
-    inputs = list(sources) + headers + list(extra_inputs)
-    for f in inputs:
-        if not Path(f).is_file():
-            raise TwinBuildError(f"twin build input {f} does not exist")
-    argv_tail = list(cflags) + [f"-D{d}" for d in defines] + [f"-I{d}" for d in include_dirs]
-    key = _hash_inputs(inputs, [_compiler_id(cc), *argv_tail, *[str(Path(s).name) for s in sources]])
-    out = cache_dir() / f"{name}-{key}.so"
+    h = hashlib.sha256(_compiler_id(cc).encode())
+    for g in groups:
+        for f in _group_inputs(g):
+            if not Path(f).is_file():
+                raise TwinBuildError(f"twin build input {f} does not exist")
+            h.update(Path(f).name.encode() + b"\0" + Path(f).read_bytes() + b"\0")
+        h.update(("|".join(g.cflags) + "|" + "|".join(Path(d).name for d in g.include_dirs)).encode())
+    out = cache_dir() / f"{name}-{h.hexdigest()[:24]}.so"
     if out.exists():
         return out
-    fd, tmp = tempfile.mkstemp(prefix=f".{name}-", suffix=".so", dir=out.parent)
-    os.close(fd)
-    cmd = [cc, *argv_tail, "-o", tmp, *map(str, sources), "-lm"]
-    res = subprocess.run(cmd, capture_output=True, text=True)
-    if res.returncode != 0:
-        os.unlink(tmp)
-        raise TwinBuildError("building the twin failed:\n  " + " ".join(cmd) + "\n" + res.stderr.strip())
-    os.replace(tmp, out)
+    with tempfile.TemporaryDirectory(prefix="picdrive-build-") as tmpd:
+        objs = []
+        for gi, g in enumerate(groups):
+            for si, src in enumerate(g.sources):
+                obj = Path(tmpd) / f"g{gi}_{si}_{Path(src).stem}.o"
+                cmd = [cc, *g.cflags, *COMMON, *[f"-I{d}" for d in g.include_dirs], "-c", str(src), "-o", str(obj)]
+                res = subprocess.run(cmd, capture_output=True, text=True)
+                if res.returncode != 0:
+                    raise TwinBuildError("building the twin failed:\n  " + " ".join(cmd) + "\n" + res.stderr.strip())
+                objs.append(str(obj))
+        fd, tmp = tempfile.mkstemp(prefix=f".{name}-", suffix=".so", dir=out.parent)
+        os.close(fd)
+        cmd = [cc, "-shared", *COMMON, "-o", tmp, *objs, "-lm"]
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            os.unlink(tmp)
+            raise TwinBuildError("linking the twin failed (missing fw_init/fw_poll/fw_isr_high/fw_isr_low? "
+                                 "architecture.md seam 4):\n  " + " ".join(cmd) + "\n" + res.stderr.strip())
+        os.replace(tmp, out)
     return out
+
+
+def twin_group(gen_dir: Path) -> Group:
+    """The twin's own C: plant, peripheral model, event loop."""
+    return Group(tuple(CSRC / s for s in TWIN_SOURCES), (CSRC, Path(gen_dir)), TWIN_CFLAGS,
+                 (CSRC / "twin.h", CSRC / "pic_internal.h"))
 
 
 def plant_library() -> Path:
     """The plant alone (no firmware, no peripheral model): for the cross-checks."""
-    return build_library([CSRC / s for s in PLANT_SOURCES], include_dirs=[CSRC], name="libplant")
+    return build_library([Group(tuple(CSRC / s for s in PLANT_SOURCES), (CSRC,), TWIN_CFLAGS)],
+                         name="libplant")
 
 
 def private_copy(lib: Path) -> Path:

@@ -64,6 +64,7 @@ class BoardConfig:
     bus_sense_v_per_v: float = 0.0
     adc_vref_v: float = 5.0
     fosc_hz: float = 40e6
+    current_sense_v_per_a: float | None = None     # None: the profile's
 
     def pin(self, p) -> cmodel.Pin:
         if p is None:
@@ -81,28 +82,10 @@ _INJECT = {"hall": cmodel.INJ_HALL, "overcurrent": cmodel.INJ_OVERCURRENT, "lock
 
 
 def shim_dir() -> Path:
-    """Folder holding the host ``xc.h``: the firmware generator's shim when
-    ``picdrive.p18f4431`` provides one, else the twin's own rendering of the
-    same contract (for the twin's test firmware)."""
+    """Folder holding the firmware generator's host ``xc.h`` (for the twin's
+    test firmware; generated firmware folders carry their own in host/)."""
     d = build.cache_dir() / "shim"
-    d.mkdir(parents=True, exist_ok=True)
-    text = None
-    try:                                   # the firmware generator's shim is the authority
-        from picdrive import p18f4431      # type: ignore[attr-defined]
-        for name in ("render_shim", "render_xc_h", "host_shim", "render_host_shim"):
-            fn = getattr(p18f4431, name, None)
-            if callable(fn):
-                text = fn()
-                break
-    except ImportError:
-        pass
-    if text is None:
-        text = regs.render_test_shim()
-    dst = d / "xc.h"
-    if not dst.exists() or dst.read_text() != text:
-        tmp = d / "xc.h.tmp"
-        tmp.write_text(text)
-        os.replace(tmp, dst)
+    regs.write_shim(d)
     return d
 
 
@@ -112,30 +95,70 @@ def gen_dir() -> Path:
     return d
 
 
-def firmware_sources(firmware_dir: Path) -> list[Path]:
-    """The firmware's C files that the host builds: all ``*.c`` except the
-    XC8-only ones (``main()`` and the config bits)."""
+def board_from_json(path: str | Path) -> BoardConfig:
+    """The board wiring a generated firmware folder declares (``board.json``,
+    schema ``picdrive.board/1``, written by ``picdrive firmware``)."""
+    import json
+    try:
+        d = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise TwinError(f"cannot read the board description {path}: {e}") from None
+    if d.get("schema") != "picdrive.board/1":
+        raise TwinError(f"{path}: schema {d.get('schema')!r}, this twin reads 'picdrive.board/1'")
+
+    def pin(x):
+        if x is None:
+            return None
+        return (PORTS[int(x["port"])], int(x["bit"]))
+    analog = {}
+    for k, v in (d.get("analog") or {}).items():
+        ch = int(str(k).upper().removeprefix("AN"))
+        sig = {"bus_current": "current", "current": "current", "bus_voltage": "bus_voltage"}.get(v)
+        if sig is None:
+            raise TwinError(f"{path}: analog {k} = {v!r}: the twin knows bus_current and bus_voltage")
+        analog[ch] = sig
+    return BoardConfig(
+        hall_pins=tuple(pin(x) for x in d["hall_pins"]),
+        flta_pin=pin(d.get("flta_pin")),
+        phase_pairs=tuple(int(x) for x in d.get("phase_pairs", (0, 1, 2))),
+        analog=analog,
+        current_signal=d.get("current_signal", "link_on"),
+        current_sense_offset_v=float(d.get("current_sense_offset_v", 0.0)),
+        bus_sense_v_per_v=float(d.get("bus_sense_v_per_v", 0.0)),
+        adc_vref_v=float(d.get("adc_vref_v", 5.0)),
+        fosc_hz=float(d.get("fosc_hz", 40e6)),
+        current_sense_v_per_a=d.get("current_sense_v_per_a"),
+    )
+
+
+def firmware_group(firmware_dir: str | Path) -> build.Group:
+    """Sources, include folders and flags of a generated firmware folder
+    (``picdrive.codegen.host_build``), compiled unchanged."""
     fw = Path(firmware_dir)
     if not fw.is_dir():
         raise TwinError(f"firmware folder {fw} does not exist: generate it with "
                         "'picdrive firmware --profile P --design D -o <folder>'")
-    manifest = fw / "host_sources.txt"
-    if manifest.exists():
-        names = [ln.strip() for ln in manifest.read_text().splitlines() if ln.strip() and not ln.startswith("#")]
-        return [fw / n for n in names]
-    skip = {"main.c", "config_bits.c", "config.c", "xc8_main.c", "main_xc8.c"}
-    srcs = [p for p in sorted(fw.glob("*.c")) if p.name not in skip]
-    if not srcs:
-        raise TwinError(f"firmware folder {fw} has no C sources")
-    return srcs
+    from picdrive import codegen
+    hb = codegen.host_build(fw)
+    flags = tuple(hb["cflags"]) + ("-O2",)
+    return build.Group(tuple(Path(s) for s in hb["sources"]), tuple(Path(d) for d in hb["include_dirs"]), flags)
+
+
+def firmware_profile_hash(firmware_dir: str | Path) -> str | None:
+    """First 4 bytes of the profile hash the firmware was generated from (hex), if it says."""
+    import re
+    f = Path(firmware_dir) / "link_fw.h"
+    if not f.exists():
+        return None
+    m = re.search(r"#define\s+LINK_PROFILE_HASH\s+0x([0-9A-Fa-f]{8})", f.read_text())
+    return m.group(1).lower() if m else None
 
 
 class Twin:
     """A virtual board: firmware + peripherals + plant (see module docstring)."""
 
     def __init__(self, profile, firmware_dir: str | Path | None = None, *,
-                 sources: Sequence[str | Path] | None = None,
-                 include_dirs: Sequence[str | Path] = (),
+                 firmware: build.Group | None = None,
                  board: BoardConfig | None = None,
                  perturb: Mapping[str, float] | Sequence[str] | None = None,
                  seed: int = 0, load_mode: str = "passive",
@@ -145,21 +168,22 @@ class Twin:
         from picdrive.profile import Profile, load_profile
         self.profile = profile if isinstance(profile, Profile) else load_profile(profile)
         self.firmware_dir = Path(firmware_dir) if firmware_dir is not None else None
-        if sources is None:
+        if firmware is None:
             if self.firmware_dir is None:
-                raise TwinError("give the firmware folder (or sources=[...])")
-            sources = firmware_sources(self.firmware_dir)
-        self.sources = [Path(s) for s in sources]
-        incs = [Path(d) for d in include_dirs]
-        if self.firmware_dir is not None:
-            incs.insert(0, self.firmware_dir)
-        incs += [shim_dir(), gen_dir(), build.CSRC]
+                raise TwinError("give the firmware folder (generated by 'picdrive firmware')")
+            firmware = firmware_group(self.firmware_dir)
+            fh = firmware_profile_hash(self.firmware_dir)
+            if fh is not None and fh != self.profile.sha256[:8]:
+                raise TwinError(
+                    f"firmware {self.firmware_dir} was generated from another profile (hash {fh}, "
+                    f"profile {self.profile.name!r} is {self.profile.sha256[:8]}): regenerate it with "
+                    f"'picdrive firmware --profile {self.profile.name} ...' or give its own profile")
+            if board is None and (self.firmware_dir / "board.json").exists():
+                board = board_from_json(self.firmware_dir / "board.json")
         self.board = board or BoardConfig()
         self.model: PlantModel = plant_from_profile(self.profile, perturb, load_mode=load_mode,
                                                     diode_drop_v=diode_drop_v)
-        lib_path = build.build_library(
-            [*self.sources, *(build.CSRC / s for s in build.TWIN_SOURCES)],
-            include_dirs=incs, extra_inputs=[build.CSRC / "twin.h", build.CSRC / "pic_internal.h"])
+        lib_path = build.build_library([firmware, build.twin_group(gen_dir())])
         self._copy = build.private_copy(lib_path)
         self._lib = cmodel.bind_twin(C.CDLL(str(self._copy)))
         for i, st in enumerate((cmodel.TwinConfig, cmodel.TwinState, cmodel.TraceRec,
@@ -168,7 +192,6 @@ class Twin:
             if n != C.sizeof(st):
                 raise TwinError(f"ctypes mirror {st.__name__} ({C.sizeof(st)} B) differs from the C struct ({n} B)")
         self._lock = threading.RLock()
-        self._trace_buf = None
         noise_rpm = self.profile.sensors.speed_noise_rpm if speed_noise_rpm is None else speed_noise_rpm
         cfg = self._config(seed, noise_rpm)
         if self._lib.twin_init(C.byref(cfg)) != 0:
@@ -202,7 +225,8 @@ class Twin:
         if b.current_signal not in _CURSIG:
             raise TwinError(f"board.current_signal {b.current_signal!r}: one of {sorted(_CURSIG)}")
         cfg.current_signal = _CURSIG[b.current_signal]
-        cfg.current_sense_v_per_a = p.inverter.current_sense_v_per_a
+        cfg.current_sense_v_per_a = (p.inverter.current_sense_v_per_a if b.current_sense_v_per_a is None
+                                     else float(b.current_sense_v_per_a))
         cfg.current_sense_offset_v = b.current_sense_offset_v
         cfg.bus_sense_v_per_v = b.bus_sense_v_per_v
         cfg.adc_vref_v = b.adc_vref_v
@@ -418,7 +442,7 @@ class Twin:
 
     def sfr(self, name: str) -> int:
         """Current value of an SFR by its p18f4431.inc name (for tests)."""
-        r, _ = regs.parse_inc()
+        r = regs.registers()
         if name not in r:
             raise TwinError(f"no SFR named {name!r} in p18f4431.inc")
         with self._lock:

@@ -33,6 +33,8 @@ static uint16_t sfr16(uint8_t lo, uint8_t hi) { return (uint16_t)(picsim_sfr[lo]
 static int64_t tosc(int64_t n) { return n * g.tosc_ps; }
 static int64_t tcy(int64_t n) { return n * g.tcy_ps; }
 static int64_t secs(double s) { return (int64_t)llround(s * PS_PER_S); }
+/* the present instant as the firmware sees it: inside a call, polling takes time */
+static int64_t vnow(void) { return g.now + g.call_cycles * g.tcy_ps; }
 
 /* ------------------------------------------------------------ reset */
 
@@ -49,7 +51,6 @@ void pic_reset(void)
     picsim_sfr[R_MAXCNTL] = 0xFF; picsim_sfr[R_MAXCNTH] = 0xFF;
     picsim_sfr[R_T0CON] = 0xFF;
     picsim_sfr[R_TXSTA] = 0x02;                     /* TRMT */
-    picsim_sfr[R_PIR1] = 1u << B_PIR1_TXIF;         /* TXREG empty */
     picsim_sfr[R_IPR1] = 0x7F; picsim_sfr[R_IPR2] = 0xFF; picsim_sfr[R_IPR3] = 0x1F;
     picsim_sfr[R_INTCON2] = 0xF5; picsim_sfr[R_INTCON3] = 0xC0;
     picsim_sfr[R_RCON] = 0x1C;
@@ -93,6 +94,21 @@ static uint32_t timer_count(const timer_t_ *t)
     if (!t->on) return t->cnt_ref;
     int64_t n = (g.now - t->t_ref) / t->tick_ps;
     return (uint32_t)((t->cnt_ref + (uint64_t)n) % t->modulus);
+}
+
+static uint32_t timer_count_at(const timer_t_ *t, int64_t when)
+{
+    if (!t->on) return t->cnt_ref;
+    int64_t n = (when - t->t_ref) / t->tick_ps;
+    if (n < 0) n = 0;
+    return (uint32_t)((t->cnt_ref + (uint64_t)n) % t->modulus);
+}
+
+static void timer_anchor_at(timer_t_ *t, uint32_t cnt, int64_t when)
+{
+    t->t_ref = when;
+    t->cnt_ref = t->modulus ? cnt % t->modulus : cnt;
+    t->next = t->on ? when + (int64_t)(t->modulus - t->cnt_ref) * t->tick_ps : NEVER;
 }
 
 static void timer_anchor(timer_t_ *t, uint32_t cnt)
@@ -370,16 +386,13 @@ static void qei_counts(int64_t n_from, int64_t n_to, double t0_ps, double t1_ps)
             double tl = t0_ps + (t1_ps - t0_ps) * (double)last_k / (double)ad;
             double tp = n_caps >= 2 ? t0_ps + (t1_ps - t0_ps) * (double)(last_k - r) / (double)ad
                                     : (double)g.vel_last_t;
-            double cnt = (tl - tp) / (double)g.t5.tick_ps;
-            uint32_t v = cnt >= 65535.0 ? 65535u : (uint32_t)cnt;
+            int reset = (picsim_sfr[R_CAP1CON] >> B_CAP1CON_CAP1REN) & 1;
+            if (reset && n_caps >= 2) timer_anchor_at(&g.t5, 0, (int64_t)tp);
+            uint32_t v = timer_count_at(&g.t5, (int64_t)tl);
             hw_write(R_VELRL, (uint8_t)v);
             hw_write(R_VELRH, (uint8_t)(v >> 8));
             g.vel_last_t = (int64_t)tl;
-            /* TMR5 restarts at the capture */
-            int64_t save = g.now;
-            g.now = (int64_t)tl;
-            timer_anchor(&g.t5, 0);
-            g.now = save;
+            if (reset) timer_anchor_at(&g.t5, 0, (int64_t)tl);   /* CAP1REN: TMR5 restarts at the capture */
             hw_setbit(R_PIR3, B_PIR3_IC1IF);
         }
         g.vel_pdec = (uint32_t)(total % r);
@@ -517,7 +530,7 @@ static void eecon1_written(void)
         if (data && ((c >> B_EECON1_WREN) & 1) && g.ee_unlock == 2) {
             g.ee_addr = picsim_sfr[R_EEADR];
             g.ee_data = picsim_sfr[R_EEDATA];
-            g.ee_done = g.now + secs(g.cfg.eeprom_write_s);
+            g.ee_done = vnow() + secs(g.cfg.eeprom_write_s);
         } else {
             g.ee_rejected++;
             hw_clrbit(R_EECON1, B_EECON1_WR);      /* WR cannot be set without the unlock sequence */
@@ -582,7 +595,7 @@ static void adc_start(void)
     int div = tad_div[c2 & 7];
     int64_t tad = div ? tosc(div) : secs(1e-6);          /* FRC ~1 us */
     int acq = 2 * ((c2 >> B_ADCON2_ACQT0) & 15);
-    g.adc_done = g.now + tad * (12 + acq);
+    g.adc_done = vnow() + tad * (12 + acq);
 }
 
 static void adc_complete(void)
@@ -751,17 +764,39 @@ static void reg_written(uint8_t idx)
     }
 }
 
+/* bits the firmware cannot write: the hardware state wins */
+static void enforce_readonly(void)
+{
+    int txen = (picsim_sfr[R_TXSTA] >> B_TXSTA_TXEN) & 1;
+    hw_putbit(R_PIR1, B_PIR1_TXIF, txen && !g.txreg_full);     /* TXREG empty (with TXEN) */
+    hw_putbit(R_PIR1, B_PIR1_RCIF, g.rx_n > 0);
+    hw_putbit(R_TXSTA, B_TXSTA_TRMT, !g.tx_busy);
+}
+
 void picsim_sfr_written(uint16_t addr)
 {
     uint8_t idx = (uint8_t)(addr >= 0xF00 ? addr - 0xF00 : addr);
+    /* docs/firmware.md: RCSTA is notified after CREN was toggled 0 -> 1, which
+       clears an overrun (the 0 in between is not visible to the model) */
+    if (idx == R_RCSTA && ((picsim_sfr[R_RCSTA] >> B_RCSTA_CREN) & 1))
+        picsim_sfr[R_RCSTA] &= (uint8_t)~(1u << B_RCSTA_OERR);
     g.shadow[idx] = picsim_sfr[idx];
     reg_written(idx);
+    if (idx == R_PIR1 || idx == R_TXSTA) enforce_readonly();
 }
 
 void picsim_sfr_read(uint16_t addr)
 {
     uint8_t idx = (uint8_t)(addr >= 0xF00 ? addr - 0xF00 : addr);
-    if (idx == R_RCREG) rcreg_read();
+    if (idx == R_RCREG) {
+        rcreg_read();
+    } else if (idx == R_ADCON0 || idx == R_EECON1) {
+        /* a poll of GO_DONE or WR: the firmware spends POLL_TCY per iteration,
+           and an operation due by then completes */
+        g.call_cycles += POLL_TCY;
+        if (idx == R_ADCON0 && g.adc_done != NEVER && g.adc_done <= vnow()) adc_complete();
+        if (idx == R_EECON1 && g.ee_done != NEVER && g.ee_done <= vnow()) ee_complete();
+    }
 }
 
 /* registers the model changes with time, written before each firmware call */
@@ -812,6 +847,7 @@ void pic_process_writes(void)
         reg_written(i);
     }
     if (pt) pwm_time_base();
+    enforce_readonly();
 }
 
 /* ------------------------------------------------------------ events */

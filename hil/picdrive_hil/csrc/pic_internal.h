@@ -10,6 +10,7 @@
 
 #define NEVER INT64_MAX
 #define PS_PER_S 1000000000000.0
+#define POLL_TCY 6           /* instruction cycles of one firmware poll iteration */
 
 extern volatile uint8_t picsim_sfr[256];
 void picsim_sfr_written(uint16_t addr);
@@ -42,6 +43,8 @@ typedef struct {
     int64_t tosc_ps, tcy_ps;
     uint8_t shadow[256];
     int in_fw;
+    int64_t call_cycles;      /* Tcy the firmware spent polling in the present call */
+    int64_t main_busy_until;  /* the main loop is still in a blocking wait */
     uint32_t errors;
 
     /* PCPWM */

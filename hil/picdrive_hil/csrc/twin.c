@@ -53,6 +53,7 @@ static double theta_measured(void)
 static void fw_call(void (*fn)(void))
 {
     pic_sync_inputs();
+    g.call_cycles = 0;
     g.in_fw = 1;
     fn();
     g.in_fw = 0;
@@ -230,9 +231,13 @@ int twin_run_until(int64_t t_end)
             g.trace_next += g.trace_period;
         }
         if (service_irqs()) break;
-        fw_call(fw_poll);
-        g.poll_calls++;
-        if (service_irqs()) break;
+        if (g.now >= g.main_busy_until) {
+            fw_call(fw_poll);
+            g.poll_calls++;
+            /* a blocking wait in the main loop (EEPROM write) holds it for that long */
+            if (g.call_cycles) g.main_busy_until = g.now + g.call_cycles * g.tcy_ps;
+            if (service_irqs()) break;
+        }
     }
     return (int)g.errors;
 }

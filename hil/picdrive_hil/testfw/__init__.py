@@ -45,6 +45,14 @@ def table_dir(model) -> Path:
     return d
 
 
+CFLAGS = ("-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-Wconversion")
+
+
+def firmware_group(model) -> build.Group:
+    from ..twin import shim_dir
+    return build.Group((SOURCE,), (shim_dir(), table_dir(model)), CFLAGS)
+
+
 def make_twin(profile, **kw):
     """A Twin running the test firmware (halls on INT0..2, phases on pairs 0..2)."""
     from ..plant import plant_from_profile
@@ -52,4 +60,4 @@ def make_twin(profile, **kw):
     from picdrive.profile import Profile, load_profile
     prof = profile if isinstance(profile, Profile) else load_profile(profile)
     model = plant_from_profile(prof, kw.get("perturb"))
-    return Twin(prof, None, sources=[SOURCE], include_dirs=[table_dir(model)], **kw)
+    return Twin(prof, None, firmware=firmware_group(model), **kw)

@@ -1,0 +1,225 @@
+"""The twin's serial endpoint: a TCP socket (``socket://127.0.0.1:<port>``)
+and optionally a pseudo-terminal, so ``picdrive.link``, ``picdrive console``
+and any pyserial program open the virtual board exactly as a COM port.
+
+One client at a time on the socket (a second connection waits until the
+first closes, as a COM port can only be opened once); the pty is always
+there.  Bytes from the client enter the board's EUSART at the host's baud
+rate, one frame time each; bytes the board sends reach the client once they
+have left the wire.
+
+Real-time mode paces the simulation to the wall clock (``speed`` simulated
+seconds per wall second, 1 by default), which is what a host with wall-clock
+timeouts needs.  Free-running mode (``realtime=False``) runs as fast as the
+twin can, for in-process use only.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import select
+import socket
+import sys
+import threading
+import time
+
+from .twin import Twin, TwinError
+
+CHUNK_S = 1e-3          # simulated time advanced per loop iteration in real time
+MAX_LAG_S = 0.25        # if the twin falls this far behind the wall clock, it drops the debt
+
+
+class TwinServer:
+    """Serve a Twin's UART on a socket (and a pty); see the module docstring."""
+
+    def __init__(self, twin: Twin, *, port: int = 0, host: str = "127.0.0.1", realtime: bool = True,
+                 pty: bool = False, speed: float = 1.0, log=None):
+        if not (speed > 0):
+            raise ValueError("speed must be > 0 (simulated seconds per wall second)")
+        self.twin = twin
+        self.realtime = realtime
+        self.speed = float(speed)
+        self.log = log or (lambda msg: None)
+        self._lsock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._lsock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            self._lsock.bind((host, port))
+        except OSError as e:
+            self._lsock.close()
+            raise TwinError(f"cannot listen on {host}:{port}: {e.strerror}; choose another --port") from None
+        self._lsock.listen(1)
+        self._lsock.setblocking(False)
+        self.host, self.port = self._lsock.getsockname()[:2]
+        self._client: socket.socket | None = None
+        self._pty_master = self._pty_slave = None
+        self.pty_path: str | None = None
+        if pty:
+            self._open_pty()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.error: BaseException | None = None
+        self.lag_events = 0
+        self.bytes_in = self.bytes_out = 0
+
+    @property
+    def url(self) -> str:
+        return f"socket://{self.host}:{self.port}"
+
+    # -- pty -------------------------------------------------------------------
+    def _open_pty(self) -> None:
+        import tty
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        os.set_blocking(master, False)
+        self._pty_master, self._pty_slave = master, slave
+        self.pty_path = os.ttyname(slave)
+
+    # -- life cycle --------------------------------------------------------------
+    def start(self) -> "TwinServer":
+        self._thread = threading.Thread(target=self._run, name=f"twin-{self.port}", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        for s in (self._client, self._lsock):
+            if s is not None:
+                try:
+                    s.close()
+                except OSError:
+                    pass
+        self._client = None
+        for fd in (self._pty_master, self._pty_slave):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self._pty_master = self._pty_slave = None
+
+    close = stop
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+    def wait(self) -> None:
+        """Block until the server stops (Ctrl-C stops it)."""
+        try:
+            while self._thread is not None and self._thread.is_alive():
+                self._thread.join(0.2)
+        finally:
+            self.stop()
+        if self.error is not None:
+            raise self.error
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    # -- the loop ------------------------------------------------------------------
+    def _accept(self) -> None:
+        try:
+            c, addr = self._lsock.accept()
+        except (BlockingIOError, InterruptedError):
+            return
+        c.setblocking(False)
+        c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._client = c
+        self.log(f"client connected from {addr[0]}:{addr[1]}")
+
+    def _drop_client(self) -> None:
+        if self._client is not None:
+            try:
+                self._client.close()
+            except OSError:
+                pass
+            self._client = None
+            self.log("client disconnected")
+
+    def _pump_in(self) -> None:
+        if self._client is not None:
+            try:
+                data = self._client.recv(4096)
+                if not data:
+                    self._drop_client()
+                else:
+                    self.bytes_in += len(data)
+                    self.twin.uart_write(data)
+            except (BlockingIOError, InterruptedError):
+                pass
+            except OSError:
+                self._drop_client()
+        if self._pty_master is not None:
+            try:
+                data = os.read(self._pty_master, 4096)
+                if data:
+                    self.bytes_in += len(data)
+                    self.twin.uart_write(data)
+            except BlockingIOError:
+                pass
+            except OSError as e:
+                if e.errno not in (errno.EIO, errno.EAGAIN):
+                    raise
+
+    def _pump_out(self) -> None:
+        data = self.twin.uart_read()
+        if not data:
+            return
+        self.bytes_out += len(data)
+        if self._client is not None:
+            try:
+                self._client.sendall(data)
+            except OSError:
+                self._drop_client()
+        if self._pty_master is not None:
+            try:
+                os.write(self._pty_master, data)
+            except OSError:
+                pass        # nobody has the pty open; like a UART, bytes are lost
+
+    def _run(self) -> None:
+        try:
+            t_wall0 = time.perf_counter()
+            t_sim0 = self.twin.t
+            while not self._stop.is_set():
+                if self._client is None:
+                    self._accept()
+                self._pump_in()
+                if self.realtime:
+                    target = t_sim0 + (time.perf_counter() - t_wall0) * self.speed
+                    now = self.twin.t
+                    if target - now > MAX_LAG_S:
+                        self.lag_events += 1
+                        t_sim0 += target - now - CHUNK_S        # give up the debt, keep pace from here
+                        target = now + CHUNK_S
+                    if target > now:
+                        self.twin.run_until(min(target, now + 4 * CHUNK_S))
+                    self._pump_out()
+                    # sleep until the next chunk is due or bytes arrive
+                    nxt = (self.twin.t + CHUNK_S - t_sim0) / self.speed + t_wall0
+                    self._wait_io(max(0.0, min(nxt - time.perf_counter(), CHUNK_S)))
+                else:
+                    self.twin.run(CHUNK_S)
+                    self._pump_out()
+        except BaseException as e:                      # report, then stop serving
+            self.error = e
+            print(f"picdrive twin: stopped: {e}", file=sys.stderr)
+            self._drop_client()
+
+    def _wait_io(self, timeout: float) -> None:
+        fds = []
+        if self._client is not None:
+            fds.append(self._client)
+        else:
+            fds.append(self._lsock)
+        if self._pty_master is not None:
+            fds.append(self._pty_master)
+        try:
+            select.select(fds, [], [], timeout)
+        except (OSError, ValueError):
+            time.sleep(timeout)
