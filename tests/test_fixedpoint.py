@@ -31,7 +31,7 @@ def fixture_law(kind: str) -> ScheduledLaw:
     if kind == "fuzzy3-filter":
         return ScheduledLaw(rules=(Rule(0.4, 15.0, 0.002, 2.0), Rule(0.3, 10.0, 0.001, 1.0),
                                    Rule(0.2, 6.0, 0.0005, 0.5)), derivative_filter_hz=200.0,
-                            setpoint_weight=0.6, **base)
+                            setpoint_weight=0.6, integrator_limit_v=200.0, **base)
     if kind == "pi1":
         return ScheduledLaw(rules=(Rule(0.2, 5.0),), **base)
     raise ValueError(kind)
@@ -101,6 +101,24 @@ def test_model_against_a_hand_computed_sample_and_the_float_law():
     assert abs(st.mu1 - 2048) <= 1
 
 
+def test_integrator_only_fills_the_output_headroom():
+    law = fixture_law("pi1")
+    plan = fx.plan_fixed_point(PROFILE, law, pcpwm.plan_pwm(PROFILE))
+    p = fx.law_params_from_plan(plan)
+    st = fx.LawState()
+    r = plan.to_speed_raw(200.0)                 # P alone = 0.2 x 200 = 40 V of the 44.16 V
+    for _ in range(2000):
+        u = fx.law_step(plan, p, st, r, 0, 0, plan.u_min, plan.u_max)
+    di = plan.qi - plan.qu
+    assert u == plan.u_max
+    # I stopped where P + I reaches u_max (within one step), not at u_max itself
+    assert abs(fx.asr32(st.integ, di) - (plan.u_max - 40 * 256)) <= 2
+    # and it is never discharged by force: a smaller error that still wants to push up leaves it
+    before = st.integ
+    fx.law_step(plan, p, st, plan.to_speed_raw(220.0), 0, 0, plan.u_min, plan.u_max)
+    assert st.integ == before
+
+
 def test_integer_primitives():
     assert fx.asr32(-1, 1) == -1 and fx.asr32(-2, 1) == -1 and fx.asr32(5, 1) == 2
     assert fx.shl_sat32(1 << 30, 1) == fx.INT32_MAX and fx.shl_sat32(-(1 << 30), 1) == fx.INT32_MIN
@@ -123,6 +141,7 @@ def test_c_matches_python_model_bit_for_bit(tmp_path, kind, profile):
         assert fw.plan.shift_p < 0            # the saturating left-shift path is exercised
     if kind == "fuzzy3-filter":
         assert fw.plan.dfilt_a > 0 and fw.plan.speed_source == "hall" and any(fw.plan.kc)
+        assert fw.plan.qi < fw.plan.qu + 16          # +-200 V integrator: fewer fraction bits
     for name, r in res.items():
         assert r["mismatches"] == 0, (name, r["first"])
     assert res["total"]["vectors"] == 5 * 4000

@@ -122,10 +122,12 @@ def test_names_used():
     src = """
     #define MY_CONST 3
     enum { ST_IDLE, ST_RUN = 2 };
+    static struct { int a; } S;
     /* TXSTA in a comment does not count, nor "PORTZ" in a string */
-    void f(void) { TXREG = MY_CONST; PIR1bits.RCIF = 0; OVDCOND = ST_RUN; FOOBAR = 1; }
+    void f(void) { TXREG = MY_CONST; PIR1bits.RCIF = 0; OVDCOND = ST_RUN; FOOBAR = 1; S.a = 1; }
+    int g(void) { return OVDCONX; }
     """
     sfrs, bit_uses, unknown = inc.names_used([src])
     assert sfrs == {"TXREG", "PIR1", "OVDCOND"}
     assert bit_uses == {("PIR1", "RCIF")}
-    assert unknown == {"FOOBAR"}
+    assert unknown == {"FOOBAR", "OVDCONX"}     # a typo of an SFR name is caught

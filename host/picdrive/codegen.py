@@ -66,6 +66,7 @@ class Firmware:
     plan: object = None
     pwm: object = None
     pinmap: object = None
+    table: object = None
 
 
 # ---------------------------------------------------------------------------
@@ -273,8 +274,10 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
         _d("CORE_N_RULES", f"{plan.n_rules}u", "rules of the design"),
         _d("CORE_QS", str(plan.qs), f"speed Q{plan.qs}: {2 ** -plan.qs:.6g} rad/s per LSB"),
         _d("CORE_QU", str(plan.qu), f"voltage Q{plan.qu}: {2 ** -plan.qu:.6g} V per LSB"),
-        _d("CORE_QI", str(plan.qi), "integrator Q (voltage + 16)"),
-        _d("CORE_I_ONE", "((int32_t)65536)", "2^(CORE_QI - CORE_QU)"),
+        _d("CORE_QI", str(plan.qi), "integrator Q (voltage + 16 where +-I_lim fits 32 bits)"),
+        _d("CORE_TO_QI(x)", (f"core_shl32((x), {plan.qi - plan.qu}u)" if plan.qi > plan.qu else "(x)"),
+           "voltage Q -> integrator Q, saturated"),
+        _d("CORE_I_LIM", f"INT32_C({plan.i_lim})", f"integrator range +-I_lim in Q{plan.qi}"),
         _d("CORE_Q_KP", str(plan.q_kp), "kp format"), _d("CORE_Q_KITS", str(plan.q_kits), "ki x Ts format"),
         _d("CORE_Q_KDTS", str(plan.q_kdts), "kd / Ts format"), _d("CORE_Q_KC", str(plan.q_kc), "kc format (V/count)"),
         _d("CORE_SHIFT_P(x)", shift_macro("P", plan.shift_p), f"Q_KP + QS - QU = {plan.shift_p}"),
@@ -382,7 +385,8 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                                      sort_keys=True) + "\n"
     files["Makefile"] = _makefile(name)
     files["README.md"] = _readme(name, summary)
-    return Firmware(name=name, files=files, build_id=build_id, summary=summary, plan=plan, pwm=pwm, pinmap=pm)
+    return Firmware(name=name, files=files, build_id=build_id, summary=summary, plan=plan, pwm=pwm, pinmap=pm,
+                    table=table)
 
 
 def _board(profile, plan, pwm, pm, bus, build_id, table) -> dict:

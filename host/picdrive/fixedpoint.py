@@ -16,7 +16,7 @@ quantity                type     format
 ======================  =======  ======================================================
 speed, setpoint, premise int16   Q ``qs`` rad/s (mechanical)
 output u, limits, P, D   int16 / int32  Q ``qu`` V
-integrator               int32   Q ``qi`` = ``qu`` + 16 V (small increments are kept)
+integrator               int32   Q ``qi`` = ``qu`` + 16 V (less when +-I_lim needs it)
 current                  int16   ADC counts (10 bit, 5 V reference), signed by direction
 kp                       int16   Q ``q_kp`` V/(rad/s)
 ki Ts                    int16   Q ``q_kits`` V/(rad/s)  (ki times the sample time)
@@ -152,6 +152,7 @@ class FixedPointPlan:
     u_min: int
     u_max: int
     u_limit: int                 # |u| the bridge can apply (bus x max duty), raw
+    i_lim: int                   # integrator range +-I_lim, Q qi
     # speed measurement
     speed_source: str            # "encoder" | "hall"
     pdec: int
@@ -290,7 +291,12 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
     qu = _q_for(u_abs, 2.0)
     if qu < -8:
         raise FixedPointError(f"output limits of {u_abs:g} V are too large to represent")
-    qi = qu + 16
+    # integrator: its own range +-I_lim (ScheduledLaw.i_lim_v), 16 bits finer than u where that fits
+    i_lim_v = law.i_lim_v
+    qi = min(qu + 16, math.floor(math.log2((INT32_MAX - 1) / i_lim_v)))
+    if qi < qu:
+        raise FixedPointError(f"integrator range +-{i_lim_v:g} V (integrator_limit_v) does not fit 32 bits at the "
+                              f"output's resolution {2 ** -qu:g} V; lower integrator_limit_v")
     counts_per_a = inv.current_sense_v_per_a * ADC_COUNTS / ADC_VREF_V
     coefs: list[Coef] = []
 
@@ -362,6 +368,8 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
         raise FixedPointError(f"output limits [{law.u_min_v:g}, {law.u_max_v:g}] V are empty after quantisation")
     coefs.append(Coef("u_min", law.u_min_v, qu, u_min, "V", "design u_min_v (within bus x max duty)"))
     coefs.append(Coef("u_max", law.u_max_v, qu, u_max, "V", "design u_max_v (within bus x max duty)"))
+    i_lim = min(INT32_MAX, round(i_lim_v * 2 ** qi))
+    coefs.append(Coef("i_lim", i_lim_v, qi, i_lim, "V", "design integrator_limit_v (or max |u limit|)"))
 
     # ---- speed measurement ----
     if se.speed_source == "encoder":
@@ -429,7 +437,7 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
         shift_p=shift_p, shift_i=shift_i, shift_d=shift_d, shift_c=shift_c, mu_sh=mu_sh,
         kp=tuple(c.raw for c in c_kp), kits=tuple(c.raw for c in c_ki), kdts=tuple(c.raw for c in c_kd),
         kc=tuple(c.raw for c in c_kc), premise_lo=p_lo, premise_hi=p_hi, b_q14=b_q14, dfilt_a=dfilt_a,
-        u_min=u_min, u_max=u_max, u_limit=u_limit,
+        u_min=u_min, u_max=u_max, u_limit=u_limit, i_lim=i_lim,
         speed_source=se.speed_source, pdec=pdec, ps5=ps5, k_speed=k_speed, counts_per_rev=counts,
         speed_res_at_max=res, speed_min_rpm=speed_min_rpm,
         kduty=kduty, duty_sh=duty_sh, pdc_max=pwm_plan.pdc_max, duty_full=full,
@@ -598,15 +606,22 @@ def law_step(plan: FixedPointPlan, p: LawParams, st: LawState, r: int, y: int, i
     else:
         st.d_filt = d_raw
     C = shift32(kc * i, plan.shift_c)
+    di = plan.qi - plan.qu
+    q = sat32(sat32(P + st.d_filt) - C)           # everything but the integral
     inc = shift32(kits * e, plan.shift_i)
     i_new = sat32(st.integ + inc)
-    di = plan.qi - plan.qu
-    v = sat32(sat32(sat32(P + asr32(i_new, di)) + st.d_filt) - C)
-    if not ((v > umax and e > 0) or (v < umin and e < 0)):
-        lo32, hi32 = umin * (1 << di), umax * (1 << di)
-        st.integ = lo32 if i_new < lo32 else hi32 if i_new > hi32 else i_new
+    if inc > 0:                                    # integrate only into the output headroom
+        head = shl_sat32(sat32(umax - q), di) if di else sat32(umax - q)
+        st.integ = min(i_new, max(st.integ, head))
+    elif inc < 0:
+        head = shl_sat32(sat32(umin - q), di) if di else sat32(umin - q)
+        st.integ = max(i_new, min(st.integ, head))
+    if st.integ > plan.i_lim:
+        st.integ = plan.i_lim
+    elif st.integ < -plan.i_lim:
+        st.integ = -plan.i_lim
     st.y_prev = y
-    u = sat32(sat32(sat32(P + asr32(st.integ, di)) + st.d_filt) - C)
+    u = sat32(q + asr32(st.integ, di))
     return umin if u < umin else umax if u > umax else u
 
 
@@ -798,9 +813,9 @@ def _rand_params(plan: FixedPointPlan, rng, wide: bool) -> LawParams:
                      accel_step=int(rng.integers(0, 65536)) if rng.random() < 0.3 else 0)
 
 
-def _rand_law_state(rng, umin: int, umax: int) -> LawState:
+def _rand_law_state(rng, i_lim: int) -> LawState:
     if rng.random() < 0.7:
-        integ = int(rng.integers(umin * 65536, umax * 65536 + 1))
+        integ = int(rng.integers(-i_lim, i_lim + 1))
     else:
         integ = int(rng.integers(INT32_MIN, INT32_MAX + 1))
     d = int(rng.integers(INT32_MIN, INT32_MAX + 1)) if rng.random() < 0.3 else int(rng.integers(-(1 << 20), 1 << 20))
@@ -858,7 +873,7 @@ def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
              f"premise_k({p.premise_lo}, {p.premise_hi})")
         # the law
         umin, umax = p.u_min, p.u_max
-        s = _rand_law_state(rng, umin, umax)
+        s = _rand_law_state(rng, plan.i_lim)
         cl = Law()
         law_to_c(cl, s)
         r_, y_ = _i16(rng, span=span_y), _i16(rng, span=span_y)
@@ -868,7 +883,7 @@ def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
         ok = uc == up and law_tuple(cl) == law_tuple(s)
         note("law", ok, f"law r={r_} y={y_} i={i_} params={p} -> C {uc} {law_tuple(cl)} Py {up} {law_tuple(s)}")
         # a whole control step (limiter, ramp, law, duty, direction)
-        st = CoreState(law=_rand_law_state(rng, -plan.u_limit, plan.u_limit), speed_valid=int(rng.integers(0, 2)),
+        st = CoreState(law=_rand_law_state(rng, plan.i_lim), speed_valid=int(rng.integers(0, 2)),
                        r_applied=_i16(rng, span=span_y), cap=int(rng.integers(0, plan.u_limit + 1)),
                        speed=_i16(rng, span=span_y), current=0, u=0, dir=int(rng.integers(0, 2)), hold=0, pdc=0)
         cs = State()

@@ -12,7 +12,8 @@ lets the same C compile with gcc (architecture.md, seam 4):
   by ``address - 0xF00``: ``#define TXREG (picsim_sfr[0xAD])``;
 * ``REGbits`` is a union of bit structs overlaying the same byte, with the
   bit names of the ``.inc`` (``#define PIR1bits (*(volatile PIR1bits_t
-  *)&picsim_sfr[0x9E])``); a register whose ``.inc`` section lists several
+  *)&picsim_sfr[0x9E])``; the unions are ``may_alias`` so that optimising
+  compilers keep byte and bit accesses to the same register coherent); a register whose ``.inc`` section lists several
   names for one bit (``GIE``/``GIEH``/``GIE_GIEH``) gets them all;
 * ``PICSIM_WRITE(REG)`` / ``PICSIM_READ(REG)`` call
   ``picsim_sfr_written(addr)`` / ``picsim_sfr_read(addr)`` with the full
@@ -305,7 +306,7 @@ def render_host_shim(path=None) -> str:
         if reg not in regs:
             continue
         a = inc.registers[reg]
-        w("typedef union {")
+        w("typedef union __attribute__((__may_alias__)) {")
         w("    uint8_t picsim_byte;   /* whole register (host shim only; not in XC8) */")
         for fields in _bit_structs(inc.bit_groups[reg]):
             w(_struct_c(fields))
@@ -357,11 +358,14 @@ def names_used(c_sources: list[str], path=None) -> tuple[set[str], set[tuple[str
     text = _PRAGMA.sub(" ", text)
     bit_uses = {(r, b) for r, b in _BITS_USE.findall(text)}
     stripped = _BITS_USE.sub(" ", text)
-    # enum constants are declared in the sources too
+    # enum constants and upper-case variables are declared in the sources too
     declared = set()
+    for prev, name in re.findall(r"(\}|\b[A-Za-z_]\w*)\s*\**\s+([A-Z][A-Z0-9_]*)\s*(?:;|=|\[)", text):
+        if prev not in ("return", "case", "goto", "else", "sizeof", "do"):
+            declared.add(name)
     for body in re.findall(r"\benum\b[^{;]*\{([^}]*)\}", text):
         declared |= set(re.findall(r"\b([A-Za-z_][A-Za-z0-9_]*)\s*(?:=[^,]*)?(?:,|$)", body.strip()))
-    std = {"NULL", "INT8_MIN", "INT8_MAX", "UINT8_MAX", "INT16_MIN", "INT16_MAX", "UINT16_MAX",
+    std = {"NULL", "UINT32_C", "INT32_C", "UINT16_C", "INT16_C", "INT8_MIN", "INT8_MAX", "UINT8_MAX", "INT16_MIN", "INT16_MAX", "UINT16_MAX",
            "INT32_MIN", "INT32_MAX", "UINT32_MAX", "__FILE__", "__LINE__"}
     sfrs, unknown = set(), set()
     for ident in _IDENT.findall(stripped):

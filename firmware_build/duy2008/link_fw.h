@@ -1,0 +1,239 @@
+/*
+ * link_fw.h -- picdrive serial link, C side.
+ * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
+ *
+ * protocol 1.0, 30 table entries (2 rules),
+ * table hash 0x9142D730UL, build id 0xFC7472FFUL, profile hash 0x6D0E586CUL
+ *
+ * Frame: SOF 0xA5, LEN (0..40), TYPE, SEQ, payload, CRC-16/CCITT-FALSE over
+ * LEN..payload, high byte first.  A bad CRC or an impossible LEN drops only the SOF byte and the
+ * receiver rescans from the next byte; a partial frame older than 20 ms is abandoned.
+ *
+ * RAM budget (bytes) of this module's buffers:
+ *   rx_ring            64
+ *   tx_frame           46
+ *   telemetry_frame    40
+ *   replay              8
+ *   param_store        37
+ *   capture           128
+ *   state              82
+ *   total             405
+ *
+ * Contexts: link_rx_byte(), link_tick_ms() and link_sample() may be called from interrupts,
+ * link_poll() from the main loop.  They share only single-byte flags and ring indices.
+ * Parameter-store writes happen in link_poll() between LINK_CRITICAL_BEGIN() and
+ * LINK_CRITICAL_END() (define them, e.g. to clear/set GIEH, if the speed-loop interrupt
+ * reads link_params).
+ */
+#ifndef LINK_FW_H
+#define LINK_FW_H
+
+#include <stdint.h>
+
+#define LINK_PROTO_MAJOR        1u
+#define LINK_PROTO_MINOR        0u
+#define LINK_BUILD_ID           0xFC7472FFUL
+#define LINK_PROFILE_HASH       0x6D0E586CUL
+#define LINK_TABLE_HASH         0x9142D730UL
+#define LINK_SAMPLE_HZ          1000u
+#define LINK_N_RULES            2u
+#define LINK_N_ENTRIES          30u
+#define LINK_N_SIGNALS          11u
+
+#define LINK_SOF                0xA5u
+#define LINK_MAX_PAYLOAD        40u
+#define LINK_MAX_FRAME          46u
+#define LINK_FRAME_GAP_MS       20u
+#define LINK_RX_RING            64u
+#define LINK_REPLAY_BYTES       8u
+#define LINK_CAPTURE_WORDS      64u
+#define LINK_PARAM_GET_MAX      10u
+#define LINK_NAME_MAX           15u
+#define LINK_SIGNAL_BASE_ID     0x20u
+#define LINK_EE_IMAGE_BYTES     45u
+#ifndef LINK_EE_BASE
+#define LINK_EE_BASE            0u
+#endif
+
+/* ---- message types ---- */
+#define LINK_CMD_HELLO               0x01u   /* hello */
+#define LINK_CMD_PARAM_INFO          0x02u   /* param_info */
+#define LINK_CMD_PARAM_GET           0x03u   /* param_get */
+#define LINK_CMD_PARAM_SET           0x04u   /* param_set */
+#define LINK_CMD_SET_SPEED           0x05u   /* set_speed */
+#define LINK_CMD_START               0x06u   /* start */
+#define LINK_CMD_STOP                0x07u   /* stop */
+#define LINK_CMD_BRAKE               0x08u   /* brake */
+#define LINK_CMD_SELECT_CONTROLLER   0x09u   /* select_controller */
+#define LINK_CMD_TELEM_CONFIG        0x0Au   /* telem_config */
+#define LINK_CMD_CAPTURE_ARM         0x0Bu   /* capture_arm */
+#define LINK_CMD_CAPTURE_READ        0x0Cu   /* capture_read */
+#define LINK_CMD_EEPROM_SAVE         0x0Du   /* eeprom_save */
+#define LINK_CMD_EEPROM_LOAD         0x0Eu   /* eeprom_load */
+#define LINK_CMD_FAULT_CLEAR         0x0Fu   /* fault_clear */
+#define LINK_CMD_STATUS              0x10u   /* status */
+#define LINK_CMD_HEARTBEAT           0x11u   /* heartbeat */
+#define LINK_MSG_TELEMETRY           0x60u
+#define LINK_MSG_EVENT               0x61u
+#define LINK_MSG_NACK                0x7Fu
+#define LINK_ACK_BIT                 0x80u
+
+/* ---- NACK codes ---- */
+#define LINK_NACK_UNKNOWN_COMMAND      1u
+#define LINK_NACK_BAD_CRC              2u
+#define LINK_NACK_MALFORMED            3u
+#define LINK_NACK_OUT_OF_RANGE         4u
+#define LINK_NACK_READ_ONLY            5u
+#define LINK_NACK_WRONG_STATE          6u
+#define LINK_NACK_BUSY                 7u
+#define LINK_NACK_UNKNOWN_PARAM        8u
+#define LINK_NACK_FAULT_ACTIVE         9u
+#define LINK_NACK_EEPROM_ERROR         10u
+
+/* ---- fault codes (latched by the firmware) ---- */
+#define LINK_FAULT_NONE                0u
+#define LINK_FAULT_HALL_INVALID        1u
+#define LINK_FAULT_OVERCURRENT         2u
+#define LINK_FAULT_STALL               3u
+#define LINK_FAULT_LINK_LOST           4u
+#define LINK_FAULT_UNDERVOLTAGE        5u
+#define LINK_FAULT_OVERVOLTAGE         6u
+#define LINK_FAULT_EEPROM_CRC          7u
+
+/* ---- drive states (signal "state"; the watchdog is armed in RUN) ---- */
+#define LINK_STATE_IDLE                0u
+#define LINK_STATE_RUN                 1u
+#define LINK_STATE_BRAKE               2u
+#define LINK_STATE_FAULT               3u
+
+/* ---- events ---- */
+#define LINK_EVENT_BOOT                1u
+#define LINK_EVENT_FAULT               2u
+#define LINK_EVENT_WATCHDOG            3u
+
+/* ---- capture triggers and states ---- */
+#define LINK_TRIG_IMMEDIATE            0u
+#define LINK_TRIG_SETPOINT_CHANGE      1u
+#define LINK_TRIG_SPEED_RISING         2u
+#define LINK_TRIG_SPEED_FALLING        3u
+#define LINK_CAP_IDLE                  0u
+#define LINK_CAP_ARMED                 1u
+#define LINK_CAP_TRIGGERED             2u
+#define LINK_CAP_DONE                  3u
+
+/* ---- controllers (parameter "controller") ---- */
+#define LINK_CONTROLLER_PID            0u
+#define LINK_CONTROLLER_FUZZY          1u
+
+/* ---- link_eeprom_load() results ---- */
+#define LINK_EE_OK                     0u
+#define LINK_EE_BLANK                  1u
+#define LINK_EE_OTHER_BUILD            2u
+#define LINK_EE_CORRUPT                3u
+
+/* ---- entry flags and C type codes (param_info) ---- */
+#define LINK_FLAG_WRITABLE      0x01u
+#define LINK_FLAG_PERSISTED     0x02u
+#define LINK_FLAG_SIGNAL        0x04u
+#define LINK_T_UINT8                   1u
+#define LINK_T_INT8                    2u
+#define LINK_T_UINT16                  3u
+#define LINK_T_INT16                   4u
+#define LINK_T_INT32                   5u
+
+/* ---- table entry ids (param_get / param_set) ---- */
+#define LINK_ID_SPEED_SETPOINT       0x00u   /* rpm, scale 0.149207756 */
+#define LINK_ID_CONTROLLER           0x01u   /* enum, scale 1 */
+#define LINK_ID_PREMISE_LOW          0x02u   /* rpm, scale 0.149207756 */
+#define LINK_ID_PREMISE_HIGH         0x03u   /* rpm, scale 0.149207756 */
+#define LINK_ID_SETPOINT_WEIGHT      0x04u   /* 1, scale 6.10351562e-05 */
+#define LINK_ID_U_MIN                0x05u   /* V, scale 0.00390625 */
+#define LINK_ID_U_MAX                0x06u   /* V, scale 0.00390625 */
+#define LINK_ID_CURRENT_LIMIT        0x07u   /* A, scale 0.0048828125 */
+#define LINK_ID_ACCEL_LIMIT          0x08u   /* rpm/s, scale 149.207764 */
+#define LINK_ID_LINK_TIMEOUT         0x09u   /* ms, scale 1 */
+#define LINK_ID_STALL_TIMEOUT        0x0Au   /* ms, scale 1 */
+#define LINK_ID_SPEED                0x20u   /* rpm, scale 0.149207756, read-only signal */
+#define LINK_ID_SETPOINT             0x21u   /* rpm, scale 0.149207756, read-only signal */
+#define LINK_ID_VOLTAGE              0x22u   /* V, scale 0.00390625, read-only signal */
+#define LINK_ID_CURRENT              0x23u   /* A, scale 0.0048828125, read-only signal */
+#define LINK_ID_INTEGRATOR           0x24u   /* V, scale 0.00390625, read-only signal */
+#define LINK_ID_DUTY                 0x25u   /* counts, scale 1, read-only signal */
+#define LINK_ID_HALL                 0x26u   /* code, scale 1, read-only signal */
+#define LINK_ID_STATE                0x27u   /* enum, scale 1, read-only signal */
+#define LINK_ID_FAULT                0x28u   /* code, scale 1, read-only signal */
+#define LINK_ID_MU1                  0x29u   /* 1, scale 0.000244140625, read-only signal */
+#define LINK_ID_POSITION             0x2Au   /* counts, scale 1, read-only signal */
+#define LINK_ID_RULE1_KP             0x40u   /* V/(rad/s), scale 1.52587891e-05 */
+#define LINK_ID_RULE1_KI             0x41u   /* V/rad, scale 0.000476837158 */
+#define LINK_ID_RULE1_KD             0x42u   /* V s^2/rad, scale 1.52587898e-08 */
+#define LINK_ID_RULE1_KC             0x43u   /* V/A, scale 0.00156250002 */
+#define LINK_ID_RULE2_KP             0x44u   /* V/(rad/s), scale 1.52587891e-05 */
+#define LINK_ID_RULE2_KI             0x45u   /* V/rad, scale 0.000476837158 */
+#define LINK_ID_RULE2_KD             0x46u   /* V s^2/rad, scale 1.52587898e-08 */
+#define LINK_ID_RULE2_KC             0x47u   /* V/A, scale 0.00156250002 */
+
+/* ---- signal indices: app_signal() argument, bit of telemetry/capture masks ---- */
+#define LINK_SIG_SPEED                 0u
+#define LINK_SIG_SETPOINT              1u
+#define LINK_SIG_VOLTAGE               2u
+#define LINK_SIG_CURRENT               3u
+#define LINK_SIG_INTEGRATOR            4u
+#define LINK_SIG_DUTY                  5u
+#define LINK_SIG_HALL                  6u
+#define LINK_SIG_STATE                 7u
+#define LINK_SIG_FAULT                 8u
+#define LINK_SIG_MU1                   9u
+#define LINK_SIG_POSITION              10u
+
+/* ---- parameter store: read the fields freely; write only via link_param_set() ---- */
+typedef struct {
+    int16_t   speed_setpoint;  /* rpm, raw x 0.149207756, [-17425, 17425], default 0 */
+    uint8_t   controller;      /* enum, raw x 1, [0, 1], default 1, persisted */
+    int16_t   premise_low;     /* rpm, raw x 0.149207756, [0, 32767], default 0, persisted */
+    int16_t   premise_high;    /* rpm, raw x 0.149207756, [0, 32767], default 17425, persisted */
+    int16_t   setpoint_weight; /* 1, raw x 6.10351562e-05, [0, 32767], default 16384, persisted */
+    int16_t   u_min;           /* V, raw x 0.00390625, [-11304, 0], default -11304, persisted */
+    int16_t   u_max;           /* V, raw x 0.00390625, [0, 11304], default 11304, persisted */
+    int16_t   current_limit;   /* A, raw x 0.0048828125, [0, 1023], default 307, persisted */
+    uint16_t  accel_limit;     /* rpm/s, raw x 149.207764, [0, 65535], default 0, persisted */
+    uint16_t  link_timeout;    /* ms, raw x 1, [20, 60000], default 500, persisted */
+    uint16_t  stall_timeout;   /* ms, raw x 1, [10, 60000], default 500, persisted */
+    int16_t   rule1_kp;        /* V/(rad/s), raw x 1.52587891e-05, [-32768, 32767], default 11328, persisted */
+    int16_t   rule1_ki;        /* V/rad, raw x 0.000476837158, [-32768, 32767], default 10420, persisted */
+    int16_t   rule1_kd;        /* V s^2/rad, raw x 1.52587898e-08, [-32768, 32767], default 0, persisted */
+    int16_t   rule1_kc;        /* V/A, raw x 0.00156250002, [-32768, 32767], default 8695, persisted */
+    int16_t   rule2_kp;        /* V/(rad/s), raw x 1.52587891e-05, [-32768, 32767], default 10331, persisted */
+    int16_t   rule2_ki;        /* V/rad, raw x 0.000476837158, [-32768, 32767], default 9995, persisted */
+    int16_t   rule2_kd;        /* V s^2/rad, raw x 1.52587898e-08, [-32768, 32767], default 0, persisted */
+    int16_t   rule2_kc;        /* V/A, raw x 0.00156250002, [-32768, 32767], default 7354, persisted */
+} link_params_t;
+
+extern link_params_t link_params;
+
+/* ---- the module ---- */
+void     link_init(void);                      /* defaults, queue the BOOT event */
+void     link_rx_byte(uint8_t b);              /* UART RX interrupt */
+void     link_poll(void);                      /* main loop */
+void     link_tick_ms(void);                   /* 1 kHz time base */
+void     link_sample(void);                    /* once per speed-loop sample */
+void     link_event(uint8_t event, uint8_t code);   /* BOOT (reset cause) or FAULT (code) */
+int16_t  link_param_i16(uint8_t id);           /* raw value saturated to int16; 0 if unknown */
+int32_t  link_param_get(uint8_t id);           /* raw value (signals via app_signal); 0 if unknown */
+uint8_t  link_param_set(uint8_t id, int32_t raw);   /* 0 or LINK_NACK_*; calls app_param_changed */
+uint8_t  link_eeprom_load(void);               /* LINK_EE_*; anything but OK keeps the values */
+uint8_t  link_eeprom_save(void);               /* 0 or LINK_NACK_EEPROM_ERROR (read-back verify) */
+uint16_t link_crc16(const uint8_t *p, uint8_t n);
+uint16_t link_crc16_update(uint16_t crc, uint8_t b);
+
+/* ---- implemented by the application ---- */
+uint8_t  app_command(uint8_t cmd, const uint8_t *arg, uint8_t n);  /* start/stop/brake/fault_clear: 0 or LINK_NACK_* */
+void     app_param_changed(uint8_t id);
+int16_t  app_signal(uint8_t signal);           /* LINK_SIG_*: raw value */
+void     app_link_lost(void);                  /* called from link_tick_ms: outputs off, latch LINK_LOST */
+uint8_t  app_tx_free(void);                    /* free bytes in the UART TX queue */
+void     app_tx_byte(uint8_t b);
+uint8_t  app_eeprom_read(uint8_t addr);
+void     app_eeprom_write(uint8_t addr, uint8_t value);
+
+#endif /* LINK_FW_H */
