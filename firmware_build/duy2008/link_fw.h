@@ -3,13 +3,13 @@
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
  *
  * protocol 1.0, 30 table entries (2 rules),
- * table hash 0x9142D730UL, build id 0xFC7472FFUL, profile hash 0x6D0E586CUL
+ * table hash 0x9142D730UL, build id 0xE6E5D700UL, profile hash 0x6D0E586CUL
  *
  * Frame: SOF 0xA5, LEN (0..40), TYPE, SEQ, payload, CRC-16/CCITT-FALSE over
  * LEN..payload, high byte first.  A bad CRC or an impossible LEN drops only the SOF byte and the
  * receiver rescans from the next byte; a partial frame older than 20 ms is abandoned.
  *
- * RAM budget (bytes) of this module's buffers:
+ * RAM (bytes) of this module: buffers and scalar state (the total is what avr-gcc allocates):
  *   rx_ring            64
  *   tx_frame           46
  *   telemetry_frame    40
@@ -32,7 +32,7 @@
 
 #define LINK_PROTO_MAJOR        1u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0xFC7472FFUL
+#define LINK_BUILD_ID           0xE6E5D700UL
 #define LINK_PROFILE_HASH       0x6D0E586CUL
 #define LINK_TABLE_HASH         0x9142D730UL
 #define LINK_SAMPLE_HZ          1000u
