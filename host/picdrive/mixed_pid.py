@@ -481,8 +481,10 @@ def _run_de(pb: Problem, seed: int, popsize: int, maxiter: int):
     from scipy.optimize import NonlinearConstraint, differential_evolution
 
     big = 1e9
+    count = [0]
 
     def f(x):                                   # x: (3, S)
+        count[0] += x.shape[1] if x.ndim == 2 else 1
         ev = evaluate(pb, x.T)
         return np.where(np.isfinite(ev["j3"]), ev["j3"], big)
 
@@ -503,5 +505,5 @@ def _run_de(pb: Problem, seed: int, popsize: int, maxiter: int):
                                polish=False, vectorized=True, updating="deferred")
     ev = evaluate(pb, r.x)
     found = bool(ev["feasible"])
-    return np.asarray(r.x, float), found, {"optimizer": "de", "nfev": int(r.nfev), "nit": int(r.nit),
+    return np.asarray(r.x, float), found, {"optimizer": "de", "evaluations": count[0], "nit": int(r.nit),
                                            "message": str(r.message), "relative_box": ((r.x - pb.lo) / span).tolist()}

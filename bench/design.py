@@ -1,0 +1,116 @@
+#!/usr/bin/env python3
+"""Wall times of the design steps and the GA's J3 against the 2008 paper's gains.
+
+Prints (median of --repeat runs, this machine):
+
+* the LMI solve of Theorem 1 (2016) for the profile's gamma, delta, alpha, rho
+  (``picdrive.fuzzy_hinf.solve_theorem1`` on ``tsfuzzy.paper_model``);
+* gamma minimisation (``picdrive.fuzzy_hinf.minimise_gamma``);
+* the GA, 200 chromosomes x 20 generations, of the mixed H2/H-inf PID, for the
+  paper's continuous problem and for the sampled drive problem, on both
+  bundled profiles (scipy differential evolution for comparison);
+* J3 (eq 22) of the GA's gains beside the paper's printed gains on the same
+  cost and the same box, and whether each meets the constraint of eq 6.
+
+Targets (issue 2): LMI < 0.5 s, gamma-min < 2 s, GA < 1 s; GA J3 no worse
+than the paper's within the same bounds.
+
+    python3 bench/design.py [--repeat N]
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+import warnings
+
+
+def timed(fn, repeat):
+    times, out = [], None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), min(times), out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=3, help="runs per timing (median and best are printed)")
+    args = ap.parse_args(argv)
+    warnings.simplefilter("ignore")
+    import numpy as np
+
+    from picdrive import mixed_pid as mp
+    from picdrive.ga import run_ga
+    from picdrive.h2hinf import j3_jury_dewey, robust_constraint, tracking_error_polys
+    from picdrive.profile import load_profile
+    from picdrive.repro2008 import GAINS
+
+    profiles = {n: load_profile(n) for n in ("duy2008", "assawinchaichote2016")}
+    print(f"picdrive design bench ({args.repeat} runs per figure: median / best)\n")
+
+    # --- LMI (2016)
+    print("LMI design (2016 Theorem 1), profile assawinchaichote2016")
+    try:
+        from picdrive import fuzzy_hinf, tsfuzzy
+        p16 = profiles["assawinchaichote2016"]
+        de = p16.design
+        ts = tsfuzzy.paper_model(p16)
+        med, best, sol = timed(lambda: fuzzy_hinf.solve_theorem1(ts, de["gamma"], de["delta"], de["alpha"], de["rho"]),
+                               args.repeat)
+        print(f"  solve_theorem1 (gamma={de['gamma']:g}, delta={de['delta']:g}, alpha={de['alpha']:g}, rho={de['rho']:g}): "
+              f"{med:.3f} s / {best:.3f} s   feasible={sol.feasible}   target < 0.5 s: "
+              f"{'met' if med < 0.5 else 'NOT met'}")
+        med, best, sol = timed(lambda: fuzzy_hinf.minimise_gamma(ts, alpha=de["alpha"], rho=de["rho"]), args.repeat)
+        print(f"  minimise_gamma: {med:.3f} s / {best:.3f} s   gamma={sol.gamma:.4g} "
+              f"(solves: {sol.extra.get('n_solves', '?')})   target < 2 s: {'met' if med < 2 else 'NOT met'}")
+    except (ImportError, AttributeError, TypeError) as e:
+        print(f"  skipped: picdrive.fuzzy_hinf is not usable in this checkout ({type(e).__name__}: {e})")
+    print()
+
+    # --- GA timings
+    print("GA of the mixed H2/H-inf PID (200 chromosomes x 20 generations, seed = profile ga_seed)")
+    for name, p in profiles.items():
+        for variant in ("paper", "drive"):
+            pb = mp.make_problem(p, variant)
+            seed = p.design["ga_seed"]
+            med, best, r = timed(lambda: run_ga(pb.cost, pb.lo, pb.hi, population=200, generations=20, seed=seed,
+                                                progress=False), args.repeat)
+            g = r.best
+            print(f"  {name:22s} {variant:6s} {med:.3f} s / {best:.3f} s   {r.n_evaluations} evaluations   "
+                  f"kp={g[0]:.6g} ki={g[1]:.6g} kd={g[2]:.6g}   J3={r.best_cost:.5g} s   "
+                  f"target < 1 s: {'met' if med < 1 else 'NOT met'}")
+            t0 = time.perf_counter()
+            x, found, info = mp._run_de(pb, seed, 15, 300)
+            t_de = time.perf_counter() - t0
+            jd = float(mp.evaluate(pb, x)["j3"])
+            print(f"  {'':22s} {'(de)':6s} {t_de:.3f} s   {info['evaluations']} evaluations ({info['nit']} generations)   "
+                  f"kp={x[0]:.6g} ki={x[1]:.6g} "
+                  f"kd={x[2]:.6g}   J3={jd:.5g} s   GA/DE J3 ratio {r.best_cost / jd:.4f}")
+    print()
+
+    # --- J3 of the GA's gains against the paper's, same cost (eq 22) and box
+    p = profiles["duy2008"]
+    pb = mp.make_problem(p, "paper")
+    r = run_ga(pb.cost, pb.lo, pb.hi, population=200, generations=20, seed=p.design["ga_seed"], progress=False)
+    print(f"J3 (eq 22, unit step, derivative on error) on duy2008, box kp {pb.lo[0]:g}..{pb.hi[0]:g}, "
+          f"ki {pb.lo[1]:g}..{pb.hi[1]:g}, kd {pb.lo[2]:g}..{pb.hi[2]:g}, eq 6 with d = {pb.d:g}")
+    print(f"  {'gains':34s} {'kp':>10s} {'ki':>8s} {'kd':>8s} {'J3 (s)':>12s} {'eq 6':>8s}  in box")
+    rows = {"paper (Duy et al., GA)": GAINS["proposed"], "Yu & Hwang (LQR)": GAINS["yu_hwang"],
+            "picdrive GA": tuple(r.best)}
+    j = {}
+    for label, (kp, ki, kd) in rows.items():
+        ne, de_ = tracking_error_polys(pb.plant, kp, ki, kd)
+        j[label] = float(j3_jury_dewey(ne, de_))
+        h = float(robust_constraint(pb.plant, kp, ki, kd, pb.d)[0])
+        inside = bool(np.all(np.array([kp, ki, kd]) >= pb.lo) and np.all(np.array([kp, ki, kd]) <= pb.hi))
+        print(f"  {label:34s} {kp:10.6g} {ki:8.6g} {kd:8.6g} {j[label]:12.5e} {h:8.4f}  {'yes' if inside else 'no'}")
+    ratio = j["picdrive GA"] / j["paper (Duy et al., GA)"]
+    print(f"  GA J3 / paper J3 = {ratio:.4f}: {'no worse (target met)' if ratio <= 1 else 'WORSE (target not met)'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
