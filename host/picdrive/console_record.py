@@ -17,7 +17,8 @@ board, firmware and profile produced it and at what rate::
     # stopped: 2025-01-01T12:00:03+00:00 samples 3000 dropped 0
 
 ``t_s`` is the board's sample time (sample counter / sample rate) in seconds
-from the first recorded sample, so gaps from dropped telemetry frames show as
+from the first recorded sample (a step test's CSV keeps 0 at the step:
+``relative_time=False``), so gaps from dropped telemetry frames show as
 missing time stamps, and the closing line counts them.
 
 The file is written whole or not at all: samples go to a hidden temporary
@@ -72,7 +73,7 @@ class Recorder:
     """
 
     def __init__(self, path: str | Path, signals: Sequence[tuple[str, str]], rate_hz: float, *,
-                 firmware: str = "", profile: str = "", protocol: str = ""):
+                 firmware: str = "", profile: str = "", protocol: str = "", relative_time: bool = True):
         self.path = Path(path)
         if self.path.suffix.lower() != ".csv":
             raise RecordError(f"recording file {str(self.path)!r} must end in .csv, e.g. 'record run1.csv'")
@@ -89,7 +90,8 @@ class Recorder:
         self.rate_hz = float(rate_hz)
         self.samples = 0
         self.dropped = 0
-        self._t0: float | None = None
+        self._t0: float | None = None if relative_time else 0.0
+        self._first = True
         try:
             fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial", dir=folder)
         except OSError as e:
@@ -115,6 +117,8 @@ class Recorder:
             raise RecordError(f"sample has {len(values)} values for {len(self.signals)} signals")
         if self._t0 is None:
             self._t0 = float(t_s)
+        if self._first:
+            self._first = False
         else:
             self.dropped += int(dropped)
         self._f.write(",".join([f"{float(t_s) - self._t0:.6f}"] + [_fmt(v) for v in values]) + "\n")

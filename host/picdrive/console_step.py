@@ -147,7 +147,7 @@ def save_step_plot(rec: StepRecord, path: str | Path, *, band: float = 0.02) -> 
     """Save the step response as a PNG (written whole or not at all).
 
     Top: speed and setpoint with the settling band and the metrics marked;
-    below: one panel per further signal.
+    below: one panel per further signal (a ``setpoint`` signal is drawn in the top panel).
     """
     from matplotlib.figure import Figure
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -155,7 +155,7 @@ def save_step_plot(rec: StepRecord, path: str | Path, *, band: float = 0.02) -> 
     p = Path(path)
     if p.suffix.lower() != ".png":
         raise StepError(f"step plot file {str(p)!r} must end in .png")
-    others = [k for k in rec.signals if k not in ("speed_rpm",)]
+    others = [k for k in rec.signals if k not in ("speed", "speed_rpm", "setpoint")]
     n = 1 + len(others)
     fig = Figure(figsize=(8, 3.6 + 1.5 * (n - 1)))
     FigureCanvasAgg(fig)
@@ -163,8 +163,11 @@ def save_step_plot(rec: StepRecord, path: str | Path, *, band: float = 0.02) -> 
     ax = axes[0]
     t = np.asarray(rec.t_s) * 1e3
     ax.plot(t, rec.speed_rpm, lw=1.2, label="speed")
-    sp = np.where(np.asarray(rec.t_s) < 0, rec.from_rpm, rec.to_rpm)
-    ax.step(t, sp, where="post", lw=1.0, ls="--", color="k", label="setpoint")
+    if "setpoint" in rec.signals:          # the board's setpoint (after its ramp)
+        ax.plot(t, rec.signals["setpoint"], lw=1.0, ls="--", color="k", label="setpoint")
+    else:
+        sp = np.where(np.asarray(rec.t_s) < 0, rec.from_rpm, rec.to_rpm)
+        ax.step(t, sp, where="post", lw=1.0, ls="--", color="k", label="setpoint")
     step = rec.to_rpm - rec.from_rpm
     ax.axhspan(rec.to_rpm - band * abs(step), rec.to_rpm + band * abs(step), color="g", alpha=0.12,
                label=f"±{band * 100:g} % band")

@@ -1,0 +1,1331 @@
+"""``picdrive console <serial URL>``: the bench console.
+
+What the engineer lives in at the bench, against a real board
+(``/dev/ttyUSB0``, ``COM5``) or the twin (``socket://127.0.0.1:<port>``).  It
+is built only on :mod:`picdrive.link` (seam 6): it opens the URL with
+``Link.open``, shows the handshake, and turns typed commands into link calls.
+
+Commands (``help`` lists them, ``help <command>`` explains one):
+
+=======================  ==================================================
+``speed <rpm>``          speed setpoint (mechanical rpm; negative reverses)
+``start`` ``stop``       run / coast down
+``brake``                active brake
+``reverse``              negate the speed setpoint
+``params [text]``        the board's parameter table: value, unit, limits
+``get <name>``           one parameter, with unit and limits
+``set <name> <value>``   write a parameter (engineering units); the board
+                         enforces its limits and says so when it refuses
+``controller pid|fuzzy`` switch the control law (plain PID / fuzzy blend)
+``load <design.json>``   push a design result's gains (checked first)
+``save`` ``restore``     parameters to / from the board's EEPROM
+``faults`` ``clear``     show / clear latched faults
+``status``               run state, setpoint, speed, controller, faults
+``info``                 the handshake again
+``telemetry ...``        ``signals a,b,c`` / ``rate <Hz>`` / ``on`` / ``off``
+``plot [off]``           live plot window (PNG file when there is no display)
+``view [seconds]``       compact text view of the telemetry
+``record <f.csv>``       record telemetry to CSV; ``record stop`` ends it
+``step <from> <to>``     step test, ``--hold <s>``: metrics + PNG plot
+``wait <seconds>``       pause (for scripts)
+``quit``                 leave (stops the motor first if it runs)
+=======================  ==================================================
+
+Scripting: ``--run session.txt`` runs the file's commands (one per line,
+``#`` comments) and exits non-zero on the first error, so a bench procedure
+is reproducible.  Interactive sessions have tab completion and a persistent
+history (``--history``, default ``$XDG_STATE_HOME/picdrive/console_history``).
+
+A bad command, a value the board refuses or a lost link gets a one-line
+explanation and the console keeps running; a lost link is reopened in the
+background and announced when it is back.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import shlex
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from .errors import PicdriveError
+
+__all__ = ["ConsoleError", "Console", "COMMANDS", "register", "main"]
+
+
+class ConsoleError(PicdriveError):
+    """A console command failed; the message is the one line the user sees."""
+
+
+class _Quit(Exception):
+    pass
+
+
+PROMPT = "picdrive> "
+
+
+# ---------------------------------------------------------------------------
+# command table
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Command:
+    name: str
+    usage: str
+    help: str
+    func: Callable
+    complete: Callable | None = None
+    needs_link: bool = True
+
+
+COMMANDS: dict[str, Command] = {}
+ALIASES = {"exit": "quit", "q": "quit", "?": "help", "eeprom-save": "save", "eeprom-load": "restore"}
+
+
+def command(name: str, usage: str, help: str, complete=None, needs_link: bool = True):
+    def deco(fn):
+        COMMANDS[name] = Command(name, usage, help, fn, complete, needs_link)
+        return fn
+    return deco
+
+
+def _number(s: str, what: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise ConsoleError(f"{what} {s!r} is not a number") from None
+    if not math.isfinite(v):
+        raise ConsoleError(f"{what} {s!r} is not a finite number")
+    return v
+
+
+def _nargs(cmd: str, args: list[str], lo: int, hi: int | None = None) -> None:
+    hi = lo if hi is None else hi
+    if not lo <= len(args) <= hi:
+        raise ConsoleError(f"usage: {COMMANDS[cmd].usage}")
+
+
+def default_history_path() -> Path:
+    env = os.environ.get("PICDRIVE_HISTORY")
+    if env:
+        return Path(env)
+    state = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
+    return Path(state) / "picdrive" / "console_history"
+
+
+# ---------------------------------------------------------------------------
+# the console
+# ---------------------------------------------------------------------------
+
+class Console:
+    """One console session on one serial URL.
+
+    ``opener(url)`` returns an open :class:`picdrive.link.Link` (default
+    ``Link.open``); ``profile``: a local :class:`picdrive.profile.Profile` to
+    compare with the board's handshake; ``out_dir``: where step plots go;
+    ``write``: output function (default: print to stdout).
+    """
+
+    def __init__(self, url: str, *, profile=None, out_dir: str | Path = ".", opener=None,
+                 write: Callable[[str], None] | None = None, interactive: bool = False,
+                 reconnect_interval_s: float = 0.5):
+        self.url = url
+        self.profile = profile
+        self.out_dir = Path(out_dir)
+        self.interactive = interactive
+        self.reconnect_interval_s = reconnect_interval_s
+        self._opener = opener
+        self._write = write or self._print
+        self._out_lock = threading.RLock()
+        self._at_prompt = False
+        self.link = None
+        self._lost: str | None = None           # reason while the link is lost
+        self._closing = threading.Event()
+        self._reconnector: threading.Thread | None = None
+        # telemetry selection and sinks
+        self.tele_signals: list[str] = []
+        self.tele_rate_hz: float = 0.0
+        self.tele_on = False
+        self._sinks_lock = threading.Lock()
+        self._pump: threading.Thread | None = None
+        self._pump_stop = threading.Event()
+        self.recorder = None
+        self.plot = None
+        self._view = None
+        self._collect: list | None = None
+        self.last_step = None
+        self._keepalive: threading.Thread | None = None
+
+    # -- output ---------------------------------------------------------------
+
+    @staticmethod
+    def _print(text: str) -> None:
+        sys.stdout.write(text + "\n")
+        sys.stdout.flush()
+
+    def say(self, text: str) -> None:
+        with self._out_lock:
+            self._write(text)
+
+    def notify(self, text: str) -> None:
+        """A message from a background thread: printed above the prompt."""
+        with self._out_lock:
+            if self._at_prompt and self.interactive and self._write == self._print:
+                try:
+                    import readline
+                    buf = readline.get_line_buffer()
+                except ImportError:
+                    buf = ""
+                sys.stdout.write("\r\x1b[K" + text + "\n" + PROMPT + buf)
+                sys.stdout.flush()
+            else:
+                self._write(text)
+
+
+    # -- connection -------------------------------------------------------------
+
+    def _open(self):
+        if self._opener is not None:
+            return self._opener(self.url)
+        from .link import Link
+        return Link.open(self.url)
+
+    def connect(self) -> None:
+        """Open the link and show the handshake (raises LinkError if the board is not there)."""
+        link = self._open()
+        self._attach(link)
+        self.say(f"connected to {self.url}")
+        for line in self.handshake_lines():
+            self.say(line)
+
+    def _attach(self, link) -> None:
+        self.link = link
+        self._lost = None
+        link.on_event = self._on_event
+        if self._keepalive is None or not self._keepalive.is_alive():
+            self._keepalive = threading.Thread(target=self._watch_link, name="picdrive-console-watch", daemon=True)
+            self._keepalive.start()
+
+    def handshake_lines(self) -> list[str]:
+        """The handshake as shown at connect and by ``info``; warns on a profile mismatch."""
+        info, table = self.link.info, self.link.table
+        rules = table.rules
+        rate = f"{info.sample_hz} Hz" if info.sample_hz else "not stated"
+        lines = [f"firmware build 0x{info.build_id:08x}, protocol {info.proto_version[0]}.{info.proto_version[1]}, "
+                 f"profile hash 0x{info.profile_hash:08x}, table hash 0x{info.table_hash:08x} "
+                 f"({len(table)} entries, {rules} rule{'s' if rules != 1 else ''}), speed loop {rate}"]
+        if self.profile is not None:
+            mine = profile_hash32(self.profile)
+            if mine == info.profile_hash:
+                lines.append(f"profile {self.profile.name}: matches the board (hash 0x{mine:08x})")
+            else:
+                lines.append(f"WARNING: the board was built from another profile: board hash 0x{info.profile_hash:08x}, "
+                             f"local profile {self.profile.name} hash 0x{mine:08x}; limits and gains may not fit "
+                             "this motor. Regenerate and flash the firmware, or pass the right --profile")
+        else:
+            name = bundled_profile_by_hash(info.profile_hash)
+            lines.append(f"profile: {name} (bundled profile with this hash)" if name else
+                         "profile: not a bundled profile (pass --profile P to compare with yours)")
+        return lines
+
+    def _on_event(self, t, event, code) -> None:
+        from . import protocol as P
+        name = event.name.lower() if hasattr(event, "name") else str(event)
+        if event == P.Event.FAULT or event == P.Event.WATCHDOG:
+            try:
+                what = P.Fault(code).name
+            except ValueError:
+                what = str(code)
+            self.notify(f"board event: {name}: fault {what} latched, outputs off ('faults', then 'clear')")
+        elif event == P.Event.BOOT:
+            self.notify(f"board event: boot (reset cause {code}): the board restarted; telemetry is off")
+        else:
+            self.notify(f"board event: {name} code {code}")
+
+    @property
+    def connected(self) -> bool:
+        return self.link is not None
+
+    def _require_link(self):
+        if self.link is None:
+            raise ConsoleError(f"not connected: link lost ({self._lost}); reconnecting to {self.url} in the background")
+        return self.link
+
+    def link_lost(self, reason: str) -> None:
+        """Drop the link and start reconnecting in the background."""
+        with self._out_lock:
+            if self.link is None and self._lost is not None:
+                return
+            link, self.link = self.link, None
+            self._lost = reason
+        self.notify(f"link lost: {reason}; reconnecting to {self.url} (commands will fail until it is back)")
+        self._stop_pump()
+        if self.recorder is not None:
+            with self._sinks_lock:
+                rec, self.recorder = self.recorder, None
+            try:
+                p = rec.close()
+                self.notify(f"recording saved to {p} ({rec.samples} samples) because the link was lost")
+            except PicdriveError as e:
+                self.notify(f"recording lost: {e}")
+        if link is not None:
+            try:
+                link.close()
+            except Exception:
+                pass
+        if not self._closing.is_set() and (self._reconnector is None or not self._reconnector.is_alive()):
+            self._reconnector = threading.Thread(target=self._reconnect_loop, name="picdrive-console-reconnect",
+                                                 daemon=True)
+            self._reconnector.start()
+
+    def _reconnect_loop(self) -> None:
+        from .link import LinkError
+        tries = 0
+        while not self._closing.is_set():
+            self._closing.wait(self.reconnect_interval_s)
+            if self._closing.is_set():
+                return
+            tries += 1
+            try:
+                link = self._open()
+            except LinkError:
+                continue
+            if self._closing.is_set():
+                link.close()
+                return
+            self._attach(link)
+            self.notify(f"link regained after {tries} tries: " + " / ".join(self.handshake_lines()))
+            if self.tele_on:
+                try:
+                    self._apply_telemetry()
+                    self.notify(f"telemetry restored: {', '.join(self.tele_signals)} at {self.tele_rate_hz:g} Hz")
+                except PicdriveError as e:
+                    self.notify(f"telemetry not restored: {e}")
+            return
+
+    def _watch_link(self) -> None:
+        """Notice a lost link while the console is idle (heartbeat when quiet)."""
+        from .link import LinkError, NackError
+        while not self._closing.wait(0.5):
+            link = self.link
+            if link is None:
+                continue
+            try:
+                link.heartbeat()
+            except NackError:
+                pass
+            except LinkError as e:
+                if self.link is link:
+                    self.link_lost(str(e))
+
+    # -- telemetry ---------------------------------------------------------------
+
+    def sample_hz(self) -> float:
+        return float(self._require_link().info.sample_hz or 0)
+
+    def _apply_telemetry(self):
+        link = self._require_link()
+        hz = link.info.sample_hz
+        if hz:
+            dec = max(1, int(round(hz / self.tele_rate_hz)))
+        else:
+            dec = max(1, int(round(self.tele_rate_hz)))
+        self._stop_pump()
+        cfg = link.configure_telemetry(self.tele_signals, decimation=dec)
+        self._start_pump()
+        return cfg
+
+    def _start_pump(self) -> None:
+        self._pump_stop.clear()
+        self._pump = threading.Thread(target=self._pump_loop, name="picdrive-console-telemetry", daemon=True)
+        self._pump.start()
+
+    def _stop_pump(self) -> None:
+        self._pump_stop.set()
+        p = self._pump
+        if p is not None and p is not threading.current_thread():
+            p.join(2.0)
+        self._pump = None
+
+    def _pump_loop(self) -> None:
+        from .link import LinkError
+        link = self.link
+        while not self._pump_stop.is_set() and link is not None and self.link is link:
+            try:
+                recs = link.read_samples(seconds=0.05)
+            except LinkError as e:
+                if self.link is link and not self._pump_stop.is_set():
+                    threading.Thread(target=self.link_lost, args=(str(e),), daemon=True).start()
+                return
+            if len(recs):
+                self._dispatch(recs, link.telemetry_stats.dropped)
+
+    def _dispatch(self, recs, dropped_total: int) -> None:
+        names = [n for n in recs.dtype.names if n not in ("index", "t")]
+        with self._sinks_lock:
+            sinks = [s for s in (self.recorder, self.plot, self._view) if s is not None]
+            collect = self._collect
+        if collect is not None:
+            collect.append(recs)
+        if not sinks:
+            return
+        for s in sinks:
+            want = [n for n, _ in s.signals]
+            cols = [recs[n] if n in names else None for n in want]
+            if s is self.recorder:
+                drop = dropped_total - self._rec_dropped_seen
+                self._rec_dropped_seen = dropped_total
+            for k in range(len(recs)):
+                vals = [float(c[k]) if c is not None else math.nan for c in cols]
+                if s is self.recorder:
+                    s.write(float(recs["t"][k]), vals, dropped=drop if k == 0 else 0)
+                else:
+                    s.feed(float(recs["t"][k]), vals)
+        if self.plot is not None and not self.plot.alive:
+            self.plot = None
+            self.notify("plot window closed")
+
+    def signal_units(self, names) -> list[tuple[str, str]]:
+        link = self._require_link()
+        return [(n, link.param(n).unit) for n in names]
+
+    # -- executing commands ---------------------------------------------------------
+
+    def execute(self, line: str) -> None:
+        """Run one command line; raises ConsoleError (or a PicdriveError) on failure."""
+        from .link import HandshakeMismatch, LinkError, NackError, ParamError
+        try:
+            words = shlex.split(line, comments=True)
+        except ValueError as e:
+            raise ConsoleError(f"cannot parse {line.strip()!r}: {e}") from None
+        if not words:
+            return
+        name, args = words[0].lower(), words[1:]
+        name = ALIASES.get(name, name)
+        cmd = COMMANDS.get(name)
+        if cmd is None:
+            near = [c for c in COMMANDS if c.startswith(name[:2])]
+            hint = f" (did you mean {', '.join(near)}?)" if near else ""
+            raise ConsoleError(f"unknown command {words[0]!r}{hint}; 'help' lists the commands")
+        link = self._require_link() if cmd.needs_link else self.link
+        try:
+            cmd.func(self, args)
+        except (NackError, ParamError) as e:
+            raise ConsoleError(f"{name}: {e}") from None
+        except HandshakeMismatch as e:
+            raise ConsoleError(f"{name}: {e}") from None
+        except LinkError as e:
+            if link is not None and self.link is link:
+                self.link_lost(str(e))
+            raise ConsoleError(f"{name}: link lost: {e}") from None
+        except ConsoleError:
+            raise
+        except PicdriveError as e:          # design file, recording, step or plot errors
+            raise ConsoleError(f"{name}: {e}") from None
+
+    def run_line(self, line: str) -> bool:
+        """Run a line, print a one-line explanation on failure; True if it succeeded."""
+        try:
+            self.execute(line)
+            return True
+        except _Quit:
+            raise
+        except PicdriveError as e:
+            self.say(f"error: {e}")
+            return False
+
+    def run_script(self, path: str | Path) -> int:
+        """Run the commands of a file; stop at the first error (ConsoleError names file and line)."""
+        p = Path(path)
+        try:
+            lines = p.read_text(encoding="utf-8").splitlines()
+        except OSError as e:
+            raise ConsoleError(f"cannot read session file {p}: {e.strerror}") from None
+        for no, line in enumerate(lines, 1):
+            text = line.strip()
+            if not text or text.startswith("#"):
+                continue
+            self.say(PROMPT + text)
+            try:
+                self.execute(text)
+            except _Quit:
+                return 0
+            except PicdriveError as e:
+                raise ConsoleError(f"{p}:{no}: {text!r}: {e}") from None
+        return 0
+
+    def close(self) -> None:
+        """Stop background work, save an open recording, close the plot and the link."""
+        self._closing.set()
+        self._stop_pump()
+        if self.link is not None:
+            from . import protocol as P
+            from .link import LinkError
+            try:
+                if self.link.status().state in (P.State.RUN, P.State.BRAKE):
+                    self.link.stop()
+                    self.say("motor stopped (leaving the console)")
+            except LinkError:
+                pass
+        if self.recorder is not None:
+            rec, self.recorder = self.recorder, None
+            p = rec.close()
+            self.say(f"recording saved to {p} ({rec.samples} samples, {rec.dropped} dropped)")
+        if self.plot is not None:
+            self.plot.close()
+            self.plot = None
+        if self.link is not None:
+            self.link.close()
+            self.link = None
+        for t in (self._keepalive, self._reconnector):
+            if t is not None and t is not threading.current_thread():
+                t.join(2.0)
+
+    # -- interactive ------------------------------------------------------------
+
+    def complete(self, line: str, text: str) -> list[str]:
+        """Completions of the word ``text`` at the end of ``line`` (what is typed so far)."""
+        try:
+            words = shlex.split(line)
+        except ValueError:
+            words = line.split()
+        if line and not line[-1].isspace() and words:
+            words = words[:-1]                         # the word being completed
+        if not words:
+            return sorted(c + " " for c in list(COMMANDS) if c.startswith(text))
+        cmd = COMMANDS.get(ALIASES.get(words[0].lower(), words[0].lower()))
+        if cmd is None or cmd.complete is None:
+            return []
+        try:
+            opts = cmd.complete(self, words[1:], text)
+        except Exception:
+            return []
+        return sorted(o for o in opts if o.startswith(text))
+
+    def repl(self, history: Path | None = None) -> int:
+        """The interactive loop (readline: completion and history)."""
+        try:
+            import readline
+        except ImportError:                            # Windows without pyreadline
+            readline = None
+        if readline is not None:
+            matches: list[str] = []
+
+            def completer(text, state):
+                nonlocal matches
+                if state == 0:
+                    buf = readline.get_line_buffer()[:readline.get_endidx()]
+                    matches = self.complete(buf, text)
+                return matches[state] if state < len(matches) else None
+
+            readline.set_completer(completer)
+            readline.set_completer_delims(" \t\n,")
+            readline.parse_and_bind("tab: complete")
+            if history is not None:
+                try:
+                    history.parent.mkdir(parents=True, exist_ok=True)
+                    if history.exists():
+                        readline.read_history_file(str(history))
+                except OSError as e:
+                    self.say(f"warning: history file {history} not usable: {e.strerror}")
+                    history = None
+                readline.set_history_length(2000)
+        self.say("type 'help' for the commands, Tab completes, 'quit' leaves")
+        try:
+            while True:
+                try:
+                    with self._out_lock:
+                        self._at_prompt = True
+                    line = input(PROMPT)
+                except EOFError:
+                    self.say("")
+                    break
+                except KeyboardInterrupt:
+                    self.say("^C (type 'quit' to leave)")
+                    continue
+                finally:
+                    with self._out_lock:
+                        self._at_prompt = False
+                try:
+                    self.run_line(line)
+                except _Quit:
+                    break
+                except KeyboardInterrupt:
+                    self.say("interrupted")
+        finally:
+            if readline is not None and history is not None:
+                try:
+                    readline.write_history_file(str(history))
+                except OSError:
+                    pass
+        return 0
+
+
+# ---------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------
+
+def profile_hash32(profile) -> int:
+    """The 32-bit profile hash a firmware carries: first 4 bytes of the profile's SHA-256."""
+    return int(profile.sha256[:8], 16)
+
+
+def bundled_profile_by_hash(h: int) -> str | None:
+    """Name of the bundled profile whose hash the board reports, if any."""
+    import warnings
+    from .profile import bundled_profiles, load_profile
+    for name, path in bundled_profiles().items():
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                if profile_hash32(load_profile(path)) == h:
+                    return name
+        except PicdriveError:
+            continue
+    return None
+
+
+def _fmt_value(e, v) -> str:
+    if e.values and isinstance(v, int) and 0 <= v < len(e.values):
+        return e.values[v]
+    if isinstance(v, int):
+        return str(v)
+    return f"{v:.6g}"
+
+
+def _unit(e) -> str:
+    return "" if e.unit in ("1", "enum", "code") else f" {e.unit}"
+
+
+def _limits(e) -> str:
+    if e.values:
+        return "|".join(e.values)
+    return f"{e.min_value:.6g} .. {e.max_value:.6g}{_unit(e)}"
+
+
+def _param_names(con, writable_only=False, signals=None) -> list[str]:
+    if con.link is None or con.link.table is None:
+        return []
+    out = []
+    for e in con.link.table:
+        if signals is True and not e.signal:
+            continue
+        if signals is False and e.signal:
+            continue
+        if writable_only and not e.writable:
+            continue
+        out.append(e.name)
+    return out
+
+
+def _files(ext: str):
+    def comp(con, args, text):
+        d, _, stem = text.rpartition("/")
+        folder = Path(d or ".")
+        try:
+            items = list(folder.iterdir())
+        except OSError:
+            return []
+        out = []
+        for q in items:
+            if q.name.startswith(".") and not stem.startswith("."):
+                continue
+            name = (d + "/" if d else "") + q.name
+            if q.is_dir():
+                out.append(name + "/")
+            elif q.name.endswith(ext):
+                out.append(name)
+        return out
+    return comp
+
+
+def _every(n: int) -> str:
+    if n == 1:
+        return "every sample"
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"every {n}{suffix} sample"
+
+
+def _state_name(v) -> str:
+    return v.name.lower() if hasattr(v, "name") else str(v)
+
+
+def _wait(con, seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while True:
+        left = end - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(left, 0.05))
+
+
+# ---------------------------------------------------------------------------
+# commands
+# ---------------------------------------------------------------------------
+
+@command("help", "help [command]", "list the commands, or explain one", needs_link=False,
+         complete=lambda con, args, text: list(COMMANDS) if not args else [])
+def _help(con: Console, args):
+    _nargs("help", args, 0, 1)
+    if args:
+        name = ALIASES.get(args[0].lower(), args[0].lower())
+        c = COMMANDS.get(name)
+        if c is None:
+            raise ConsoleError(f"no command {args[0]!r}; 'help' lists the commands")
+        con.say(f"{c.usage}\n  {c.help}")
+        return
+    width = max(len(c.usage) for c in COMMANDS.values())
+    for c in COMMANDS.values():
+        con.say(f"  {c.usage:<{width}}  {c.help}")
+
+
+@command("speed", "speed <rpm>", "set the speed setpoint in rpm (mechanical; negative = reverse)")
+def _speed(con, args):
+    _nargs("speed", args, 1)
+    rpm = _number(args[0], "speed")
+    got = con.link.set_speed(rpm)
+    con.say(f"speed setpoint {got:g} rpm")
+
+
+@command("start", "start", "close the speed loop (the motor runs at the setpoint)")
+def _start(con, args):
+    _nargs("start", args, 0)
+    con.link.start()
+    con.say(f"running, setpoint {con.link.get('speed_setpoint'):g} rpm")
+
+
+@command("stop", "stop", "outputs off (the motor coasts down)")
+def _stop(con, args):
+    _nargs("stop", args, 0)
+    con.link.stop()
+    con.say("stopped (outputs off)")
+
+
+@command("brake", "brake", "brake (low-side switches on)")
+def _brake(con, args):
+    _nargs("brake", args, 0)
+    con.link.brake()
+    con.say("braking")
+
+
+@command("reverse", "reverse", "negate the speed setpoint (reverses the direction)")
+def _reverse(con, args):
+    _nargs("reverse", args, 0)
+    sp = con.link.get("speed_setpoint")
+    if sp == 0:
+        raise ConsoleError("reverse: the setpoint is 0 rpm, nothing to reverse; set one with 'speed <rpm>'")
+    got = con.link.set_speed(-sp)
+    con.say(f"speed setpoint {sp:g} -> {got:g} rpm")
+
+
+@command("params", "params [text]", "the parameter table: value, unit, limits, access (filtered by text)",
+         complete=lambda con, args, text: _param_names(con))
+def _params(con, args):
+    _nargs("params", args, 0, 1)
+    link = con.link
+    ents = [e for e in link.table.params if not args or args[0].lower() in e.name.lower()]
+    sigs = [e for e in link.table.signals if not args or args[0].lower() in e.name.lower()]
+    if not ents and not sigs:
+        raise ConsoleError(f"no parameter or signal matches {args[0]!r}; 'params' lists them all")
+    vals = link.get_many(*[e.name for e in ents]) if ents else {}
+    rows = [(e.name, _fmt_value(e, vals[e.name]) + _unit(e), _limits(e),
+             ("rw" if e.writable else "ro") + (" eeprom" if e.persisted else "")) for e in ents]
+    if rows:
+        w = [max(len(r[i]) for r in rows) for i in range(3)]
+        for r in rows:
+            con.say(f"  {r[0]:<{w[0]}}  {r[1]:>{w[1]}}  [{r[2]}]  {r[3]}")
+    if sigs:
+        con.say("  signals (telemetry, read-only): " + ", ".join(f"{e.name}{' [' + e.unit + ']' if e.unit not in ('1',) else ''}"
+                                                             for e in sigs))
+
+
+@command("get", "get <name>", "read a parameter or signal, with its unit and limits",
+         complete=lambda con, args, text: _param_names(con) if not args else [])
+def _get(con, args):
+    _nargs("get", args, 1)
+    e = con.link.param(args[0])
+    v = con.link.get(args[0])
+    con.say(f"{e.name} = {_fmt_value(e, v)}{_unit(e)}   [{_limits(e)}]{'' if e.writable else ' read-only'}")
+
+
+@command("set", "set <name> <value>", "write a parameter in engineering units (the board's limits apply)",
+         complete=lambda con, args, text: _param_names(con, writable_only=True, signals=False) if not args else
+         (list(con.link.param(args[0]).values) if con.link and len(args) == 1 and args[0] in con.link.table else []))
+def _set(con, args):
+    _nargs("set", args, 2)
+    e = con.link.param(args[0])
+    value = args[1] if e.values and not args[1].lstrip("-").isdigit() else _number(args[1], args[0])
+    got = con.link.set(args[0], value)
+    con.say(f"{e.name} = {_fmt_value(e, got)}{_unit(e)}")
+
+
+@command("controller", "controller pid|fuzzy", "switch the control law: pid (rule 1) or fuzzy (rules blended)",
+         complete=lambda con, args, text: ["pid", "fuzzy"] if not args else [])
+def _controller(con, args):
+    _nargs("controller", args, 0, 1)
+    if not args:
+        e = con.link.param("controller")
+        con.say(f"controller {_fmt_value(e, con.link.get('controller'))}")
+        return
+    choice = args[0].lower()
+    if choice not in ("pid", "fuzzy"):
+        raise ConsoleError(f"controller {args[0]!r}: expected pid or fuzzy")
+    got = con.link.select_controller(choice)
+    con.say(f"controller {got}")
+
+
+@command("save", "save", "save the persisted parameters to the board's EEPROM (motor stopped)")
+def _save(con, args):
+    _nargs("save", args, 0)
+    con.link.save_eeprom()
+    n = len(con.link.table.persisted)
+    con.say(f"saved {n} parameters to EEPROM")
+
+
+@command("restore", "restore", "load the persisted parameters from the board's EEPROM (motor stopped)")
+def _restore(con, args):
+    _nargs("restore", args, 0)
+    con.link.load_eeprom()
+    con.say(f"restored {len(con.link.table.persisted)} parameters from EEPROM")
+
+
+@command("faults", "faults", "show the latched fault")
+def _faults(con, args):
+    _nargs("faults", args, 0)
+    st = con.link.status()
+    if int(st.fault) == 0:
+        con.say(f"no fault latched (state {_state_name(st.state)})")
+    else:
+        con.say(f"fault {_state_name(st.fault)} latched, state {_state_name(st.state)}: outputs off; 'clear' clears it")
+
+
+@command("clear", "clear", "clear the latched fault (a cause still present latches again)")
+def _clear(con, args):
+    _nargs("clear", args, 0)
+    before = con.link.status()
+    con.link.fault_clear()
+    after = con.link.status()
+    if int(after.fault):
+        con.say(f"fault {_state_name(after.fault)} latched again: its cause is still present")
+    elif int(before.fault):
+        con.say(f"fault {_state_name(before.fault)} cleared, state {_state_name(after.state)}")
+    else:
+        con.say("no fault was latched")
+
+
+@command("status", "status", "run state, setpoint, speed, controller, fault, link counters")
+def _status(con, args):
+    _nargs("status", args, 0)
+    link = con.link
+    st = link.status()
+    names = [n for n in ("speed_setpoint", "controller", "speed", "current", "voltage") if n in link.table]
+    v = link.get_many(*names)
+    ctl = link.param("controller")
+    parts = [f"state {_state_name(st.state)}", f"fault {_state_name(st.fault)}",
+             f"setpoint {v.get('speed_setpoint', float('nan')):g} rpm"]
+    if "speed" in v:
+        parts.append(f"speed {v['speed']:.1f} rpm")
+    if "current" in v:
+        parts.append(f"current {v['current']:.3f} A")
+    if "voltage" in v:
+        parts.append(f"voltage {v['voltage']:.2f} V")
+    parts.append(f"controller {_fmt_value(ctl, v['controller'])}")
+    con.say(", ".join(parts))
+    tm = link.telemetry
+    tele = (f"telemetry {','.join(e.name for e in tm.signals)} at {tm.rate_hz:g} Hz, "
+            f"{link.telemetry_stats.samples} samples, {link.telemetry_stats.dropped} dropped") if tm else "telemetry off"
+    con.say(f"link: uptime {st.uptime_ms / 1000:.1f} s, crc errors {st.crc_errors}, rx overflows {st.rx_overflows}, "
+            f"{tele}" + (f", recording to {con.recorder.path} ({con.recorder.samples} samples)" if con.recorder else ""))
+
+
+@command("info", "info", "the handshake: firmware build, protocol, profile, table")
+def _info(con, args):
+    _nargs("info", args, 0)
+    for line in con.handshake_lines():
+        con.say(line)
+
+
+@command("wait", "wait <seconds>", "pause (in scripts: let the motor settle)", needs_link=False)
+def _wait_cmd(con, args):
+    _nargs("wait", args, 1)
+    s = _number(args[0], "wait")
+    if not 0 <= s <= 3600:
+        raise ConsoleError(f"wait {s:g} s: expected 0..3600 s")
+    _wait(con, s)
+
+
+@command("quit", "quit", "leave the console (stops the motor if it runs)", needs_link=False)
+def _quit(con, args):
+    raise _Quit()
+
+
+@command("load", "load <design.json>", "push a design result's gains (checked against the board first)",
+         complete=_files(".json"))
+def _load(con, args):
+    _nargs("load", args, 1)
+    from .result import load_design
+    link = con.link
+    r = load_design(args[0], require_usable=True, profile=con.profile)
+    law = r.law
+    rules = link.table.rules
+    if law.n_rules != rules:
+        raise ConsoleError(f"load: the design has {law.n_rules} rule(s), the firmware {rules}: regenerate the "
+                           "firmware from this design (picdrive firmware) or design with the board's rule count")
+    hz = link.info.sample_hz
+    if hz and abs(1.0 / law.sample_time_s - hz) > 1e-6 * hz:
+        raise ConsoleError(f"load: the design is sampled at {1.0 / law.sample_time_s:g} Hz, the board's speed loop "
+                           f"runs at {hz} Hz; discrete gains do not carry over: design for {hz} Hz")
+    if r.profile_sha256 and int(r.profile_sha256[:8], 16) != link.info.profile_hash:
+        raise ConsoleError(f"load: the design was made from profile {r.profile_name!r} (hash 0x{r.profile_sha256[:8]}), "
+                           f"the board was built from profile hash 0x{link.info.profile_hash:08x}; "
+                           "use a design of the board's profile")
+    rpm = 60.0 / (2.0 * math.pi)
+    values: dict[str, float] = {}
+    for j, rule in enumerate(law.rules, 1):
+        for k in ("kp", "ki", "kd", "kc"):
+            values[f"rule{j}_{k}"] = float(getattr(rule, k))
+    values["setpoint_weight"] = float(law.setpoint_weight)
+    values["u_min"] = float(law.u_min_v)
+    values["u_max"] = float(law.u_max_v)
+    if rules > 1:
+        values["premise_low"] = float(law.premise_rad_s[0]) * rpm
+        values["premise_high"] = float(law.premise_rad_s[1]) * rpm
+    values = {k: v for k, v in values.items() if k in link.table}
+    # check everything before writing anything: no half-pushed design
+    from .link import ParamError
+    problems = []
+    for name, v in values.items():
+        try:
+            link.to_raw(name, v)
+        except ParamError as e:
+            problems.append(str(e))
+    if problems:
+        raise ConsoleError("load: nothing written, the board cannot hold these values: " + "; ".join(problems))
+    width = max(len(n) for n in values)
+    worst = 0.0
+    for name, v in values.items():
+        e = link.param(name)
+        got = link.set(name, v)
+        rel = abs(got - v) / abs(v) if v else 0.0
+        worst = max(worst, rel)
+        note = "" if rel < 1e-3 else f"  (rounded {rel * 100:.2f} %)"
+        con.say(f"  {name:<{width}} {got:>12.6g}{_unit(e)}{note}")
+    extra = ""
+    if law.derivative_filter_hz:
+        extra = f"; the derivative filter ({law.derivative_filter_hz:g} Hz) is fixed by the firmware build"
+    con.say(f"loaded {len(values)} parameters of {r.method} design from {args[0]} "
+            f"(largest rounding {worst * 100:.3f} %){extra}; 'save' keeps them in EEPROM")
+
+
+# -- telemetry, views, recording ----------------------------------------------
+
+DEFAULT_RATE_HZ = 200.0
+
+
+def _ensure_signals(con):
+    if not con.tele_signals:
+        from . import protocol as P
+        con.tele_signals = [n for n in P.DEFAULT_TELEMETRY_SIGNALS if n in con.link.table]
+    if not con.tele_rate_hz:
+        hz = con.link.info.sample_hz
+        con.tele_rate_hz = min(DEFAULT_RATE_HZ, float(hz)) if hz else DEFAULT_RATE_HZ
+
+
+def _telemetry_on(con, quiet=False):
+    _ensure_signals(con)
+    cfg = con._apply_telemetry()
+    con.tele_on = True
+    if not quiet:
+        con.say(f"telemetry on: {', '.join(e.name for e in cfg.signals)} at {cfg.rate_hz:g} Hz "
+                f"({_every(cfg.decimation)}, {cfg.samples_per_frame} per frame)")
+    return cfg
+
+
+def _bandwidth_note(con, n_signals: int, rate_hz: float) -> str:
+    from . import protocol as P
+    fit = (P.MAX_PAYLOAD - P.TELEMETRY_HEADER_BYTES) // (2 * n_signals)
+    spf = min(P.DEFAULT_SAMPLES_PER_FRAME, fit)
+    bytes_s = rate_hz / spf * (P.FRAME_OVERHEAD + P.TELEMETRY_HEADER_BYTES + 2 * n_signals * spf)
+    baud = con.profile.uart.baud if con.profile is not None else 115200
+    cap = baud / 10.0
+    if bytes_s > 0.9 * cap:
+        return (f"; warning: needs {bytes_s:.0f} B/s of the {cap:.0f} B/s a {baud}-baud link carries: "
+                "samples will be dropped (lower the rate or the number of signals)")
+    return ""
+
+
+def _complete_telemetry(con, args, text):
+    if not args:
+        return ["signals", "rate", "on", "off"]
+    if args[0] == "signals":
+        done = ",".join(args[1:]).split(",") if len(args) > 1 else []
+        return [n for n in _param_names(con, signals=True) if n not in done]
+    return []
+
+
+@command("telemetry", "telemetry [signals a,b,c | rate <Hz> | on | off]",
+         "choose the telemetry signals and rate, switch it on/off; alone: show the selection",
+         complete=_complete_telemetry)
+def _telemetry(con, args):
+    link = con.link
+    _ensure_signals(con)
+    if not args:
+        tm = link.telemetry
+        state = (f"on: {', '.join(e.name for e in tm.signals)} at {tm.rate_hz:g} Hz, "
+                 f"{link.telemetry_stats.samples} samples, {link.telemetry_stats.dropped} dropped") if tm else "off"
+        con.say(f"telemetry {state}; selected {', '.join(con.tele_signals)} at {con.tele_rate_hz:g} Hz; "
+                f"board samples at {link.info.sample_hz or '?'} Hz")
+        con.say("signals: " + ", ".join(f"{e.name} [{e.unit}]" for e in link.table.signals))
+        return
+    sub, rest = args[0].lower(), args[1:]
+    if sub in ("signals", "rate", "on", "off") and con.recorder is not None and sub != "on":
+        raise ConsoleError(f"telemetry {sub}: a recording to {con.recorder.path} is running; 'record stop' first")
+    if sub == "signals":
+        names = [n for a in rest for n in a.split(",") if n]
+        if not names:
+            raise ConsoleError("usage: telemetry signals NAME[,NAME...], e.g. 'telemetry signals speed,current'")
+        sig = {e.name for e in link.table.signals}
+        bad = [n for n in names if n not in sig]
+        if bad:
+            raise ConsoleError(f"telemetry signals: {', '.join(bad)} not a signal of this board; signals: "
+                               f"{', '.join(e.name for e in link.table.signals)}")
+        if len(set(names)) != len(names):
+            raise ConsoleError("telemetry signals: a signal is listed twice")
+        from . import protocol as P
+        if 2 * len(names) + P.TELEMETRY_HEADER_BYTES > P.MAX_PAYLOAD:
+            raise ConsoleError(f"telemetry signals: at most {(P.MAX_PAYLOAD - P.TELEMETRY_HEADER_BYTES) // 2} signals fit a frame")
+        con.tele_signals = names
+        if con.tele_on:
+            _telemetry_on(con)
+        else:
+            con.say(f"telemetry signals {', '.join(names)} (off; 'telemetry on', 'plot', 'view' or 'record' start it)"
+                    + _bandwidth_note(con, len(names), con.tele_rate_hz))
+    elif sub == "rate":
+        if len(rest) != 1:
+            raise ConsoleError("usage: telemetry rate <Hz>, e.g. 'telemetry rate 200'")
+        hz = _number(rest[0], "rate")
+        top = link.info.sample_hz
+        if hz <= 0 or (top and hz > top):
+            raise ConsoleError(f"telemetry rate {hz:g} Hz: expected 0 < rate <= {top or '?'} Hz (the speed-loop rate)")
+        dec = max(1, int(round(top / hz))) if top else max(1, int(round(hz)))
+        con.tele_rate_hz = top / dec if top else hz
+        note = f" ({_every(dec)} of {top} Hz)" if top else ""
+        if con.tele_on:
+            _telemetry_on(con, quiet=True)
+        con.say(f"telemetry rate {con.tele_rate_hz:g} Hz{note}"
+                + _bandwidth_note(con, len(con.tele_signals), con.tele_rate_hz))
+    elif sub == "on":
+        if rest:
+            raise ConsoleError("usage: telemetry on")
+        _telemetry_on(con)
+    elif sub == "off":
+        if rest:
+            raise ConsoleError("usage: telemetry off")
+        con._stop_pump()
+        link.stop_telemetry()
+        con.tele_on = False
+        if con.plot is not None:
+            con.plot.close()
+            con.plot = None
+        con.say("telemetry off")
+    else:
+        raise ConsoleError(f"telemetry {args[0]!r}: expected signals, rate, on or off")
+
+
+@command("plot", "plot [off | --png FILE]", "live plot of the telemetry (a PNG file updated each second without a display)",
+         complete=lambda con, args, text: ["off", "--png"] if not args else [])
+def _plot(con, args):
+    from .console_plot import LivePlot, display_available
+    if args and args[0].lower() == "off":
+        _nargs("plot", args, 1)
+        if con.plot is None:
+            con.say("no plot open")
+            return
+        con.plot.close()
+        con.plot = None
+        con.say("plot closed")
+        return
+    png = None
+    if args:
+        if len(args) != 2 or args[0] != "--png":
+            raise ConsoleError(f"usage: {COMMANDS['plot'].usage}")
+        png = args[1]
+        if not png.lower().endswith(".png"):
+            raise ConsoleError(f"plot --png {png!r}: the file must end in .png")
+    if con.plot is not None and con.plot.alive:
+        raise ConsoleError("a plot is already open ('plot off' closes it)")
+    if not con.tele_on:
+        _telemetry_on(con)
+    sigs = con.signal_units(con.tele_signals)
+    if png is None and not display_available():
+        png = str(con.out_dir / "live.png")
+        con.say(f"no display for a plot window (DISPLAY is not set): the live plot goes to {png}, "
+                "redrawn every second; 'view' shows a text view")
+    plot = LivePlot(sigs, png_path=png, backend="Agg" if png is not None and not display_available() else None)
+    with con._sinks_lock:
+        con.plot = plot
+    con.say(f"plot open ({plot.backend}): {', '.join(n for n, _ in sigs)}" + (f" -> {png}" if png else ""))
+
+
+@command("view", "view [seconds]", "compact text view of the telemetry (Ctrl-C ends it; 2 s in scripts)")
+def _view(con, args):
+    from .console_plot import TextView
+    _nargs("view", args, 0, 1)
+    seconds = _number(args[0], "view") if args else (math.inf if con.interactive else 2.0)
+    if not seconds > 0:
+        raise ConsoleError("view: seconds must be positive")
+    if not con.tele_on:
+        _telemetry_on(con)
+    tv = TextView(con.signal_units(con.tele_signals))
+    with con._sinks_lock:
+        con._view = tv
+    tty = con.interactive and sys.stdout.isatty()
+    end = time.monotonic() + seconds
+    period = 0.25 if tty else 0.5
+    try:
+        while time.monotonic() < end:
+            time.sleep(min(period, max(0.0, end - time.monotonic())))
+            line = tv.render()
+            if tty:
+                sys.stdout.write("\r\x1b[K" + line)
+                sys.stdout.flush()
+            else:
+                con.say(line)
+            if con.link is None:
+                raise ConsoleError(f"view: link lost ({con._lost})")
+    except KeyboardInterrupt:
+        pass
+    finally:
+        with con._sinks_lock:
+            con._view = None
+        if tty:
+            sys.stdout.write("\n")
+    con.say(f"view: {tv.count} samples")
+
+
+@command("record", "record <file.csv> | record stop", "record the telemetry to CSV (header: signals, units, rate, firmware, profile)",
+         complete=lambda con, args, text: (["stop"] + _files(".csv")(con, args, text)) if not args else [])
+def _record(con, args):
+    from .console_record import Recorder
+    _nargs("record", args, 0, 1)
+    if not args:
+        if con.recorder is None:
+            con.say("not recording")
+        else:
+            con.say(f"recording to {con.recorder.path}: {con.recorder.samples} samples, {con.recorder.dropped} dropped")
+        return
+    if args[0].lower() == "stop":
+        if con.recorder is None:
+            raise ConsoleError("record stop: no recording is running")
+        with con._sinks_lock:
+            rec, con.recorder = con.recorder, None
+        p = rec.close()
+        con.say(f"recording saved to {p}: {rec.samples} samples, {rec.dropped} dropped")
+        return
+    if con.recorder is not None:
+        raise ConsoleError(f"already recording to {con.recorder.path}; 'record stop' first")
+    cfg = con.link.telemetry if con.tele_on else None
+    if cfg is None:
+        cfg = _telemetry_on(con)
+    info = con.link.info
+    prof = con.profile.name if con.profile is not None else (bundled_profile_by_hash(info.profile_hash) or "?")
+    rec = Recorder(args[0], [(e.name, e.unit) for e in cfg.signals], cfg.rate_hz or con.tele_rate_hz,
+                   firmware=f"build 0x{info.build_id:08x} table 0x{info.table_hash:08x}",
+                   profile=f"{prof} hash 0x{info.profile_hash:08x}",
+                   protocol=f"{info.proto_version[0]}.{info.proto_version[1]}")
+    con._rec_dropped_seen = con.link.telemetry_stats.dropped
+    with con._sinks_lock:
+        con.recorder = rec
+    con.say(f"recording {', '.join(n for n, _ in rec.signals)} at {rec.rate_hz:g} Hz to {rec.path} "
+            "('record stop' ends it)")
+
+
+# -- step test ----------------------------------------------------------------
+
+STEP_SIGNALS = ("speed", "setpoint", "voltage", "current")
+STEP_PRE_S = 0.2           # samples kept before the step (y0 and the plot)
+STEP_SETTLE_TIMEOUT_S = 5.0
+
+
+def _collected(collect: list):
+    import numpy as np
+    return np.concatenate(collect) if collect else None
+
+
+def _step_wait(con, collect: list, until, timeout_s: float, what: str):
+    """Wait until ``until(data)`` is true for the samples collected so far."""
+    end = time.monotonic() + timeout_s
+    while True:
+        data = _collected(collect)
+        if data is not None and len(data) and until(data):
+            return data
+        if con.link is None:
+            raise ConsoleError(f"step: link lost ({con._lost}) while {what}")
+        if time.monotonic() > end:
+            raise ConsoleError(f"step: timed out after {timeout_s:g} s while {what}")
+        time.sleep(0.02)
+
+
+def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
+    """Run a step on the board through the link; returns a :class:`StepRecord` (analysed)."""
+    import numpy as np
+    from . import protocol as P
+    from .console_step import StepRecord, analyse_step
+    link = con.link
+    hz = link.info.sample_hz
+    if not hz:
+        raise ConsoleError("step: the board does not state its speed-loop rate, so samples cannot be timed")
+    for v in (from_rpm, to_rpm):
+        link.to_raw("speed_setpoint", v)             # ParamError names the range
+    st = link.status()
+    if int(st.fault):
+        raise ConsoleError(f"step: fault {_state_name(st.fault)} is latched; 'clear' it first")
+    sigs = [n for n in STEP_SIGNALS if n in link.table]
+    if "speed" not in sigs:
+        raise ConsoleError("step: the board has no 'speed' signal")
+    band = 0.02 * abs(to_rpm - from_rpm)
+    was = (con.tele_on, list(con.tele_signals), con.tele_rate_hz)
+    collect: list = []
+    con._stop_pump()
+    cfg = link.configure_telemetry(sigs, decimation=1)
+    with con._sinks_lock:
+        con._collect = collect
+    con._start_pump()
+    try:
+        link.set_speed(from_rpm)
+        if st.state != P.State.RUN:
+            link.start()
+        n_pre = int(round(STEP_PRE_S * hz))
+        spd_tol = max(band, 2.0 * link.param("speed").scale)
+
+        def settled_at_from(d):
+            tail = d["speed"][-n_pre:]
+            return len(d) >= n_pre and bool(np.all(np.abs(tail - from_rpm) <= spd_tol))
+        _step_wait(con, collect, settled_at_from, STEP_SETTLE_TIMEOUT_S + STEP_PRE_S,
+                   f"waiting for the speed to settle at {from_rpm:g} rpm (±{spd_tol:g} rpm)")
+        link.set_speed(to_rpm)
+        sp_tol = 0.5 * link.param("setpoint").scale if "setpoint" in sigs else None
+        t_cmd_index = int(_collected(collect)["index"][-1]) + 1
+
+        def step_index(d):
+            if sp_tol is None:
+                return t_cmd_index
+            moved = np.nonzero((d["index"] >= t_cmd_index - 1) & (np.abs(d["setpoint"] - from_rpm) > sp_tol))[0]
+            return int(d["index"][moved[0]]) if moved.size else None
+
+        n_hold = int(round(hold_s * hz))
+
+        def done(d):
+            k0 = step_index(d)
+            return k0 is not None and int(d["index"][-1]) >= k0 + n_hold - 1
+        data = _step_wait(con, collect, done, hold_s + 3.0, f"recording the step to {to_rpm:g} rpm")
+    finally:
+        with con._sinks_lock:
+            con._collect = None
+        con._stop_pump()
+        if was[0]:
+            con.tele_signals, con.tele_rate_hz = was[1], was[2]
+            try:
+                _telemetry_on(con, quiet=True)
+            except PicdriveError as e:
+                con.say(f"telemetry not restored: {e}")
+        elif con.link is not None:
+            con.link.stop_telemetry()
+    k0 = step_index(data)
+    idx = data["index"]
+    sel = (idx >= k0 - n_pre) & (idx < k0 + n_hold)
+    d = data[sel]
+    t = (d["index"] - k0) / float(hz)
+    rec = StepRecord(from_rpm, to_rpm, hold_s, t, d["speed"].astype(float), 1.0 / hz, source="telemetry",
+                     signals={n: d[n].astype(float) for n in sigs if n != "speed"},
+                     units={n: link.param(n).unit for n in sigs},
+                     firmware=f"build 0x{link.info.build_id:08x}",
+                     profile=(con.profile.name if con.profile is not None
+                              else bundled_profile_by_hash(link.info.profile_hash) or ""),
+                     controller=_fmt_value(link.param("controller"), link.get("controller")),
+                     dropped=int(np.sum(np.diff(d["index"]) - 1)))
+    pre = d["speed"][t < 0]
+    analyse_step(rec, pre_speed_rpm=pre if len(pre) else None)
+    return rec
+
+
+@command("step", "step <from> <to> [--hold <s>] [--png FILE]",
+         "step test: settle at <from> rpm, step to <to>, record <hold> s at the full sample rate, "
+         "print rise/settling/overshoot/steady-state error, save the plot (PNG) and the data (CSV)",
+         complete=lambda con, args, text: ["--hold", "--png"] if len(args) >= 2 else [])
+def _step(con, args):
+    from .console_record import Recorder
+    from .console_step import parse_step_args, save_step_plot
+    f, t, hold, png = parse_step_args(args)
+    if con.recorder is not None:
+        raise ConsoleError(f"step: a recording to {con.recorder.path} is running; 'record stop' first "
+                           "(the step saves its own CSV)")
+    con.say(f"step {f:g} -> {t:g} rpm, hold {hold:g} s ...")
+    rec = run_step(con, f, t, hold)
+    con.last_step = rec
+    if png is None:
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        png = con.out_dir / f"step_{f:g}_{t:g}_{stamp}.png"
+    png = save_step_plot(rec, png)
+    csv = png.with_suffix(".csv")
+    names = ["speed"] + list(rec.signals)
+    with Recorder(csv, [(n, rec.units.get(n, "")) for n in names], 1.0 / rec.sample_period_s,
+                  firmware=rec.firmware, profile=rec.profile,
+                  protocol="{}.{}".format(*con.link.info.proto_version), relative_time=False) as w:
+        cols = [rec.speed_rpm] + [rec.signals[n] for n in rec.signals]
+        for k in range(len(rec.t_s)):
+            w.write(float(rec.t_s[k]), [c[k] for c in cols])
+    con.say(rec.summary())
+    if rec.dropped:
+        con.say(f"warning: {rec.dropped} telemetry samples were dropped during the step")
+    con.say(f"plot {png}, data {csv}; motor left running at {t:g} rpm ('stop' stops it)")
+
+
+# ---------------------------------------------------------------------------
+# CLI
+# ---------------------------------------------------------------------------
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "console", help="the bench console: speeds, gains, live plots, step tests, recording",
+        description="Serial tuning console on any pyserial URL: /dev/ttyUSB0, COM5, or "
+                    "socket://127.0.0.1:PORT of a running 'picdrive twin'.")
+    p.add_argument("url", help="serial URL of the board or the twin")
+    p.add_argument("--profile", help="local drive profile (name or path) to compare with the board's")
+    p.add_argument("--run", metavar="SESSION.TXT",
+                   help="run the commands of a file, then exit (non-zero on the first error)")
+    p.add_argument("--out", default=".", help="folder for step plots and live PNGs (default: current folder)")
+    p.add_argument("--history", help="history file (default: $PICDRIVE_HISTORY or "
+                                     "$XDG_STATE_HOME/picdrive/console_history)")
+    p.set_defaults(func=main)
+
+
+def main(args) -> int:
+    from .link import LinkError
+    profile = None
+    if args.profile:
+        from .profile import load_profile
+        profile = load_profile(args.profile)
+    out = Path(args.out)
+    if not out.is_dir():
+        raise ConsoleError(f"--out {out}: no such folder; create it or choose another")
+    if args.run and not Path(args.run).is_file():
+        raise ConsoleError(f"--run {args.run}: no such file")
+    interactive = args.run is None
+    con = Console(args.url, profile=profile, out_dir=out, interactive=interactive)
+    try:
+        con.connect()
+    except LinkError as e:
+        raise ConsoleError(f"cannot connect to {args.url}: {e}") from None
+    try:
+        if args.run:
+            return con.run_script(args.run)
+        history = Path(args.history) if args.history else default_history_path()
+        return con.repl(history)
+    finally:
+        con.close()
