@@ -323,10 +323,11 @@ void pic_compute_legs(void)
     }
 }
 
-static void flt_update(void)
+static void flt_update(int64_t t_prev)
 {
-    /* the comparator drives FLTA low while the current is over the trip level */
-    int asserted = g.ps.i_peak_a > g.cfg.overcurrent_trip_a || g.now < g.oc_until;
+    /* the comparator drives FLTA low while the current is over the trip level
+       (or an injected overcurrent overlaps the step just taken) */
+    int asserted = g.ps.i_peak_a > g.cfg.overcurrent_trip_a || t_prev < g.oc_until;
     g.flta_asserted = asserted;
     if (g.cfg.flta_pin.port < 5) {
         uint8_t m = (uint8_t)(1u << g.cfg.flta_pin.bit);
@@ -681,7 +682,7 @@ static void set_enc_pins(int64_t n)
 
 void pic_after_plant_step(int64_t t_prev, double th_meas)
 {
-    flt_update();
+    flt_update(t_prev);
     pic_set_pins_from_plant();
     if (g.pp.encoder_lines > 0 && !g.enc_frozen) {
         double cpr = 4.0 * g.pp.encoder_lines;

@@ -1,0 +1,271 @@
+"""The twin's PIC18F4431 peripheral model and event loop, driven by the twin's
+own test firmware (hil/picdrive_hil/testfw/testfw.c, written against the
+register-shim contract): UART byte timing, timer interrupts and priorities,
+EEPROM unlock and write time, PCPWM override commutation against the plant
+alone, QEI counts, FLTA latching, hall faults, deliberate firmware bugs the
+twin must catch."""
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from picdrive.profile import ProfileWarning, load_profile
+from picdrive_hil import reference as ref
+from picdrive_hil.plant import CPlant, plant_from_profile
+from picdrive_hil.testfw import make_twin
+from picdrive_hil.twin import Twin, TwinError
+
+warnings.simplefilter("ignore", ProfileWarning)
+
+PDC_FULL = 4 * (499 + 1)          # the test firmware's PTPER = 499
+
+
+@pytest.fixture
+def tw():
+    t = make_twin("duy2008")
+    yield t
+    t.close()
+
+
+def host_frame_s(tw):
+    return 10.0 / tw.profile.uart.baud
+
+
+def board_frame_s(tw):
+    return 10.0 / tw.state()["board_baud"]
+
+
+def wait_reply(tw, n, limit_s=0.05, dt=5e-6):
+    """Run in small steps until n bytes came back; returns (bytes, time of the last byte)."""
+    out = b""
+    t_end = tw.t + limit_s
+    while len(out) < n and tw.t < t_end:
+        tw.run(dt)
+        out += tw.uart_read()
+    return out, tw.t
+
+
+def test_uart_reply_takes_the_wire_time_of_both_frames(tw):
+    tw.run(0.002)
+    t0 = tw.t
+    tw.uart_write(b"P")
+    out, t1 = wait_reply(tw, 1)
+    assert out == b"p"
+    lo = host_frame_s(tw) + board_frame_s(tw)
+    # + at most one event step of latency (PWM period) before the main loop sees the byte
+    assert lo - 1e-6 <= t1 - t0 <= lo + tw.state()["pwm_period_s"] + 2e-5
+
+
+def test_uart_burst_is_paced_by_the_baud_rate_without_loss(tw):
+    tw.run(0.002)
+    payload = bytes(range(33, 33 + 60))
+    msg = b"".join(b"E" + bytes([c]) for c in payload)       # 120 bytes in, 60 echoed
+    t0 = tw.t
+    tw.uart_write(msg)
+    assert tw.uart_pending() > 100                            # not delivered at once
+    out, t1 = wait_reply(tw, len(payload), limit_s=0.1, dt=50e-6)
+    assert out == payload
+    # the input alone takes 120 host frames
+    assert t1 - t0 >= len(msg) * host_frame_s(tw) - 1e-9
+    assert tw.state()["uart_rx_overruns"] == 0
+
+
+def test_timer2_interrupt_every_millisecond_at_low_priority(tw):
+    tw.run(0.1)
+    tw.uart_write(b"T")
+    out, _ = wait_reply(tw, 2)
+    ticks = int.from_bytes(out, "little")
+    assert ticks == 100                                      # Timer2 1:16, PR2 124, 1:5 = 1 ms exactly
+    s = tw.state()
+    assert s["isr_low_calls"] >= 100
+
+
+def test_eeprom_write_needs_the_unlock_and_takes_its_write_time(tw):
+    tw.run(0.002)
+    tw.uart_write(b"W\x05\x42")
+    out, _ = wait_reply(tw, 1)
+    assert out == b"w"
+    tw.uart_write(b"W\x06\x43")                              # within the 4 ms write time: busy
+    out, _ = wait_reply(tw, 1)
+    assert out == b"b"
+    assert tw.eeprom()[5] == 0xFF                            # not written yet
+    tw.run(0.005)
+    assert tw.eeprom()[5] == 0x42
+    tw.uart_write(b"R\x05")
+    out, _ = wait_reply(tw, 2)
+    assert out == b"r\x42"
+    # without the 0x55/0xAA sequence the chip does not start the write
+    tw.uart_write(b"U\x07\x99")
+    out, _ = wait_reply(tw, 1)
+    tw.run(0.01)
+    s = tw.state()
+    assert out == b"u" and tw.eeprom()[7] == 0xFF
+    assert s["eeprom_rejected"] == 1 and s["eeprom_writes"] == 1
+
+
+def test_eeprom_image_survives_into_a_new_twin(tw):
+    tw.run(0.002)
+    tw.uart_write(b"W\x10\x5A")
+    tw.run(0.01)
+    img = tw.eeprom()
+    t2 = make_twin("duy2008", eeprom=img)
+    t2.uart_write(b"R\x10")
+    out, _ = wait_reply(t2, 2)
+    assert out == b"r\x5a"
+    t2.close()
+
+
+def drive(tw, duty):
+    d = int(round(duty * PDC_FULL))
+    tw.uart_write(bytes([ord("D"), d >> 8, d & 0xFF, ord("S")]))
+
+
+def test_six_step_through_the_override_matches_the_plant_with_ideal_commutation(tw):
+    """The firmware commutates from hall interrupts through OVDCOND/OVDCONS;
+    the plant alone with the ideal table at the same duty must agree."""
+    duty = 0.8
+    tw.run(0.001)
+    drive(tw, duty)
+    while not tw.state()["outputs_active"]:                  # the 'S' byte has arrived
+        tw.run(1e-6)
+    t_start = tw.t
+    rec = tw.record(0.25, 1e-3)
+    m = plant_from_profile(tw.profile, load_mode="passive")
+    legs = ref.sixstep_legs(ref.ideal_commutation_table(m), round(duty * PDC_FULL) / PDC_FULL)
+    # plant alone, same start time, same inputs
+    from test_plant import run_cplant
+    te = rec["t_s"] - t_start
+    te = te[te >= 0]
+    c = run_cplant(m, legs, te, lambda t: 0.0)
+    w_twin = rec["w_rad_s"][-len(te):]
+    err = np.max(np.abs(w_twin - c[3])) / np.max(c[3])
+    assert np.max(c[3]) > 100.0
+    assert err < 0.01
+    assert tw.state()["shoot_through"] == 0
+
+
+def test_qei_position_counter_gives_the_speed(tw):
+    tw.run(0.001)
+    drive(tw, 0.7)
+    tw.run(0.3)
+    tw.uart_write(b"V")
+    out, _ = wait_reply(tw, 2)
+    counts_per_ms = int.from_bytes(out, "little", signed=True)
+    w = tw.state()["speed_rad_s"]
+    lines = tw.profile.sensors.encoder_lines
+    expect = w * 4 * lines / (2 * math.pi) * 1e-3
+    assert abs(counts_per_ms - expect) <= 1.5
+
+
+def test_overcurrent_latches_flta_and_switches_the_bridge_off(tw):
+    tw.run(0.001)
+    drive(tw, 0.7)
+    tw.run(0.05)
+    assert tw.state()["outputs_active"]
+    tw.inject("overcurrent", duration_s=20e-6)
+    tw.run(1e-4)
+    s = tw.state()
+    assert s["pwm_fault_latched"] and not s["outputs_active"]        # hardware, at once
+    tw.run(0.01)                                                     # comparator released, still latched
+    assert not tw.state()["outputs_active"]
+    tw.uart_write(b"F")
+    out, _ = wait_reply(tw, 2)
+    assert out == bytes([2, 1])                                      # firmware saw FLTAS
+    tw.uart_write(b"C")
+    tw.run(0.005)
+    assert not tw.state()["pwm_fault_latched"]
+    # clearing FLTAS while the comparator still asserts: the model sets it again
+    tw.inject("overcurrent", duration_s=0.05)
+    tw.run(1e-3)
+    tw.uart_write(b"C")
+    tw.run(0.005)
+    assert tw.state()["pwm_fault_latched"]
+
+
+def test_a_real_overcurrent_trips_the_comparator(tw):
+    tw.run(0.001)
+    tw.inject("lock_rotor", locked=True)
+    drive(tw, 0.92)                                      # locked rotor: I = V / R_line = 2.1 A < 3 A trip
+    tw.run(0.05)
+    assert not tw.state()["flta_asserted"]
+    tw.inject("bus_voltage", volts=96.0)                 # 4.5 A > 3 A
+    tw.run(0.05)
+    s = tw.state()
+    assert s["pwm_fault_latched"] and not s["outputs_active"]
+    assert max(abs(i) for i in s["i_abc_a"]) < tw.profile.inverter.overcurrent_trip_a * 1.2
+
+
+def test_invalid_hall_code_interrupts_and_stops_the_drive(tw):
+    tw.run(0.001)
+    drive(tw, 0.7)
+    tw.run(0.05)
+    tw.inject("hall", code=0)
+    tw.run(1e-3)
+    assert not tw.state()["outputs_active"]
+    tw.uart_write(b"F")
+    out, _ = wait_reply(tw, 2)
+    assert out[0] == 1
+    tw.inject("hall", code=None)
+    assert tw.state()["hall"] == tw.state()["hall_true"]
+
+
+def test_shoot_through_is_counted(tw):
+    tw.run(0.001)
+    tw.uart_write(b"Z")
+    tw.run(0.002)
+    assert tw.state()["shoot_through"] > 0
+
+
+def test_wrong_baud_rate_stops_the_twin_with_a_clear_error(tw):
+    tw.run(0.001)
+    tw.uart_write(b"B\x40")                     # SPBRG 64: 153.8 kbaud against the host's 115200
+    tw.uart_write(b"P")
+    with pytest.raises(TwinError, match="baud rate"):
+        tw.run(0.01)
+
+
+def test_passive_load_stops_the_rotor_at_zero(tw):
+    tw.run(0.001)
+    drive(tw, 0.7)
+    tw.run(0.1)
+    tw.set_load_torque(0.02)
+    tw.uart_write(b"X")
+    tw.run(0.2)
+    assert tw.state()["speed_rad_s"] == 0.0
+
+
+def test_record_is_sampled_exactly_and_load_profile_is_followed(tw):
+    tw.run(0.001)
+    drive(tw, 0.7)
+    t0 = tw.t
+    tw.set_load_profile([0.0, 0.05, 0.1], [0.0, 0.0, 0.01], relative=True)
+    rec = tw.record(0.2, 1e-3)
+    assert np.allclose(np.diff(rec["t_s"]), 1e-3, atol=1e-12)
+    assert rec["t_s"][0] == pytest.approx(t0)
+    tl = rec["torque_load_n_m"]
+    k = np.searchsorted(rec["t_s"], t0 + 0.075)
+    assert tl[k] == pytest.approx(0.005, rel=0.05)
+    assert tl[-1] == pytest.approx(0.01)
+
+
+def test_twins_in_one_process_are_independent():
+    a, b = make_twin("duy2008"), make_twin("duy2008", perturb={"resistance": 1.1})
+    drive(a, 0.8)
+    a.run(0.1)
+    b.run(0.1)
+    assert a.state()["speed_rad_s"] > 50.0 and b.state()["speed_rad_s"] == 0.0
+    assert b.model.r_phase_ohm == pytest.approx(1.1 * a.model.r_phase_ohm)
+    a.close(), b.close()
+
+
+def test_twin_refuses_firmware_of_another_profile(tmp_path):
+    from pathlib import Path
+    fw = Path(__file__).resolve().parents[1] / "firmware_build" / "duy2008"
+    if not (fw / "link_fw.h").exists():
+        pytest.skip("the committed duy2008 firmware is not in this checkout")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ProfileWarning)
+        other = load_profile("assawinchaichote2016")
+    with pytest.raises(TwinError, match="another profile"):
+        Twin(other, fw)
