@@ -478,13 +478,30 @@ def default_pole_disk(profile, ts) -> float:
     return max(math.pi / (2.0 * ts_s), 1.25 * plant)
 
 
-def integrator_headroom(profile, rules, b: float) -> tuple[float, str]:
-    """Smallest ``u_max - I*`` over the operating region, V, and where.
+def integrator_need_v(profile, rules, b: float) -> float:
+    """Largest ``|I*| = |u* + kp (1 - b) w* + kc i*|`` over the operating region, V: the
+    integrator range an equilibrium of the law needs (top speed and standstill, with and without load)."""
+    from .dqmodel import dq_params, equilibrium
+    from .tsfuzzy import operating_region
+    p = dq_params(profile)
+    reg = operating_region(profile)
+    need = 0.0
+    for w in (0.0, reg["omega_top_rad_s"]):
+        for load in (0.0, reg["load_n_m"]):
+            iq, id_, vq = equilibrium(p, w, load)
+            for g in rules:
+                need = max(need, abs(vq / p.kv_vq_per_u + g.kp * (1.0 - b) * w + g.kc * p.ki_ibus_per_iq * iq))
+    return need
+
+
+def integrator_headroom(profile, rules, b: float, i_lim_v: float | None = None) -> tuple[float, str]:
+    """Smallest ``I_lim - I*`` over the operating region, V, and where.
 
     At an equilibrium the law's integrator holds ``I* = u* + kp (1 - b) w* +
-    kc i*``; law_step clamps it to ``[u_min, u_max]``, so ``I* > u_max`` means
-    the drive never reaches the setpoint.  Checked at the top speed and at
-    standstill, with and without the load, blended gains.
+    kc i*``; law_step clamps it to ``+-I_lim`` (``integrator_limit_v``,
+    default the output limit), so ``I* > I_lim`` means the drive never reaches
+    the setpoint.  Checked at the top speed and at standstill, with and
+    without the load, blended gains.
     """
     from .control_law import Rule, ScheduledLaw
     from .dqmodel import dq_params, equilibrium
@@ -501,7 +518,7 @@ def integrator_headroom(profile, rules, b: float) -> tuple[float, str]:
             u = vq / p.kv_vq_per_u
             for g in rules:
                 I = u + g.kp * (1.0 - b) * w + g.kc * p.ki_ibus_per_iq * iq
-                room = reg["u_max_v"] - I
+                room = (reg["u_max_v"] if i_lim_v is None else i_lim_v) - abs(I)
                 if room < worst:
                     worst, where = room, f"{w * 60 / (2 * math.pi):.0f} rpm, load {load:g} N m"
     return worst, where
@@ -525,17 +542,14 @@ def _law_from_gains(profile, ts, K, setpoint_weight: float | None = None) -> "Sc
             raise FuzzyHinfError(f"six-step gain has a nonzero i_d weight {k[2]:g}: the structure constraint failed")
         rules.append(Rule(kp=float(-k[0]), ki=float(k[3]), kd=0.0, kc=float(-k[1] / p.ki_ibus_per_iq)))
     u_max = profile.inverter.bus_voltage_v * profile.max_duty()
-    if setpoint_weight is None:
-        # b = 0 is the designed state feedback u = -kp w - kc i + int ki e; b only moves the zero of
-        # the reference response (the certified loop w -> z is the same).  law_step clamps the
-        # integrator to the output limits, so b = 0 needs u* + kp w* + kc i* <= u_max; use b = 1
-        # (the P term then carries kp (r - w), zero at equilibrium) when b = 0 does not fit.
-        room0, _ = integrator_headroom(profile, rules, 0.0)
-        setpoint_weight = 0.0 if room0 >= 0 else 1.0
-    b = float(setpoint_weight)
+    # b = 0 is the designed state feedback u = -kp w - kc i + int ki e (b only moves the zero of the
+    # reference response; the certified loop w -> z is the same).  At equilibrium the integrator
+    # holds u* + kp w* + kc i*: its range integrator_limit_v is set to cover that with 25 % margin.
+    b = 0.0 if setpoint_weight is None else float(setpoint_weight)
+    i_lim = 1.25 * max(u_max, integrator_need_v(profile, rules, b))
     return ScheduledLaw(rules=tuple(rules), premise_rad_s=tuple(ts.premise_rad_s),
                         sample_time_s=1.0 / profile.control.speed_loop_hz, u_min_v=-u_max, u_max_v=u_max,
-                        setpoint_weight=b, derivative_filter_hz=None,
+                        setpoint_weight=b, derivative_filter_hz=None, integrator_limit_v=i_lim,
                         notes=f"fuzzy-hinf six-step: u = kp ({b:g} r - w) - kc i_bus + int ki (r - w) per rule")
 
 
@@ -584,15 +598,14 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
                              pole_disk_rad_s=disk, solver=solver)
     gamma_search = []
     if variant == "six-step" and gamma is None and sol.feasible:
-        # The minimal-gamma point has large kp, kc; law_step clamps the integrator to the output
-        # limits, so with b = 0 the law needs u* + kp w* + kc i* <= u_max.  Relax gamma on a x2 grid
-        # (the solver's point at a larger gamma has smaller gains) until the law fits.
+        # The law's integrator range is sized from the gains (integrator_limit_v), so this search
+        # normally stops at once; it relaxes gamma on a x2 grid if a user-given range does not fit.
         sw = options.get("setpoint_weight")
         b = 0.0 if sw is None else float(sw)
         g = sol.gamma
         for _ in range(16):
-            rules = _law_from_gains(profile, ts, sol.K, b).rules
-            room, _w = integrator_headroom(profile, rules, b)
+            law_ = _law_from_gains(profile, ts, sol.K, b)
+            room, _w = integrator_headroom(profile, law_.rules, b, law_.i_lim_v)
             gamma_search.append({"gamma": sol.gamma, "integrator_headroom_v": room})
             if room >= 0:
                 break
@@ -627,15 +640,15 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
     if variant == "six-step":
         sw = options.get("setpoint_weight")
         res.law = _law_from_gains(profile, ts, sol.K, None if sw is None else float(sw))
-        room, where = integrator_headroom(profile, res.law.rules, res.law.setpoint_weight)
+        room, where = integrator_headroom(profile, res.law.rules, res.law.setpoint_weight, res.law.i_lim_v)
         res.certificate["integrator_headroom_v"] = room
         res.verification["integrator_headroom_v"] = {
             "value": room, "limit": 0.0, "ok": bool(room >= 0.0), "unit": "V",
-            "note": f"u_max - (u* + kp (1-b) w* + kc i*) at the worst equilibrium ({where}); b = "
+            "note": f"I_lim - |u* + kp (1-b) w* + kc i*| at the worst equilibrium ({where}); b = "
                     f"{res.law.setpoint_weight:g}"}
         if room < 0:
             res.fail(f"verification 'integrator_headroom_v' failed: the law's integrator would need {-room:.3g} V "
-                     f"more than u_max at {where} (law_step clamps it to the output limits)")
+                     f"more than its range at {where}")
     elif variant == "tracking":
         res.certificate["why_no_law"] = ("two inputs (v_q, v_d) and full dq state feedback: needs a field-oriented "
                                          "drive; the six-step firmware commands one voltage and measures speed and "
@@ -646,5 +659,36 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
                                          "six-step drive (use --variant six-step)")
     t2 = _t.perf_counter()
     verify_design(profile, res, simulate=simulate)
+    # Six-step with gamma minimised: the minimal-gamma gains may still fail the large-signal checks
+    # (current limit, saturation) that the LMIs do not model; relax gamma (x2, at most 4 times) and
+    # keep the first design that passes.  The tried gammas are recorded.
+    tries = [{"gamma": sol.gamma, "status": res.status, "reasons": list(res.reasons)}]
+    g = sol.gamma
+    while variant == "six-step" and gamma is None and not res.ok and len(tries) <= 4 and sol.feasible:
+        g *= 2.0
+        s2 = solve_theorem1(ts, g, delta=None, alpha=alpha, rho=rho, zero_gain_states=zero,
+                            pole_disk_rad_s=disk, solver=solver)
+        if not s2.feasible:
+            break
+        r2 = DesignResult(method="fuzzy-hinf", variant=variant, status="verified", profile_name=profile.name,
+                          profile_sha256=profile.sha256, law=_law_from_gains(profile, ts, s2.K, res.law.setpoint_weight),
+                          profile_path=res.profile_path, options=res.options, timings_s=res.timings_s)
+        c2 = s2.certificate()
+        c2.update({k: cert[k] for k in ("model", "model_options", "pole_disk_rad_s", "premise_rad_s",
+                                          "state_names", "input_names")},
+                  certified_gain=certified_gain(ts, s2.gamma, alpha))
+        c2.pop("ellipsoid_P", None)
+        r2.certificate = c2
+        room, where = integrator_headroom(profile, r2.law.rules, r2.law.setpoint_weight, r2.law.i_lim_v)
+        r2.verification["integrator_headroom_v"] = {"value": room, "limit": 0.0, "ok": bool(room >= 0.0), "unit": "V",
+                                                   "note": f"I_lim - |I*| at the worst equilibrium ({where})"}
+        if room < 0:
+            r2.fail(f"verification 'integrator_headroom_v' failed at {where}")
+        verify_design(profile, r2, simulate=simulate)
+        tries.append({"gamma": s2.gamma, "status": r2.status, "reasons": list(r2.reasons)})
+        res = r2
+    res.certificate["gamma_tries"] = tries
+    if len(tries) > 1:
+        res.certificate["gamma_min"] = tries[0]["gamma"]
     res.timings_s["verify"] = _t.perf_counter() - t2
     return res
