@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from picdrive import codec, protocol as P
+from picdrive import protocol as P
 from picdrive.link import HandshakeMismatch, Link, LinkError, LinkTimeout, NackError, ParamError
 from picdrive.protocol import Nack
 

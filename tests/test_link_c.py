@@ -5,7 +5,6 @@ image round trip and corrupt-image rejection, the watchdog (only while running),
 telemetry and capture.
 """
 import random
-import struct
 
 import numpy as np
 import pytest

@@ -31,10 +31,11 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import os
 import select
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
@@ -218,10 +219,8 @@ class Link:
             raise
         return link
 
-    HOST_GAP_S = 0.1
-    """Idle time after which the host abandons a partial frame.  Longer than the board's
-    FRAME_GAP_MS: USB-serial adapters and the OS deliver bytes in bursts (an FTDI chip holds
-    them up to its 16 ms latency timer), so a pause inside a frame is normal on the host."""
+    HOST_GAP_S = P.HOST_GAP_MS / 1000.0
+    """Idle time after which the host abandons a partial frame (see protocol.HOST_GAP_MS)."""
 
     def __init__(self, port, *, url: str = "", timeout: float = 0.25, retries: int = 3,
                  telemetry_buffer: int = 1_000_000):
@@ -235,7 +234,7 @@ class Link:
         self._dec = codec.StreamDecoder()
         self._req_lock = threading.RLock()
         self._cv = threading.Condition()
-        self._seq = int.from_bytes(np.random.default_rng().bytes(1), "little")
+        self._seq = os.urandom(1)[0]            # a new session does not reuse the last SEQ
         self._pending: tuple[int, int, Callable | None] | None = None
         self._reply: codec.Frame | None = None
         self._bad_crc = False
@@ -369,9 +368,10 @@ class Link:
         self._last_tx = time.monotonic()
 
     def request(self, cmd: str, args: dict | None = None, *, detail: str = "",
-                on_ack: Callable[[codec.Frame], None] | None = None) -> dict:
+                on_ack: Callable[[codec.Frame], None] | None = None, timeout: float | None = None) -> dict:
         """Send a command and return its decoded ACK fields.  NACK -> NackError; no reply after
-        ``1 + retries`` tries of ``timeout`` s -> LinkTimeout.  Thread-safe."""
+        ``1 + retries`` tries of ``timeout`` s (default: the link's) -> LinkTimeout.  Thread-safe."""
+        try_s = self.timeout if timeout is None else float(timeout)
         c = P.COMMAND_BY_NAME[cmd]
         payload = codec.command_payload(c, args)
         with self._req_lock:
@@ -390,7 +390,7 @@ class Link:
                     self._bad_crc = False
                 self._write(frame)
                 tries += 1
-                deadline = time.monotonic() + self.timeout
+                deadline = time.monotonic() + try_s
                 with self._cv:
                     while self._reply is None and not self._bad_crc and self._dead is None and not self._closing:
                         left = deadline - time.monotonic()
@@ -408,7 +408,7 @@ class Link:
                 if tries > self.retries:
                     raise LinkTimeout(
                         f"no reply to {cmd}{'(' + detail + ')' if detail else ''} from {self.url or 'the board'} "
-                        f"after {tries} tries of {self.timeout:g} s: check the cable or URL, the baud rate, and "
+                        f"after {tries} tries of {try_s:g} s: check the cable or URL, the baud rate, and "
                         "that the board (or twin) is running")
                 self.stats["retries"] += 1
         if reply.is_nack:
@@ -610,13 +610,15 @@ class Link:
     def save_eeprom(self) -> None:
         """Save the persisted parameters to the board's EEPROM (motor stopped)."""
         self._check_table()
-        self.request("eeprom_save")
+        # a PIC18 writes an EEPROM byte in about 4 ms: ~0.2 s for the image, so wait longer; a retry
+        # is answered from the reply store, never written twice
+        self.request("eeprom_save", timeout=max(self.timeout, 1.0))
 
     def load_eeprom(self) -> None:
         """Reload the persisted parameters from EEPROM (motor stopped); a bad image is refused
         (NackError EEPROM_ERROR) and changes nothing."""
         self._check_table()
-        self.request("eeprom_load")
+        self.request("eeprom_load", timeout=max(self.timeout, 1.0))
 
     def events(self) -> list[tuple[float, P.Event | int, int]]:
         """Events received since the last call: (host time, event, code)."""

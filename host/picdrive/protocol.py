@@ -33,7 +33,7 @@ import enum
 import math
 import struct
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from typing import Any, Iterable, Mapping
 
@@ -41,7 +41,7 @@ from .errors import PicdriveError
 
 __all__ = [
     "ProtocolError", "PROTOCOL_VERSION", "SOF", "MAX_PAYLOAD", "MAX_FRAME", "FRAME_OVERHEAD",
-    "FRAME_GAP_MS", "RX_RING_BYTES", "REPLAY_BYTES", "CAPTURE_BYTES_DEFAULT", "PARAM_GET_MAX",
+    "FRAME_GAP_MS", "HOST_GAP_MS", "RX_RING_BYTES", "REPLAY_BYTES", "CAPTURE_BYTES_DEFAULT", "PARAM_GET_MAX",
     "NAME_MAX", "EEPROM_BYTES", "EEPROM_LAYOUT_VERSION", "EEPROM_MAGIC", "EEPROM_HEADER_BYTES",
     "CTYPES", "CType", "UNITS", "FLAG_WRITABLE", "FLAG_PERSISTED", "FLAG_SIGNAL",
     "Nack", "Fault", "State", "Event", "Trigger", "CaptureState", "Controller", "EepromResult",
@@ -84,6 +84,10 @@ MAX_FRAME = MAX_PAYLOAD + FRAME_OVERHEAD
 FRAME_GAP_MS = 20
 """An inter-byte gap longer than this abandons a partly received frame
 (valid down to 1200 baud, where one byte takes 8.3 ms)."""
+
+HOST_GAP_MS = 100
+"""The host's gap rule: longer than the board's, because USB-serial adapters and the OS deliver
+bytes in bursts (an FTDI chip holds them up to its 16 ms latency timer)."""
 
 RX_RING_BYTES = 64
 """Receive ring of the C module (power of two, >= MAX_FRAME + slack)."""
@@ -1028,6 +1032,54 @@ def render_markdown(table: Table | None = None) -> str:
       "the main loop.  They share only single-byte flags and ring indices.  `app_link_lost` is called from "
       "`link_tick_ms`; `app_signal` from `link_sample` and `link_poll`.  Parameter-store writes happen in "
       "`link_poll` inside `LINK_CRITICAL_BEGIN()`/`LINK_CRITICAL_END()`.")
+    a("")
+    a("## Decisions (where the architecture leaves the choice open)")
+    a("")
+    for item in (
+        "ACK TYPE = command | 0x80, so a reply names the command it answers; the host matches TYPE and SEQ.",
+        "Duplicate detection compares TYPE, SEQ and the frame CRC of the previous command (an identical frame is "
+        "a retry).  The host starts each session at a random SEQ, so a new session does not collide with the "
+        "last command of an old one.",
+        "BAD_CRC: the board answers the first CRC failure after a valid frame with one NACK, so a host whose "
+        "command was corrupted resends at once instead of waiting for its timeout; garbage does not cause a "
+        "NACK storm.",
+        "Telemetry frames carry several samples (`samples_per_frame`, default 4 for the four default signals): "
+        "34 B of payload in a 40 B frame, 85 % payload efficiency, so 1 kHz of four signals fits 115200 baud.  "
+        "The frame's SEQ is the telemetry generation (incremented by each telem_config) so a host never decodes "
+        "a frame with the wrong signal layout; the u16 counter of the first sample lets it count drops.",
+        "The board double-buffers telemetry (one frame filling, one in the TX frame buffer) and streams a frame "
+        "into the UART queue byte by byte as `app_tx_free()` allows, so a small firmware TX queue (16 B) is "
+        "enough; a sample that finds both buffers full is dropped and counted (status telem_dropped).",
+        "Replies go out before events, events before telemetry; a command waits at most one telemetry frame "
+        "(3.5 ms at 115200 baud).",
+        "Direction is the sign of the speed setpoint; there is no reverse command.",
+        "The watchdog is armed while app_signal(LINK_SIG_STATE) is RUN (not in BRAKE, IDLE or FAULT): it fires "
+        "once more than link_timeout ms have passed since the last valid frame (any frame that passes its CRC, "
+        "NACKed or not).  link_timeout has a floor of 20 ms, so it cannot be switched off.",
+        "Capture triggers: immediate (pre_trigger must be 0), setpoint change (speed_setpoint written through "
+        "the link or link_param_set), speed crossing a threshold upwards or downwards.  A record holds up to "
+        "pre_trigger samples before the trigger (fewer if the trigger came before the history filled) and "
+        "n_samples - pre_trigger from the trigger on.",
+        "EEPROM: saving and loading are refused while the motor runs or brakes (a PIC18 EEPROM write takes "
+        "about 4 ms per byte).  The image carries the table hash, so a board reflashed with another design "
+        "ignores the old image (OTHER_BUILD) instead of loading numbers of other scales.",
+        "Signals are 16-bit on the wire (int16 or uint16); position wraps at 16 bits.",
+        f"The host abandons a partial frame after {HOST_GAP_MS} ms without bytes (the board after {FRAME_GAP_MS} ms): "
+        "USB-serial adapters deliver bytes in bursts (an FTDI chip holds them up to its 16 ms latency timer).",
+    ):
+        a(f"* {item}")
+    a("")
+    a("## Host library")
+    a("")
+    a("`picdrive.link.Link.open(url)` (any pyserial URL) handshakes and reads the table; then `get`/`set` in "
+      "engineering units (checked against the board's limits before sending; the board checks again), "
+      "`set_speed`, `start`, `stop`, `brake`, `select_controller`, `fault_clear`, `status`, `save_eeprom`, "
+      "`load_eeprom`, `configure_telemetry` + `read_samples(n | seconds=)` (numpy structured array: index, t, "
+      "signals) or `samples()`, `capture_arm` + `capture_read`, `events()`.  Errors: `LinkError`, `LinkTimeout`, "
+      "`NackError` (command, code, reason), `HandshakeMismatch` (differences), `ParamError` (refused on the "
+      "host).  Tests run it against the rendered C module with a fake application behind a local socket "
+      "(`tests/linksupport/`); `bench/link.py` measures the telemetry rate and RAM, `bench/fuzz_link.py` "
+      "fuzzes the receiver under ASan/UBSan.")
     a("")
     return "\n".join(L)
 

@@ -15,7 +15,6 @@ Two ways to drive it:
 from __future__ import annotations
 
 import ctypes as C
-import os
 import select
 import shutil
 import socket
