@@ -120,9 +120,9 @@ def evaluate(pb: Problem, gains, *, simulate_all: bool = False) -> dict[str, np.
 
     Keys: ``j3`` (the variant's cost, s per unit step squared), ``hinf`` (eq 6
     value), ``stable``, ``ms`` (sensitivity peak), ``feasible``.  Drive
-    variant: ``hinf`` is exact where ``hinf_exact`` is set and otherwise the
-    upper bound (1 + ||S||) ||xi||, used only where it is <= 1 (it then
-    certifies eq 6 without the root computation); ``step_peak_current_a`` and
+    variant: ``hinf`` is exact where ``hinf_exact`` is set; elsewhere (stable
+    rows whose bound (1 + ||S||) ||xi|| is <= 1, which certifies eq 6 without
+    the root computation) it holds that bound; ``step_peak_current_a`` and
     ``step_peak_speed_rad_s`` of the saturated step (simulated for the rows
     that meet every other constraint, or for every stable row with
     ``simulate_all``; nan elsewhere).
@@ -142,7 +142,7 @@ def evaluate(pb: Problem, gains, *, simulate_all: bool = False) -> dict[str, np.
         # eq 6: ||T xi|| <= ||T|| ||xi|| <= (1 + ||S||) ||xi||; where that bound is <= 1 the constraint
         # holds and the exact value is not needed for the search (it is computed for the result)
         bound = (1.0 + ms) * pb.xi_peak
-        need = stable & (bound > 1.0) & (ms <= pb.ms_max)
+        need = stable & (bound > 1.0)
         hinf = np.where(stable, bound, np.inf)
         hinf_exact = np.zeros(np.shape(stable), bool)
         if np.any(need):

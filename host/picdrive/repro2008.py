@@ -60,7 +60,7 @@ def _step(tf: TF, t: np.ndarray, amp: float = 1.0) -> np.ndarray:
 
 
 def _metrics(t, y, target) -> dict[str, float]:
-    m = step_metrics(t, y, target)
+    m = step_metrics(t, y, target, y0=0.0)            # every response starts from rest
     return {"rise_ms": m.rise_time_s * 1e3, "settling_ms": m.settling_time_s * 1e3, "overshoot_pct": m.overshoot_pct}
 
 
