@@ -51,7 +51,7 @@ def test_cli_writes_the_folder_and_prints_what_it_chose(tmp_path, monkeypatch, c
     assert run_cli(monkeypatch, "--profile", "duy2008", "--design", design, "-o", out) == 0
     text = capsys.readouterr().out
     for what in ("PTPER = 499", "20000.0 Hz", "DTCON = 0x14", "1000 ns", "max duty", "0.9200", "pin map",
-                 "RC3", "Q formats", "error", "build id", "QEI velocity mode"):
+                 "RC3", "Q formats", "error", "build id", "encoder M/T"):
         assert what in text, what
     for f in ("drive.c", "drive_core.c", "drive_params.h", "link_fw.c", "link_fw.h", "main_xc8.c",
               "config_xc8.c", "Makefile", "host/xc.h", "board.json", "README.md"):
@@ -203,3 +203,38 @@ def test_uart_and_bus_sense_plans():
         codegen.uart_brg(700_000)
     b = codegen.bus_sense(load_profile("duy2008"))
     assert b["uv"] < 512 < b["ov"] <= 1023
+
+
+@pytest.mark.parametrize("variant", ["ic-halls-no-encoder", "sixty-degree-halls-rd4", "loop-100hz", "loop-20khz"])
+def test_variants_generate_and_compile(tmp_path, variant):
+    changes, opts = {}, {}
+    if variant == "ic-halls-no-encoder":
+        changes = {"encoder_lines": "0", "speed_source": '"hall"'}
+        opts = {"hall_input": "ic"}
+    elif variant == "sixty-degree-halls-rd4":
+        changes = {"hall_spacing_deg": "60", "hall_offset_deg": "30.0"}
+        opts = {"fault_pin": "RD4"}
+    elif variant == "loop-100hz":
+        changes = {"speed_loop_hz": "100.0"}
+    else:
+        changes = {"speed_loop_hz": "20000.0"}
+    prof = load_profile(profile_file(tmp_path, variant, **changes))
+    ts = 1.0 / prof.control.speed_loop_hz
+    law = ScheduledLaw(rules=(Rule(0.2, 5.0, 0.0, 10.0), Rule(0.15, 4.0, 0.0, 8.0)),
+                       premise_rad_s=(0.0, 2600 * RPM), sample_time_s=ts, u_min_v=-44.16, u_max_v=44.16)
+    d = fixture_design(tmp_path, prof, law=law)
+    fw = codegen.generate(prof, d, **opts)
+    out = codegen.write_firmware(fw, tmp_path / "out")        # includes the gcc / avr-gcc build check
+    params = (out / "drive_params.h").read_text()
+    if variant == "ic-halls-no-encoder":
+        assert "#define FW_HALL_IC 1" in params and "#define FW_SPEED_ENCODER 0" in params
+        assert "#define FW_HALL_PORT PORTA" in params
+    elif variant == "sixty-degree-halls-rd4":
+        assert "#pragma config FLTAMX = RD4" in (out / "config_xc8.c").read_text()
+        assert "#define FW_HALL_VALID_MASK 0xDBu" in params      # 010 and 101 invalid
+    elif variant == "loop-100hz":
+        assert fw.plan.loop_hz == 100.0 and fw.plan.loop_div * fw.plan.tcy_per_tick == 100000
+    else:
+        assert fw.plan.loop_hz == 20000.0 and fw.plan.tcy_per_tick == 500
+    sfrs, bit_uses, unknown = p18f4431.names_used([p.read_text() for p in out.glob("*.[ch]")])
+    assert unknown == set() and sfrs <= set(p18f4431.registers())

@@ -209,14 +209,21 @@ def test_run_commutates_and_drives_duty(fw):
 
 def test_reversal_passes_through_an_all_off_sample(fw):
     fw.reset()
+    fw.param("stall_timeout", 60000)
+    fw.param("link_timeout", 60000)
     t = fw.fw.pwm.table
     fw.cmd("start")
     fw.param("speed_setpoint", fw.table["speed_setpoint"].to_raw(500.0))
     fw.tick(2)
+    assert fw.sig("voltage") > 0
     assert fw.outputs() == (t.ovdcond[0][0b101], t.ovdcons[0][0b101])
     fw.param("speed_setpoint", fw.table["speed_setpoint"].to_raw(-500.0))
-    fw.tick()
-    assert fw.sig("voltage") < 0 and fw.outputs() == (0, 0)        # dead time: everything off
+    for _ in range(20000):                  # the law's own pace (a b = 0 law unwinds its integrator)
+        fw.tick()
+        if fw.sig("voltage") < 0:
+            break
+    assert fw.sig("voltage") < 0 and fw.sig("state") == protocol.State.RUN
+    assert fw.outputs() == (0, 0)                                  # dead time: everything off
     fw.set_hall(0b101)
     assert fw.outputs() == (0, 0)                                  # the hall ISR honours the hold too
     fw.tick()

@@ -223,8 +223,8 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
     S.append({"title": "speed measurement (fixedpoint.plan_fixed_point)", "defines": [
         _d("FW_SPEED_ENCODER", "1" if enc else "0", "sensors.speed_source = " + plan.speed_source),
         _d("FW_QEICON", _hex8(0x18 | pdec_code), f"VELM = 0 (velocity mode), QEIM = 110 (x4, MAXCNT reset), "
-           f"PDEC 1:{plan.pdec}"),
-        _d("FW_CAP1CON", "0x40u", "CAP1REN: Timer5 reset on each velocity capture"),
+           f"PDEC 1:{plan.pdec}: a velocity event at every count"),
+        _d("FW_CAP1CON", "0x40u", "CAP1REN: Timer5 restarts at each velocity event (every count)"),
         _d("FW_T5CON", _hex8(0x40 | ps5_code << 3 | 0x01), f"TMR5ON, Tcy, prescaler 1:{plan.ps5}, continuous, "
            "special-event reset off"),
         _d("FW_HALL_AGE_MAX", f"{max(2, min(255, math.floor(65536 * plan.ps5 / 1e7 * plan.loop_hz) - 1))}u",
@@ -290,9 +290,11 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
         _d("CORE_DFILT_A", f"{plan.dfilt_a}u", "derivative filter Ts/(Ts + 1/(2 pi f)), Q15; 0 = none"
            + (f" (design derivative_filter_hz = {design.law.derivative_filter_hz:g})"
               if design.law.derivative_filter_hz else " (design derivative_filter_hz = null)")),
-        _d("CORE_K_SPEED", f"UINT32_C({plan.k_speed})", "speed = K / period: "
-           + (f"2 pi Fcy PDEC / (T5 prescale x {plan.counts_per_rev} counts/rev) x 2^QS"
-              if enc else f"2 pi / ({plan.counts_per_rev} hall edges/rev) x Fcy / T5 prescale x 2^QS")),
+        _d("CORE_K_SPEED", f"UINT32_C({plan.k_speed})", (
+            f"speed = K x counts / ticks: 2 pi Fcy / (T5 prescale {plan.ps5} x {plan.counts_per_rev} counts/rev) x 2^QS"
+            if enc else f"speed = K / period: 2 pi / ({plan.counts_per_rev} hall edges/rev) x Fcy / T5 prescale x 2^QS")),
+        _d("CORE_TS_TICKS", f"{plan.ts_ticks}", "speed-loop period in Timer5 ticks"),
+        _d("CORE_MT_DMAX", f"UINT32_C({0xFFFFFFFF // plan.k_speed})", "largest count step whose product with K fits 32 bits"),
         _d("CORE_KDUTY", f"UINT32_C({plan.kduty})", f"PDC counts per u LSB x 2^DUTY_SH: {plan.duty_full} / "
            f"bus_voltage_v {plan.bus_voltage_v:g} V x 2^-QU"),
         _d("CORE_DUTY_SH", f"{plan.duty_sh}u", ""),

@@ -155,9 +155,10 @@ class FixedPointPlan:
     i_lim: int                   # integrator range +-I_lim, Q qi
     # speed measurement
     speed_source: str            # "encoder" | "hall"
-    pdec: int
+    pdec: int                    # QEI velocity postscaler (1: Timer5 restarts at every count)
     ps5: int
     k_speed: int
+    ts_ticks: int                # speed-loop period in Timer5 ticks (encoder M/T method)
     counts_per_rev: int
     speed_res_at_max: float      # relative resolution at the top speed
     speed_min_rpm: float         # lowest measurable speed
@@ -203,8 +204,9 @@ class FixedPointPlan:
             out.append(f"  {c.name:<18} {c.value:>13.6g} {c.unit:<10} -> {c.raw:>6} x 2^-{c.q:<3} = "
                        f"{c.quantised:.6g} (error {100 * c.rel_error:.4f} %)  [{c.source}]")
         if self.speed_source == "encoder":
-            out.append(f"speed       QEI velocity mode, x4 ({self.counts_per_rev} counts/rev), PDEC 1:{self.pdec}, "
-                       f"Timer5 1:{self.ps5}: resolution {100 * self.speed_res_at_max:.3f} % at the top speed, "
+            out.append(f"speed       encoder M/T: counts per sample over the edge-to-edge time (QEI x4, "
+                       f"{self.counts_per_rev} counts/rev; Timer5 1:{self.ps5} restarted at every count), "
+                       f"extrapolated half a sample: time resolution {100 * self.speed_res_at_max:.3f} % of a sample, "
                        f"lowest measurable {self.speed_min_rpm:.1f} rpm")
         else:
             out.append(f"speed       hall-edge period, Timer5 1:{self.ps5}: resolution {100 * self.speed_res_at_max:.3f} % "
@@ -243,9 +245,15 @@ def _quantise_group(name: str, values: list[float], ref: float, unit: str, sourc
 
 
 def _timer2(loop_hz: float) -> tuple[int, int, int, int, int, float]:
+    """Timer2 prescale, postscale, PR2 and interrupts per speed-loop sample.
+
+    The fewest interrupts per sample whose period is within 1e-4 of
+    Fcy / loop_hz (exact for rates that divide 10 MHz), else the closest.
+    """
     target = FCY_HZ / loop_hz
-    best = None
+    overall = None
     for div in range(1, 257):
+        best = None
         for pre in (1, 4, 16):
             for post in range(1, 17):
                 pr = round(target / (div * pre * post)) - 1
@@ -253,14 +261,19 @@ def _timer2(loop_hz: float) -> tuple[int, int, int, int, int, float]:
                     continue
                 ticks = pre * post * (pr + 1)
                 err = abs(ticks * div - target) / target
-                key = (round(err, 7), div, -(pr + 1), pre)
+                key = (round(err, 9), -(pr + 1), pre)
                 if best is None or key < best[0]:
                     best = (key, pre, post, pr, div, ticks)
-        if best is not None and best[0][0] < 1e-6:
+        if best is None:
+            continue
+        if best[0][0] <= 1e-4:
+            overall = best
             break
-    if best is None:
+        if overall is None or best[0][0] < overall[0][0]:
+            overall = best
+    if overall is None:
         raise FixedPointError(f"control.speed_loop_hz = {loop_hz:g} Hz cannot be paced by Timer2")
-    _, pre, post, pr, div, ticks = best
+    _, pre, post, pr, div, ticks = overall
     achieved = FCY_HZ / (ticks * div)
     if abs(achieved - loop_hz) / loop_hz > 0.005:
         raise FixedPointError(f"control.speed_loop_hz = {loop_hz:g} Hz: Timer2 reaches {achieved:.3f} Hz at best "
@@ -373,25 +386,21 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
 
     # ---- speed measurement ----
     if se.speed_source == "encoder":
+        # M/T method: speed = counts in the sample / time between the last count edges of this
+        # sample and of the previous one (the average over about one sample), extrapolated half a
+        # sample with the previous average (the speed at the sample instant, which the design's
+        # law assumes).  The QEI in velocity mode with PDEC 1:1 and CAP1REN restarts Timer5 at
+        # every count, so TMR5 read at a sample is the time since the last edge.
         cpr = 4 * se.encoder_lines
-        cps_max = co.speed_max_rpm / 60 * cpr
         pdec = 1
-        for cand in (64, 16, 4, 1):
-            if cps_max * ts / cand >= 2 or cand == 1:
-                pdec = cand
-                break
-        ps5 = 8
-        for cand in (1, 2, 4, 8):
-            min_cps = FCY_HZ * pdec / (cand * 65536)
-            if min_cps * 60 / cpr <= 0.02 * co.speed_max_rpm and 65536 * cand / FCY_HZ >= 2 * ts:
-                ps5 = cand
-                break
-        if 65536 * ps5 / FCY_HZ < 2 * ts:
-            raise FixedPointError(f"speed loop period {ts * 1e3:g} ms is longer than half a Timer5 overflow at 1:8; "
-                                  "raise control.speed_loop_hz")
-        k_speed = round(2 * math.pi * FCY_HZ * pdec / (ps5 * cpr) * 2 ** qs)
-        period_max = FCY_HZ * pdec / (ps5 * cps_max)
-        speed_min_rpm = FCY_HZ * pdec / (ps5 * 65536) * 60 / cpr
+        ps5 = next((c for c in (1, 2, 4, 8) if 65536 * c >= 2 * ts * FCY_HZ), 0)
+        if not ps5:
+            raise FixedPointError(f"speed loop period {ts * 1e3:g} ms is longer than half a Timer5 overflow at 1:8 "
+                                  f"({65536 * 8 / FCY_HZ * 1e3 / 2:.1f} ms); raise control.speed_loop_hz")
+        k_speed = round(2 * math.pi * FCY_HZ / (ps5 * cpr) * 2 ** qs)
+        ts_ticks = round(ts * FCY_HZ / ps5)
+        period_max = ts_ticks
+        speed_min_rpm = FCY_HZ / (ps5 * 65536) * 60 / cpr
         counts = cpr
     else:
         edges = 6 * mo.pole_pairs
@@ -403,6 +412,7 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
                 ps5 = cand
                 break
         k_speed = round(2 * math.pi / edges * FCY_HZ / ps5 * 2 ** qs)
+        ts_ticks = round(ts * FCY_HZ / ps5)
         period_max = FCY_HZ / (ps5 * eps_max)
         speed_min_rpm = FCY_HZ / (ps5 * 65536) * 60 / edges
         counts = edges
@@ -438,7 +448,7 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
         kp=tuple(c.raw for c in c_kp), kits=tuple(c.raw for c in c_ki), kdts=tuple(c.raw for c in c_kd),
         kc=tuple(c.raw for c in c_kc), premise_lo=p_lo, premise_hi=p_hi, b_q14=b_q14, dfilt_a=dfilt_a,
         u_min=u_min, u_max=u_max, u_limit=u_limit, i_lim=i_lim,
-        speed_source=se.speed_source, pdec=pdec, ps5=ps5, k_speed=k_speed, counts_per_rev=counts,
+        speed_source=se.speed_source, pdec=pdec, ps5=ps5, k_speed=k_speed, ts_ticks=ts_ticks, counts_per_rev=counts,
         speed_res_at_max=res, speed_min_rpm=speed_min_rpm,
         kduty=kduty, duty_sh=duty_sh, pdc_max=pwm_plan.pdc_max, duty_full=full,
         counts_per_a=counts_per_a, ilim=ilim, itrip=itrip, cap_step=cap_step,
@@ -631,6 +641,9 @@ class CoreState:
 
     law: LawState = field(default_factory=LawState)
     speed_valid: int = 0
+    pos_prev: int = 0
+    t5_prev: int = 0
+    w_avg: int = 0
     r_applied: int = 0
     cap: int = 0
     speed: int = 0
@@ -651,23 +664,53 @@ def core_reset(plan: FixedPointPlan, st: CoreState) -> None:
     st.pdc = 0
 
 
-def speed_encoder(plan: FixedPointPlan, st: CoreState, velr: int, tmr5: int, cap: int, ovf: int,
-                  up: int) -> int:
-    """Speed (Q qs) from the QEI velocity capture (C: core_speed_encoder)."""
+def _s16(x: int) -> int:
+    """uint16 -> int16 (two's complement, as the C cast on gcc and XC8)."""
+    x &= 0xFFFF
+    return x - 0x10000 if x & 0x8000 else x
+
+
+def speed_encoder(plan: FixedPointPlan, st: CoreState, pos: int, t5: int, ovf: int) -> int:
+    """Speed (Q qs) from the QEI position and Timer5 (C: core_speed_encoder).
+
+    M/T average ``w_avg`` = counts since the last sample x K / ticks between
+    the last count edges; output ``w_avg + (w_avg - previous w_avg) / 2``
+    (half a sample of extrapolation).  ``pos``: POSCNT; ``t5``: Timer5 ticks
+    since the last count edge; ``ovf``: Timer5 overflowed (no edge for 65536
+    ticks).  Without a count in the sample the average may only fall, to one
+    count over the time since the last edge.
+    """
+    d = _s16(pos - st.pos_prev)
+    st.pos_prev = pos & 0xFFFF
+    prev = st.w_avg
     if ovf:
         st.speed_valid = 0
-    if cap:
-        st.speed_valid = 1
-    period = velr if velr > tmr5 else tmr5
-    w = 0
-    if st.speed_valid and period:
-        w = plan.k_speed // period
+    if d != 0:
+        dt = plan.ts_ticks - t5 + st.t5_prev if st.speed_valid else plan.ts_ticks
+        if dt < 1:
+            dt = 1
+        mag = -d if d < 0 else d
+        if mag > (0xFFFFFFFF // plan.k_speed):     # the 32-bit product would overflow: saturate
+            w = INT16_MAX
+        else:
+            w = (mag * plan.k_speed) // dt
         if w > INT16_MAX:
             w = INT16_MAX
-        if not up:
-            w = -w
-    st.speed = w
-    return w
+        st.w_avg = -w if d < 0 else w
+        if not st.speed_valid:
+            prev = st.w_avg                         # no history: no extrapolation
+        st.speed_valid = 1
+    elif st.speed_valid and t5 != 0:
+        bound = plan.k_speed // t5                  # at most one count in the time since the last edge
+        mag = -st.w_avg if st.w_avg < 0 else st.w_avg
+        if bound < mag:
+            st.w_avg = -bound if st.w_avg < 0 else bound
+    else:
+        st.w_avg = 0
+        prev = 0
+    st.t5_prev = t5
+    st.speed = sat16(st.w_avg + asr32(st.w_avg - prev, 1))
+    return st.speed
 
 
 def speed_hall(plan: FixedPointPlan, st: CoreState, period: int, elapsed: int, valid: int, forward: int) -> int:
@@ -743,7 +786,8 @@ def core_structs(n_rules: int):
                     ("mu1", C.c_int16)]
 
     class State(C.Structure):
-        _fields_ = [("law", Law), ("speed_valid", C.c_uint8), ("r_applied", C.c_int16), ("cap", C.c_int16),
+        _fields_ = [("law", Law), ("speed_valid", C.c_uint8), ("pos_prev", C.c_uint16), ("t5_prev", C.c_uint16),
+                    ("w_avg", C.c_int16), ("r_applied", C.c_int16), ("cap", C.c_int16),
                     ("speed", C.c_int16), ("current", C.c_int16), ("u", C.c_int16), ("dir", C.c_uint8),
                     ("hold", C.c_uint8), ("pdc", C.c_uint16)]
 
@@ -773,7 +817,7 @@ def build_core_lib(folder, out_dir=None, cc: str = "gcc"):
     d.core_control.restype = C.c_int16
     d.core_control.argtypes = [C.POINTER(State), C.POINTER(Params), C.c_int16, C.c_uint16]
     d.core_speed_encoder.restype = C.c_int16
-    d.core_speed_encoder.argtypes = [C.POINTER(State), C.c_uint16, C.c_uint16, C.c_uint8, C.c_uint8, C.c_uint8]
+    d.core_speed_encoder.argtypes = [C.POINTER(State), C.c_uint16, C.c_uint16, C.c_uint8]
     d.core_speed_hall.restype = C.c_int16
     d.core_speed_hall.argtypes = [C.POINTER(State), C.c_uint16, C.c_uint16, C.c_uint8, C.c_uint8]
     d.core_duty.restype = C.c_uint16
@@ -899,21 +943,30 @@ def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
               (st.r_applied, st.cap, st.current, st.u, st.dir, st.hold, st.pdc))
         note("control", ok, f"control target={target} adc={adc} -> C {uc} Py {up}")
         # speed measurement
-        velr = int(rng.integers(0, 65536)) if rng.random() < 0.8 else int(rng.integers(0, 64))
-        t5 = int(rng.integers(0, 65536)) if rng.random() < 0.5 else int(rng.integers(0, velr + 1))
+        a16 = int(rng.integers(0, 65536))
+        b16 = int(rng.integers(0, 65536)) if rng.random() < 0.5 else int(rng.integers(0, 200))
+        prev_t5 = int(rng.integers(0, 65536))
         fl = [int(x) for x in rng.integers(0, 2, size=3)]
-        valid0 = int(rng.integers(0, 2))
-        cs.speed_valid = valid0
-        st2 = CoreState(speed_valid=valid0)
+        valid0, wavg0 = int(rng.integers(0, 2)), _i16(rng, span=span_y)
+        pos_prev = int(rng.integers(0, 65536))
+        if rng.random() < 0.6:                      # small count steps, as at a real sample
+            a16 = (pos_prev + int(rng.integers(-200, 201))) & 0xFFFF
+        if rng.random() < 0.2:
+            a16 = pos_prev
+        cs.speed_valid, cs.w_avg, cs.pos_prev, cs.t5_prev = valid0, wavg0, pos_prev, prev_t5
+        st2 = CoreState(speed_valid=valid0, w_avg=wavg0, pos_prev=pos_prev, t5_prev=prev_t5)
         if plan.speed_source == "encoder":
-            wc = lib.core_speed_encoder(cs, velr, t5, fl[0], fl[1], fl[2])
-            wp = speed_encoder(plan, st2, velr, t5, fl[0], fl[1], fl[2])
-            ok = wc == wp and cs.speed_valid == st2.speed_valid and cs.speed == st2.speed
+            wc = lib.core_speed_encoder(cs, a16, b16, fl[0])
+            wp = speed_encoder(plan, st2, a16, b16, fl[0])
+            ok = (wc == wp and (cs.speed_valid, cs.speed, cs.w_avg, cs.pos_prev, cs.t5_prev) ==
+                  (st2.speed_valid, st2.speed, st2.w_avg, st2.pos_prev, st2.t5_prev))
+            what = f"speed pos={a16} t5={b16} ovf={fl[0]} prev=({valid0},{wavg0},{pos_prev},{prev_t5})"
         else:
-            wc = lib.core_speed_hall(cs, velr, t5, fl[0], fl[1])
-            wp = speed_hall(plan, st2, velr, t5, fl[0], fl[1])
+            wc = lib.core_speed_hall(cs, a16, b16, fl[0], fl[1])
+            wp = speed_hall(plan, st2, a16, b16, fl[0], fl[1])
             ok = wc == wp and cs.speed == st2.speed
-        note("speed", ok, f"speed velr={velr} t5={t5} flags={fl} valid={valid0} -> C {wc} Py {wp}")
+            what = f"hall speed period={a16} elapsed={b16} flags={fl}"
+        note("speed", ok, f"{what} -> C {wc} Py {wp}")
         u = _i16(rng, span=plan.u_limit)
         note("duty", lib.core_duty(u) == duty_counts(plan, u), f"duty u={u}")
     total = sum(r[0] for r in res.values())
@@ -929,18 +982,30 @@ def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
 # ---------------------------------------------------------------------------
 def closed_loop_compare(profile, law, plan: FixedPointPlan, *, t_end_s: float = 1.0,
                         setpoint_rpm: float | None = None, load_step_s: float | None = None,
-                        load_n_m: float | None = None, encoder_quantisation: bool = True) -> dict:
+                        load_n_m: float | None = None, measurement: str = "firmware",
+                        float_measurement: str | None = None) -> dict:
     """Simulate the speed loop twice on the six-step DC-equivalent plant (2008 eq 1).
 
-    Float: :func:`picdrive.control_law.law_step` on the true speed and
-    current, output applied as is.  Fixed: :func:`core_control` (the
-    firmware's arithmetic) on the speed the firmware would measure (QEI
-    velocity mode: the period quantised to Timer5 counts; or the speed
-    quantised to Q qs), the bus current through the 10-bit ADC, output
-    applied as whole PDC counts of the bus voltage.  The current limiter is
-    disabled in the fixed loop (the float reference has none).  Plant:
-    ``L di/dt = v - R i - Kb w``, ``J dw/dt = Kt i - B w - T_load``, exact
-    zero-order-hold discretisation at the sample time.
+    Float: :func:`picdrive.control_law.law_step` on the true current, its
+    output applied as is.  Fixed: :func:`core_control` (the firmware's
+    arithmetic) on the bus current through the 10-bit ADC, its output applied
+    as whole PDC counts of the bus voltage; the current limiter is disabled
+    (the float reference has none).  Plant: ``L di/dt = v - R i - Kb w``,
+    ``J dw/dt = Kt i - B w - T_load``, exact zero-order-hold discretisation.
+
+    Speed seen by the loops (``measurement``; the float loop sees the exact
+    version of the same measurement unless ``float_measurement`` says
+    otherwise):
+
+    * ``"firmware"``: what the firmware measures -- speed: encoder by the M/T
+      method on whole counts and Timer5 ticks, extrapolated half a sample
+      (the angle history between samples is interpolated linearly), halls:
+      the speed quantised to Q qs; current:
+      the bus shunt, which sees the line current only in the applied
+      direction (0 when it reverses).  The float loop gets the true speed at
+      the sample and the exact shunt current.
+    * ``"instant"``: the speed at the sample instant (fixed: quantised to Q qs).
+    * ``"average"``: the exact average over the previous sample, for both.
 
     Returns the time vector, both speeds (rad/s), and the RMS and largest
     speed deviation as fractions of the setpoint.
@@ -950,24 +1015,30 @@ def closed_loop_compare(profile, law, plan: FixedPointPlan, *, t_end_s: float = 
 
     from .control_law import LawState, law_step as float_step
 
+    if measurement not in ("firmware", "instant", "average"):
+        raise ValueError(f"measurement {measurement!r}")
+    fmeas = float_measurement or ("average" if measurement == "average" else "instant")
     m = profile.motor
     R, L, J, B = m.r_line_ohm, m.l_line_h, m.inertia_kg_m2, m.viscous_friction_n_m_s
     kt, kb = m.kt_n_m_per_a, m.kb_v_s_per_rad
     ts = law.sample_time_s
-    A = np.array([[-R / L, -kb / L], [kt / J, -B / J]])
-    Bm = np.array([[1 / L, 0.0], [0.0, -1 / J]])
-    M = np.zeros((4, 4))
-    M[:2, :2], M[:2, 2:] = A, Bm
+    # states [i, w, theta]; inputs [v, T_load]
+    A = np.array([[-R / L, -kb / L, 0.0], [kt / J, -B / J, 0.0], [0.0, 1.0, 0.0]])
+    Bm = np.array([[1 / L, 0.0], [0.0, -1 / J], [0.0, 0.0]])
+    M = np.zeros((5, 5))
+    M[:3, :3], M[:3, 3:] = A, Bm
     E = expm(M * ts)
-    Ad, Bd = E[:2, :2], E[:2, 2:]
+    Ad, Bd = E[:3, :3], E[:3, 3:]
     sp_rpm = profile.speed_step_rpm() if setpoint_rpm is None else setpoint_rpm
     w_ref = sp_rpm * 2 * math.pi / 60
     t_load = profile.control.load_torque_n_m if load_n_m is None else load_n_m
     t_step = 0.5 * t_end_s if load_step_s is None else load_step_s
     n = int(round(t_end_s / ts))
     t = np.arange(n) * ts
-    xf = np.zeros(2)
-    xq = np.zeros(2)
+    xf = np.zeros(3)
+    xq = np.zeros(3)
+    thf_prev = thq_prev = 0.0
+    dir_f = 1.0
     wf, wq = np.zeros(n), np.zeros(n)
     stf = LawState()
     p = law_params_from_plan(plan)
@@ -977,22 +1048,41 @@ def closed_loop_compare(profile, law, plan: FixedPointPlan, *, t_end_s: float = 
     target = plan.to_speed_raw(w_ref)
     vbus = profile.inverter.bus_voltage_v
     cpr = plan.counts_per_rev
+    tick_s = plan.ps5 / FCY_HZ
+    enc = measurement == "firmware" and plan.speed_source == "encoder"
+    hist = [(0.0, 0.0)]                     # (t, theta) at past samples, for the edge times
     for k in range(n):
         tl = t_load if t[k] >= t_step else 0.0
         wf[k], wq[k] = xf[1], xq[1]
         # float loop
-        uf = float_step(law, stf, w_ref, xf[1], xf[0])
-        # fixed loop: what the firmware measures
-        w = xq[1]
-        if encoder_quantisation and plan.speed_source == "encoder":
-            cps = abs(w) * cpr / (2 * math.pi)
-            period = math.floor(FCY_HZ * plan.pdec / (plan.ps5 * cps)) if cps > 0 else 1 << 20
-            if period < 65536:
-                speed_encoder(plan, st, period, 0, 1, 0, 1 if w >= 0 else 0)
-            else:
-                speed_encoder(plan, st, 0, 0, 0, 1, 1)
+        yf = xf[1] if fmeas == "instant" else (xf[2] - thf_prev) / ts
+        thf_prev = xf[2]
+        if measurement == "firmware":          # the bus shunt: current of the applied direction only
+            i_f = max(0.0, xf[0] * dir_f) * dir_f
         else:
-            st.speed = sat16(math.floor(w * 2 ** plan.qs))
+            i_f = xf[0]
+        uf = float_step(law, stf, w_ref, yf, i_f)
+        if uf != 0.0:
+            dir_f = -1.0 if uf < 0 else 1.0
+        # fixed loop: what the firmware measures
+        w, th = xq[1], xq[2]
+        t_now = t[k]
+        if enc:
+            # M/T inputs: the count, and Timer5 ticks since the last count edge (angle history
+            # between samples interpolated linearly)
+            c = math.floor(th * cpr / (2 * math.pi))
+            sgn = 1 if th >= hist[-1][1] else -1
+            edge = (c if sgn > 0 else c + 1) * 2 * math.pi / cpr
+            t_edge = _time_at(hist, t_now, th, edge)
+            ticks = 65536 if t_edge is None else math.floor((t_now - t_edge) / tick_s)
+            speed_encoder(plan, st, c & 0xFFFF, min(ticks, 65535), 1 if ticks >= 65536 else 0)
+        else:
+            yq = w if measurement == "instant" else (th - thq_prev) / ts
+            st.speed = sat16(math.floor(yq * 2 ** plan.qs))
+        thq_prev = th
+        hist.append((t_now, th))
+        if len(hist) > 4096:
+            del hist[:2048]
         i_bus = xq[0] * (-1.0 if st.dir else 1.0)
         adc = min(1023, max(0, math.floor(i_bus * plan.counts_per_a)))
         core_control(plan, p, st, target, adc)
@@ -1004,3 +1094,50 @@ def closed_loop_compare(profile, law, plan: FixedPointPlan, *, t_end_s: float = 
     dev = (wq - wf) / w_ref
     return {"t_s": t, "w_float": wf, "w_fixed": wq, "setpoint_rad_s": w_ref,
             "rms_dev": float(np.sqrt(np.mean(dev ** 2))), "max_dev": float(np.max(np.abs(dev)))}
+
+
+def _time_at(hist, t_now, th_now, target):
+    """When did the angle pass ``target`` (linear interpolation over the sample history)?"""
+    t1, a1 = t_now, th_now
+    for t0, a0 in reversed(hist):
+        if (a0 - target) * (a1 - target) <= 0 and a0 != a1:
+            return t0 + (target - a0) / (a1 - a0) * (t1 - t0)
+        t1, a1 = t0, a0
+    return None
+
+
+def measurement_lag_effect(profile, law, *, t_end_s: float = 1.0) -> dict:
+    """Float law only: the speed with an instantaneous measurement against the
+    speed with the average over the previous sample (what position-based
+    measurement gives).  Not a fixed-point effect: how sensitive the design is
+    to the measurement the firmware can make."""
+    import numpy as np
+    plan_like = None
+    from .control_law import LawState, law_step as float_step
+    from scipy.linalg import expm
+    m = profile.motor
+    R, L, J, B = m.r_line_ohm, m.l_line_h, m.inertia_kg_m2, m.viscous_friction_n_m_s
+    kt, kb = m.kt_n_m_per_a, m.kb_v_s_per_rad
+    ts = law.sample_time_s
+    A = np.array([[-R / L, -kb / L, 0.0], [kt / J, -B / J, 0.0], [0.0, 1.0, 0.0]])
+    Bm = np.array([[1 / L, 0.0], [0.0, -1 / J], [0.0, 0.0]])
+    M = np.zeros((5, 5))
+    M[:3, :3], M[:3, 3:] = A, Bm
+    E = expm(M * ts)
+    Ad, Bd = E[:3, :3], E[:3, 3:]
+    w_ref = profile.speed_step_rpm() * 2 * math.pi / 60
+    n = int(round(t_end_s / ts))
+    out = {}
+    for meas in ("instant", "average"):
+        x, th_prev, st, ws = np.zeros(3), 0.0, LawState(), np.zeros(n)
+        for k in range(n):
+            tl = profile.control.load_torque_n_m if k * ts >= 0.5 * t_end_s else 0.0
+            ws[k] = x[1]
+            y = x[1] if meas == "instant" else (x[2] - th_prev) / ts
+            th_prev = x[2]
+            u = float_step(law, st, w_ref, y, x[0])
+            x = Ad @ x + Bd @ np.array([u, tl])
+        out[meas] = ws
+    dev = (out["average"] - out["instant"]) / w_ref
+    del plan_like
+    return {"rms_dev": float(np.sqrt(np.mean(dev ** 2))), "max_dev": float(np.max(np.abs(dev)))}
