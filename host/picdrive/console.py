@@ -899,11 +899,17 @@ def _load(con, args):
     # check everything before writing anything: no half-pushed design
     from .link import ParamError
     problems = []
-    for name, v in values.items():
+    for name, v in list(values.items()):
+        e = link.param(name)
         try:
             link.to_raw(name, v)
-        except ParamError as e:
-            problems.append(str(e))
+        except ParamError as err:
+            # a limit the design puts exactly on the board's limit may round one count beyond it
+            edge = e.max_value if v > e.max_value else e.min_value
+            if abs(v - edge) <= e.scale:
+                values[name] = edge
+            else:
+                problems.append(str(err))
     if problems:
         raise ConsoleError("load: nothing written, the board cannot hold these values: " + "; ".join(problems))
     width = max(len(n) for n in values)
@@ -1150,6 +1156,7 @@ def _record(con, args):
 STEP_SIGNALS = ("speed", "setpoint", "voltage", "current")
 STEP_PRE_S = 0.2           # samples kept before the step (y0 and the plot)
 STEP_SETTLE_TIMEOUT_S = 5.0
+STEP_REST_TOL = 0.005      # "at rest" before a step from 0: |speed| within 0.5 % of the step
 
 
 def _collected(collect: list):
@@ -1197,17 +1204,28 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
         con._collect = collect
     con._start_pump()
     try:
-        link.set_speed(from_rpm)
-        if st.state != P.State.RUN:
-            link.start()
         n_pre = int(round(STEP_PRE_S * hz))
         spd_tol = max(band, 2.0 * link.param("speed").scale)
 
         def settled_at_from(d):
             tail = d["speed"][-n_pre:]
             return len(d) >= n_pre and bool(np.all(np.abs(tail - from_rpm) <= spd_tol))
-        _step_wait(con, collect, settled_at_from, STEP_SETTLE_TIMEOUT_S + STEP_PRE_S,
-                   f"waiting for the speed to settle at {from_rpm:g} rpm (±{spd_tol:g} rpm)")
+        if from_rpm == 0:
+            # from rest: outputs off until the motor stands, then start and step at once (a drive
+            # held running at setpoint 0 counts toward its stall timeout)
+            spd_tol = max(STEP_REST_TOL * abs(to_rpm), 2.0 * link.param("speed").scale)
+            link.set_speed(0.0)
+            if st.state != P.State.IDLE:
+                link.stop()
+            _step_wait(con, collect, settled_at_from, STEP_SETTLE_TIMEOUT_S + STEP_PRE_S,
+                       f"waiting for the motor to stand still (±{spd_tol:g} rpm)")
+            link.start()
+        else:
+            link.set_speed(from_rpm)
+            if st.state != P.State.RUN:
+                link.start()
+            _step_wait(con, collect, settled_at_from, STEP_SETTLE_TIMEOUT_S + STEP_PRE_S,
+                       f"waiting for the speed to settle at {from_rpm:g} rpm (±{spd_tol:g} rpm)")
         link.set_speed(to_rpm)
         sp_tol = 0.5 * link.param("setpoint").scale if "setpoint" in sigs else None
         t_cmd_index = int(_collected(collect)["index"][-1]) + 1
@@ -1251,6 +1269,8 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
                      dropped=int(np.sum(np.diff(d["index"]) - 1)))
     pre = d["speed"][t < 0]
     analyse_step(rec, pre_speed_rpm=pre if len(pre) else None)
+    st = link.status()
+    rec.fault = _state_name(st.fault) if int(st.fault) else ""
     return rec
 
 
@@ -1280,6 +1300,9 @@ def _step(con, args):
         cols = [rec.speed_rpm] + [rec.signals[n] for n in rec.signals]
         for k in range(len(rec.t_s)):
             w.write(float(rec.t_s[k]), [c[k] for c in cols])
+    if rec.fault:
+        raise ConsoleError(f"step: fault {rec.fault} latched during the step, outputs off; no metrics "
+                           f"(plot {png}, data {csv}); 'faults', then 'clear'")
     con.say(rec.summary())
     if rec.dropped:
         con.say(f"warning: {rec.dropped} telemetry samples were dropped during the step")

@@ -62,13 +62,14 @@ class StepRecord:
     profile: str = ""
     controller: str = ""
     dropped: int = 0
+    fault: str = ""                      # fault latched during the step ("" = none)
 
     def summary(self) -> str:
         m = self.metrics
         if m is None:
             return "not analysed"
-        settle = "did not settle" if math.isinf(m.settling_time_s) else f"{m.settling_time_s * 1e3:.1f} ms"
-        rise = "never reached 90 %" if math.isinf(m.rise_time_s) else f"{m.rise_time_s * 1e3:.1f} ms"
+        settle = "did not settle" if not math.isfinite(m.settling_time_s) else f"{m.settling_time_s * 1e3:.1f} ms"
+        rise = "did not reach 90 %" if not math.isfinite(m.rise_time_s) else f"{m.rise_time_s * 1e3:.1f} ms"
         return (f"step {self.from_rpm:g} -> {self.to_rpm:g} rpm ({self.source}, "
                 f"{len(self.t_s)} samples at {1.0 / self.sample_period_s:g} Hz): "
                 f"rise {rise}, settling {settle}, overshoot {m.overshoot_pct:.2f} %, "
@@ -175,7 +176,8 @@ def save_step_plot(rec: StepRecord, path: str | Path, *, band: float = 0.02) -> 
     if m is not None:
         if math.isfinite(m.settling_time_s):
             ax.axvline(m.settling_time_s * 1e3, color="g", lw=0.8, ls=":")
-        txt = (f"rise {m.rise_time_s * 1e3:.1f} ms\nsettling "
+        txt = ("rise " + ("—" if not math.isfinite(m.rise_time_s) else f"{m.rise_time_s * 1e3:.1f} ms")
+               + "\nsettling "
                + ("—" if math.isinf(m.settling_time_s) else f"{m.settling_time_s * 1e3:.1f} ms")
                + f"\novershoot {m.overshoot_pct:.2f} %\nsteady-state error {m.steady_state_error:+.2f} rpm")
         ax.text(0.98, 0.04, txt, transform=ax.transAxes, ha="right", va="bottom", fontsize=8,

@@ -1,0 +1,231 @@
+"""picdrive console against the motor twin: the generated duy2008 firmware running on the
+PIC18F4431 peripheral model and the BLDC plant, served in real time on a local socket and
+reached through an unpluggable cable (test_console_support.Cable).
+
+* a bench session with every command, run with ``--run`` (subprocess), checked against the
+  twin's true state;
+* a script that stops at a rejected value;
+* an interactive session (pexpect): completion, help, a rejected value, the link lost while
+  the motor runs (the board's watchdog stops it) and regained, the fault shown and cleared.
+"""
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from picdrive.console_record import read_recording
+from picdrive.control_law import Rule, ScheduledLaw
+from picdrive.link import Link
+from picdrive.metrics import step_metrics
+from picdrive.profile import load_profile
+from picdrive.result import DesignResult, save_design
+
+from test_console_support import Cable
+
+REPO = Path(__file__).resolve().parents[1]
+FIRMWARE = REPO / "firmware_build" / "duy2008"
+PROFILE = load_profile(REPO / "examples" / "duy2008.toml")
+RPM = 60.0 / (2.0 * math.pi)
+
+twin_mod = pytest.importorskip("picdrive_hil.twin")
+
+
+@pytest.fixture(scope="module")
+def twin():
+    tw = twin_mod.Twin(PROFILE, FIRMWARE)
+    srv = tw.serve(port=0, realtime=True)
+    cable = Cable(srv.url)
+    yield tw, srv, cable
+    cable.close()
+    srv.stop()
+    tw.close()
+
+
+def _cli(url, *args, timeout=90, cwd=None):
+    env = dict(os.environ, MPLBACKEND="Agg")
+    env.pop("DISPLAY", None)
+    return subprocess.run([sys.executable, "-m", "picdrive", "console", url, *args], capture_output=True,
+                          text=True, timeout=timeout, env=env, cwd=cwd)
+
+
+GAINS = [f"rule{j}_{k}" for j in (1, 2) for k in ("kp", "ki", "kd", "kc")]
+
+
+def _board_values(url):
+    with Link.open(url) as lk:
+        return lk.get_many(*GAINS, "premise_low", "premise_high", "u_min", "u_max", "setpoint_weight")
+
+
+def _design(v, factor, path):
+    """A verified design of the board's profile with the gains ``v`` times ``factor``."""
+    law = ScheduledLaw(rules=tuple(Rule(*(v[f"rule{j}_{k}"] * factor for k in ("kp", "ki", "kd", "kc")))
+                                   for j in (1, 2)),
+                       premise_rad_s=(v["premise_low"] / RPM, v["premise_high"] / RPM), sample_time_s=1e-3,
+                       u_min_v=v["u_min"], u_max_v=v["u_max"], setpoint_weight=v["setpoint_weight"])
+    r = DesignResult(method="fuzzy-hinf", status="verified", profile_name=PROFILE.name,
+                     profile_sha256=PROFILE.sha256, law=law, variant="six-step")
+    return save_design(r, path)
+
+
+SESSION = """\
+# bench session against the twin: every console command
+help
+info
+params rule1
+get rule1_kp
+set accel_limit 0
+controller pid
+controller fuzzy
+speed 1500
+start
+wait 0.6
+status
+reverse
+wait 1.0
+status
+telemetry signals speed,current,duty
+telemetry rate 500
+telemetry
+record {csv}
+view 0.5
+record stop
+plot --png {live}
+wait 1.2
+plot off
+telemetry off
+step 0 2400 --hold 0.6 --png {png}
+brake
+wait 0.5
+status
+stop
+faults
+clear
+load {design}
+save
+restore
+get rule1_kp
+quit
+"""
+
+
+def test_bench_session_every_command_with_run(twin, tmp_path):
+    tw, srv, cable = twin
+    before = _board_values(cable.url)
+    design = _design(before, 0.9, tmp_path / "board_x0.9.design.json")
+    s = tmp_path / "session.txt"
+    csv, live, png = tmp_path / "rec.csv", tmp_path / "live.png", tmp_path / "step.png"
+    s.write_text(SESSION.format(csv=csv, live=live, png=png, design=design))
+    r = _cli(cable.url, "--run", str(s), "--profile", "duy2008", "--out", str(tmp_path))
+    out = r.stdout
+    assert r.returncode == 0, r.stderr + out
+    blocks = {}
+    for blk in out.split("picdrive> ")[1:]:
+        cmd, _, rest = blk.partition("\n")
+        blocks.setdefault(cmd, []).append(rest.rstrip("\n"))
+    assert "profile duy2008: matches the board" in out
+    assert blocks["get rule1_kp"][0].startswith(f"rule1_kp = {before['rule1_kp']:.6g} V/(rad/s)")
+    # forward and reverse at 1500 rpm: the twin's measured speed reported by status
+    st1, st2 = blocks["status"][0], blocks["status"][1]
+    assert st1.startswith("state run, fault none, setpoint 1499.99 rpm, speed ")
+    assert st2.startswith("state run, fault none, setpoint -1499.99 rpm, speed ")
+    assert blocks["reverse"][0].startswith("speed setpoint 1499.99 -> -1499.99 rpm")
+    for st, sign in ((st1, 1), (st2, -1)):
+        spd = float(st.split("speed ")[1].split(" rpm")[0])
+        assert abs(spd - sign * 1500) < 0.05 * 1500, st
+    # recording: 500 Hz of speed, current, duty, no drops, firmware and profile in the header
+    rec = read_recording(csv)
+    assert rec.columns == ["t_s", "speed", "current", "duty"] and rec.rate_hz == 500 and rec.dropped == 0
+    assert rec.meta["profile"].startswith("duy2008 hash 0x") and "build 0x" in rec.meta["firmware"]
+    assert np.allclose(np.diff(rec.column("t_s")), 0.002)
+    assert abs(np.mean(rec.column("speed")) + 1500) < 0.05 * 1500
+    assert live.read_bytes()[:4] == b"\x89PNG"
+    # the step: metrics printed, plot and data saved
+    step = blocks["step 0 2400 --hold 0.6 --png " + str(png)][0]
+    assert "step 0 -> 2400 rpm (telemetry, 800 samples at 1000 Hz): rise " in step
+    data = read_recording(png.with_suffix(".csv"))
+    t, y = data.column("t_s"), data.column("speed")
+    m = step_metrics(t[t >= 0], y[t >= 0], 2400.0, y0=float(np.mean(y[t < 0])), t_step=0.0)
+    assert f"overshoot {m.overshoot_pct:.2f} %" in step
+    assert f"steady-state error {m.steady_state_error:+.2f} rpm" in step
+    if math.isfinite(m.rise_time_s):
+        assert f"rise {m.rise_time_s * 1e3:.1f} ms" in step
+    # the data are the twin's: the board's setpoint steps at t = 0, the rotor follows it
+    sp = data.column("setpoint")
+    assert np.all(sp[t < 0] == 0) and np.all(np.abs(sp[t >= 0] - 2400) < 1)
+    assert np.all(np.abs(y[t < -0.01]) <= 0.005 * 2400) and np.mean(y[-100:]) > 0.5 * 2400
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    # brake stops the rotor
+    assert blocks["status"][2].startswith("state brake")
+    # load pushed 0.9 x the board's gains; save/restore kept them
+    assert blocks[f"load {design}"][0].splitlines()[-1].startswith("loaded 13 parameters of fuzzy-hinf design")
+    got = float(blocks["get rule1_kp"][1].split("= ")[1].split()[0])
+    assert got == pytest.approx(0.9 * before["rule1_kp"], rel=1e-3)
+    assert blocks["save"][0] == "saved 18 parameters to EEPROM"
+    assert blocks["faults"][0] == "no fault latched (state idle)"
+    assert tw.state()["speed_rad_s"] == pytest.approx(0.0, abs=5.0)
+    # put the board's own gains back for the other tests
+    s.write_text(f"load {_design(before, 1.0, tmp_path / 'board.design.json')}\nsave\n")
+    assert _cli(cable.url, "--run", str(s)).returncode == 0
+    assert _board_values(cable.url) == before
+
+
+def test_script_stops_at_a_rejected_value(twin, tmp_path):
+    tw, srv, cable = twin
+    s = tmp_path / "bad.txt"
+    with Link.open(cable.url) as lk:
+        too_big = 2 * lk.param("rule1_kp").max_value
+        before = lk.get("rule1_kp")
+    s.write_text(f"get rule1_kp\nset rule1_kp {too_big:g}\nspeed 800\n")
+    r = _cli(cable.url, "--run", str(s))
+    assert r.returncode == 2
+    assert (f"{s}:2: 'set rule1_kp {too_big:g}': set: rule1_kp = {too_big:g} V/(rad/s) is outside the board's "
+            "range") in r.stderr
+    assert "picdrive> speed 800" not in r.stdout
+    with Link.open(cable.url) as lk:
+        assert lk.get("speed_setpoint") != 800 and lk.get("rule1_kp") == before
+
+
+def test_interactive_link_lost_while_running_and_regained(twin, tmp_path):
+    pexpect = pytest.importorskip("pexpect")
+    tw, srv, cable = twin
+    env = dict(os.environ, MPLBACKEND="Agg", TERM="dumb")
+    ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", cable.url, "--history", str(tmp_path / "h")],
+                       env=env, encoding="utf-8", timeout=15, dimensions=(40, 250))
+    try:
+        ch.expect("picdrive> ")
+        ch.send("get premise_h\t")                    # Tab completes a parameter name
+        ch.expect("premise_high")
+        ch.send("\r")
+        ch.expect(r"premise_high = [\d.]+ rpm")
+        ch.expect("picdrive> ")
+        ch.send("set speed_setpoint 99999\r")
+        ch.expect(r"error: set: speed_setpoint = 99999 rpm is outside the board's range \[-2599.95, 2599.95\] rpm")
+        ch.expect("picdrive> ")
+        ch.send("speed 1000\r")
+        ch.expect("picdrive> ")
+        ch.send("start\r")
+        ch.expect("running")
+        ch.expect("picdrive> ")
+        time.sleep(0.5)
+        assert tw.state()["speed_rad_s"] * RPM > 500
+        cable.unplug()                                # the adapter is pulled while the motor runs
+        ch.expect("link lost: ", timeout=10)
+        time.sleep(1.0)                               # > link_timeout: the board's watchdog acts
+        cable.plug()
+        ch.expect("link regained after ", timeout=10)
+        ch.send("faults\r")
+        ch.expect("fault link_lost latched, state fault")
+        ch.expect("picdrive> ")
+        ch.send("clear\r")
+        ch.expect("fault link_lost cleared, state idle")
+        ch.expect("picdrive> ")
+        ch.send("quit\r")
+        ch.expect(pexpect.EOF)
+    finally:
+        ch.close(force=True)
+    assert ch.exitstatus == 0
