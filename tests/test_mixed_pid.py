@@ -101,7 +101,7 @@ def test_evaluate_bound_shortcut_agrees_with_exact(profiles):
     exact, stable, _ = robust_constraint_z(pb.sp, g[:, 0], g[:, 1], g[:, 2], pb.d)
     sel = ev["stable"]
     assert sel.sum() > 50
-    assert np.all(exact[sel] <= ev["hinf"][sel] * (1 + 1e-9))
+    assert np.all(exact[sel] <= ev["hinf"][sel] * (1 + 1e-5))   # polynomial evaluation near z = 1: ~1e-6
     assert np.all((exact[sel] <= 1.0) | ev["hinf_exact"][sel])
 
 

@@ -282,6 +282,70 @@ def _scale_s(p: np.ndarray, w0: float) -> np.ndarray:
     return p * w0 ** np.arange(n, -1, -1, dtype=float)
 
 
+def _bpolyval_desc(p: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Batched Horner: descending coefficients p (B, n) at points x (B, m) (complex allowed)."""
+    out = np.zeros(x.shape, dtype=np.result_type(p, x))
+    for k in range(p.shape[-1]):
+        out = out * x + p[:, k:k + 1]
+    return out
+
+
+def _refine_peaks(mag, cand: np.ndarray, lo: np.ndarray, hi: np.ndarray, *, per_decade: int = 8,
+                  top: int = 2, iters: int = 32):
+    """Batched safeguard of a peak search: the largest of ``mag`` over the
+    candidates (the stationary points from eq 9; NaN = none) and over a
+    log-spaced grid on [lo, hi] per row, whose ``top`` best local maxima are
+    refined by golden-section search in log frequency.  ``mag(points)`` maps
+    (B, m) points to (B, m) magnitudes.  Returns (value, point).
+
+    The roots of eq 9 are exact in exact arithmetic; for high-order loops
+    with poles close to the stability boundary the root finding can lose
+    precision, so every candidate is re-evaluated from the transfer function
+    itself and the grid + refinement guards against a missed peak.
+    """
+    B = cand.shape[0]
+    decades = np.log10(hi / lo)
+    m = int(max(16, np.ceil(np.max(decades) * per_decade)))
+    u = np.linspace(0.0, 1.0, m)[None, :]
+    grid = lo[:, None] * (hi / lo)[:, None] ** u
+    gv = mag(grid)
+    cv = np.where(np.isnan(cand), -np.inf, mag(np.nan_to_num(cand)))
+    best_v = np.max(cv, axis=1) if cand.shape[1] else np.full(B, -np.inf)
+    best_p = cand[np.arange(B), np.argmax(cv, axis=1)] if cand.shape[1] else np.full(B, np.nan)
+    k = np.argmax(gv, axis=1)
+    take = gv[np.arange(B), k] > best_v
+    best_v = np.where(take, gv[np.arange(B), k], best_v)
+    best_p = np.where(take, grid[np.arange(B), k], best_p)
+    # local maxima of the grid, best first
+    padded = np.concatenate([np.full((B, 1), -np.inf), gv, np.full((B, 1), -np.inf)], axis=1)
+    is_max = (padded[:, 1:-1] >= padded[:, :-2]) & (padded[:, 1:-1] >= padded[:, 2:])
+    score = np.where(is_max, gv, -np.inf)
+    order = np.argsort(-score, axis=1)[:, :top]                  # (B, K), refined together
+    rows = np.arange(B)[:, None]
+    valid = np.isfinite(score[rows, order])
+    gr = 0.5 * (math.sqrt(5.0) - 1.0)
+    lg = np.log(grid)
+    a = lg[rows, np.maximum(order - 1, 0)]
+    b = lg[rows, np.minimum(order + 1, m - 1)]
+    c = b - gr * (b - a); d = a + gr * (b - a)
+    fc = mag(np.exp(c)); fd = mag(np.exp(d))
+    for _ in range(iters):
+        left = fc >= fd                             # the maximum lies in [a, d]
+        b = np.where(left, d, b); a = np.where(left, a, c)
+        c_new = b - gr * (b - a); d_new = a + gr * (b - a)
+        c, d = np.where(left, c_new, d), np.where(left, c, d_new)
+        fnew = mag(np.exp(np.where(left, c, d)))
+        fc, fd = np.where(left, fnew, fd), np.where(left, fc, fnew)
+    x = np.where(fc >= fd, c, d)
+    v = np.where(valid, np.maximum(fc, fd), -np.inf)
+    j = np.argmax(v, axis=1)
+    v, x = v[np.arange(B), j], x[np.arange(B), j]
+    take = v > best_v
+    best_v = np.where(take, v, best_v)
+    best_p = np.where(take, np.exp(x), best_p)
+    return best_v, best_p
+
+
 def hinf_exact(num, den, *, w0: float | None = None):
     """Exact sup_w |num(jw)/den(jw)| for stable, proper H (batched); eqs 7-10.
 
@@ -311,11 +375,18 @@ def hinf_exact(num, den, *, w0: float | None = None):
         ginf = np.zeros(q.shape[0])
     else:
         ginf = np.where(al != 0, bl / np.where(al == 0, 1, al), np.inf)
-    k = np.argmax(g, axis=1)
-    gmax = g[np.arange(g.shape[0]), k]
-    wpk = np.sqrt(np.maximum(cand[np.arange(g.shape[0]), k], 0.0)) * w0
-    use_inf = ginf > gmax
-    peak = np.sqrt(np.maximum(np.where(use_inf, ginf, gmax), 0.0))
+    # every candidate re-evaluated from the transfer function, plus the grid safeguard
+    wc = np.sqrt(np.maximum(cand, 0.0)) * w0
+    wc = np.where(np.isnan(cand), np.nan, wc)
+
+    def mag(w):
+        return np.abs(_bpolyval_desc(ns, 1j * w / w0) / _bpolyval_desc(ds, 1j * w / w0))
+
+    B = q.shape[0]
+    peak, wpk = _refine_peaks(mag, wc, np.full(B, w0 * 1e-6), np.full(B, w0 * 1e6))
+    ginf = np.sqrt(np.maximum(ginf, 0.0))
+    use_inf = ginf > peak
+    peak = np.where(use_inf, ginf, peak)
     wpk = np.where(use_inf, np.inf, wpk)
     return peak.reshape(shape), wpk.reshape(shape)
 
@@ -540,8 +611,28 @@ def hinf_exact_z(num, den):
     num = np.pad(num, [(0, 0)] * (num.ndim - 1) + [(n + 1 - num.shape[-1], 0)])
     den = np.pad(den, [(0, 0)] * (den.ndim - 1) + [(n + 1 - den.shape[-1], 0)])
     M = _bilinear_matrix(n)
-    peak, nu = hinf_exact(num @ M, den @ M)
-    return peak, 2.0 * np.arctan(nu)
+    shape = np.broadcast_shapes(num.shape[:-1], den.shape[:-1])
+    num = np.broadcast_to(num, shape + (n + 1,)).reshape(-1, n + 1)
+    den = np.broadcast_to(den, shape + (n + 1,)).reshape(-1, n + 1)
+    nw, dw = num @ M, den @ M
+    # stationary points of eq 9 in the w plane (nu = tan(theta/2)), then theta
+    w0 = _freq_scale(dw)
+    beta = _mag2_x_asc(_scale_s(nw, w0)); alpha = _mag2_x_asc(_scale_s(dw, w0))
+    sc = np.max(np.abs(alpha), axis=1, keepdims=True)
+    beta, alpha = beta / sc, alpha / sc
+    q = _bsub_asc(_bmul_asc(alpha, _bder_asc(beta)), _bmul_asc(beta, _bder_asc(alpha)))
+    roots = _real_roots_asc(q, 0.0, np.inf)
+    th = 2.0 * np.arctan(np.sqrt(np.maximum(roots, 0.0)) * w0)
+    th = np.where(np.isnan(roots), np.nan, th)
+    B = num.shape[0]
+    th = np.concatenate([th, np.zeros((B, 1)), np.full((B, 1), math.pi)], axis=1)   # theta = 0 and pi
+
+    def mag(t):
+        z = np.exp(1j * t)
+        return np.abs(_bpolyval_desc(num, z) / _bpolyval_desc(den, z))
+
+    peak, tpk = _refine_peaks(mag, th, np.full(B, 1e-7), np.full(B, math.pi))
+    return peak.reshape(shape), tpk.reshape(shape)
 
 
 def xi_tustin(d: float, ts: float) -> TF:

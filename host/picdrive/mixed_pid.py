@@ -272,7 +272,7 @@ def make_problem(profile, variant: str = "drive", **options) -> Problem:
         pb.u_max_v = profile.inverter.bus_voltage_v * profile.max_duty()
         pb.current_max_a = _opt(options, "current_fraction") * profile.inverter.current_limit_a
         pb.speed_max_rad_s = profile.control.speed_max_rpm * RPM
-        pb.step_sim_s = min(max(0.05, 20 * tau), 0.5)
+        pb.step_sim_s = min(max(0.05, 12 * tau), 0.5)
         xi = xi_tustin(d, ts)
         pb.xi_peak = float(hinf_exact_z(xi.num, xi.den)[0])
     return pb
