@@ -345,7 +345,9 @@ static void flt_update(int64_t t_prev)
 
 static int qei_mode(void) { return (picsim_sfr[R_QEICON] >> B_QEICON_QEIM0) & 7; }
 
-static void qei_counts(int64_t n_from, int64_t n_to, double t0_ps, double t1_ps)
+/* encoder counts n_from -> n_to while the (measured) angle went th0 -> th1
+   over t0 -> t1; edge times are interpolated on the angle */
+static void qei_counts(int64_t n_from, int64_t n_to, double th0, double th1, double t0_ps, double t1_ps)
 {
     int mode = qei_mode();
     if (mode == 0 || mode == 3 || mode == 4 || mode == 7 || n_from == n_to) return;
@@ -382,11 +384,21 @@ static void qei_counts(int64_t n_from, int64_t n_to, double t0_ps, double t1_ps)
         int64_t ad = d > 0 ? d : -d;
         uint64_t total = g.vel_pdec + (uint64_t)ad;
         if (total >= r) {
-            uint64_t last_k = (total / r) * r - g.vel_pdec;      /* edge index (1-based) of the last capture */
+            /* the k-th count (1-based) of this step sits at count n_from + k (forward) or
+               n_from - k + 1 (reverse, the edge is the lower boundary of the count left) */
+            uint64_t last_k = (total / r) * r - g.vel_pdec;
             uint64_t n_caps = total / r;
-            double tl = t0_ps + (t1_ps - t0_ps) * (double)last_k / (double)ad;
-            double tp = n_caps >= 2 ? t0_ps + (t1_ps - t0_ps) * (double)(last_k - r) / (double)ad
-                                    : (double)g.vel_last_t;
+            double cpr = 4.0 * g.pp.encoder_lines, dth = th1 - th0;
+            double q = x4 ? 1.0 : 2.0;           /* counts of the x4 grid per QEI count */
+#define EDGE_T(k) (fabs(dth) > 0.0 ? t0_ps + (t1_ps - t0_ps) * \
+        (((double)(dir > 0 ? (double)a + (double)(k) : (double)a - (double)(k) + 1.0) * q * 2.0 * M_PI / cpr - th0) / dth) \
+        : t1_ps)
+            double tl = EDGE_T(last_k);
+            double tp = n_caps >= 2 ? EDGE_T(last_k - r) : (double)g.vel_last_t;
+#undef EDGE_T
+            if (tl < t0_ps) tl = t0_ps;
+            if (tl > t1_ps) tl = t1_ps;
+            if (tp > tl) tp = tl;
             int reset = (picsim_sfr[R_CAP1CON] >> B_CAP1CON_CAP1REN) & 1;
             if (reset && n_caps >= 2) timer_anchor_at(&g.t5, 0, (int64_t)tp);
             uint32_t v = timer_count_at(&g.t5, (int64_t)tl);
@@ -682,13 +694,15 @@ static void set_enc_pins(int64_t n)
 
 void pic_after_plant_step(int64_t t_prev, double th_meas)
 {
+    double th_prev = g.th_meas_prev;
+    g.th_meas_prev = th_meas;
     flt_update(t_prev);
     pic_set_pins_from_plant();
     if (g.pp.encoder_lines > 0 && !g.enc_frozen) {
         double cpr = 4.0 * g.pp.encoder_lines;
         int64_t n = (int64_t)floor(th_meas * cpr / (2.0 * M_PI));
         if (n != g.enc_count) {
-            qei_counts(g.enc_count, n, (double)t_prev, (double)g.now);
+            qei_counts(g.enc_count, n, th_prev, th_meas, (double)t_prev, (double)g.now);
             g.enc_count = n;
             set_enc_pins(n);
         }

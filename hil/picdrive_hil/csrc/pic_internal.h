@@ -65,6 +65,7 @@ typedef struct {
     /* QEI */
     int64_t enc_count;        /* x4 count from the (measured) angle, unwrapped */
     int64_t enc_prev;
+    double th_meas_prev;      /* measured angle at the end of the previous step */
     int64_t enc_index_count;  /* count at the last index pulse */
     int32_t poscnt;
     int64_t vel_last_t;       /* last velocity capture */

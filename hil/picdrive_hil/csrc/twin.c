@@ -193,6 +193,7 @@ int twin_power_on(void)
         g.enc_count = (int64_t)floor(theta_measured() * 4.0 * g.pp.encoder_lines / (2.0 * M_PI));
         g.enc_index_count = g.enc_count;
     }
+    g.th_meas_prev = theta_measured();
     pic_after_plant_step(g.now, theta_measured());
     pic_compute_legs();
     fw_call(fw_init);

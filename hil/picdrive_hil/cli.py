@@ -1,0 +1,95 @@
+"""``picdrive twin``: start a virtual board and serve its UART.
+
+    picdrive twin --profile duy2008 --firmware firmware_build/duy2008/ [--port N] [--pty]
+
+prints ``socket://127.0.0.1:<port>`` (and the pty path) and runs in real time
+until Ctrl-C; ``picdrive console``, ``picdrive.link`` or any pyserial
+program connect to it as to a COM port.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from picdrive.errors import PicdriveError
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "twin", help="start the motor twin (virtual board) on a local serial endpoint",
+        description="Run the generated firmware against a PIC18F4431 peripheral model and a BLDC plant, "
+                    "in real time, behind socket://127.0.0.1:<port> (and a pty with --pty).")
+    p.add_argument("--profile", required=True, help="profile .toml, or a bundled profile name")
+    p.add_argument("--firmware", required=True, help="generated firmware folder (picdrive firmware -o ...)")
+    p.add_argument("--port", type=int, default=0, help="TCP port to listen on (default: any free port)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--pty", action="store_true", help="also offer a pseudo-terminal path")
+    p.add_argument("--perturb", action="append", default=[], metavar="KEY=FACTOR",
+                   help="plant perturbation (repeatable): resistance, inductance, flux, inertia, friction, "
+                        "bus_voltage; e.g. --perturb resistance=1.1 for R + 10 %%")
+    p.add_argument("--load-torque", type=float, default=None,
+                   help="constant load torque, N m (default: none; the profile's control.load_torque_n_m "
+                        "is the test step, applied by tests and demos)")
+    p.add_argument("--load-file", help="load torque profile: CSV rows t_s,torque_n_m (times from start)")
+    p.add_argument("--load-mode", choices=("passive", "active"), default="passive",
+                   help="passive: load opposes motion and holds a standing rotor (default); "
+                        "active: signed torque (2016 eq 5)")
+    p.add_argument("--noise-rpm", type=float, default=None,
+                   help="speed-measurement noise, rpm std (default: profile sensors.speed_noise_rpm)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed")
+    p.add_argument("--speed", type=float, default=1.0,
+                   help="simulated seconds per wall second (default 1: real time)")
+    p.add_argument("--eeprom", help="EEPROM image file (256 bytes) to start from; saved back on exit")
+    p.set_defaults(func=_cmd)
+
+
+def _cmd(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from .plant import parse_perturb
+    from .twin import Twin, TwinError
+
+    if not (args.speed > 0):
+        raise PicdriveError(f"--speed {args.speed}: must be > 0 (simulated seconds per wall second)")
+    if not (0 <= args.port <= 65535):
+        raise PicdriveError(f"--port {args.port}: expected 0..65535 (0 = any free port)")
+    if args.noise_rpm is not None and not (args.noise_rpm >= 0):
+        raise PicdriveError(f"--noise-rpm {args.noise_rpm}: must be >= 0")
+    perturb = parse_perturb(args.perturb)
+    eeprom = None
+    ee_path = Path(args.eeprom) if args.eeprom else None
+    if ee_path is not None and ee_path.exists():
+        eeprom = ee_path.read_bytes()
+        if len(eeprom) != 256:
+            raise PicdriveError(f"--eeprom {ee_path}: expected a 256-byte image, found {len(eeprom)} bytes")
+    tw = Twin(args.profile, args.firmware, perturb=perturb, seed=args.seed, load_mode=args.load_mode,
+              speed_noise_rpm=args.noise_rpm, eeprom=eeprom)
+    if args.load_file:
+        tw.load_profile_file(args.load_file, relative=True)
+    elif args.load_torque is not None:
+        tw.set_load_torque(args.load_torque)
+    srv = tw.serve(port=args.port, host=args.host, realtime=True, pty=args.pty)
+    srv.speed = args.speed
+    srv.log = lambda msg: print(f"picdrive twin: {msg}", file=sys.stderr, flush=True)
+    pert = ", ".join(f"{k} x{v:g}" for k, v in perturb.items()) or "none"
+    print(f"picdrive twin: profile {tw.profile.name}, firmware {args.firmware}, perturbation {pert}",
+          file=sys.stderr)
+    print(srv.url, flush=True)
+    if srv.pty_path:
+        print(srv.pty_path, flush=True)
+    print("picdrive twin: running in real time" + (f" x{args.speed:g}" if args.speed != 1 else "")
+          + "; Ctrl-C stops", file=sys.stderr, flush=True)
+    try:
+        srv.wait()
+    except KeyboardInterrupt:
+        pass
+    except TwinError:
+        raise
+    finally:
+        srv.stop()
+        if ee_path is not None:
+            tmp = ee_path.with_name(ee_path.name + ".tmp")
+            tmp.write_bytes(tw.eeprom())
+            tmp.replace(ee_path)
+        tw.close()
+    return 0

@@ -1,0 +1,91 @@
+"""HIL suite fixtures (see hilbench.py for the bench and the limits).
+
+``--target twin`` (default) or a serial URL of a real board (root conftest);
+``--profile`` names the real board's profile.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from picdrive.link import Link
+from picdrive.result import load_design
+
+from hilbench import Bench, FirmwareCache, design_path, match_design, profile
+
+_REPORT = pytest.StashKey[list]()
+
+
+def pytest_configure(config):
+    config.stash[_REPORT] = []
+
+
+def pytest_collection_modifyitems(config, items):
+    here = Path(__file__).resolve().parent
+    for it in items:
+        if here in Path(str(it.fspath)).resolve().parents:
+            it.add_marker(pytest.mark.hil)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    rows = config.stash.get(_REPORT, [])
+    if not rows:
+        return
+    tr = terminalreporter
+    tr.section("HIL step responses (measured through picdrive.link)")
+    tr.write_line(f"{'case':44s} {'target':>8s} {'rise':>8s} {'settle':>8s} {'overshoot':>9s} {'ss error':>9s}")
+    for r in rows:
+        tr.write_line(f"{r['case']:44s} {r['target_rpm']:8.1f} {r['rise_s'] * 1e3:6.1f}ms {r['settle_s'] * 1e3:6.1f}ms "
+                      f"{r['overshoot_pct']:8.3f}% {r['sse_pct']:8.4f}%")
+
+
+@pytest.fixture(scope="session")
+def target(request) -> str:
+    return request.config.getoption("--target")
+
+
+@pytest.fixture(scope="session")
+def firmware_cache(tmp_path_factory) -> FirmwareCache:
+    return FirmwareCache(tmp_path_factory.mktemp("hil-firmware"))
+
+
+@pytest.fixture
+def open_bench(request, target, firmware_cache):
+    """open_bench(profile_name, method=None, perturb=None) -> Bench (closed after the test)."""
+    opened: list[Bench] = []
+
+    def _open(profile_name: str = "duy2008", method: str | None = None, perturb=None) -> Bench:
+        prof = profile(profile_name)
+        phash = int(prof.sha256[:8], 16)
+        if target == "twin":
+            from picdrive_hil.twin import Twin
+            method = method or "fuzzy-hinf"
+            dp = design_path(profile_name, method)
+            if not dp.exists():
+                pytest.skip(f"no committed design {dp.name}")
+            design = load_design(dp, require_usable=True, profile=prof)
+            tw = Twin(prof, firmware_cache.get(profile_name, method), perturb=perturb)
+            srv = tw.serve(port=0, realtime=True)
+            link = Link.open(srv.url, expect_profile_hash=phash)
+            pert = ",".join(f"{k}x{v:g}" for k, v in (perturb or {}).items())
+            b = Bench(link, prof, design, method, f"twin {profile_name} {method}{' ' + pert if pert else ''}",
+                      tw, srv, request.config.stash[_REPORT])
+        else:
+            board_profile = request.config.getoption("--profile")
+            if profile_name != board_profile:
+                pytest.skip(f"the board under test runs profile {board_profile!r}")
+            if perturb:
+                pytest.skip("plant perturbations need the twin")
+            link = Link.open(target, expect_profile_hash=phash)
+            m, design = match_design(link, prof)
+            if method is not None and method != m:
+                link.close()
+                pytest.skip(f"the board runs the {m} design, not {method}")
+            b = Bench(link, prof, design, m, f"board {profile_name} {m}", report=request.config.stash[_REPORT])
+        opened.append(b)
+        return b
+
+    yield _open
+    for b in opened:
+        b.close()

@@ -1,0 +1,181 @@
+"""HIL suite helpers: the board under test behind picdrive.link.
+
+``--target twin`` (default): each test gets a motor twin running firmware
+generated at test time with ``picdrive firmware`` (codegen) from a bundled
+profile and its committed design, served in real time on a local socket;
+the suite talks to it only through ``picdrive.link``, and additionally reads
+the twin's true plant state and injects faults where a test needs that.
+
+``--target <serial URL>``: a real board of profile ``--profile``; the suite
+finds which bundled design its firmware runs by comparing the board's gains
+with each design's law.  Tests that need a physical injection (hall fault,
+overcurrent, load torque, plant perturbation) are skipped there.
+
+Every limit comes from the profile or the design result (see ``Limits``).
+"""
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from picdrive import protocol as P
+from picdrive.link import Link
+from picdrive.metrics import step_metrics
+from picdrive.profile import ProfileWarning, load_profile
+from picdrive.result import load_design
+
+ROOT = Path(__file__).resolve().parents[2]
+PROFILES = ("duy2008", "assawinchaichote2016")
+METHODS = ("fuzzy-hinf", "mixed-pid", "zn")
+
+def profile(name):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ProfileWarning)
+        return load_profile(name)
+
+
+def design_path(profile_name: str, method: str) -> Path:
+    return ROOT / "examples" / f"{profile_name}.{method}.design.json"
+
+
+@dataclass
+class Limits:
+    """Pass limits of a step, from the profile and the design's own verification."""
+
+    target_rpm: float
+    settle_s: float          # design verification: sim_settling_s limit
+    band_pct: float          # design verification: final-error band (% of its step target)
+    overshoot_pct: float     # profile: the peak must stay below control.speed_max_rpm
+    load_recovery_s: float   # design verification: sim_load_recovery_s limit
+
+    @classmethod
+    def of(cls, prof, design, target_rpm: float | None = None) -> "Limits":
+        v = design.verification
+        tgt = prof.speed_step_rpm() if target_rpm is None else target_rpm
+        band = 100.0 * v["sim_final_error_rpm"]["limit"] / v["sim_step_target_rpm"]["value"]
+        return cls(tgt, float(v["sim_settling_s"]["limit"]), band,
+                   100.0 * (prof.control.speed_max_rpm - abs(tgt)) / abs(tgt),
+                   float(v["sim_load_recovery_s"]["limit"]))
+
+
+@dataclass
+class Bench:
+    link: Link
+    profile: object
+    design: object
+    method: str
+    label: str
+    twin: object = None
+    server: object = None
+    report: list = field(default_factory=list)
+
+    @property
+    def is_twin(self) -> bool:
+        return self.twin is not None
+
+    def need_twin(self, what: str) -> None:
+        if self.twin is None:
+            pytest.skip(f"{what} needs a physical injection the link cannot do; runs against the twin")
+
+    def limits(self, target_rpm: float | None = None) -> Limits:
+        return Limits.of(self.profile, self.design, target_rpm)
+
+    def close(self) -> None:
+        try:
+            self.link.close()
+        finally:
+            if self.server is not None:
+                self.server.stop()
+            if self.twin is not None:
+                self.twin.close()
+
+    # -- measurements through the link ---------------------------------------
+    def record(self, seconds: float, signals=("speed", "setpoint", "current", "state")) -> np.ndarray:
+        """Telemetry at the speed-loop rate for ``seconds`` (after the call returns)."""
+        self.link.configure_telemetry(signals, decimation=1)
+        return self.link.read_samples(seconds=seconds)
+
+    def stream(self, signals=("speed", "setpoint", "current", "state")) -> None:
+        self.link.configure_telemetry(signals, decimation=1)
+
+    def collect(self, seconds: float) -> np.ndarray:
+        return self.link.read_samples(seconds=seconds)
+
+    def wait_state(self, state: P.State, timeout: float = 2.0) -> None:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if self.link.status().state == state:
+                return
+            time.sleep(0.01)
+        raise AssertionError(f"board did not reach state {state.name} in {timeout} s "
+                             f"(status {self.link.status()})")
+
+    def settle_at(self, rpm: float, seconds: float) -> None:
+        """Run to rpm and wait (the motor is running after this)."""
+        self.link.set_speed(rpm)
+        if self.link.status().state != P.State.RUN:
+            self.link.start()
+        time.sleep(seconds)
+
+
+def step_of(data: np.ndarray, target: float):
+    """Step metrics of telemetry data, measured from the sample where the setpoint reached target."""
+    sp = data["setpoint"]
+    k = int(np.argmax(np.abs(sp - target) <= abs(target) * 1e-3 + 0.5))
+    if abs(sp[k] - target) > abs(target) * 1e-3 + 0.5:
+        raise AssertionError(f"the setpoint never reached {target} rpm in the record")
+    t, y = data["t"], data["speed"]
+    return step_metrics(t, y, target, y0=float(y[k]), t_step=float(t[k])), k
+
+
+class FirmwareCache:
+    """Firmware of each (profile, method), generated once per session with codegen."""
+
+    def __init__(self, root: Path):
+        self.root = root
+        self.dirs: dict[tuple[str, str], Path] = {}
+
+    def get(self, profile_name: str, method: str) -> Path:
+        key = (profile_name, method)
+        if key not in self.dirs:
+            from picdrive import codegen
+            prof = profile(profile_name)
+            fw = codegen.generate(prof, str(design_path(profile_name, method)))
+            self.dirs[key] = codegen.write_firmware(fw, self.root / f"{profile_name}.{method}", check=False)
+        return self.dirs[key]
+
+
+def match_design(link: Link, prof) -> tuple[str, object]:
+    """The bundled design whose law the board runs (gains within their quantisation)."""
+    best = None
+    for method in METHODS:
+        p = design_path(prof.name, method)
+        if not p.exists():
+            continue
+        d = load_design(p, require_usable=False, profile=prof)
+        if d.law is None:
+            continue
+        err = 0.0
+        for j, rule in enumerate(d.law.rules, start=1):
+            for g in ("kp", "ki", "kd", "kc"):
+                name = f"rule{j}_{g}"
+                try:
+                    e = link.param(name)
+                except Exception:
+                    err = math.inf
+                    break
+                board = link.get(name)
+                err = max(err, abs(board - getattr(rule, g)) / max(abs(getattr(rule, g)), e.scale * 2))
+        if best is None or err < best[0]:
+            best = (err, method, d)
+    if best is None or best[0] > 0.05:
+        pytest.skip(f"the board's gains match none of the bundled {prof.name} designs")
+    return best[1], best[2]
+
+
