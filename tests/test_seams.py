@@ -80,6 +80,28 @@ def test_law_state_feedback_integrator_holds_equilibrium_beyond_output_range():
     assert st.integ_v > lw.u_max_v
 
 
+def test_law_current_clamp_bounds_steady_current_at_every_speed():
+    kb, r, imax = 0.1, 2.0, 1.5
+    lw = law(rules=(Rule(50.0, 500.0),), u_min_v=-40.0, u_max_v=40.0, current_limit_a=imax,
+             kb_v_s_per_rad=kb, r_ohm=r)
+    assert lw.output_limits(0.0) == pytest.approx((-3.0, 3.0))
+    assert lw.output_limits(300.0) == pytest.approx((27.0, 33.0))
+    assert lw.output_limits(1000.0) == pytest.approx((40.0, 40.0))     # inside [u_min, u_max]
+    assert lw.output_limits(-1000.0) == pytest.approx((-40.0, -40.0))
+    for y in (0.0, 50.0, 200.0, -100.0):
+        st = LawState()
+        for _ in range(20):
+            u = law_step(lw, st, r=250.0, y=y)
+            assert abs((u - kb * y) / r) <= imax + 1e-12
+    with pytest.raises(ValueError, match="current-limited law"):
+        law(current_limit_a=1.0)
+
+
+def test_law_without_current_limit_is_unchanged():
+    lw = law()
+    assert lw.output_limits(123.0) == (lw.u_min_v, lw.u_max_v)
+
+
 def test_law_integrator_limit():
     lw = law(rules=(Rule(0.0, 1000.0),), integrator_limit_v=3.0, u_max_v=10.0)
     st = LawState()

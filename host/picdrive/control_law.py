@@ -21,7 +21,21 @@ two-degree-of-freedom PID with optional current feedback:
       I   = min(I + dI, max(I, u_max - Q))  if dI > 0     integrate only into the output headroom,
             max(I + dI, min(I, u_min - Q))  if dI < 0     never discharge the integrator by force
       I   = clamp(I, -I_lim, I_lim)                        I_lim = integrator_limit_v
-      u   = clamp(Q + I, u_min, u_max)
+      u   = clamp(Q + I, u_lo, u_hi)
+
+where the output limits ``[u_lo, u_hi]`` are ``[u_min, u_max]`` narrowed by
+the current limit when the law has one (``current_limit_a``)::
+
+      u_hi = min(u_max, Kb y + R I_max)       the steady current (u - Kb y)/R stays
+      u_lo = max(u_min, Kb y - R I_max)       within +-I_max at every sample
+      (each then bounded into [u_min, u_max]: beyond reach both meet at the rail
+       next to the EMF)
+
+This back-EMF-based voltage clamp limits the current without waiting for a
+current measurement (the speed loop samples far slower than the winding's
+L/R), which is what keeps a six-step drive off its overcurrent trip at start;
+``Kb`` and ``R`` are the profile's six-step DC-equivalent constants.  The
+headroom rule of the integrator uses the same ``[u_lo, u_hi]``.
 
 The headroom rule is conditional integration measured against the output
 limits: the integrator stops where the unsaturated output would leave
@@ -71,6 +85,9 @@ class ScheduledLaw:
     setpoint_weight: float = 1.0
     derivative_filter_hz: float | None = None   # None: unfiltered backward difference
     integrator_limit_v: float | None = None     # None: max(|u_min|, |u_max|)
+    current_limit_a: float | None = None        # None: no back-EMF voltage clamp
+    kb_v_s_per_rad: float = 0.0                 # clamp: six-step DC-equivalent back-EMF constant
+    r_ohm: float = 0.0                          # clamp: six-step DC-equivalent (line) resistance
     notes: str = ""
 
     def __post_init__(self):
@@ -85,6 +102,21 @@ class ScheduledLaw:
             raise ValueError("sample_time_s must be positive")
         if self.integrator_limit_v is not None and not self.integrator_limit_v > 0:
             raise ValueError("integrator_limit_v must be positive")
+        if self.current_limit_a is not None and not (self.current_limit_a > 0 and self.r_ohm > 0
+                                                     and self.kb_v_s_per_rad >= 0):
+            raise ValueError("a current-limited law needs current_limit_a > 0, r_ohm > 0 and kb_v_s_per_rad >= 0")
+
+    def output_limits(self, speed_rad_s: float) -> tuple[float, float]:
+        """Output limits ``(u_lo, u_hi)`` at a measured speed, V (see module docstring)."""
+        if self.current_limit_a is None:
+            return self.u_min_v, self.u_max_v
+        emf = self.kb_v_s_per_rad * speed_rad_s
+        span = self.r_ohm * self.current_limit_a
+        # beyond reach (|EMF| > u_max + R I_max) both limits meet at the rail next to the
+        # EMF: the least current the bridge can give
+        lo = min(max(self.u_min_v, emf - span), self.u_max_v)
+        hi = max(min(self.u_max_v, emf + span), self.u_min_v)
+        return lo, hi
 
     @property
     def i_lim_v(self) -> float:
@@ -120,7 +152,8 @@ def law_from_dict(d: dict) -> ScheduledLaw:
         sample_time_s=d["sample_time_s"], u_min_v=d["u_min_v"], u_max_v=d["u_max_v"],
         setpoint_weight=d.get("setpoint_weight", 1.0),
         derivative_filter_hz=d.get("derivative_filter_hz"),
-        integrator_limit_v=d.get("integrator_limit_v"), notes=d.get("notes", ""))
+        integrator_limit_v=d.get("integrator_limit_v"), current_limit_a=d.get("current_limit_a"),
+        kb_v_s_per_rad=d.get("kb_v_s_per_rad", 0.0), r_ohm=d.get("r_ohm", 0.0), notes=d.get("notes", ""))
 
 
 def memberships(law: ScheduledLaw, speed_rad_s: float) -> np.ndarray:
@@ -164,12 +197,13 @@ def law_step(law: ScheduledLaw, st: LawState, r: float, y: float, i: float = 0.0
     else:
         st.d_filt_v = d_raw
     q = p + st.d_filt_v - g.kc * i
+    u_lo, u_hi = law.output_limits(y)
     d_i = g.ki * ts * e
     if d_i > 0:
-        st.integ_v = min(st.integ_v + d_i, max(st.integ_v, law.u_max_v - q))
+        st.integ_v = min(st.integ_v + d_i, max(st.integ_v, u_hi - q))
     elif d_i < 0:
-        st.integ_v = max(st.integ_v + d_i, min(st.integ_v, law.u_min_v - q))
+        st.integ_v = max(st.integ_v + d_i, min(st.integ_v, u_lo - q))
     lim = law.i_lim_v
     st.integ_v = min(max(st.integ_v, -lim), lim)
     st.y_prev = y
-    return min(max(q + st.integ_v, law.u_min_v), law.u_max_v)
+    return min(max(q + st.integ_v, u_lo), u_hi)
