@@ -229,3 +229,59 @@ def test_interactive_link_lost_while_running_and_regained(twin, tmp_path):
     finally:
         ch.close(force=True)
     assert ch.exitstatus == 0
+
+
+def test_console_step_agrees_with_the_hil_step(tmp_path):
+    """The same 0 -> Profile.speed_step_rpm() step, measured once by the HIL suite's procedure
+    (tests/hil: telemetry at the loop rate, set_speed + start, hilbench.step_of) and once by the
+    console's ``step`` command, each on a fresh twin running the same generated firmware (the
+    duy2008 mixed-pid design, which the HIL suite expects to pass).
+
+    The two runs differ only in when, within the PWM and speed-loop periods, the commands
+    arrive (wall-clock timing), so time metrics must agree within one sample period and the
+    amplitude metrics within 0.1 % of the step (about the speed measurement's resolution at
+    the top speed, 0.108 % for this firmware)."""
+    sys.path.insert(0, str(REPO / "tests" / "hil"))
+    try:
+        from hilbench import FirmwareCache, step_of
+        from test_hil_step import RECORD_S
+    finally:
+        sys.path.remove(str(REPO / "tests" / "hil"))
+    from picdrive.console import Console, run_step
+
+    fw = FirmwareCache(tmp_path).get("duy2008", "mixed-pid")
+    target = PROFILE.speed_step_rpm()
+    # the HIL suite's step
+    tw = twin_mod.Twin(PROFILE, fw)
+    srv = tw.serve(port=0, realtime=True)
+    try:
+        with Link.open(srv.url) as lk:
+            hz = lk.info.sample_hz
+            lk.configure_telemetry(("speed", "setpoint", "current", "state"), decimation=1)
+            lk.set_speed(target)
+            lk.start()
+            m_hil, _ = step_of(lk.read_samples(seconds=RECORD_S), target)
+    finally:
+        srv.stop()
+        tw.close()
+    # the console's step
+    tw = twin_mod.Twin(PROFILE, fw)
+    srv = tw.serve(port=0, realtime=True)
+    lines = []
+    con = Console(srv.url, write=lines.append, out_dir=tmp_path)
+    try:
+        con.connect()
+        con.execute(f"step 0 {target:g} --hold {RECORD_S - 0.1:g}")
+        m_con = con.last_step.metrics
+    finally:
+        con.close()
+        srv.stop()
+        tw.close()
+    print(f"HIL step:     {m_hil.summary('rpm')}\nconsole step: {m_con.summary('rpm')}")
+    ts = 1.0 / hz
+    assert math.isfinite(m_hil.rise_time_s) and math.isfinite(m_hil.settling_time_s)
+    assert abs(m_con.rise_time_s - m_hil.rise_time_s) <= ts
+    assert abs(m_con.settling_time_s - m_hil.settling_time_s) <= ts
+    assert abs(m_con.overshoot_pct - m_hil.overshoot_pct) <= 0.1
+    assert abs(m_con.steady_state_error - m_hil.steady_state_error) <= 0.001 * target
+    assert any(ln.startswith(f"step 0 -> {target:g} rpm (telemetry") for ln in lines)
