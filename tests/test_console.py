@@ -165,7 +165,7 @@ def test_drive_commands_reach_the_board(board, con):
 def test_faults_and_clear(board, con):
     assert run(con, "faults") == ["no fault latched (state idle)"]
     board.fb.inject_fault(int(P.Fault.OVERCURRENT))
-    assert wait_for(lambda: "board event: fault: fault OVERCURRENT latched, outputs off ('faults', then 'clear')"
+    assert wait_for(lambda: "board event: fault OVERCURRENT latched, outputs off ('faults', then 'clear')"
                     in con.lines)
     assert run(con, "faults") == ["fault overcurrent latched, state fault: outputs off; 'clear' clears it"]
     with pytest.raises(ConsoleError, match="FAULT_ACTIVE"):

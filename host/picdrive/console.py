@@ -236,12 +236,15 @@ class Console:
     def _on_event(self, t, event, code) -> None:
         from . import protocol as P
         name = event.name.lower() if hasattr(event, "name") else str(event)
-        if event == P.Event.FAULT or event == P.Event.WATCHDOG:
+        if event == P.Event.WATCHDOG:
+            self.notify("board event: watchdog: no valid frame from the host within link_timeout while running; "
+                        "motor stopped")
+        elif event == P.Event.FAULT:
             try:
                 what = P.Fault(code).name
             except ValueError:
                 what = str(code)
-            self.notify(f"board event: {name}: fault {what} latched, outputs off ('faults', then 'clear')")
+            self.notify(f"board event: fault {what} latched, outputs off ('faults', then 'clear')")
         elif event == P.Event.BOOT:
             self.notify(f"board event: boot (reset cause {code}): the board restarted; telemetry is off")
         else:
@@ -1097,8 +1100,10 @@ def _view(con, args):
         while time.monotonic() < end:
             time.sleep(min(period, max(0.0, end - time.monotonic())))
             line = tv.render()
-            if tty:
-                sys.stdout.write("\r\x1b[K" + line)
+            if tty:                                  # redraw in place: one terminal row
+                import shutil
+                width = shutil.get_terminal_size().columns - 1
+                sys.stdout.write("\r\x1b[K" + line[:width])
                 sys.stdout.flush()
             else:
                 con.say(line)
