@@ -383,3 +383,13 @@ def test_interactive_completion_history_and_errors(board, tmp_path):
         ch.close(force=True)
     assert ch.exitstatus == 0
     assert hist.read_text().split("\n")[:5] == ["speed 1000", "set rule1_kp 77", "blah", "get speed_setpoint", "quit"]
+
+
+def test_board_reboot_restores_telemetry(board, con):
+    run(con, "telemetry on")
+    board.fb.boot()                                   # power cycle: the board forgets the telemetry setup
+    assert wait_for(lambda: any(ln.startswith("board event: boot") for ln in con.lines), 5.0)
+    assert wait_for(lambda: any(ln.startswith("telemetry restored") for ln in con.lines), 5.0)
+    n = con.link.telemetry_stats.samples
+    assert wait_for(lambda: con.link.telemetry_stats.samples > n + 50, 3.0)
+    assert not any(ln.startswith("link lost") for ln in con.lines)

@@ -159,7 +159,8 @@ class Console:
         self._view = None
         self._collect: list | None = None
         self.last_step = None
-        self._keepalive: threading.Thread | None = None
+        self._rec_dropped_seen = 0
+        self._watcher: threading.Thread | None = None
 
     # -- output ---------------------------------------------------------------
 
@@ -186,7 +187,6 @@ class Console:
             else:
                 self._write(text)
 
-
     # -- connection -------------------------------------------------------------
 
     def _open(self):
@@ -207,9 +207,9 @@ class Console:
         self.link = link
         self._lost = None
         link.on_event = self._on_event
-        if self._keepalive is None or not self._keepalive.is_alive():
-            self._keepalive = threading.Thread(target=self._watch_link, name="picdrive-console-watch", daemon=True)
-            self._keepalive.start()
+        if self._watcher is None or not self._watcher.is_alive():
+            self._watcher = threading.Thread(target=self._watch_link, name="picdrive-console-watch", daemon=True)
+            self._watcher.start()
 
     def handshake_lines(self) -> list[str]:
         """The handshake as shown at connect and by ``info``; warns on a profile mismatch."""
@@ -246,7 +246,8 @@ class Console:
                 what = str(code)
             self.notify(f"board event: fault {what} latched, outputs off ('faults', then 'clear')")
         elif event == P.Event.BOOT:
-            self.notify(f"board event: boot (reset cause {code}): the board restarted; telemetry is off")
+            self.notify(f"board event: boot (reset cause {code}): the board restarted")
+            threading.Thread(target=self._after_reboot, name="picdrive-console-reboot", daemon=True).start()
         else:
             self.notify(f"board event: {name} code {code}")
 
@@ -286,9 +287,23 @@ class Console:
                                                  daemon=True)
             self._reconnector.start()
 
-    def _reconnect_loop(self) -> None:
+    def _after_reboot(self) -> None:
+        """The board restarted: its telemetry is off; re-validate the table and restore it."""
         from .link import LinkError
+        link = self.link
+        if link is None or not self.tele_on:
+            return
+        try:
+            self._apply_telemetry()
+            self.notify(f"telemetry restored: {', '.join(self.tele_signals)} at {self.tele_rate_hz:g} Hz")
+        except LinkError as e:              # e.g. the board rebooted into another build
+            if self.link is link:
+                self.link_lost(str(e))
+
+    def _reconnect_loop(self) -> None:
+        from .link import HandshakeMismatch, LinkError
         tries = 0
+        said = ""
         while not self._closing.is_set():
             self._closing.wait(self.reconnect_interval_s)
             if self._closing.is_set():
@@ -296,6 +311,11 @@ class Console:
             tries += 1
             try:
                 link = self._open()
+            except HandshakeMismatch as e:  # the port is back, with a board this host cannot use
+                if str(e) != said:
+                    said = str(e)
+                    self.notify(f"cannot use the board on {self.url}: {e}; still trying")
+                continue
             except LinkError:
                 continue
             if self._closing.is_set():
@@ -362,7 +382,12 @@ class Console:
             try:
                 recs = link.read_samples(seconds=0.05)
             except LinkError as e:
-                if self.link is link and not self._pump_stop.is_set():
+                if self.link is not link or self._pump_stop.is_set():
+                    return
+                try:
+                    link.heartbeat()             # the link is alive: only the telemetry stopped
+                    self.notify(f"telemetry stopped: {e}")
+                except LinkError:
                     threading.Thread(target=self.link_lost, args=(str(e),), daemon=True).start()
                 return
             if len(recs):
@@ -485,7 +510,7 @@ class Console:
         if self.link is not None:
             self.link.close()
             self.link = None
-        for t in (self._keepalive, self._reconnector):
+        for t in (self._watcher, self._reconnector):
             if t is not None and t is not threading.current_thread():
                 t.join(2.0)
 
