@@ -393,3 +393,12 @@ def test_board_reboot_restores_telemetry(board, con):
     n = con.link.telemetry_stats.samples
     assert wait_for(lambda: con.link.telemetry_stats.samples > n + 50, 3.0)
     assert not any(ln.startswith("link lost") for ln in con.lines)
+
+
+def test_plot_with_a_display_but_no_window_backend_falls_back_to_png(board, con, tmp_path, monkeypatch):
+    monkeypatch.setenv("DISPLAY", ":99")              # a display is announced ...
+    monkeypatch.setenv("MPLBACKEND", "Agg")           # ... but matplotlib can only render files
+    out = run(con, "plot")
+    assert out[-2].startswith("no plot window (cannot open a plot: matplotlib backend 'agg' cannot open a window")
+    assert out[-1].startswith("plot open (agg)") and out[-1].endswith(str(tmp_path / "live.png"))
+    assert run(con, "plot off") == ["plot closed"]

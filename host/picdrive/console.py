@@ -1074,7 +1074,7 @@ def _telemetry(con, args):
 @command("plot", "plot [off | --png FILE]", "live plot of the telemetry (a PNG file updated each second without a display)",
          complete=lambda con, args, text: ["off", "--png"] if not args else [])
 def _plot(con, args):
-    from .console_plot import LivePlot, display_available
+    from .console_plot import LivePlot, PlotError, display_available
     if args and args[0].lower() == "off":
         _nargs("plot", args, 1)
         if con.plot is None:
@@ -1096,11 +1096,20 @@ def _plot(con, args):
     if not con.tele_on:
         _telemetry_on(con)
     sigs = con.signal_units(con.tele_signals)
-    if png is None and not display_available():
+    plot = None
+    if png is None and display_available():
+        try:
+            plot = LivePlot(sigs)
+        except PlotError as e:            # e.g. only non-interactive matplotlib backends installed
+            png = str(con.out_dir / "live.png")
+            con.say(f"no plot window ({e}): the live plot goes to {png}, redrawn every second; "
+                    "'view' shows a text view")
+    elif png is None:
         png = str(con.out_dir / "live.png")
         con.say(f"no display for a plot window (DISPLAY is not set): the live plot goes to {png}, "
                 "redrawn every second; 'view' shows a text view")
-    plot = LivePlot(sigs, png_path=png, backend="Agg" if png is not None and not display_available() else None)
+    if plot is None:
+        plot = LivePlot(sigs, png_path=png, backend="Agg")
     with con._sinks_lock:
         con.plot = plot
     con.say(f"plot open ({plot.backend}): {', '.join(n for n, _ in sigs)}" + (f" -> {png}" if png else ""))
