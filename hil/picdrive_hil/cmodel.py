@@ -58,7 +58,7 @@ class PlantState(C.Structure):
         ("i_peak_a", C.c_double),
         ("energy_j", C.c_double),
         ("locked", C.c_int32),
-        ("pad", C.c_int32),
+        ("te_valid", C.c_int32),
     ]
 
 

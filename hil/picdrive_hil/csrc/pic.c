@@ -20,13 +20,6 @@ volatile uint8_t picsim_sfr[256];
 
 /* ------------------------------------------------------------ helpers */
 
-void hw_write(uint8_t idx, uint8_t v)
-{
-    picsim_sfr[idx] = v;
-    g.shadow[idx] = v;
-}
-void hw_setbit(uint8_t idx, int bit) { hw_write(idx, (uint8_t)(picsim_sfr[idx] | (1u << bit))); }
-void hw_clrbit(uint8_t idx, int bit) { hw_write(idx, (uint8_t)(picsim_sfr[idx] & ~(1u << bit))); }
 static void hw_putbit(uint8_t idx, int bit, int v) { if (v) hw_setbit(idx, bit); else hw_clrbit(idx, bit); }
 static uint16_t sfr16(uint8_t lo, uint8_t hi) { return (uint16_t)(picsim_sfr[lo] | (picsim_sfr[hi] << 8)); }
 
@@ -200,34 +193,44 @@ static double dead_time_s(void)
 
 static void pwm_load_buffers(void)
 {
-    g.ptper_act = (uint16_t)(sfr16(R_PTPERL, R_PTPERH) & 0x0FFF);
+    uint16_t per = (uint16_t)(sfr16(R_PTPERL, R_PTPERH) & 0x0FFF);
+    if (per != g.ptper_act) g.legs_dirty = 1;
+    g.ptper_act = per;
     if (!((picsim_sfr[R_PWMCON1] >> B_PWMCON1_UDIS) & 1) || !g.pwm_on)
         for (int k = 0; k < 4; k++) {
             static const uint8_t lo[4] = {R_PDC0L, R_PDC1L, R_PDC2L, R_PDC3L};
             static const uint8_t hi[4] = {R_PDC0H, R_PDC1H, R_PDC2H, R_PDC3H};
-            g.pdc_act[k] = (uint16_t)(sfr16(lo[k], hi[k]) & 0x3FFF);
+            uint16_t v = (uint16_t)(sfr16(lo[k], hi[k]) & 0x3FFF);
+            if (v != g.pdc_act[k]) g.legs_dirty = 1;
+            g.pdc_act[k] = v;
         }
 }
 
 static void pwm_start_period(void)
 {
     pwm_load_buffers();
-    if ((picsim_sfr[R_PWMCON1] >> B_PWMCON1_OSYNC) & 1) {
+    if ((picsim_sfr[R_PWMCON1] >> B_PWMCON1_OSYNC) & 1 &&
+        (g.ovd_act != picsim_sfr[R_OVDCOND] || g.ovs_act != picsim_sfr[R_OVDCONS])) {
         g.ovd_act = picsim_sfr[R_OVDCOND];
         g.ovs_act = picsim_sfr[R_OVDCONS];
+        g.legs_dirty = 1;
     }
     g.pwm_start = g.now;
-    g.pwm_period = pwm_period_ps(g.ptper_act);
-    if (g.pwm_period <= 0) g.pwm_period = tcy(1);
+    int64_t per = pwm_period_ps(g.ptper_act);
+    if (per <= 0) per = tcy(1);
+    if (per != g.pwm_period) g.legs_dirty = 1;
+    g.pwm_period = per;
     g.pwm_next = g.now + g.pwm_period;
     if (g.flt_cbc && !g.flta_asserted) {
         g.flt_cbc = 0;
+        g.legs_dirty = 1;
         if (!g.flt_latched) hw_clrbit(R_FLTCONFIG, B_FLTCONFIG_FLTAS);
     }
 }
 
 static void pwm_time_base(void)
 {
+    g.legs_dirty = 1;
     int on = (picsim_sfr[R_PTCON1] >> B_PTCON1_PTEN) & 1;
     if (on && !g.pwm_on) {
         g.pwm_on = 1;
@@ -277,6 +280,8 @@ static int pin_state(int n)
 
 void pic_compute_legs(void)
 {
+    if (!g.legs_dirty) return;
+    g.legs_dirty = 0;
     uint8_t en = pwm_pin_mask();
     int fault = g.flt_latched || g.flt_cbc;
     int64_t per = g.pwm_period > 0 ? g.pwm_period : 1;
@@ -334,6 +339,7 @@ static void flt_update(int64_t t_prev)
         if (asserted) g.ext[g.cfg.flta_pin.port] &= (uint8_t)~m; else g.ext[g.cfg.flta_pin.port] |= m;
     }
     if (!asserted) return;
+    g.legs_dirty = 1;
     uint8_t f = picsim_sfr[R_FLTCONFIG];
     if (!((f >> B_FLTCONFIG_FLTAEN) & 1)) return;
     hw_setbit(R_FLTCONFIG, B_FLTCONFIG_FLTAS);
@@ -714,6 +720,8 @@ void pic_after_plant_step(int64_t t_prev, double th_meas)
 /* side effects of a register the firmware changed */
 static void reg_written(uint8_t idx)
 {
+    if (idx >= R_OVDCONS && idx <= R_PTCON0) g.legs_dirty = 1;     /* the PCPWM block */
+    if (idx == R_FLTCONFIG) g.legs_dirty = 1;
     switch (idx) {
     case R_PTCON0: case R_PTCON1:
         pwm_time_base();
@@ -815,21 +823,30 @@ void picsim_sfr_read(uint16_t addr)
 }
 
 /* registers the model changes with time, written before each firmware call */
+static inline void sync_write(uint8_t idx, uint8_t v) { picsim_sfr[idx] = v; g.shadow[idx] = v; }
+
 void pic_sync_inputs(void)
 {
     static const uint8_t port[5] = {R_PORTA, R_PORTB, R_PORTC, R_PORTD, R_PORTE};
-    for (int k = 0; k < 5; k++) hw_write(port[k], port_value(k));
-    uint32_t c = timer_count(&g.t0);
-    hw_write(R_TMR0L, (uint8_t)c);
-    hw_write(R_TMR0H, (uint8_t)(g.t0.modulus > 256 ? c >> 8 : picsim_sfr[R_TMR0H]));
-    c = timer_count(&g.t1);
-    hw_write(R_TMR1L, (uint8_t)c); hw_write(R_TMR1H, (uint8_t)(c >> 8));
-    hw_write(R_TMR2, (uint8_t)timer_count(&g.t2));
-    c = timer_count(&g.t5);
-    hw_write(R_TMR5L, (uint8_t)c); hw_write(R_TMR5H, (uint8_t)(c >> 8));
+    for (int k = 0; k < 5; k++) sync_write(port[k], port_value(k));
+    uint32_t c;
+    if (g.t0.on) {
+        c = timer_count(&g.t0);
+        sync_write(R_TMR0L, (uint8_t)c);
+        sync_write(R_TMR0H, (uint8_t)(g.t0.modulus > 256 ? c >> 8 : picsim_sfr[R_TMR0H]));
+    }
+    if (g.t1.on) {
+        c = timer_count(&g.t1);
+        sync_write(R_TMR1L, (uint8_t)c); sync_write(R_TMR1H, (uint8_t)(c >> 8));
+    }
+    if (g.t2.on) sync_write(R_TMR2, (uint8_t)timer_count(&g.t2));
+    if (g.t5.on) {
+        c = timer_count(&g.t5);
+        sync_write(R_TMR5L, (uint8_t)c); sync_write(R_TMR5H, (uint8_t)(c >> 8));
+    }
     if (qei_mode()) {
-        hw_write(R_POSCNTL, (uint8_t)g.poscnt);
-        hw_write(R_POSCNTH, (uint8_t)(g.poscnt >> 8));
+        sync_write(R_POSCNTL, (uint8_t)g.poscnt);
+        sync_write(R_POSCNTH, (uint8_t)(g.poscnt >> 8));
     }
     if (g.pwm_on && g.pwm_period > 0) {
         int64_t tick = tcy(ptckps());
@@ -837,10 +854,11 @@ void pic_sync_inputs(void)
         if (ptmod() >= 2) {                        /* up/down: 0 .. PTPER .. 0 */
             int64_t half = g.ptper_act;
             n = n <= half ? n : 2 * half - n;
-            hw_putbit(R_PTCON1, B_PTCON1_PTDIR, (g.now - g.pwm_start) / tick > half);
+            int down = (g.now - g.pwm_start) / tick > half;
+            sync_write(R_PTCON1, (uint8_t)((picsim_sfr[R_PTCON1] & ~(1u << B_PTCON1_PTDIR)) | (down << B_PTCON1_PTDIR)));
         }
-        hw_write(R_PTMRL, (uint8_t)n);
-        hw_write(R_PTMRH, (uint8_t)((n >> 8) & 0x0F));
+        sync_write(R_PTMRL, (uint8_t)n);
+        sync_write(R_PTMRH, (uint8_t)((n >> 8) & 0x0F));
     }
 }
 

@@ -56,6 +56,9 @@ typedef struct {
     int flt_latched;          /* FLTAS, inactive mode */
     int flt_cbc;              /* cycle-by-cycle: outputs off to the end of the period */
     leg_t leg[3];
+    int legs_dirty;           /* PWM state changed: recompute the legs */
+    int poll_due;             /* something the main loop can see changed since its last pass */
+    int64_t last_poll;
     uint8_t gate_hi[3], gate_lo[3];
     double duty[4], dead_frac;
     uint32_t shoot_through;
@@ -131,9 +134,6 @@ typedef struct {
 
 /* one twin per loaded copy of the library; prefixed names keep clear of the firmware's */
 #define g picsim_twin
-#define hw_write picsim_hw_write
-#define hw_setbit picsim_hw_setbit
-#define hw_clrbit picsim_hw_clrbit
 extern twin_t g;
 
 /* pic.c */
@@ -148,9 +148,15 @@ int pic_irq_pending(void);            /* 0 none, 1 high, 2 low */
 void pic_set_pins_from_plant(void);
 void pic_uart_rx_schedule(void);
 double pic_board_baud(void);
-void hw_write(uint8_t idx, uint8_t v);
-void hw_setbit(uint8_t idx, int bit);
-void hw_clrbit(uint8_t idx, int bit);
+/* a hardware event changes an SFR: the main loop has something new to see */
+static inline void hw_write(uint8_t idx, uint8_t v)
+{
+    if (picsim_sfr[idx] != v) g.poll_due = 1;
+    picsim_sfr[idx] = v;
+    g.shadow[idx] = v;
+}
+static inline void hw_setbit(uint8_t idx, int bit) { hw_write(idx, (uint8_t)(picsim_sfr[idx] | (1u << bit))); }
+static inline void hw_clrbit(uint8_t idx, int bit) { hw_write(idx, (uint8_t)(picsim_sfr[idx] & ~(1u << bit))); }
 static inline int sfr_bit(uint8_t idx, int bit) { return (picsim_sfr[idx] >> bit) & 1; }
 
 #endif

@@ -121,8 +121,14 @@ static void solve_currents(const plant_params_t *p, const double i0[3], const do
                            double i1[3], double *vn_out)
 {
     double R = p->r_phase_ohm, L = p->l_phase_h;
-    double a = exp(-h * R / L);
-    double k = -expm1(-h * R / L) / R;          /* (1 - a) / R, accurate for small h */
+    /* the event loop mostly repeats one step length: keep the last exponentials */
+    static __thread double c_h = -1.0, c_r = 0.0, c_l = 0.0, c_a = 0.0, c_k = 0.0;
+    if (h != c_h || R != c_r || L != c_l) {
+        c_h = h; c_r = R; c_l = L;
+        c_a = exp(-h * R / L);
+        c_k = -expm1(-h * R / L) / R;           /* (1 - a) / R, accurate for small h */
+    }
+    double a = c_a, k = c_k;
     double A[3], cp[3], cm[3], bp[6], g[6];
     for (int x = 0; x < 3; x++) {
         A[x] = a * i0[x];
@@ -130,6 +136,27 @@ static void solve_currents(const plant_params_t *p, const double i0[3], const do
         cm[x] = vm[x] - e[x];
         bp[2 * x] = cp[x] + A[x] / k;
         bp[2 * x + 1] = cm[x] + A[x] / k;
+    }
+    /* fast path: the conduction mode of the start of the step holds to its end (legs
+       with current keep their sign and rail, open legs stay between theirs); then v_n
+       follows from sum i = 0 in closed form, and it is the root of G below */
+    {
+        double sum = 0.0, n = 0.0;
+        for (int x = 0; x < 3; x++)
+            if (i0[x] != 0.0) { sum += A[x] / k + (i0[x] > 0.0 ? cp[x] : cm[x]); n += 1.0; }
+        if (n >= 2.0) {
+            double vn = sum / n;
+            int ok = 1;
+            for (int x = 0; x < 3 && ok; x++) {
+                if (i0[x] > 0.0) { i1[x] = A[x] + k * (cp[x] - vn); ok = i1[x] > 0.0; }
+                else if (i0[x] < 0.0) { i1[x] = A[x] + k * (cm[x] - vn); ok = i1[x] < 0.0; }
+                else { i1[x] = 0.0; ok = cp[x] <= vn && vn <= cm[x]; }
+            }
+            if (ok) {
+                *vn_out = vn;
+                return;
+            }
+        }
     }
     /* insertion sort of the six breakpoints */
     for (int m = 1; m < 6; m++) {
@@ -210,7 +237,30 @@ static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3
         i0[x] = s->i_a[x];
     }
     double w0 = s->w_rad_s, th0 = s->theta_rad;
-    double te0 = torque_at(p, th0, i0);
+    int open = i0[0] == 0.0 && i0[1] == 0.0 && i0[2] == 0.0;
+    for (int x = 0; x < 3 && open; x++)
+        if (leg[x].f_hi != 0.0 || leg[x].f_lo != 0.0) open = 0;
+    if (open && !s->locked) {
+        /* bridge off, no current: it stays off while the line-to-line EMF peak is under
+           the rails (2 lambda P w for the trapezoid, sqrt 3 lambda P w for the sine) */
+        double wmax = fabs(w0) + h * (fabs(t_load_n_m) + p->friction_n_m_s * fabs(w0)) / J;
+        double peak = (p->emf_shape == EMF_SINUSOIDAL ? 1.7320508075688772 : 2.0) * p->lambda_m_v_s * P * wmax;
+        if (peak < vbus + 2.0 * p->diode_drop_v) {
+            double w1 = next_speed(p, w0, 0.0, t_load_n_m, h, &tl_applied);
+            for (int x = 0; x < 3; x++) { s->v_term[x] = 0.0; s->e_v[x] = 0.0; }
+            s->i_bus_a = s->i_link_on_a = s->i_peak_a = 0.0;
+            s->v_neutral = 0.0;
+            s->theta_rad = th0 + 0.5 * h * (w0 + w1);
+            s->w_rad_s = w1;
+            s->torque_e_n_m = 0.0;
+            s->te_valid = 1;
+            s->torque_load_n_m = tl_applied;
+            s->t_s += h;
+            return;
+        }
+    }
+    /* the torque left by the previous step (at its predicted end angle, O(h^2) from th0) */
+    double te0 = open ? 0.0 : (s->te_valid ? s->torque_e_n_m : torque_at(p, th0, i0));
     double w_mid;
     if (s->locked) {
         w_mid = 0.0;
@@ -261,6 +311,7 @@ static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3
     s->w_rad_s = w1;
     s->theta_rad = th1;
     s->torque_e_n_m = te1p;          /* at th0 + h w_mid, within O(h^2) of th1 */
+    s->te_valid = 1;
     s->torque_load_n_m = tl_applied;
     s->t_s += h;
 }
@@ -317,6 +368,7 @@ void plant_step(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
     substep(p, s, leg, t_load_n_m, best);
     /* the crossing phase ends at zero; the rest keep the sum at zero */
     double r = s->i_a[bx];
+    s->te_valid = 0;                  /* the currents are adjusted below */
     if (fabs(r) > 0.02 * fabs(save.i_a[bx])) {   /* estimate off: leave it to the implicit rule */
         substep(p, s, leg, t_load_n_m, h - best);
         return;

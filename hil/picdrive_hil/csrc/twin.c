@@ -15,6 +15,8 @@
 
 twin_t g;
 
+#define MAIN_LOOP_MAX_PS 1000000000LL    /* 1 ms */
+
 /* ------------------------------------------------------------ noise */
 
 static uint64_t rng_next(void)
@@ -65,6 +67,7 @@ static int service_irqs(void)
     for (int guard = 0;; guard++) {
         int v = pic_irq_pending();
         if (!v) return 0;
+        g.poll_due = 1;
         if (guard >= 1000) {
             g.errors |= TWIN_ERR_IRQ_STORM;
             return -1;
@@ -178,6 +181,7 @@ int twin_init(const twin_config_t *cfg)
     memset(g.ee, 0xFF, sizeof g.ee);          /* erased */
     g.ext[2] = 0x80;                          /* RX idle high */
     g.trace_next = NEVER;
+    g.legs_dirty = 1;
     g.initialised = 1;
     return 0;
 }
@@ -187,6 +191,7 @@ int twin_power_on(void)
 {
     if (!g.initialised) return TWIN_ERR_NOT_INIT;
     pic_reset();
+    g.legs_dirty = 1;
     g.hall_pins = (uint8_t)plant_hall_code(&g.pp, g.ps.theta_rad);
     pic_set_pins_from_plant();
     if (g.pp.encoder_lines > 0) {
@@ -232,7 +237,11 @@ int twin_run_until(int64_t t_end)
             g.trace_next += g.trace_period;
         }
         if (service_irqs()) break;
-        if (g.now >= g.main_busy_until) {
+        /* the main loop runs after anything it could see changed (an interrupt, a hardware
+           flag or a byte), and at least every MAIN_LOOP_MAX_PS */
+        if (g.now >= g.main_busy_until && (g.poll_due || g.now - g.last_poll >= MAIN_LOOP_MAX_PS)) {
+            g.poll_due = 0;
+            g.last_poll = g.now;
             fw_call(fw_poll);
             g.poll_calls++;
             /* a blocking wait in the main loop (EEPROM write) holds it for that long */
@@ -360,5 +369,6 @@ void twin_set_plant_state(double w_rad_s, double theta_rad)
 {
     g.ps.w_rad_s = w_rad_s;
     g.ps.theta_rad = theta_rad;
+    g.ps.te_valid = 0;
     pic_set_pins_from_plant();
 }

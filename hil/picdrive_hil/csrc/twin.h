@@ -60,7 +60,7 @@ typedef struct {
     double i_peak_a;         /* largest |phase current| at the end of the step */
     double energy_j;         /* energy drawn from the bus since reset */
     int32_t locked;          /* rotor locked by injection */
-    int32_t pad;
+    int32_t te_valid;        /* torque_e_n_m is the torque of the present i and theta (to O(h^2)) */
 } plant_state_t;
 
 void   plant_reset(plant_state_t *s);
