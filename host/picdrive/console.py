@@ -348,9 +348,6 @@ class Console:
 
     # -- telemetry ---------------------------------------------------------------
 
-    def sample_hz(self) -> float:
-        return float(self._require_link().info.sample_hz or 0)
-
     def _apply_telemetry(self):
         link = self._require_link()
         hz = link.info.sample_hz
@@ -394,29 +391,39 @@ class Console:
                 self._dispatch(recs, link.telemetry_stats.dropped)
 
     def _dispatch(self, recs, dropped_total: int) -> None:
+        """Hand a batch of samples to the step collector, recorder, plot and view.  Runs in
+        the pump thread under the sinks lock, so a sink is never closed while it is fed."""
         names = [n for n in recs.dtype.names if n not in ("index", "t")]
+        t = recs["t"]
+        closed_plot = False
         with self._sinks_lock:
-            sinks = [s for s in (self.recorder, self.plot, self._view) if s is not None]
-            collect = self._collect
-        if collect is not None:
-            collect.append(recs)
-        if not sinks:
-            return
-        for s in sinks:
-            want = [n for n, _ in s.signals]
-            cols = [recs[n] if n in names else None for n in want]
-            if s is self.recorder:
-                drop = dropped_total - self._rec_dropped_seen
-                self._rec_dropped_seen = dropped_total
-            for k in range(len(recs)):
-                vals = [float(c[k]) if c is not None else math.nan for c in cols]
+            if self._collect is not None:
+                self._collect.append(recs)
+            for s in (self.recorder, self.plot, self._view):
+                if s is None:
+                    continue
+                cols = [recs[n] if n in names else None for n, _ in s.signals]
+                rows = [[float(c[k]) if c is not None else math.nan for c in cols] for k in range(len(recs))]
                 if s is self.recorder:
-                    s.write(float(recs["t"][k]), vals, dropped=drop if k == 0 else 0)
+                    drop = dropped_total - self._rec_dropped_seen
+                    self._rec_dropped_seen = dropped_total
+                    for k, vals in enumerate(rows):
+                        s.write(float(t[k]), vals, dropped=drop if k == 0 else 0)
                 else:
-                    s.feed(float(recs["t"][k]), vals)
-        if self.plot is not None and not self.plot.alive:
-            self.plot = None
+                    for k, vals in enumerate(rows):
+                        s.feed(float(t[k]), vals)
+            if self.plot is not None and not self.plot.alive:
+                self.plot, closed_plot = None, True
+        if closed_plot:
             self.notify("plot window closed")
+
+    def close_plot(self) -> bool:
+        """Close the live plot, if one is open."""
+        with self._sinks_lock:
+            plot, self.plot = self.plot, None
+        if plot is not None:
+            plot.close()
+        return plot is not None
 
     def signal_units(self, names) -> list[tuple[str, str]]:
         link = self._require_link()
@@ -504,9 +511,7 @@ class Console:
             rec, self.recorder = self.recorder, None
             p = rec.close()
             self.say(f"recording saved to {p} ({rec.samples} samples, {rec.dropped} dropped)")
-        if self.plot is not None:
-            self.plot.close()
-            self.plot = None
+        self.close_plot()
         if self.link is not None:
             self.link.close()
             self.link = None
@@ -1063,9 +1068,7 @@ def _telemetry(con, args):
         con._stop_pump()
         link.stop_telemetry()
         con.tele_on = False
-        if con.plot is not None:
-            con.plot.close()
-            con.plot = None
+        con.close_plot()
         con.say("telemetry off")
     else:
         raise ConsoleError(f"telemetry {args[0]!r}: expected signals, rate, on or off")
@@ -1077,12 +1080,7 @@ def _plot(con, args):
     from .console_plot import LivePlot, PlotError, display_available
     if args and args[0].lower() == "off":
         _nargs("plot", args, 1)
-        if con.plot is None:
-            con.say("no plot open")
-            return
-        con.plot.close()
-        con.plot = None
-        con.say("plot closed")
+        con.say("plot closed" if con.close_plot() else "no plot open")
         return
     png = None
     if args:
