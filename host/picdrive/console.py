@@ -42,7 +42,7 @@ background and announced when it is back.
 """
 from __future__ import annotations
 
-import argparse
+import difflib
 import math
 import os
 import shlex
@@ -444,7 +444,7 @@ class Console:
         name = ALIASES.get(name, name)
         cmd = COMMANDS.get(name)
         if cmd is None:
-            near = [c for c in COMMANDS if c.startswith(name[:2])]
+            near = difflib.get_close_matches(name, list(COMMANDS) + list(ALIASES), n=3, cutoff=0.6)
             hint = f" (did you mean {', '.join(near)}?)" if near else ""
             raise ConsoleError(f"unknown command {words[0]!r}{hint}; 'help' lists the commands")
         link = self._require_link() if cmd.needs_link else self.link
