@@ -371,3 +371,21 @@ def test_eeprom_persistence_through_the_registers(fw):
     fw.adc[1] = 512
     fw.lib.fw_init()
     assert fw.lib.link_param_get(kp.id) == 123
+
+
+def test_current_limit_window_at_standstill(fw):
+    """At rest the output may not exceed R_line x I_lim: the current cannot pass the limit."""
+    fw.reset()
+    fw.param("stall_timeout", 60000)
+    fw.param("link_timeout", 60000)
+    fw.cmd("start")
+    fw.param("speed_setpoint", fw.table["speed_setpoint"].to_raw(2400.0))
+    fw.tick(50)
+    r_ilim_v = fw.prof.motor.r_line_ohm * fw.table["current_limit"].scale * fw.lib.link_param_get(
+        fw.table["current_limit"].id)
+    v = fw.sig("voltage") * fw.table["voltage"].scale
+    assert 0 < v <= r_ilim_v + 0.05, (v, r_ilim_v)
+    # with a larger limit the window opens (up to the bridge's limit)
+    fw.param("current_limit", 1023)
+    fw.tick(20)
+    assert fw.sig("voltage") * fw.table["voltage"].scale > min(r_ilim_v + 1.0, 40.0)

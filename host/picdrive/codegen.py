@@ -300,7 +300,13 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
         _d("CORE_DUTY_SH", f"{plan.duty_sh}u", ""),
         _d("CORE_PDC_MAX", f"UINT32_C({plan.pdc_max})", "= FW_PDC_MAX"),
         _d("CORE_U_LIMIT", str(plan.u_limit), f"bus x max duty = {plan.u_limit * 2 ** -plan.qu:.4g} V"),
-        _d("CORE_CAP_STEP", str(plan.cap_step), "current limiter: |u| cap step per sample (full range in 10 ms)"),
+        _d("CORE_CAP_STEP", str(plan.cap_step), "backup current limiter: |u| cap step per sample (full range in 10 ms)"),
+        _d("CORE_KB", str(plan.kb), f"motor Kb = {plan.kb * 2 ** -plan.q_kb:.6g} V s/rad in Q{plan.q_kb} "
+           "(current-limit window Kb w -+ R I_lim)"),
+        _d("CORE_SHIFT_KB(x)", shift_macro("KB", plan.shift_kb), f"Q_KB + QS - QU = {plan.shift_kb}"),
+        _d("CORE_R_CNT", str(plan.r_cnt), f"motor r_line_ohm per ADC count = {plan.r_cnt * 2 ** -plan.q_r:.6g} V "
+           f"in Q{plan.q_r}"),
+        _d("CORE_SHIFT_R(x)", shift_macro("R", plan.shift_r), f"Q_R - QU = {plan.shift_r}"),
     ]})
     gains = []
     for c in plan.coefs:

@@ -172,6 +172,12 @@ class FixedPointPlan:
     ilim: int
     itrip: int
     cap_step: int
+    kb: int                      # back-EMF constant, Q q_kb V/(rad/s) (current-limit voltage window)
+    q_kb: int
+    shift_kb: int
+    r_cnt: int                   # line resistance per ADC count of current, Q q_r V/count
+    q_r: int
+    shift_r: int
     # timing
     t2_pre: int
     t2_post: int
@@ -440,6 +446,20 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
         notes.append(f"overcurrent_trip_a = {inv.overcurrent_trip_a:g} A is beyond the ADC range "
                      f"({1023 / counts_per_a:.3g} A): only FLTA protects above it")
     cap_step = max(1, round(u_limit * ts / 0.010))
+    # current-limit voltage window: |i| <= I_lim in steady state while u stays within
+    # Kb w -+ R_line I_lim (the DC-equivalent motor; no overshoot for an RL circuit driven from below)
+    kb_v = mo.kb_v_s_per_rad
+    q_kb = _q_for(kb_v, 1.0)
+    kb_raw = round(kb_v * 2 ** q_kb)
+    r_cnt_v = mo.r_line_ohm / counts_per_a
+    q_r = _q_for(r_cnt_v, 1.0)
+    r_raw = round(r_cnt_v * 2 ** q_r)
+    shift_kb, shift_r = q_kb + qs - qu, q_r - qu
+    if not (-15 <= shift_kb <= 31 and -15 <= shift_r <= 31):
+        raise FixedPointError(f"motor constants Kb = {kb_v:g} V s/rad, R = {mo.r_line_ohm:g} ohm cannot be "
+                              "represented for the current-limit window")
+    coefs.append(Coef("kb", kb_v, q_kb, kb_raw, "V/(rad/s)", "motor kb_v_s_per_rad (current-limit window)"))
+    coefs.append(Coef("r_per_count", r_cnt_v, q_r, r_raw, "V/count", "motor r_line_ohm / counts per A"))
 
     pre, post, pr2, div, ticks, achieved = _timer2(loop_hz)
     return FixedPointPlan(
@@ -452,6 +472,7 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
         speed_res_at_max=res, speed_min_rpm=speed_min_rpm,
         kduty=kduty, duty_sh=duty_sh, pdc_max=pwm_plan.pdc_max, duty_full=full,
         counts_per_a=counts_per_a, ilim=ilim, itrip=itrip, cap_step=cap_step,
+        kb=kb_raw, q_kb=q_kb, shift_kb=shift_kb, r_cnt=r_raw, q_r=q_r, shift_r=shift_r,
         t2_pre=pre, t2_post=post, pr2=pr2, loop_div=div, tcy_per_tick=ticks, loop_hz=achieved,
         stall_ms=int(round(co.stall_timeout_ms)), link_timeout_ms=int(round(profile.uart.link_timeout_ms)),
         bus_voltage_v=inv.bus_voltage_v, coefs=tuple(coefs), notes=tuple(notes))
@@ -734,15 +755,28 @@ def duty_counts(plan: FixedPointPlan, u: int) -> int:
 
 
 def core_control(plan: FixedPointPlan, p: LawParams, st: CoreState, target: int, adc: int) -> int:
-    """C: core_control: current limiter, setpoint ramp, law, duty and direction.  Returns u."""
+    """C: core_control: current limits, setpoint ramp, law, duty and direction.  Returns u.
+
+    Current limits: the output window ``Kb y -+ R_line I_lim`` (in steady state
+    the current stays within +-I_lim; I_lim = the ``current_limit`` parameter)
+    and, as a backup on the measured bus current, a cap on |u| walked down
+    while the current exceeds I_lim and back up when it does not.
+    """
     i = -adc if st.dir else adc
     st.current = i
     if adc > p.ilim:
         st.cap = st.cap - plan.cap_step if st.cap > plan.cap_step else 0
     else:
         st.cap = st.cap + plan.cap_step if st.cap < plan.u_limit - plan.cap_step else plan.u_limit
-    umax = p.u_max if p.u_max < st.cap else st.cap
-    umin = p.u_min if p.u_min > -st.cap else -st.cap
+    # voltage window that keeps |i| <= I_lim at the present speed: Kb w -+ R I_lim
+    emf = shift32(plan.kb * st.speed, plan.shift_kb)
+    ri = shift32(plan.r_cnt * p.ilim, plan.shift_r)
+    hi = sat16(sat32(emf + ri))
+    lo = sat16(sat32(emf - ri))
+    umax = min(p.u_max, st.cap, max(hi, p.u_min))
+    umin = max(p.u_min, -st.cap, min(lo, p.u_max))
+    if umin > umax:
+        umin = umax
     t = target
     if p.accel_step > 0:
         d = t - st.r_applied
@@ -989,7 +1023,7 @@ def closed_loop_compare(profile, law, plan: FixedPointPlan, *, t_end_s: float = 
     Float: :func:`picdrive.control_law.law_step` on the true current, its
     output applied as is.  Fixed: :func:`core_control` (the firmware's
     arithmetic) on the bus current through the 10-bit ADC, its output applied
-    as whole PDC counts of the bus voltage; the current limiter is disabled
+    as whole PDC counts of the bus voltage; the current limits are disabled
     (the float reference has none).  Plant: ``L di/dt = v - R i - Kb w``,
     ``J dw/dt = Kt i - B w - T_load``, exact zero-order-hold discretisation.
 
@@ -1042,7 +1076,7 @@ def closed_loop_compare(profile, law, plan: FixedPointPlan, *, t_end_s: float = 
     wf, wq = np.zeros(n), np.zeros(n)
     stf = LawState()
     p = law_params_from_plan(plan)
-    p.ilim = 1023
+    p.ilim = INT16_MAX                 # no current limits (the float reference has none)
     st = CoreState()
     core_reset(plan, st)
     target = plan.to_speed_raw(w_ref)
