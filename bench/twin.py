@@ -1,0 +1,203 @@
+#!/usr/bin/env python3
+"""Figures of the motor twin (printed; not a timed test).
+
+1. Real-time factor (simulated seconds per wall second, and per CPU second of
+   this process) of the full firmware-in-the-loop twin at each bundled
+   profile's PWM rate, with the motor idle and running.  Target >= 200.
+2. The same simulated seconds through gym-electric-motor's PMSM environment
+   (``Cont-SC-PMSM-v0``) with the profile's motor constants, at a time step of
+   one PWM period and at its default 100 us; the ratio side by side.
+   Target >= 100x.  (pip install gym-electric-motor; skipped with a note if
+   it is not installed.)
+3. The closed-loop step against the physical limit t_min = J w / (Kt Imax -
+   T_load), for each bundled profile and design, with the profile's load
+   torque applied: the measured time to reach the setpoint (first entry into
+   a band of 1 % of the step), the ratio to t_min, overshoot and steady-state
+   error, from the twin's true rotor speed sampled every 50 us.  Target:
+   ratio <= 1.25 with <= 1 % overshoot and <= 0.2 % steady error.
+
+Usage: python3 bench/twin.py [--seconds 20] [--quick]
+The machine's load average is printed: on a shared machine the wall-clock
+figure drops while the CPU-time figure does not.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+METHODS = ("fuzzy-hinf", "mixed-pid", "zn")
+PROFILES = ("duy2008", "assawinchaichote2016")
+
+
+def quiet_profile(name):
+    from picdrive.profile import ProfileWarning, load_profile
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ProfileWarning)
+        return load_profile(name)
+
+
+def firmware_for(prof, method, tmp: Path) -> Path:
+    from picdrive import codegen
+    out = tmp / f"{prof.name}.{method}"
+    if not out.exists():
+        fw = codegen.generate(prof, str(ROOT / "examples" / f"{prof.name}.{method}.design.json"))
+        codegen.write_firmware(fw, out, check=False)
+    return out
+
+
+def configure(tw, speed_rpm: float | None):
+    """Through the link (real time, briefly): a long watchdog and a setpoint;
+    returns the server stopped, so that the twin can then run free."""
+    from picdrive.link import Link
+    srv = tw.serve(port=0, realtime=True)
+    try:
+        lk = Link.open(srv.url, keepalive=False)
+        lk.set("link_timeout", lk.param("link_timeout").max_value)
+        if speed_rpm is not None:
+            lk.set_speed(speed_rpm)
+        lk.close()
+    finally:
+        srv.stop()
+
+
+def send(tw, cmd: str, seq: int):
+    from picdrive import codec
+    tw.uart_write(codec.encode_command(cmd, seq))
+
+
+def rtf(tw, seconds: float) -> tuple[float, float]:
+    c0, t0 = time.process_time(), time.perf_counter()
+    tw.run(seconds)
+    c1, t1 = time.process_time(), time.perf_counter()
+    return seconds / (t1 - t0), seconds / (c1 - c0)
+
+
+def bench_rtf(seconds: float, tmp: Path) -> dict:
+    from picdrive_hil.twin import Twin
+    out = {}
+    print("1. Real-time factor of the firmware-in-the-loop twin (simulated s per wall s | per CPU s)")
+    for name in PROFILES:
+        prof = quiet_profile(name)
+        fw = ROOT / "firmware_build" / name
+        label = f"{name} (firmware_build/{name})"
+        if not fw.exists():
+            fw = firmware_for(prof, "mixed-pid", tmp)
+            label = f"{name} (generated, mixed-pid)"
+        tw = Twin(prof, fw)
+        configure(tw, prof.speed_step_rpm())
+        w_idle, c_idle = rtf(tw, seconds)
+        send(tw, "start", 201)
+        tw.run(0.5)
+        w_run, c_run = rtf(tw, seconds)
+        s = tw.state()
+        print(f"   {label:46s} PWM {prof.inverter.pwm_frequency_hz / 1e3:.0f} kHz: idle {w_idle:6.0f} | {c_idle:6.0f}   "
+              f"running at {s['speed_rpm']:.0f} rpm {w_run:6.0f} | {c_run:6.0f}")
+        out[name] = (w_idle, c_idle, w_run, c_run)
+        tw.close()
+    return out
+
+
+def bench_gem(seconds: float, twin_rtf: dict) -> None:
+    print("2. gym-electric-motor PMSM environment, same simulated seconds")
+    try:
+        import gym_electric_motor as gem
+    except ImportError:
+        print("   gym-electric-motor is not installed (pip install gym-electric-motor): not measured")
+        return
+    for name in PROFILES:
+        prof = quiet_profile(name)
+        m = prof.motor
+        tau_pwm = 1.0 / prof.inverter.pwm_frequency_hz
+        for tau in (tau_pwm, 1e-4):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                env = gem.make("Cont-SC-PMSM-v0", tau=tau,
+                               motor=dict(motor_parameter=dict(p=m.pole_pairs, r_s=m.r_phase_ohm, l_d=m.ld_phase_h,
+                                                               l_q=m.lq_phase_h, psi_p=m.lambda_m_v_s,
+                                                               j_rotor=m.inertia_kg_m2)),
+                               supply=dict(u_nominal=prof.inverter.bus_voltage_v))
+                env.reset(seed=0)
+                a = np.array([0.3, -0.15, -0.15])
+                n = int(round(min(seconds, 2.0) / tau))
+                c0, t0 = time.process_time(), time.perf_counter()
+                for _ in range(n):
+                    r = env.step(a)
+                    if r[2]:
+                        env.reset()
+                c1, t1 = time.process_time(), time.perf_counter()
+            w, c = n * tau / (t1 - t0), n * tau / (c1 - c0)
+            tw_w, tw_c = twin_rtf[name][2], twin_rtf[name][3]
+            print(f"   {name:22s} tau {tau * 1e6:5.0f} us: {w:6.3f} | {c:6.3f} sim s per s;  twin running / gem = "
+                  f"{tw_w / w:6.0f}x wall, {tw_c / c:6.0f}x CPU")
+
+
+def bench_physical_limit(tmp: Path) -> None:
+    from picdrive.metrics import step_metrics
+    from picdrive_hil.twin import Twin
+    print("3. Closed-loop step under the profile's load against t_min = J w / (Kt Imax - T_load)")
+    print(f"   {'profile / design':34s} {'target':>7s} {'t_min':>8s} {'t_reach':>8s} {'ratio':>6s} "
+          f"{'overshoot':>9s} {'ss err':>8s}  note")
+    for name in PROFILES:
+        prof = quiet_profile(name)
+        m, inv = prof.motor, prof.inverter
+        target = prof.speed_step_rpm()
+        w = target * 2 * math.pi / 60
+        tl = prof.control.load_torque_n_m
+        t_min = m.inertia_kg_m2 * w / (m.kt_n_m_per_a * inv.current_limit_a - tl)
+        for method in METHODS:
+            fw = firmware_for(prof, method, tmp)
+            tw = Twin(prof, fw)
+            configure(tw, target)
+            tw.set_load_torque(tl)
+            tw.run(0.01)
+            send(tw, "start", 202)
+            rec = tw.record(1.5, 50e-6)
+            i = np.abs(np.stack([rec["i_a"], rec["i_b"], rec["i_c"]])).max(axis=0)
+            on = np.nonzero((rec["duty_max"] > 0) | (i > 0))[0]
+            note = ""
+            if on.size == 0:
+                print(f"   {name + ' / ' + method:34s} the drive never switched on")
+                continue
+            t0 = rec["t_s"][on[0]]
+            rpm = rec["w_rad_s"] * 60 / (2 * math.pi)
+            sel = rec["t_s"] >= t0
+            t, y = rec["t_s"][sel], rpm[sel]
+            inside = np.nonzero(np.abs(y - target) <= 0.01 * target)[0]
+            t_reach = float(t[inside[0]] - t0) if inside.size else math.inf
+            mt = step_metrics(t, y, target, y0=0.0, t_step=t0)
+            if any(rec["fault"] > 0):
+                note = "FLTA tripped"
+            print(f"   {name + ' / ' + method:34s} {target:7.0f} {t_min * 1e3:6.2f}ms {t_reach * 1e3:6.1f}ms "
+                  f"{t_reach / t_min:6.2f} {mt.overshoot_pct:8.2f}% {mt.steady_state_error_pct:7.3f}%  {note}")
+            tw.close()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=20.0, help="simulated seconds per real-time-factor run")
+    ap.add_argument("--quick", action="store_true", help="5 s runs")
+    args = ap.parse_args()
+    secs = 5.0 if args.quick else args.seconds
+    la = os.getloadavg()
+    print(f"bench/twin.py on {os.cpu_count()} CPUs, load average {la[0]:.2f} {la[1]:.2f} {la[2]:.2f}")
+    with tempfile.TemporaryDirectory(prefix="picdrive-bench-twin-") as d:
+        tmp = Path(d)
+        r = bench_rtf(secs, tmp)
+        bench_gem(secs, r)
+        bench_physical_limit(tmp)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,131 @@
+"""`picdrive twin` and the twin's serial endpoint: a socket and a pty that
+pyserial programs open like a COM port, real-time pacing, EEPROM image
+kept across runs, clear errors for bad arguments."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import pytest
+import serial
+
+from picdrive import codec
+from picdrive.link import Link
+from picdrive.profile import ProfileWarning
+
+warnings.simplefilter("ignore", ProfileWarning)
+
+ROOT = Path(__file__).resolve().parents[1]
+FW = ROOT / "firmware_build" / "duy2008"
+
+needs_fw = pytest.mark.skipif(not (FW / "board.json").exists(), reason="firmware_build/duy2008 not generated")
+
+
+def picdrive(*args, **kw):
+    return subprocess.Popen([sys.executable, "-m", "picdrive", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT, **kw)
+
+
+def read_frame(port, timeout=2.0):
+    dec = codec.StreamDecoder()
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        data = port.read(256)
+        if data:
+            for f in dec.feed(data):
+                return f
+        else:
+            time.sleep(0.005)
+    raise AssertionError("no frame from the twin")
+
+
+@needs_fw
+def test_cli_serves_socket_and_pty_and_keeps_the_eeprom(tmp_path):
+    ee = tmp_path / "board.eeprom"
+    p = picdrive("twin", "--profile", "duy2008", "--firmware", str(FW), "--pty", "--eeprom", str(ee))
+    try:
+        url = p.stdout.readline().strip()
+        pty = p.stdout.readline().strip()
+        assert url.startswith("socket://127.0.0.1:") and pty.startswith("/dev/")
+        build_id = json.loads((FW / "board.json").read_text())["build_id"]
+        lk = Link.open(url)
+        assert lk.info.build_id == build_id
+        old = lk.get_raw("stall_timeout")["stall_timeout"]
+        lk.set_raw("stall_timeout", old + 7)
+        lk.save_eeprom()
+        lk.close()
+        # any pyserial program: a raw hello frame over the pty
+        with serial.serial_for_url(pty, baudrate=115200, timeout=0) as port:
+            port.write(codec.encode_command("hello", 0x33))
+            f = read_frame(port)
+        assert f.seq == 0x33 and codec.decode_reply("hello", f.payload)["build_id"] == build_id
+    finally:
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=20)
+    assert p.returncode == 0, err
+    assert "client connected" in err
+    image = ee.read_bytes()
+    assert len(image) == 256 and image != b"\xff" * 256
+    # a second run starts from the saved image: the parameter came back
+    p = picdrive("twin", "--profile", "duy2008", "--firmware", str(FW), "--eeprom", str(ee))
+    try:
+        url = p.stdout.readline().strip()
+        lk = Link.open(url)
+        assert lk.get_raw("stall_timeout")["stall_timeout"] == old + 7
+        lk.close()
+    finally:
+        p.send_signal(signal.SIGINT)
+        p.communicate(timeout=20)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--perturb", "resistnce=1.1"], "unknown perturbation 'resistnce'"),
+    (["--perturb", "resistance=0"], r"\[0.1, 10\]"),
+    (["--speed", "0"], "--speed"),
+])
+def test_cli_rejects_bad_arguments_with_a_clear_message(args, message):
+    import re
+    p = picdrive("twin", "--profile", "duy2008", "--firmware", str(FW), *args)
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == 2
+    assert re.search(message, err) and err.startswith("picdrive: error:")
+    assert out == ""
+
+
+def test_cli_names_a_missing_firmware_folder(tmp_path):
+    p = picdrive("twin", "--profile", "duy2008", "--firmware", str(tmp_path / "nope"))
+    out, err = p.communicate(timeout=60)
+    assert p.returncode == 2 and "does not exist" in err and "picdrive firmware" in err
+
+
+@needs_fw
+def test_real_time_pacing_and_speed_factor():
+    from picdrive_hil.twin import Twin
+    tw = Twin("duy2008", FW)
+    for speed in (1.0, 3.0):
+        srv = tw.serve(port=0, realtime=True)
+        srv.speed = speed
+        t_sim0, t0 = tw.t, time.perf_counter()
+        time.sleep(0.6)
+        ds, dw = tw.t - t_sim0, time.perf_counter() - t0
+        srv.stop()
+        assert ds == pytest.approx(speed * dw, rel=0.15), (speed, ds, dw)
+    tw.close()
+
+
+@needs_fw
+def test_a_client_that_disconnects_leaves_the_board_running_and_a_new_one_connects():
+    from picdrive_hil.twin import Twin
+    tw = Twin("duy2008", FW)
+    with tw.serve(port=0) as srv:
+        lk = Link.open(srv.url)
+        lk.close()
+        lk = Link.open(srv.url)                         # reconnect to the same endpoint
+        assert lk.status().uptime_ms > 0
+        lk.close()
+        assert srv.error is None and srv.running
+    tw.close()
