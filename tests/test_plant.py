@@ -7,7 +7,6 @@ import warnings
 
 import numpy as np
 import pytest
-from scipy.optimize import fsolve
 
 from picdrive.profile import ProfileWarning, load_profile
 from picdrive_hil import reference as ref
@@ -193,20 +192,17 @@ def test_passive_load_holds_a_standing_rotor_and_never_reverses_it():
     assert ca.state.w_rad_s < 0.0
 
 
-def _dq_steady_state(m, vq, vd, tl):
-    """Steady state of the dq model (q axis on e_a's sine, P pole pairs):
-    v_q = R i_q - w_e L i_d + w_e lambda,  v_d = R i_d + w_e L i_q,
-    1.5 P lambda i_q = B w + T_L."""
-    P, R, L, lam, B = m.pole_pairs, m.r_phase_ohm, m.l_phase_h, m.lambda_m_v_s, m.friction_n_m_s
-
-    def f(x):
-        w, iq, idd = x
-        we = P * w
-        return [R * iq - we * L * idd + we * lam - vq,
-                R * idd + we * L * iq - vd,
-                1.5 * P * lam * iq - B * w - tl]
-    w_guess = vq / (P * lam)
-    return fsolve(f, [w_guess, 0.0, 0.0], xtol=1e-12)
+def _dq_steady_state(prof, vq, vd, tl):
+    """Steady state of picdrive.dqmodel (the design's corrected 2016 eq 5) at
+    voltages given in this test's Park convention (q axis on e_a's sine, d on
+    its cosine); dqmodel's d axis points the other way: v_d, i_d change sign."""
+    from scipy.optimize import brentq
+    from picdrive import dqmodel
+    p = dqmodel.dq_params(prof)
+    f = lambda w: dqmodel.equilibrium(p, w, tl, vd=-vd)[2] - vq
+    w = brentq(f, 1e-6, 10 * vq / (p.pole_pairs * p.lambda_m_v_s), xtol=1e-12)
+    iq, id_, _ = dqmodel.equilibrium(p, w, tl, vd=-vd)
+    return w, iq, -id_
 
 
 @pytest.mark.parametrize("vq, vd, tl", [(20.0, 0.0, 0.5), (15.0, -5.0, 1.0)])
@@ -215,7 +211,7 @@ def test_plant_matches_the_dq_model_at_steady_operating_points(vq, vd, tl):
     time: average node voltage = V_bus x duty exactly) on the 2016 motor."""
     p = _profile("assawinchaichote2016")
     m = plant_from_profile(p, load_mode="active")
-    w_ss, iq_ss, id_ss = _dq_steady_state(m, vq, vd, tl)
+    w_ss, iq_ss, id_ss = _dq_steady_state(p, vq, vd, tl)
     cp = CPlant(m)
     cp.state.w_rad_s = 0.9 * w_ss
     vbus, P = m.bus_voltage_v, m.pole_pairs
