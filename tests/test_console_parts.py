@@ -36,6 +36,9 @@ def test_recorder_header_data_and_drops(tmp_path):
     with pytest.raises(RecordError, match="no column 'duty'"):
         r.column("duty")
     assert [q.name for q in tmp_path.iterdir()] == ["run.csv"], "no temporary file left behind"
+    mask = os.umask(0o022)
+    os.umask(mask)
+    assert p.stat().st_mode & 0o777 == 0o666 & ~mask, "permissions of an ordinary file, not mkstemp's 0600"
 
 
 def test_recorder_abort_leaves_nothing(tmp_path):

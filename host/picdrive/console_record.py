@@ -50,6 +50,12 @@ class RecordError(PicdriveError):
     """A recording cannot be started, written or read."""
 
 
+def _umask() -> int:
+    m = os.umask(0o022)
+    os.umask(m)
+    return m
+
+
 def _now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
@@ -132,6 +138,7 @@ class Recorder:
         self._f.close()
         self._f = None
         try:
+            os.chmod(self._tmp, 0o666 & ~_umask())    # mkstemp made it 0600; a CSV is an ordinary file
             os.replace(self._tmp, self.path)
         except OSError as e:
             self._tmp.unlink(missing_ok=True)
