@@ -97,12 +97,13 @@ def bench_rtf(seconds: float, tmp: Path) -> dict:
         tw = Twin(prof, fw)
         configure(tw, prof.speed_step_rpm())
         w_idle, c_idle = rtf(tw, seconds)
+        tw.set_load_torque(prof.control.load_torque_n_m)        # the HIL operating point
         send(tw, "start", 201)
         tw.run(0.5)
         w_run, c_run = rtf(tw, seconds)
         s = tw.state()
         print(f"   {label:46s} PWM {prof.inverter.pwm_frequency_hz / 1e3:.0f} kHz: idle {w_idle:6.0f} | {c_idle:6.0f}   "
-              f"running at {s['speed_rpm']:.0f} rpm {w_run:6.0f} | {c_run:6.0f}")
+              f"running at {s['speed_rpm']:.0f} rpm, {prof.control.load_torque_n_m:g} N m {w_run:6.0f} | {c_run:6.0f}")
         out[name] = (w_idle, c_idle, w_run, c_run)
         tw.close()
     return out
@@ -146,7 +147,7 @@ def bench_physical_limit(tmp: Path) -> None:
     from picdrive.metrics import step_metrics
     from picdrive_hil.twin import Twin
     print("3. Closed-loop step under the profile's load against t_min = J w / (Kt Imax - T_load)")
-    print(f"   {'profile / design':34s} {'target':>7s} {'t_min':>8s} {'t_reach':>8s} {'ratio':>6s} "
+    print(f"   {'profile / design, load':40s} {'target':>7s} {'t_min':>8s} {'t_reach':>9s} {'ratio':>6s} "
           f"{'overshoot':>9s} {'ss err':>8s}  note")
     for name in PROFILES:
         prof = quiet_profile(name)
@@ -154,33 +155,36 @@ def bench_physical_limit(tmp: Path) -> None:
         target = prof.speed_step_rpm()
         w = target * 2 * math.pi / 60
         tl = prof.control.load_torque_n_m
-        t_min = m.inertia_kg_m2 * w / (m.kt_n_m_per_a * inv.current_limit_a - tl)
         for method in METHODS:
             fw = firmware_for(prof, method, tmp)
-            tw = Twin(prof, fw)
-            configure(tw, target)
-            tw.set_load_torque(tl)
-            tw.run(0.01)
-            send(tw, "start", 202)
-            rec = tw.record(1.5, 50e-6)
-            i = np.abs(np.stack([rec["i_a"], rec["i_b"], rec["i_c"]])).max(axis=0)
-            on = np.nonzero((rec["duty_max"] > 0) | (i > 0))[0]
-            note = ""
-            if on.size == 0:
-                print(f"   {name + ' / ' + method:34s} the drive never switched on")
-                continue
-            t0 = rec["t_s"][on[0]]
-            rpm = rec["w_rad_s"] * 60 / (2 * math.pi)
-            sel = rec["t_s"] >= t0
-            t, y = rec["t_s"][sel], rpm[sel]
-            inside = np.nonzero(np.abs(y - target) <= 0.01 * target)[0]
-            t_reach = float(t[inside[0]] - t0) if inside.size else math.inf
-            mt = step_metrics(t, y, target, y0=0.0, t_step=t0)
-            if any(rec["fault"] > 0):
-                note = "FLTA tripped"
-            print(f"   {name + ' / ' + method:34s} {target:7.0f} {t_min * 1e3:6.2f}ms {t_reach * 1e3:6.1f}ms "
-                  f"{t_reach / t_min:6.2f} {mt.overshoot_pct:8.2f}% {mt.steady_state_error_pct:7.3f}%  {note}")
-            tw.close()
+            for load in (tl, 0.0):
+                t_min = m.inertia_kg_m2 * w / (m.kt_n_m_per_a * inv.current_limit_a - load)
+                tw = Twin(prof, fw)
+                configure(tw, target)
+                tw.set_load_torque(load)
+                tw.run(0.01)
+                send(tw, "start", 202)
+                rec = tw.record(1.5, 50e-6)
+                i = np.abs(np.stack([rec["i_a"], rec["i_b"], rec["i_c"]])).max(axis=0)
+                on = np.nonzero((rec["duty_max"] > 0) | (i > 0))[0]
+                label = f"{name} / {method}, {load:g} N m"
+                if on.size == 0:
+                    print(f"   {label:40s} the drive never switched on")
+                    tw.close()
+                    continue
+                t0 = rec["t_s"][on[0]]
+                rpm = rec["w_rad_s"] * 60 / (2 * math.pi)
+                sel = rec["t_s"] >= t0
+                t, y = rec["t_s"][sel], rpm[sel]
+                inside = np.nonzero(np.abs(y - target) <= 0.01 * target)[0]
+                t_reach = float(t[inside[0]] - t0) if inside.size else math.inf
+                mt = step_metrics(t, y, target, y0=0.0, t_step=t0)
+                note = "FLTA tripped (overcurrent)" if np.any(rec["fault"] > 0) else ""
+                if not inside.size and not note:
+                    note = f"holds {mt.final_value:.0f} rpm"
+                print(f"   {label:40s} {target:7.0f} {t_min * 1e3:6.2f}ms {t_reach * 1e3:7.1f}ms "
+                      f"{t_reach / t_min:6.2f} {mt.overshoot_pct:8.2f}% {mt.steady_state_error_pct:7.3f}%  {note}")
+                tw.close()
 
 
 def main() -> int:
