@@ -1,5 +1,4 @@
 """Mixed H2/H-inf PID design (2008) on both bundled profiles: drive and paper variants, GA and DE."""
-import math
 
 import numpy as np
 import pytest
@@ -7,7 +6,7 @@ import pytest
 from picdrive import mixed_pid as mp
 from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.ga import run_ga
-from picdrive.h2hinf import j3_jury_dewey, robust_constraint, tracking_error_polys
+from picdrive.h2hinf import j3_jury_dewey, tracking_error_polys
 from picdrive.metrics import step_metrics
 from picdrive.profile import load_profile
 from picdrive.tfmodel import closed_loop_tf, motor_tf, simulate_sampled

@@ -51,7 +51,7 @@ import numpy as np
 from scipy.optimize import brentq
 
 from .errors import PicdriveError
-from .mixed_pid import RPM, _continuous_figures, _sampled_figures, check_pid_design, pid_law, run_verify, term_limits
+from .mixed_pid import _continuous_figures, _sampled_figures, check_pid_design, pid_law, run_verify, term_limits
 from .result import DesignResult
 from .tfmodel import TF, SampledPlant, motor_tf, sampled_plant
 
