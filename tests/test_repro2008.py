@@ -18,6 +18,8 @@ def test_model_claims(section_and_claims):
     c = section_and_claims[2]
     assert abs(c["eq18"]["rel_diff"]["num"]) < 2e-6 and abs(c["eq18"]["rel_diff"]["a0"]) < 1e-5
     assert c["eq23"]["max_rel_diff"] < 1e-12                    # eq 23 is exact from the printed eq 18
+    assert c["eq20"]["max_rel_diff"] < 1e-12
+    assert 1e-9 < c["eq24"]["max_rel_diff"] < 1e-4              # eq 24 prints 43619 and 27558 (rounded)
     assert c["eq19"]["at_w0"] == pytest.approx(0.01, rel=1e-3)
     assert c["eq19"]["peak"] == pytest.approx(0.1 / math.sqrt(0.1 ** 2 * (10 - 0.0025)), rel=1e-3)  # not <= 0.01
     assert c["eq6"]["computed"]["k_pl"] == pytest.approx(1032, abs=0.5)

@@ -114,6 +114,18 @@ def claims(*, profile="duy2008", seed: int | None = None, ga_result=None) -> dic
     out["eq24_25"] = {"c3_const": {"printed": PRINTED["eq24_c3"][0], "computed": float(Pb.den[2])},
                       "c3_kd": {"printed": PRINTED["eq24_c3"][1], "computed": 0.1 * PRINTED["eq18"]["num"]},
                       "eq25_num": {"printed": list(PRINTED["eq25_num"]), "computed": Pb.den.tolist()}}
+    # eq 20 and eq 24 as printed formulas against the loop polynomials, at the proposed gains
+    K = PRINTED["eq18"]["num"]
+    kp_, ki_, kd_ = GAINS["proposed"]
+    d_ = PRINTED["d"]
+    a_printed = [1.0, 417.7 + K * kd_, 43567.5 + K * kp_, K * ki_]
+    a_comp = closed_loop_tf(Pp, kp_, ki_, kd_).den
+    c_printed = [1.0, 417.8 + K * kd_, 43619.0 + 27558.0 * kd_ + K * kp_,
+                 8533.8 + K * (10 + d_) * kd_ + 27558.0 * kp_ + K * ki_,
+                 435675.0 + K * (10 + d_) * kp_ + 27558.0 * ki_, K * (10 + d_) * ki_]
+    c_comp = closed_loop_tf(Pb, kp_, ki_, kd_).den
+    out["eq20"] = {"max_rel_diff": float(np.max(np.abs(np.array(a_comp) / np.array(a_printed) - 1)))}
+    out["eq24"] = {"max_rel_diff": float(np.max(np.abs(np.array(c_comp) / np.array(c_printed) - 1)))}
     k_pl, k_dl = load_gains(prof)
     out["eq6"] = {"printed": PRINTED["eq6"], "computed": {"k_pl": k_pl, "k_dl": k_dl}}
 
@@ -220,6 +232,10 @@ def section(outdir: Path, *, profile="duy2008", seed: int | None = None, precomp
     e23 = c["eq23"]
     a(f"| eq 23 denominator | {', '.join(f'{v:g}' for v in e23['printed'])} | "
       f"{', '.join(f'{v:.6g}' for v in e23['computed'])} | agrees (max relative difference {e23['max_rel_diff']:.1e}) |")
+    a(f"| eq 20 a2, a1, a0 (formulas, at the proposed gains) | 417.7 + K kd, 43567.5 + K kp, K ki | "
+      f"loop polynomial | agrees (max relative difference {c['eq20']['max_rel_diff']:.1e}) |")
+    a(f"| eq 24 c4..c0 (formulas as printed, proposed gains, d = 0.1) | printed | loop polynomial of P (1 + xi) | "
+      f"agrees to the printed rounding (max relative difference {c['eq24']['max_rel_diff']:.1e}) |")
     e2425 = c["eq24_25"]
     a(f"| eq 24 c3 constant / c3 kd factor | {e2425['c3_const']['printed']:g} / {e2425['c3_kd']['printed']:g} | "
       f"{e2425['c3_const']['computed']:.2f} / {e2425['c3_kd']['computed']:.3f} | rounded in the paper (b3 prints 27557.736) |")
