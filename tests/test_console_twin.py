@@ -91,6 +91,7 @@ status
 telemetry signals speed,current,duty
 telemetry rate 500
 telemetry
+telemetry on
 record {csv}
 view 0.5
 record stop
