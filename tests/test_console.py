@@ -186,9 +186,9 @@ def test_save_and_restore_eeprom(board, con):
         run(con, "save")
 
 
-def _design(tmp_path, rules=2, hz=1000.0, sha=PROFILE.sha256, kp=0.25):
+def _design(tmp_path, rules=2, hz=1000.0, sha=PROFILE.sha256, kp=0.25, **kw):
     law = ScheduledLaw(rules=tuple(Rule(kp * (j + 1), 1.5, 0.001, 0.0) for j in range(rules)),
-                       premise_rad_s=(0.0, 272.27), sample_time_s=1.0 / hz, u_min_v=-40.0, u_max_v=40.0)
+                       premise_rad_s=(0.0, 272.27), sample_time_s=1.0 / hz, u_min_v=-40.0, u_max_v=40.0, **kw)
     r = DesignResult(method="mixed-pid", status="verified", profile_name="duy2008", profile_sha256=sha, law=law)
     return save_design(r, tmp_path / f"d{rules}_{hz:g}_{sha[:4]}_{kp}.design.json")
 
@@ -209,6 +209,13 @@ def test_load_pushes_a_designs_gains_or_nothing(board, con, tmp_path):
         assert {n: board.fb.param(n) for n in before} == before
     with pytest.raises(ConsoleError, match="cannot read design file"):
         run(con, f"load {tmp_path / 'none.json'}")
+    # a law with the back-EMF voltage window also sets the board's current limit (its I_lim)
+    d = _design(tmp_path, kp=0.3, current_limit_a=1.25, kb_v_s_per_rad=0.1433, r_ohm=21.2, integrator_limit_v=60.0)
+    out = run(con, f"load {d}")
+    assert out[-1].startswith("loaded 14 parameters of mixed-pid design")
+    assert "integrator limit 60 V, back-EMF constant 0.1433 V s/rad and resistance 21.2 ohm are not parameters" \
+        in out[-1]
+    assert board.fb.param("current_limit") == round(1.25 / TABLE["current_limit"].scale)
 
 
 # --------------------------------------------------------------------------- telemetry

@@ -928,6 +928,8 @@ def _load(con, args):
     if rules > 1:
         values["premise_low"] = float(law.premise_rad_s[0]) * rpm
         values["premise_high"] = float(law.premise_rad_s[1]) * rpm
+    if getattr(law, "current_limit_a", None) is not None:
+        values["current_limit"] = float(law.current_limit_a)   # I_lim of the back-EMF voltage window
     values = {k: v for k, v in values.items() if k in link.table}
     # check everything before writing anything: no half-pushed design
     from .link import ParamError
@@ -954,9 +956,15 @@ def _load(con, args):
         worst = max(worst, rel)
         note = "" if rel < 1e-3 else f"  (rounded {rel * 100:.2f} %)"
         con.say(f"  {name:<{width}} {got:>12.6g}{_unit(e)}{note}")
-    extra = ""
+    fixed = []
     if law.derivative_filter_hz:
-        extra = f"; the derivative filter ({law.derivative_filter_hz:g} Hz) is fixed by the firmware build"
+        fixed.append(f"derivative filter {law.derivative_filter_hz:g} Hz")
+    if getattr(law, "integrator_limit_v", None) is not None:
+        fixed.append(f"integrator limit {law.integrator_limit_v:g} V")
+    if getattr(law, "current_limit_a", None) is not None:
+        fixed.append(f"back-EMF constant {law.kb_v_s_per_rad:g} V s/rad and resistance {law.r_ohm:g} ohm")
+    extra = (f"; the design's {', '.join(fixed)} are not parameters: the firmware build's own values apply"
+             if fixed else "")
     con.say(f"loaded {len(values)} parameters of {r.method} design from {args[0]} "
             f"(largest rounding {worst * 100:.3f} %){extra}; 'save' keeps them in EEPROM")
 
