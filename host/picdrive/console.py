@@ -933,6 +933,7 @@ def _load(con, args):
     values = {k: v for k, v in values.items() if k in link.table}
     # check everything before writing anything: no half-pushed design
     from .link import ParamError
+    asked = dict(values)                  # the design's values (rounding is reported against them)
     problems = []
     for name, v in list(values.items()):
         e = link.param(name)
@@ -952,7 +953,7 @@ def _load(con, args):
     for name, v in values.items():
         e = link.param(name)
         got = link.set(name, v)
-        rel = abs(got - v) / abs(v) if v else 0.0
+        rel = abs(got - asked[name]) / abs(asked[name]) if asked[name] else abs(got - v)
         worst = max(worst, rel)
         note = "" if rel < 1e-3 else f"  (rounded {rel * 100:.2f} %)"
         con.say(f"  {name:<{width}} {got:>12.6g}{_unit(e)}{note}")
