@@ -247,7 +247,7 @@ def test_telemetry_record_and_view(board, con, tmp_path):
     assert np.all(r.column("setpoint") == 900)
     out = run(con, "view 0.6")
     assert out[-1].startswith("view: ") and int(out[-1].split()[1]) > 100
-    assert out[0].startswith("t ") and "speed 899" in out[0] or "speed 900" in out[0]
+    assert out[0].startswith("t ") and ("speed 899" in out[0] or "speed 900" in out[0]), out[0]
     assert run(con, "telemetry off") == ["telemetry off"] and con.link.telemetry is None
 
 

@@ -248,7 +248,7 @@ def test_console_step_agrees_with_the_hil_step(tmp_path):
         from test_hil_step import RECORD_S
     finally:
         sys.path.remove(str(REPO / "tests" / "hil"))
-    from picdrive.console import Console, run_step
+    from picdrive.console import Console
 
     fw = FirmwareCache(tmp_path).get("duy2008", "mixed-pid")
     target = PROFILE.speed_step_rpm()
