@@ -182,3 +182,17 @@ def test_result_refuses_failed_lawless_and_foreign(tmp_path):
     (tmp_path / "bad.json").write_text("{")
     with pytest.raises(DesignError, match="not valid JSON"):
         load_design(tmp_path / "bad.json")
+
+
+def test_atomic_write_gives_ordinary_permissions(tmp_path):
+    import os
+    import stat
+
+    from picdrive.result import atomic_write_text
+    old = os.umask(0o022)
+    try:
+        p = atomic_write_text(tmp_path / "a.json", "{}")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(p.stat().st_mode) == 0o644
+    assert not list(tmp_path.glob(".a.json.*"))
