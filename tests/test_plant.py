@@ -243,6 +243,11 @@ def test_perturbations():
     assert m.r_phase_ohm == pytest.approx(1.1 * base.r_phase_ohm)
     assert m.inertia_kg_m2 == pytest.approx(0.9 * base.inertia_kg_m2)
     assert parse_perturb(["resistance=0.9"]) == {"resistance": 0.9}
+    u = p.design["resistance_uncertainty"]
+    assert parse_perturb(["resistance=+u"], p) == {"resistance": pytest.approx(1 + u)}
+    assert parse_perturb(["resistance=-u"], p) == {"resistance": pytest.approx(1 - u)}
+    with pytest.raises(PlantError, match="resistance_uncertainty"):
+        parse_perturb(["resistance=+u"])
     with pytest.raises(PlantError, match="unknown perturbation 'resistnce'"):
         parse_perturb(["resistnce=1.1"])
     with pytest.raises(PlantError, match=r"\[0.1, 10\]"):

@@ -26,7 +26,8 @@ def register(sub) -> None:
     p.add_argument("--pty", action="store_true", help="also offer a pseudo-terminal path")
     p.add_argument("--perturb", action="append", default=[], metavar="KEY=FACTOR",
                    help="plant perturbation (repeatable): resistance, inductance, flux, inertia, friction, "
-                        "bus_voltage; e.g. --perturb resistance=1.1 for R + 10 %%")
+                        "bus_voltage; e.g. --perturb resistance=1.1 for R + 10 %%, or resistance=+u / -u for "
+                        "the profile's design.resistance_uncertainty")
     p.add_argument("--load-torque", type=float, default=None,
                    help="constant load torque, N m (default: none; the profile's control.load_torque_n_m "
                         "is the test step, applied by tests and demos)")
@@ -55,14 +56,16 @@ def _cmd(args: argparse.Namespace) -> int:
         raise PicdriveError(f"--port {args.port}: expected 0..65535 (0 = any free port)")
     if args.noise_rpm is not None and not (args.noise_rpm >= 0):
         raise PicdriveError(f"--noise-rpm {args.noise_rpm}: must be >= 0")
-    perturb = parse_perturb(args.perturb)
+    from picdrive.profile import load_profile
+    profile = load_profile(args.profile)
+    perturb = parse_perturb(args.perturb, profile)
     eeprom = None
     ee_path = Path(args.eeprom) if args.eeprom else None
     if ee_path is not None and ee_path.exists():
         eeprom = ee_path.read_bytes()
         if len(eeprom) != 256:
             raise PicdriveError(f"--eeprom {ee_path}: expected a 256-byte image, found {len(eeprom)} bytes")
-    tw = Twin(args.profile, args.firmware, perturb=perturb, seed=args.seed, load_mode=args.load_mode,
+    tw = Twin(profile, args.firmware, perturb=perturb, seed=args.seed, load_mode=args.load_mode,
               speed_noise_rpm=args.noise_rpm, eeprom=eeprom)
     if args.load_file:
         tw.load_profile_file(args.load_file, relative=True)

@@ -89,8 +89,11 @@ class PlantModel:
         return replace(self, **kw)
 
 
-def parse_perturb(items) -> dict[str, float]:
-    """``["resistance=1.1", ...]`` or a mapping -> validated ``{key: factor}``."""
+def parse_perturb(items, profile=None) -> dict[str, float]:
+    """``["resistance=1.1", ...]`` or a mapping -> validated ``{key: factor}``.
+
+    ``resistance=+u`` / ``resistance=-u``: R x (1 +- the profile's
+    ``design.resistance_uncertainty``), the 2016 paper's +-10 % (needs ``profile``)."""
     if items is None:
         return {}
     if isinstance(items, Mapping):
@@ -101,10 +104,18 @@ def parse_perturb(items) -> dict[str, float]:
             if "=" not in str(it):
                 raise PlantError(f"perturbation {it!r}: expected KEY=FACTOR, e.g. resistance=1.1 (R + 10 %)")
             k, v = str(it).split("=", 1)
+            v = v.strip()
+            if k.strip() == "resistance" and v in ("+u", "-u"):
+                if profile is None:
+                    raise PlantError(f"perturbation {it!r}: +u/-u need the profile's design.resistance_uncertainty")
+                u = float(profile.design["resistance_uncertainty"])
+                pairs.append(("resistance", 1.0 + u if v == "+u" else 1.0 - u))
+                continue
             try:
                 pairs.append((k.strip(), float(v)))
             except ValueError:
-                raise PlantError(f"perturbation {it!r}: FACTOR must be a number, e.g. resistance=1.1") from None
+                raise PlantError(f"perturbation {it!r}: FACTOR must be a number, e.g. resistance=1.1, "
+                                 "or resistance=+u / -u for the profile's resistance_uncertainty") from None
     out: dict[str, float] = {}
     for k, v in pairs:
         if k not in PERTURB_KEYS:
@@ -124,7 +135,7 @@ def plant_from_profile(profile, perturb=None, *, load_mode: str = "passive",
                          "or 'passive' (opposes motion, holds a standing rotor)")
     if not (0.0 <= diode_drop_v < 5.0):
         raise PlantError(f"diode drop {diode_drop_v!r} V: expected 0 .. 5 V")
-    pert = parse_perturb(perturb)
+    pert = parse_perturb(perturb, profile)
     m, inv, se = profile.motor, profile.inverter, profile.sensors
     base = dict(
         r_phase_ohm=m.r_phase_ohm,

@@ -68,7 +68,7 @@ def open_bench(request, target, firmware_cache):
             tw = Twin(prof, firmware_cache.get(profile_name, method), perturb=perturb)
             srv = tw.serve(port=0, realtime=True)
             link = Link.open(srv.url, expect_profile_hash=phash)
-            pert = ",".join(f"{k}x{v:g}" for k, v in (perturb or {}).items())
+            pert = ",".join(f"{k}x{v:g}" for k, v in tw.model.perturb.items())
             b = Bench(link, prof, design, method, f"twin {profile_name} {method}{' ' + pert if pert else ''}",
                       tw, srv, request.config.stash[_REPORT])
         else:

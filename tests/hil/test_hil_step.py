@@ -71,11 +71,13 @@ def test_speed_step(open_bench, profile_name, method):
 
 
 @pytest.mark.parametrize("profile_name, method", matrix())
-@pytest.mark.parametrize("r_factor", [0.9, 1.1])
-def test_speed_step_with_resistance_off_by_ten_percent(open_bench, profile_name, method, r_factor):
-    """The 2016 paper's uncertainty: R +-10 %, same firmware, same limits."""
-    b = open_bench(profile_name, method, perturb={"resistance": r_factor})
-    assert b.twin.model.r_phase_ohm == pytest.approx(r_factor * b.profile.motor.r_phase_ohm)
+@pytest.mark.parametrize("sign", ["-u", "+u"])
+def test_speed_step_with_resistance_off_by_its_uncertainty(open_bench, profile_name, method, sign):
+    """The profile's design.resistance_uncertainty (the 2016 paper's R +-10 %): same firmware, same limits."""
+    b = open_bench(profile_name, method, perturb=[f"resistance={sign}"])
+    u = b.profile.design["resistance_uncertainty"]
+    factor = 1 + u if sign == "+u" else 1 - u
+    assert b.twin.model.r_phase_ohm == pytest.approx(factor * b.profile.motor.r_phase_ohm)
     _step(b, b.label)
 
 
