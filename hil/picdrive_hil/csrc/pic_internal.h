@@ -113,10 +113,15 @@ typedef struct {
     int64_t oc_until;         /* forced comparator until */
     int flta_asserted;
 
+    /* next hall edge (electrical angle from hall_offset) and the direction it was found for */
+    double edge_th;
+    int edge_dir;
+
     /* load */
     double load_t[1024], load_v[1024];
     int load_n;
     int load_k;               /* index of the next knot after now */
+    int64_t load_next_ps;     /* its time (cache) */
 
     /* noise */
     uint64_t rng;

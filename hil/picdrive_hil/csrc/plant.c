@@ -200,21 +200,21 @@ static void solve_currents(const plant_params_t *p, const double i0[3], const do
 static double next_speed(const plant_params_t *p, double w0, double te_avg, double tl,
                          double h, double *tl_applied)
 {
-    double J = p->inertia_kg_m2, hb = 0.5 * h * p->friction_n_m_s / J;
+    double hj = h / p->inertia_kg_m2, hb = 0.5 * hj * p->friction_n_m_s, den = 1.0 / (1.0 + hb);
     if (p->load_mode == LOAD_ACTIVE) {
         *tl_applied = tl;
-        return (w0 * (1.0 - hb) + h / J * (te_avg - tl)) / (1.0 + hb);
+        return (w0 * (1.0 - hb) + hj * (te_avg - tl)) * den;
     }
     double mag = fabs(tl);
     if (w0 == 0.0) {
         if (fabs(te_avg) <= mag) { *tl_applied = te_avg; return 0.0; }
         double sg = te_avg > 0.0 ? 1.0 : -1.0;
         *tl_applied = sg * mag;
-        return h / J * (te_avg - sg * mag) / (1.0 + hb);
+        return hj * (te_avg - sg * mag) * den;
     }
     double sg = w0 > 0.0 ? 1.0 : -1.0;
     *tl_applied = sg * mag;
-    double w1 = (w0 * (1.0 - hb) + h / J * (te_avg - sg * mag)) / (1.0 + hb);
+    double w1 = (w0 * (1.0 - hb) + hj * (te_avg - sg * mag)) * den;
     if (w1 * sg < 0.0) w1 = 0.0;       /* friction-like load stops the rotor, never reverses it */
     return w1;
 }

@@ -93,6 +93,7 @@ static double load_at(double t_s)
 {
     int n = g.load_n;
     if (n <= 0) return 0.0;
+    if (n == 1) return g.load_v[0];
     if (t_s <= g.load_t[0]) return g.load_v[0];
     if (t_s >= g.load_t[n - 1]) return g.load_v[n - 1];
     int k = g.load_k > 0 ? g.load_k : 1;
@@ -105,23 +106,33 @@ static double load_at(double t_s)
 
 static int64_t next_load_knot(void)
 {
+    if (g.load_k >= g.load_n) return NEVER;
+    if (g.load_next_ps > g.now) return g.load_next_ps;        /* cached */
     double t = (double)g.now / PS_PER_S;
     while (g.load_k < g.load_n && g.load_t[g.load_k] <= t) g.load_k++;
     if (g.load_k >= g.load_n) return NEVER;
     int64_t k = (int64_t)llround(g.load_t[g.load_k] * PS_PER_S);
-    return k > g.now ? k : g.now + 1;
+    g.load_next_ps = k > g.now ? k : g.now + 1;
+    return g.load_next_ps;
 }
 
 /* ------------------------------------------------------------ hall edges */
 
 static int64_t next_hall_edge(void)
 {
+    /* hall edges sit every 60 electrical degrees from hall_offset; keep the next one
+       in the direction of motion and divide the angle still to go by the speed */
     double we = g.pp.pole_pairs * g.ps.w_rad_s;
     if (fabs(we) < 1e-3) return NEVER;
-    double sec = M_PI / 3.0;
-    double x = (g.pp.pole_pairs * g.ps.theta_rad - g.pp.hall_offset_rad) / sec;
-    double nxt = (we > 0 ? floor(x) + 1.0 : ceil(x) - 1.0) * sec;
-    double dt = (nxt - x * sec) / we;
+    int dir = we > 0 ? 1 : -1;
+    double th = g.pp.pole_pairs * g.ps.theta_rad - g.pp.hall_offset_rad;
+    if (dir != g.edge_dir || (dir > 0 ? th >= g.edge_th : th <= g.edge_th) ||
+        fabs(g.edge_th - th) > M_PI / 3.0 + 1e-9) {
+        double sec = M_PI / 3.0, x = th / sec;
+        g.edge_th = (dir > 0 ? floor(x) + 1.0 : ceil(x) - 1.0) * sec;
+        g.edge_dir = dir;
+    }
+    double dt = (g.edge_th - th) / we;
     if (!(dt >= 0.0) || dt > 1.0) return NEVER;
     return g.now + (int64_t)(dt * PS_PER_S) + 1000;          /* +1 ns: land past the edge */
 }
@@ -292,6 +303,7 @@ void twin_set_load_table(const double *t_s, const double *torque, int32_t n)
     for (int k = 0; k < n; k++) { g.load_t[k] = t_s[k]; g.load_v[k] = torque[k]; }
     g.load_n = n;
     g.load_k = 0;
+    g.load_next_ps = -1;
 }
 
 int twin_uart_host_write(const uint8_t *buf, int32_t n)
@@ -370,5 +382,6 @@ void twin_set_plant_state(double w_rad_s, double theta_rad)
     g.ps.w_rad_s = w_rad_s;
     g.ps.theta_rad = theta_rad;
     g.ps.te_valid = 0;
+    g.edge_dir = 0;
     pic_set_pins_from_plant();
 }
