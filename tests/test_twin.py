@@ -12,7 +12,7 @@ import pytest
 
 from picdrive.profile import ProfileWarning, load_profile
 from picdrive_hil import reference as ref
-from picdrive_hil.plant import CPlant, plant_from_profile
+from picdrive_hil.plant import plant_from_profile
 from picdrive_hil.testfw import make_twin
 from picdrive_hil.twin import Twin, TwinError
 
@@ -269,3 +269,35 @@ def test_twin_refuses_firmware_of_another_profile(tmp_path):
         other = load_profile("assawinchaichote2016")
     with pytest.raises(TwinError, match="another profile"):
         Twin(other, fw)
+
+
+def _poscnt_diffs(tw, n):
+    out, prev = [], None
+    tw.run(0.0005)
+    for _ in range(n):
+        tw.run(1e-3)                                   # one noise period (1 / speed_loop_hz)
+        p = tw.sfr("POSCNTL") | (tw.sfr("POSCNTH") << 8)
+        if prev is not None:
+            out.append(((p - prev + 32768) & 0xFFFF) - 32768)
+        prev = p
+    return np.array(out)
+
+
+def test_speed_noise_is_seeded_and_has_the_requested_spread():
+    """Encoder-angle jitter, redrawn every speed-loop period, whose count
+    difference over one period has the requested speed standard deviation."""
+    noise_rpm = 100.0
+    runs = {}
+    for seed in (1, 1, 2):
+        t = make_twin("duy2008", speed_noise_rpm=noise_rpm, seed=seed)
+        t.inject("lock_rotor", locked=True)
+        runs.setdefault(seed, []).append(_poscnt_diffs(t, 400))
+        t.close()
+    a, b = runs[1]
+    c = runs[2][0]
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    prof = load_profile("duy2008")
+    counts_per_rad = 4 * prof.sensors.encoder_lines / (2 * math.pi)
+    expect = noise_rpm * 2 * math.pi / 60 / prof.control.speed_loop_hz * counts_per_rad
+    assert np.std(a) == pytest.approx(expect, rel=0.2)
+    assert abs(np.mean(a)) < 3 * expect / math.sqrt(len(a)) + 0.5

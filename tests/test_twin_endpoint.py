@@ -2,7 +2,6 @@
 pyserial programs open like a COM port, real-time pacing, EEPROM image
 kept across runs, clear errors for bad arguments."""
 import json
-import os
 import signal
 import subprocess
 import sys

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import ctypes as C
 import math
-import os
 import shutil
 import threading
 from dataclasses import dataclass, field

@@ -78,6 +78,9 @@ def open_bench(request, target, firmware_cache):
             if perturb:
                 pytest.skip("plant perturbations need the twin")
             link = Link.open(target, expect_profile_hash=phash)
+            link.stop()                                    # start every test from a stopped board
+            if link.status().fault != 0:
+                link.fault_clear()
             m, design = match_design(link, prof)
             if method is not None and method != m:
                 link.close()

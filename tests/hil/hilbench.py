@@ -88,6 +88,11 @@ class Bench:
 
     def close(self) -> None:
         try:
+            if not self.link.closed:
+                try:                        # leave a real board stopped, not to its watchdog
+                    self.link.stop()
+                except Exception:
+                    pass
             self.link.close()
         finally:
             if self.server is not None:
