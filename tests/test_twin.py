@@ -301,3 +301,26 @@ def test_speed_noise_is_seeded_and_has_the_requested_spread():
     expect = noise_rpm * 2 * math.pi / 60 / prof.control.speed_loop_hz * counts_per_rad
     assert np.std(a) == pytest.approx(expect, rel=0.2)
     assert abs(np.mean(a)) < 3 * expect / math.sqrt(len(a)) + 0.5
+
+
+def test_halls_through_input_capture_commutate_like_the_int_pins():
+    """Halls on IC1..IC3 (RA2..RA4, capture on every state change): the same
+    drive as through INT0..2, edge for edge."""
+    speeds = {}
+    for hall_input in ("int", "ic"):
+        t = make_twin("duy2008", hall_input=hall_input)
+        t.run(0.001)
+        drive(t, 0.7)
+        t.run(0.2)
+        speeds[hall_input] = t.state()["speed_rad_s"]
+        if hall_input == "ic":
+            t.uart_write(b"H")
+            out, _ = wait_reply(t, 2)
+            edges = int.from_bytes(out, "little")
+            # six hall edges per electrical revolution
+            revs_e = t.state()["angle_rad"] * t.profile.motor.pole_pairs / (2 * math.pi)
+            assert abs(edges - 6 * revs_e) <= 2
+            assert t.sfr("CAP1BUFL") | t.sfr("CAP1BUFH") | t.sfr("CAP2BUFL") | t.sfr("CAP3BUFL")   # TMR5 captured
+        t.close()
+    assert speeds["int"] > 100.0
+    assert speeds["ic"] == pytest.approx(speeds["int"], rel=0.01)

@@ -689,7 +689,9 @@ void pic_set_pins_from_plant(void)
 
 static void set_enc_pins(int64_t n)
 {
-    /* QEA = RA3, QEB = RA4, INDX = RA2 */
+    /* QEA = RA3, QEB = RA4, INDX = RA2 (not when the board puts the halls there) */
+    for (int k = 0; k < 3; k++)
+        if (g.cfg.hall_pin[k].port == 0 && g.cfg.hall_pin[k].bit >= 2 && g.cfg.hall_pin[k].bit <= 4) return;
     int ph = (int)(((n % 4) + 4) % 4);
     int a = ph == 1 || ph == 2, b = ph == 2 || ph == 3;
     int64_t cpr = 4 * (int64_t)g.pp.encoder_lines;

@@ -48,16 +48,20 @@ def table_dir(model) -> Path:
 CFLAGS = ("-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-Wconversion")
 
 
-def firmware_group(model) -> build.Group:
+def firmware_group(model, hall_input: str = "int") -> build.Group:
     from ..twin import shim_dir
-    return build.Group((SOURCE,), (shim_dir(), table_dir(model)), CFLAGS)
+    flags = CFLAGS + (("-DTESTFW_HALL_IC",) if hall_input == "ic" else ())
+    return build.Group((SOURCE,), (shim_dir(), table_dir(model)), flags)
 
 
-def make_twin(profile, **kw):
-    """A Twin running the test firmware (halls on INT0..2, phases on pairs 0..2)."""
+def make_twin(profile, hall_input: str = "int", **kw):
+    """A Twin running the test firmware (phases on pairs 0..2; halls on INT0..2
+    on RC3..RC5, or with hall_input="ic" on IC1..IC3 on RA2..RA4)."""
     from ..plant import plant_from_profile
-    from ..twin import Twin
+    from ..twin import BoardConfig, Twin
     from picdrive.profile import Profile, load_profile
     prof = profile if isinstance(profile, Profile) else load_profile(profile)
     model = plant_from_profile(prof, kw.get("perturb"))
-    return Twin(prof, None, firmware=firmware_group(model), **kw)
+    if hall_input == "ic":
+        kw.setdefault("board", BoardConfig(hall_pins=(("A", 2), ("A", 3), ("A", 4))))
+    return Twin(prof, None, firmware=firmware_group(model, hall_input), **kw)
