@@ -188,7 +188,7 @@ def test_atomic_write_gives_ordinary_permissions(tmp_path):
     import os
     import stat
 
-    from picdrive.result import atomic_write_text
+    from picdrive.fileio import atomic_write_text
     old = os.umask(0o022)
     try:
         p = atomic_write_text(tmp_path / "a.json", "{}")
@@ -196,3 +196,23 @@ def test_atomic_write_gives_ordinary_permissions(tmp_path):
         os.umask(old)
     assert stat.S_IMODE(p.stat().st_mode) == 0o644
     assert not list(tmp_path.glob(".a.json.*"))
+
+
+def test_publish_dir_replaces_whole_with_ordinary_mode(tmp_path):
+    import os
+    import stat
+
+    from picdrive.fileio import new_temp_dir, publish_dir
+    out = tmp_path / "fw"
+    out.mkdir()
+    (out / "old.c").write_text("old")
+    tmp = new_temp_dir(out)
+    (tmp / "new.c").write_text("new")
+    old = os.umask(0o022)
+    try:
+        publish_dir(tmp, out)
+    finally:
+        os.umask(old)
+    assert sorted(p.name for p in out.iterdir()) == ["new.c"]
+    assert stat.S_IMODE(out.stat().st_mode) == 0o755
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fw"]       # no temp or backup left

@@ -32,7 +32,6 @@ import math
 import os
 import shutil
 import subprocess
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -500,11 +499,9 @@ def build_check(folder) -> list[str]:
 
 def write_firmware(fw: Firmware, out_dir, *, check: bool = True) -> Path:
     """Write the files into ``out_dir`` whole or not at all (temp folder, build check, rename)."""
+    from .fileio import new_temp_dir, publish_dir
     out = Path(out_dir)
-    parent = out.parent if str(out.parent) else Path(".")
-    parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
-    old = None
+    tmp = new_temp_dir(out)
     try:
         for rel, text in sorted(fw.files.items()):
             p = tmp / rel
@@ -513,17 +510,10 @@ def write_firmware(fw: Firmware, out_dir, *, check: bool = True) -> Path:
                 f.write(text)
         if check:
             build_check(tmp)
-        if out.exists():
-            old = parent / f".{out.name}.old-{os.getpid()}"
-            os.replace(out, old)
-        os.replace(tmp, out)
+        publish_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
-        if old is not None and old.exists() and not out.exists():
-            os.replace(old, out)
         raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
     return out
 
 

@@ -40,6 +40,7 @@ from typing import Sequence
 import numpy as np
 
 from .errors import PicdriveError
+from .fileio import current_umask
 
 FORMAT_ID = "picdrive.telemetry/1"
 
@@ -48,12 +49,6 @@ __all__ = ["RecordError", "Recorder", "Recording", "read_recording", "FORMAT_ID"
 
 class RecordError(PicdriveError):
     """A recording cannot be started, written or read."""
-
-
-def _umask() -> int:
-    m = os.umask(0o022)
-    os.umask(m)
-    return m
 
 
 def _now() -> str:
@@ -138,7 +133,7 @@ class Recorder:
         self._f.close()
         self._f = None
         try:
-            os.chmod(self._tmp, 0o666 & ~_umask())    # mkstemp made it 0600; a CSV is an ordinary file
+            os.chmod(self._tmp, 0o666 & ~current_umask())    # mkstemp made it 0600; a CSV is an ordinary file
             os.replace(self._tmp, self.path)
         except OSError as e:
             self._tmp.unlink(missing_ok=True)

@@ -19,9 +19,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -276,6 +274,7 @@ def write_report(out: Path, profile, designs: dict, committed: dict, firmwares: 
 def run_demo(profile_ref: str = "duy2008", out_dir: str | Path = "out/demo", *, methods=METHODS,
              step_s: float = 1.0, load_s: float = 1.0, progress: bool = True) -> Path:
     from . import codegen
+    from .fileio import new_temp_dir, publish_dir
     from .profile import ProfileWarning, load_profile
     from .result import save_design
 
@@ -285,8 +284,7 @@ def run_demo(profile_ref: str = "duy2008", out_dir: str | Path = "out/demo", *, 
     for w in caught:
         _say(f"picdrive: warning: {w.message}")
     out = Path(out_dir)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    tmp = new_temp_dir(out)
     try:
         (tmp / "designs").mkdir()
         (tmp / "twin").mkdir()
@@ -338,13 +336,7 @@ def run_demo(profile_ref: str = "duy2008", out_dir: str | Path = "out/demo", *, 
              "designs": {k: {"status": v.status, "reasons": v.reasons} for k, v in designs.items()},
              "timings_s": timings}, indent=1, sort_keys=True, default=float) + "\n")
         write_report(tmp, profile, designs, committed, firmwares, runs, timings, failed)
-        old = None
-        if out.exists():
-            old = out.parent / f".{out.name}.old-{os.getpid()}"
-            os.replace(out, old)
-        os.replace(tmp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        publish_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

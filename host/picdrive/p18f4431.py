@@ -327,7 +327,7 @@ def render_host_shim(path=None) -> str:
 
 def write_host_shim(folder, path=None) -> Path:
     """Write ``xc.h`` into ``folder`` (atomically); returns its path."""
-    from .result import atomic_write_text
+    from .fileio import atomic_write_text
     return atomic_write_text(Path(folder) / "xc.h", render_host_shim(path))
 
 

@@ -1086,7 +1086,7 @@ def render_markdown(table: Table | None = None) -> str:
 
 if __name__ == "__main__":     # python -m picdrive.protocol docs/protocol.md
     import sys
-    from .result import atomic_write_text
+    from .fileio import atomic_write_text
     if len(sys.argv) != 2:
         print("usage: python -m picdrive.protocol docs/protocol.md", file=sys.stderr)
         raise SystemExit(2)

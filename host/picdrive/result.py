@@ -31,8 +31,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,6 +41,7 @@ import numpy as np
 
 from . import __version__
 from .control_law import ScheduledLaw, law_from_dict
+from .fileio import atomic_write_text
 
 SCHEMA_ID = "picdrive.design/1"
 METHODS = ("fuzzy-hinf", "mixed-pid", "zn")
@@ -140,31 +139,6 @@ def to_jsonable(x: Any) -> Any:
         f = float(x)
         return f if math.isfinite(f) else ("nan" if math.isnan(f) else ("inf" if f > 0 else "-inf"))
     return x
-
-
-def atomic_write_text(path: str | Path, text: str) -> Path:
-    """Write a text file whole or not at all (temp file + rename in the same folder)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
-        os.chmod(tmp, 0o666 & ~_umask())      # mkstemp makes 0600; a written file gets the usual mode
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    return path
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def default_design_path(profile_path: str | Path, method: str) -> Path:
