@@ -69,16 +69,20 @@ def test_cli_serves_socket_and_pty_and_keeps_the_eeprom(tmp_path):
     assert "client connected" in err
     image = ee.read_bytes()
     assert len(image) == 256 and image != b"\xff" * 256
-    # a second run starts from the saved image: the parameter came back
+    # a second run starts from the saved image: the parameter came back; SIGTERM also saves
     p = picdrive("twin", "--profile", "duy2008", "--firmware", str(FW), "--eeprom", str(ee))
     try:
         url = p.stdout.readline().strip()
         lk = Link.open(url)
         assert lk.get_raw("stall_timeout")["stall_timeout"] == old + 7
+        lk.set_raw("stall_timeout", old + 9)
+        lk.save_eeprom()
         lk.close()
     finally:
-        p.send_signal(signal.SIGINT)
+        p.send_signal(signal.SIGTERM)
         p.communicate(timeout=20)
+    assert p.returncode == 0
+    assert ee.read_bytes() != image
 
 
 @pytest.mark.parametrize("args, message", [

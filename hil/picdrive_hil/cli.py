@@ -82,6 +82,11 @@ def _cmd(args: argparse.Namespace) -> int:
         print(srv.pty_path, flush=True)
     print("picdrive twin: running in real time" + (f" x{args.speed:g}" if args.speed != 1 else "")
           + "; Ctrl-C stops", file=sys.stderr, flush=True)
+
+    def _term(signum, frame):                   # SIGTERM stops like Ctrl-C (the EEPROM image is saved)
+        raise KeyboardInterrupt
+    import signal
+    signal.signal(signal.SIGTERM, _term)
     try:
         srv.wait()
     except KeyboardInterrupt:

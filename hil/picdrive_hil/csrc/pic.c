@@ -85,8 +85,8 @@ static uint8_t port_value(int port)
 static uint32_t timer_count(const timer_t_ *t)
 {
     if (!t->on) return t->cnt_ref;
-    int64_t n = (g.now - t->t_ref) / t->tick_ps;
-    return (uint32_t)((t->cnt_ref + (uint64_t)n) % t->modulus);
+    uint64_t c = t->cnt_ref + (uint64_t)((g.now - t->t_ref) / t->tick_ps);
+    return (uint32_t)(c < t->modulus ? c : c % t->modulus);
 }
 
 static uint32_t timer_count_at(const timer_t_ *t, int64_t when)
@@ -94,7 +94,8 @@ static uint32_t timer_count_at(const timer_t_ *t, int64_t when)
     if (!t->on) return t->cnt_ref;
     int64_t n = (when - t->t_ref) / t->tick_ps;
     if (n < 0) n = 0;
-    return (uint32_t)((t->cnt_ref + (uint64_t)n) % t->modulus);
+    uint64_t c = t->cnt_ref + (uint64_t)n;
+    return (uint32_t)(c < t->modulus ? c : c % t->modulus);
 }
 
 static void timer_anchor_at(timer_t_ *t, uint32_t cnt, int64_t when)
@@ -392,13 +393,14 @@ static void qei_counts(int64_t n_from, int64_t n_to, double th0, double th1, dou
         if (total >= r) {
             /* the k-th count (1-based) of this step sits at count n_from + k (forward) or
                n_from - k + 1 (reverse, the edge is the lower boundary of the count left) */
-            uint64_t last_k = (total / r) * r - g.vel_pdec;
-            uint64_t n_caps = total / r;
-            double cpr = 4.0 * g.pp.encoder_lines, dth = th1 - th0;
+            uint64_t n_caps = r == 1 ? total : total / r;
+            uint64_t last_k = n_caps * r - g.vel_pdec;
             double q = x4 ? 1.0 : 2.0;           /* counts of the x4 grid per QEI count */
-#define EDGE_T(k) (fabs(dth) > 0.0 ? t0_ps + (t1_ps - t0_ps) * \
-        (((double)(dir > 0 ? (double)a + (double)(k) : (double)a - (double)(k) + 1.0) * q * 2.0 * M_PI / cpr - th0) / dth) \
-        : t1_ps)
+            double dth = th1 - th0;
+            double scale = fabs(dth) > 0.0 ? (t1_ps - t0_ps) / dth : 0.0;
+            double cnt_rad = q * 2.0 * M_PI / (4.0 * g.pp.encoder_lines);
+#define EDGE_T(k) (scale != 0.0 ? t0_ps + scale * \
+        ((dir > 0 ? (double)a + (double)(k) : (double)a - (double)(k) + 1.0) * cnt_rad - th0) : t1_ps)
             double tl = EDGE_T(last_k);
             double tp = n_caps >= 2 ? EDGE_T(last_k - r) : (double)g.vel_last_t;
 #undef EDGE_T
@@ -414,7 +416,7 @@ static void qei_counts(int64_t n_from, int64_t n_to, double th0, double th1, dou
             if (reset) timer_anchor_at(&g.t5, 0, (int64_t)tl);   /* CAP1REN: TMR5 restarts at the capture */
             hw_setbit(R_PIR3, B_PIR3_IC1IF);
         }
-        g.vel_pdec = (uint32_t)(total % r);
+        g.vel_pdec = r == 1 ? 0u : (uint32_t)(total % r);
     }
 }
 
