@@ -31,7 +31,7 @@ CSRC = Path(__file__).resolve().parent / "csrc"
 PLANT_SOURCES = ("plant.c",)
 TWIN_SOURCES = ("plant.c", "pic.c", "twin.c")
 
-TWIN_CFLAGS = ("-std=c99", "-O3", "-Wall", "-Wextra", "-fno-strict-aliasing", "-D_DEFAULT_SOURCE")
+TWIN_CFLAGS = ("-std=c99", "-O3", "-fno-math-errno", "-Wall", "-Wextra", "-fno-strict-aliasing", "-D_DEFAULT_SOURCE")
 COMMON = ("-fPIC",)
 
 
