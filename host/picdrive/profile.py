@@ -283,6 +283,11 @@ class Profile:
         Back-EMF plus the IR drop of the current that carries friction and
         load equals the usable bus voltage (bus voltage x :meth:`max_duty`):
         ``V = Kb w + R_line (B w + T_load) / Kt``.
+
+        This is the six-step DC equivalent (2008 eq 1): it ignores commutation.
+        Where a hall sector lasts less than the winding's L/R the current cannot
+        follow the sectors and the real bridge holds less; the twin measures it
+        (docs/twin.md).
         """
         m, inv = self.motor, self.inverter
         v = inv.bus_voltage_v * self.max_duty() - m.r_line_ohm * load_torque_n_m / m.kt_n_m_per_a
