@@ -181,12 +181,10 @@ def test_keepalive_feeds_the_watchdog_and_its_absence_trips_it():
     b = FakeBoard(TABLE, baud=115200)
     try:
         url = b.serve()
-        with Link.open(url) as lk:                     # keep-alive on
-            lk.set("link_timeout", 60)
-            lk.stop()
-            lk._keepalive = None                       # restart keep-alive with the new period
-            lk.start_keepalive()
+        with Link.open(url) as lk:                     # keep-alive on, timed from the board's 500 ms
+            assert lk.alive
             lk.start()
+            lk.set("link_timeout", 60)                 # shortened while running: the heartbeat re-times
             time.sleep(0.5)                            # > 8 x link_timeout, nothing sent by the test
             assert lk.status().state == P.State.RUN and b.stat("link_lost") == 0
         time.sleep(0.2)                                # the host went away while running: tripped

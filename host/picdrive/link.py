@@ -258,6 +258,8 @@ class Link:
                       "bad_crc_nacks": 0, "keepalive_errors": 0, "crc_errors": 0}
         self.last_keepalive_error: LinkError | None = None
         self._keepalive: threading.Thread | None = None
+        self._keepalive_period = 0.1
+        self._keepalive_auto = True
         self._reader = threading.Thread(target=self._read_loop, name=f"picdrive-link-reader {url}", daemon=True)
         self._reader.start()
 
@@ -569,7 +571,13 @@ class Link:
                 raise ParamError(f"{name} is read-only")
             if not e.min_raw <= raw <= e.max_raw:
                 raise ParamError(f"{name}: raw {raw} is outside [{e.min_raw}, {e.max_raw}]")
-        return self.request("param_set", {"id": e.id, "value": int(raw)}, detail=f"{name}={raw}")["value"]
+        stored = self.request("param_set", {"id": e.id, "value": int(raw)}, detail=f"{name}={raw}")["value"]
+        if name == "link_timeout" and self._keepalive is not None and self._keepalive_auto:
+            # the board's watchdog runs on the new timeout from now: re-time the heartbeat
+            self._keepalive_period = self._auto_keepalive_period(stored * e.scale)
+            with self._cv:
+                self._cv.notify_all()
+        return stored
 
     # ---------------------------------------------------------------- drive
     def set_speed(self, rpm: float) -> float:
@@ -633,18 +641,30 @@ class Link:
         board's link_timeout)."""
         if self._keepalive is not None:
             return
+        self._keepalive_auto = period_s is None
         if period_s is None:
             try:
-                period_s = self.get("link_timeout") / 1000.0 / 4.0
+                period_s = self._auto_keepalive_period(self.get("link_timeout"))
             except LinkError:
                 period_s = 0.1
-        period_s = min(1.0, max(0.005, period_s))
-        self._keepalive = threading.Thread(target=self._keepalive_loop, args=(period_s,),
+        self._keepalive_period = min(1.0, max(0.005, period_s))
+        self._keepalive = threading.Thread(target=self._keepalive_loop,
                                            name=f"picdrive-link-keepalive {self.url}", daemon=True)
         self._keepalive.start()
 
-    def _keepalive_loop(self, period: float) -> None:
+    @staticmethod
+    def _auto_keepalive_period(link_timeout_ms: float) -> float:
+        """A quarter of the board's link timeout, within [5 ms, 1 s]."""
+        return min(1.0, max(0.005, link_timeout_ms / 1000.0 / 4.0))
+
+    @property
+    def alive(self) -> bool:
+        """True while the link is open and its reader has not given up on the port."""
+        return not self._closing and self._dead is None
+
+    def _keepalive_loop(self) -> None:
         while not self._closing and self._dead is None:
+            period = self._keepalive_period
             left = self._last_tx + period - time.monotonic()
             if left > 0:
                 with self._cv:
