@@ -53,6 +53,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from .console_step import parse_number
 from .errors import PicdriveError
 
 __all__ = ["ConsoleError", "Console", "COMMANDS", "register", "main"]
@@ -95,13 +96,7 @@ def command(name: str, usage: str, help: str, complete=None, needs_link: bool = 
 
 
 def _number(s: str, what: str) -> float:
-    try:
-        v = float(s)
-    except ValueError:
-        raise ConsoleError(f"{what} {s!r} is not a number") from None
-    if not math.isfinite(v):
-        raise ConsoleError(f"{what} {s!r} is not a finite number")
-    return v
+    return parse_number(s, what, ConsoleError)
 
 
 def _nargs(cmd: str, args: list[str], lo: int, hi: int | None = None) -> None:
@@ -1245,7 +1240,7 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
     was = (con.tele_on, list(con.tele_signals), con.tele_rate_hz)
     collect: list = []
     con._stop_pump()
-    cfg = link.configure_telemetry(sigs, decimation=1)
+    link.configure_telemetry(sigs, decimation=1)
     with con._sinks_lock:
         con._collect = collect
     con._start_pump()

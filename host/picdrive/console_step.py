@@ -112,14 +112,19 @@ def parse_step_args(args: list[str]) -> tuple[float, float, float, str | None]:
 STEP_USAGE = "step <from_rpm> <to_rpm> [--hold <s>] [--png <file.png>]"
 
 
-def _number(s: str, what: str) -> float:
+def parse_number(s: str, what: str, error: type[PicdriveError] = PicdriveError) -> float:
+    """A finite number typed by the user, or ``error`` saying which argument is wrong."""
     try:
         v = float(s)
     except ValueError:
-        raise StepError(f"{what} {s!r} is not a number") from None
+        raise error(f"{what} {s!r} is not a number") from None
     if not math.isfinite(v):
-        raise StepError(f"{what} {s!r} is not a finite number")
+        raise error(f"{what} {s!r} is not a finite number")
     return v
+
+
+def _number(s: str, what: str) -> float:
+    return parse_number(s, what, StepError)
 
 
 def analyse_step(rec: StepRecord, *, pre_t_s: np.ndarray | None = None,
