@@ -10,8 +10,8 @@ import pytest
 from picdrive import cli, codegen, p18f4431
 from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.paths import firmware_build_dir, repo_root
-from picdrive.profile import load_profile, loads_profile
-from picdrive.result import DesignResult, load_design, save_design
+from picdrive.profile import load_profile
+from picdrive.result import DesignResult, save_design
 
 RPM = 3.141592653589793 / 30
 EXAMPLE_DESIGN = repo_root() / "examples" / "duy2008.fuzzy-hinf.design.json"

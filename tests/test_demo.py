@@ -2,8 +2,6 @@
 import json
 import math
 
-import pytest
-
 from picdrive.cli import main
 
 

@@ -11,7 +11,6 @@ import binascii
 import ctypes as C
 import struct
 import subprocess
-from pathlib import Path
 
 import pytest
 

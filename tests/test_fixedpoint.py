@@ -7,8 +7,6 @@ signs), one to three rules, the derivative filter, current feedback and both
 speed sources.
 """
 import math
-import re
-import shutil
 
 import pytest
 

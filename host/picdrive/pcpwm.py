@@ -268,7 +268,7 @@ class PwmPlan:
             f"max duty    {self.max_duty:.4f} = {self.pdc_max}/{p.duty_full_counts} counts "
             "(2 x dead time + bootstrap refresh of low time per period)",
             "commutation " + ", ".join(f"{c:03b}:{self.table.describe(c)}" for c in self.table.sequence)
-            + f" (forward; invalid codes: "
+            + " (forward; invalid codes: "
             + ", ".join(f"{c:03b}" for c in range(8) if not self.table.valid_mask >> c & 1) + ")",
         ]
 
