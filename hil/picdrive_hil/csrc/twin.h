@@ -63,6 +63,9 @@ typedef struct {
     int32_t te_valid;        /* torque_e_n_m is the torque of the present i and theta (to O(h^2)) */
 } plant_state_t;
 
+/* The C API (ctypes) keeps default visibility; the rest of the twin's C is built with
+ * -fvisibility=hidden, so its internal calls bind directly (no PLT, no interposition). */
+#pragma GCC visibility push(default)
 void   plant_reset(plant_state_t *s);
 void   plant_step(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
                   double t_load_n_m, double h_s);
@@ -70,6 +73,7 @@ double plant_emf_shape(const plant_params_t *p, double theta_e);   /* phase A, p
 int    plant_hall_code(const plant_params_t *p, double theta_mech); /* bits: 0=A 1=B 2=C */
 double plant_theta_e(const plant_params_t *p, const plant_state_t *s);
 int    plant_sizeof(int which);
+#pragma GCC visibility pop
 
 /* ------------------------------------------------------------------ twin */
 
@@ -146,6 +150,7 @@ typedef struct {
     double hall, fault, spare;
 } trace_rec_t;
 
+#pragma GCC visibility push(default)
 int  twin_init(const twin_config_t *cfg);
 int  twin_power_on(void);                   /* chip reset + fw_init */
 int  twin_run_until(int64_t t_end_ps);      /* 0, or twin error bits */
@@ -162,5 +167,6 @@ int  twin_trace_count(void);
 uint8_t twin_sfr_get(uint16_t idx);
 void twin_set_plant_state(double w_rad_s, double theta_rad);
 int  twin_sizeof(int which);
+#pragma GCC visibility pop
 
 #endif
