@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+import platform
 import shutil
 import subprocess
 import tempfile
@@ -40,6 +41,12 @@ TWIN_UNITY = "twin_all.c"
 TWIN_CFLAGS = ("-std=c99", "-O3", "-g", "-fno-math-errno", "-ffp-contract=off", "-fvisibility=hidden",
                "-Wall", "-Wextra", "-fno-strict-aliasing", "-D_DEFAULT_SOURCE")
 COMMON = ("-fPIC",)
+
+# x86-64 micro-architecture levels (the psABI's), by the /proc/cpuinfo flags each needs
+_X86_LEVELS = (
+    ("x86-64-v3", {"avx", "avx2", "bmi1", "bmi2", "f16c", "fma", "abm", "movbe", "xsave"}),
+    ("x86-64-v2", {"cx16", "lahf_lm", "popcnt", "pni", "sse4_1", "sse4_2", "ssse3"}),
+)
 
 
 class TwinBuildError(PicdriveError):
@@ -75,6 +82,49 @@ def _compiler_id(cc: str) -> str:
         raise TwinBuildError(f"C compiler {cc!r} not usable ({e}); install gcc (apt-get install gcc) "
                              "or set CC to a working compiler") from None
     return out.splitlines()[0] if out else cc
+
+
+def _cpu_flags() -> set[str]:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return set()
+
+
+@functools.lru_cache(maxsize=None)
+def target_flags() -> tuple[str, ...]:
+    """``-march=x86-64-v3`` (or ``-v2``) when this machine's CPU has that level and the
+    compiler knows it, else nothing.  The library is built (and cached) on the machine
+    that runs it, and the level is part of the cache key.  The arithmetic does not
+    change with the level (no fused multiply-add: ``-ffp-contract=off``); the code is
+    shorter (VEX three-operand forms, ``roundsd`` for floor).  ``$PICDRIVE_TWIN_MARCH``
+    overrides: a level name, or ``none``."""
+    want = os.environ.get("PICDRIVE_TWIN_MARCH")
+    if want is not None:
+        return () if want.strip().lower() in ("", "none") else (f"-march={want.strip()}",)
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return ()
+    have = _cpu_flags()
+    cc = os.environ.get("CC", "gcc")
+    for level, need in _X86_LEVELS:
+        if need <= have:
+            try:
+                ok = subprocess.run([cc, f"-march={level}", "-x", "c", "-c", "-o", os.devnull, "-"],
+                                    input="int x;\n", capture_output=True, text=True).returncode == 0
+            except OSError:
+                ok = False
+            if ok:
+                return (f"-march={level}",)
+    return ()
+
+
+def twin_cflags() -> tuple[str, ...]:
+    """The flags of the twin's own C: ``TWIN_CFLAGS`` + ``target_flags()``."""
+    return TWIN_CFLAGS + target_flags()
 
 
 def _group_inputs(g: Group) -> list[Path]:
@@ -122,13 +172,13 @@ def build_library(groups: Sequence[Group], *, name: str = "libtwin") -> Path:
 
 def twin_group(gen_dir: Path) -> Group:
     """The twin's own C: plant, peripheral model, event loop."""
-    return Group((CSRC / TWIN_UNITY,), (CSRC, Path(gen_dir)), TWIN_CFLAGS,
+    return Group((CSRC / TWIN_UNITY,), (CSRC, Path(gen_dir)), twin_cflags(),
                  tuple(CSRC / s for s in TWIN_SOURCES) + (CSRC / "twin.h", CSRC / "pic_internal.h"))
 
 
 def plant_library() -> Path:
     """The plant alone (no firmware, no peripheral model): for the cross-checks."""
-    return build_library([Group(tuple(CSRC / s for s in PLANT_SOURCES), (CSRC,), TWIN_CFLAGS)],
+    return build_library([Group(tuple(CSRC / s for s in PLANT_SOURCES), (CSRC,), twin_cflags())],
                          name="libplant")
 
 
