@@ -60,6 +60,9 @@ void pic_reset(void)
     g.rx_arrive = NEVER; g.baud_bad = 0;
     g.ee_unlock = 0; g.ee_done = NEVER;
     g.adc_done = NEVER;
+    g.pwm_buf_stale = 1;
+    g.hall_ext_ok = 0;
+    g.irq_dirty = 1;
 }
 
 /* ------------------------------------------------------------ ports */
@@ -194,6 +197,10 @@ static double dead_time_s(void)
 
 static void pwm_load_buffers(void)
 {
+    /* PTPER, PDCx, UDIS and the time base's state are all it reads: unchanged since the
+       last load (no firmware write to the PCPWM block, pwm_on the same), nothing to do */
+    if (!g.pwm_buf_stale) return;
+    g.pwm_buf_stale = 0;
     uint16_t per = (uint16_t)(sfr16(R_PTPERL, R_PTPERH) & 0x0FFF);
     if (per != g.ptper_act) g.legs_dirty = 1;
     g.ptper_act = per;
@@ -217,8 +224,17 @@ static void pwm_start_period(void)
         g.legs_dirty = 1;
     }
     g.pwm_start = g.now;
-    int64_t per = pwm_period_ps(g.ptper_act);
-    if (per <= 0) per = tcy(1);
+    int64_t per;
+    if (g.per_key_valid && g.per_key_ptper == g.ptper_act && g.per_key_ptcon0 == picsim_sfr[R_PTCON0]) {
+        per = g.per_key_ps;                  /* same PTPER and PTCON0 as the last period */
+    } else {
+        per = pwm_period_ps(g.ptper_act);
+        if (per <= 0) per = tcy(1);
+        g.per_key_valid = 1;
+        g.per_key_ptper = g.ptper_act;
+        g.per_key_ptcon0 = picsim_sfr[R_PTCON0];
+        g.per_key_ps = per;
+    }
     if (per != g.pwm_period) g.legs_dirty = 1;
     g.pwm_period = per;
     g.pwm_next = g.now + g.pwm_period;
@@ -232,6 +248,7 @@ static void pwm_start_period(void)
 static void pwm_time_base(void)
 {
     g.legs_dirty = 1;
+    g.pwm_buf_stale = 1;
     int on = (picsim_sfr[R_PTCON1] >> B_PTCON1_PTEN) & 1;
     if (on && !g.pwm_on) {
         g.pwm_on = 1;
@@ -251,6 +268,7 @@ static void pwm_boundary(void)
     if (ptmod() == 1) {                       /* single shot: the time base stops */
         hw_clrbit(R_PTCON1, B_PTCON1_PTEN);
         g.pwm_on = 0;
+        g.pwm_buf_stale = 1;
         g.pwm_next = NEVER;
         return;
     }
@@ -352,6 +370,19 @@ static void flt_update(int64_t t_prev)
 
 static int qei_mode(void) { return (picsim_sfr[R_QEICON] >> B_QEICON_QEIM0) & 7; }
 
+/* floor(n / cpr): the revolution of x4 count n.  The counts move a few per step, so the
+   revolution of the last count asked is kept and the division done only on a new one. */
+static int64_t enc_rev(int64_t n, int64_t cpr)
+{
+    if (!(g.rev_valid && g.rev_cpr == cpr && n >= g.rev_base && n - g.rev_base < cpr)) {
+        g.rev = n >= 0 ? n / cpr : -((-n + cpr - 1) / cpr);
+        g.rev_base = g.rev * cpr;
+        g.rev_cpr = cpr;
+        g.rev_valid = 1;
+    }
+    return g.rev;
+}
+
 /* encoder counts n_from -> n_to while the (measured) angle went th0 -> th1
    over t0 -> t1; edge times are interpolated on the angle */
 static void qei_counts(int64_t n_from, int64_t n_to, double th0, double th1, double t0_ps, double t1_ps)
@@ -369,14 +400,16 @@ static void qei_counts(int64_t n_from, int64_t n_to, double th0, double th1, dou
     if (mode == 2 || mode == 6) {                       /* reset on MAXCNT match */
         int64_t m = (int64_t)sfr16(R_MAXCNTL, R_MAXCNTH) + 1;
         int64_t p = (int64_t)g.poscnt + d;
-        if (p >= m || p < 0) hw_setbit(R_PIR3, B_PIR3_IC2QEIF);
-        p %= m;
-        if (p < 0) p += m;
+        if (p >= m || p < 0) {
+            hw_setbit(R_PIR3, B_PIR3_IC2QEIF);
+            p %= m;
+            if (p < 0) p += m;
+        }
         g.poscnt = (int32_t)p;
     } else {                                            /* reset by the index pulse */
         int64_t cpr = 4 * (int64_t)g.pp.encoder_lines;
-        int64_t ia = n_from >= 0 ? n_from / cpr : -((-n_from + cpr - 1) / cpr);
-        int64_t ib = n_to >= 0 ? n_to / cpr : -((-n_to + cpr - 1) / cpr);
+        int64_t ia = enc_rev(n_from, cpr);
+        int64_t ib = enc_rev(n_to, cpr);
         if (ia != ib) {
             g.enc_index_count = (dir > 0 ? ib : ia) * cpr;
             hw_setbit(R_PIR3, B_PIR3_IC2QEIF);
@@ -386,14 +419,14 @@ static void qei_counts(int64_t n_from, int64_t n_to, double th0, double th1, dou
     }
     /* velocity captures: every 1, 4, 16 or 64 counts TMR5 is captured into VELR and reset */
     if (!((picsim_sfr[R_QEICON] >> B_QEICON_VELM) & 1) && g.t5.on) {
-        static const uint32_t pdec[4] = {1, 4, 16, 64};
-        uint32_t r = pdec[picsim_sfr[R_QEICON] & 3];
+        int lg = 2 * (picsim_sfr[R_QEICON] & 3);    /* every 1, 4, 16, 64 counts */
+        uint32_t r = 1u << lg;
         int64_t ad = d > 0 ? d : -d;
         uint64_t total = g.vel_pdec + (uint64_t)ad;
         if (total >= r) {
             /* the k-th count (1-based) of this step sits at count n_from + k (forward) or
                n_from - k + 1 (reverse, the edge is the lower boundary of the count left) */
-            uint64_t n_caps = r == 1 ? total : total / r;
+            uint64_t n_caps = total >> lg;
             uint64_t last_k = n_caps * r - g.vel_pdec;
             double q = x4 ? 1.0 : 2.0;           /* counts of the x4 grid per QEI count */
             double dth = th1 - th0;
@@ -416,7 +449,7 @@ static void qei_counts(int64_t n_from, int64_t n_to, double th0, double th1, dou
             if (reset) timer_anchor_at(&g.t5, 0, (int64_t)tl);   /* CAP1REN: TMR5 restarts at the capture */
             hw_setbit(R_PIR3, B_PIR3_IC1IF);
         }
-        g.vel_pdec = r == 1 ? 0u : (uint32_t)(total % r);
+        g.vel_pdec = (uint32_t)(total & (r - 1u));
     }
 }
 
@@ -679,6 +712,9 @@ void pic_set_pins_from_plant(void)
     }
     uint8_t changed = (uint8_t)(code ^ g.hall_pins);
     g.hall_pins = (uint8_t)code;
+    /* the levels on the pins already show the code (nothing else drives those pins) */
+    if (!changed && g.hall_ext_ok && !g.hall_pin_shared) return;
+    g.hall_ext_ok = 1;
     for (int k = 0; k < 3; k++) {
         pin_t pn = g.cfg.hall_pin[k];
         if (pn.port >= 5) continue;
@@ -692,12 +728,11 @@ void pic_set_pins_from_plant(void)
 static void set_enc_pins(int64_t n)
 {
     /* QEA = RA3, QEB = RA4, INDX = RA2 (not when the board puts the halls there) */
-    for (int k = 0; k < 3; k++)
-        if (g.cfg.hall_pin[k].port == 0 && g.cfg.hall_pin[k].bit >= 2 && g.cfg.hall_pin[k].bit <= 4) return;
-    int ph = (int)(((n % 4) + 4) % 4);
+    if (g.halls_on_enc_pins) return;
+    int ph = (int)(n & 3);                       /* n mod 4, also for n < 0 */
     int a = ph == 1 || ph == 2, b = ph == 2 || ph == 3;
     int64_t cpr = 4 * (int64_t)g.pp.encoder_lines;
-    int idx = cpr > 0 && (((n % cpr) + cpr) % cpr) == 0;
+    int idx = cpr > 0 && n == enc_rev(n, cpr) * cpr;
     uint8_t v = g.ext[0] & (uint8_t)~0x1C;
     g.ext[0] = (uint8_t)(v | (a << 3) | (b << 4) | (idx << 2));
 }
@@ -724,7 +759,7 @@ void pic_after_plant_step(int64_t t_prev, double th_meas)
 /* side effects of a register the firmware changed */
 static void reg_written(uint8_t idx)
 {
-    if (idx >= R_OVDCONS && idx <= R_PTCON0) g.legs_dirty = 1;     /* the PCPWM block */
+    if (idx >= R_OVDCONS && idx <= R_PTCON0) g.legs_dirty = g.pwm_buf_stale = 1;   /* the PCPWM block */
     if (idx == R_FLTCONFIG) g.legs_dirty = 1;
     switch (idx) {
     case R_PTCON0: case R_PTCON1:
@@ -868,14 +903,23 @@ void pic_sync_inputs(void)
 
 void pic_process_writes(void)
 {
-    if (memcmp(g.shadow, (const void *)picsim_sfr, sizeof g.shadow) == 0) return;
-    /* time base first, then everything else in address order */
-    int pt = g.shadow[R_PTCON1] != picsim_sfr[R_PTCON1] || g.shadow[R_PTCON0] != picsim_sfr[R_PTCON0];
+    /* the changed registers, in address order: compared 8 bytes at a time (a call
+       changes a few registers or none) */
     uint8_t changed[256];
     int n = 0;
-    for (int i = 0; i < 256; i++)
-        if (g.shadow[i] != picsim_sfr[i]) changed[n++] = (uint8_t)i;
-    memcpy(g.shadow, (const void *)picsim_sfr, sizeof g.shadow);
+    const uint8_t *sfr = (const uint8_t *)picsim_sfr;
+    for (int w = 0; w < 256; w += 8) {
+        uint64_t a, b;
+        memcpy(&a, g.shadow + w, 8);
+        memcpy(&b, sfr + w, 8);
+        if (a == b) continue;
+        for (int i = w; i < w + 8; i++)
+            if (g.shadow[i] != sfr[i]) changed[n++] = (uint8_t)i;
+    }
+    if (n == 0) return;
+    /* time base first, then everything else in address order */
+    int pt = g.shadow[R_PTCON1] != picsim_sfr[R_PTCON1] || g.shadow[R_PTCON0] != picsim_sfr[R_PTCON0];
+    memcpy(g.shadow, sfr, sizeof g.shadow);
     int did_pwm_buf = 0;
     for (int k = 0; k < n; k++) {
         uint8_t i = changed[k];

@@ -57,7 +57,13 @@ typedef struct {
     int flt_cbc;              /* cycle-by-cycle: outputs off to the end of the period */
     leg_t leg[3];
     int legs_dirty;           /* PWM state changed: recompute the legs */
+    int pwm_buf_stale;        /* a PCPWM register or the time base changed: reload PTPER/PDC at the period */
+    int per_key_valid;        /* period length cached for (PTPER, PTCON0) */
+    uint16_t per_key_ptper;
+    uint8_t per_key_ptcon0;
+    int64_t per_key_ps;
     int poll_due;             /* something the main loop can see changed since its last pass */
+    int irq_dirty;            /* an SFR changed since no interrupt was found pending */
     int64_t last_poll;
     uint8_t gate_hi[3], gate_lo[3];
     double duty[4], dead_frac;
@@ -75,6 +81,9 @@ typedef struct {
     uint32_t vel_pdec;
     int qei_dir;
     int enc_frozen;
+    int64_t rev, rev_base, rev_cpr;   /* enc_rev() cache */
+    int rev_valid;
+    int halls_on_enc_pins;    /* a hall sits on RA2..RA4: the encoder pins are not driven */
     int64_t enc_frozen_at;
 
     /* EUSART */
@@ -112,6 +121,8 @@ typedef struct {
     int64_t hall_override_until;
     int64_t oc_until;         /* forced comparator until */
     int flta_asserted;
+    int hall_ext_ok;          /* ext[] shows hall_pins on the hall pins */
+    int hall_pin_shared;      /* a hall pin is also the FLTA or RX pin: always rewrite the levels */
 
     /* next hall edge (electrical angle from hall_offset) and the direction it was found for */
     double edge_th;
@@ -156,7 +167,7 @@ double pic_board_baud(void);
 /* a hardware event changes an SFR: the main loop has something new to see */
 static inline void hw_write(uint8_t idx, uint8_t v)
 {
-    if (picsim_sfr[idx] != v) g.poll_due = 1;
+    if (picsim_sfr[idx] != v) g.poll_due = g.irq_dirty = 1;
     picsim_sfr[idx] = v;
     g.shadow[idx] = v;
 }

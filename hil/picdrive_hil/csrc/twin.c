@@ -59,14 +59,17 @@ static void fw_call(void (*fn)(void))
     g.in_fw = 1;
     fn();
     g.in_fw = 0;
+    g.irq_dirty = 1;            /* the firmware may have changed any flag or enable */
     pic_process_writes();
 }
 
 static int service_irqs(void)
 {
     for (int guard = 0;; guard++) {
+        /* pic_irq_pending() reads only SFRs: none changed since it found nothing, nothing to take */
+        if (!g.irq_dirty) return 0;
         int v = pic_irq_pending();
-        if (!v) return 0;
+        if (!v) { g.irq_dirty = 0; return 0; }
         g.poll_due = 1;
         if (guard >= 1000) {
             g.errors |= TWIN_ERR_IRQ_STORM;
@@ -193,6 +196,15 @@ int twin_init(const twin_config_t *cfg)
     g.ext[2] = 0x80;                          /* RX idle high */
     g.trace_next = NEVER;
     g.legs_dirty = 1;
+    g.pwm_buf_stale = 1;
+    g.irq_dirty = 1;
+    for (int k = 0; k < 3; k++) {
+        pin_t pn = cfg->hall_pin[k];
+        if (pn.port == 0 && pn.bit >= 2 && pn.bit <= 4) g.halls_on_enc_pins = 1;
+        if (pn.port < 5 && ((pn.port == cfg->flta_pin.port && pn.bit == cfg->flta_pin.bit) ||
+                            (pn.port == 2 && pn.bit == 7)))          /* RC7 = RX, idle high */
+            g.hall_pin_shared = 1;
+    }
     g.initialised = 1;
     return 0;
 }
@@ -221,6 +233,7 @@ int twin_run_until(int64_t t_end)
 {
     if (!g.initialised) return TWIN_ERR_NOT_INIT;
     int64_t max_off = (int64_t)llround((g.cfg.max_step_s > 0 ? g.cfg.max_step_s : 50e-6) * PS_PER_S);
+    g.irq_dirty = 1;
     while (g.now < t_end && !g.errors) {
         int64_t tn = pic_next_event();
         int64_t cap = g.now + (g.pwm_on && g.pwm_period > 0 && g.pwm_period < max_off ? g.pwm_period : max_off);
