@@ -38,6 +38,7 @@ typedef struct {
     twin_config_t cfg;
     plant_params_t pp;
     plant_state_t ps;
+    plant_cache_t pcache;     /* step coefficients (plant_step_cached) */
     int initialised;
     int64_t now;
     int64_t tosc_ps, tcy_ps;

@@ -116,26 +116,55 @@ static double leg_current(double A, double k, double cp, double cm, double vn)
     return (up > 0.0 ? up : 0.0) + (dn < 0.0 ? dn : 0.0);
 }
 
-static void solve_currents(const plant_params_t *p, const double i0[3], const double vp[3],
-                           const double vm[3], const double e[3], double h,
-                           double i1[3], double *vn_out)
+/* the coefficients of a step of length h: they depend on h and the parameters only */
+static void step_coef(const plant_params_t *p, double h, step_coef_t *c)
 {
-    double R = p->r_phase_ohm, L = p->l_phase_h;
-    /* the event loop mostly repeats one step length: keep the last exponentials */
-    static __thread double c_h = -1.0, c_r = 0.0, c_l = 0.0, c_a = 0.0, c_k = 0.0;
-    if (h != c_h || R != c_r || L != c_l) {
-        c_h = h; c_r = R; c_l = L;
-        c_a = exp(-h * R / L);
-        c_k = -expm1(-h * R / L) / R;           /* (1 - a) / R, accurate for small h */
+    double R = p->r_phase_ohm, L = p->l_phase_h, J = p->inertia_kg_m2, B = p->friction_n_m_s;
+    c->h = h; c->r = R; c->l = L; c->j = J; c->b = B;
+    c->a = exp(-h * R / L);
+    c->k = -expm1(-h * R / L) / R;              /* (1 - a) / R, accurate for small h */
+    for (int m = 0; m < 2; m++) {               /* the rotor over h and over h/2 */
+        double hm = m ? 0.5 * h : h;
+        double hj = hm / J, hb = 0.5 * hj * B;
+        c->hj[m] = hj;
+        c->hb[m] = hb;
+        c->den[m] = 1.0 / (1.0 + hb);
     }
-    double a = c_a, k = c_k;
+}
+
+/* the coefficients for h, from the cache: its slot 0 holds a step length seen twice
+   in a row (the PWM period, most steps), slot 1 the last other one (split steps) */
+static const step_coef_t *coef_for(const plant_params_t *p, double h, plant_cache_t *cc)
+{
+    double R = p->r_phase_ohm, L = p->l_phase_h, J = p->inertia_kg_m2, B = p->friction_n_m_s;
+    for (int m = 0; m < 2; m++) {
+        step_coef_t *c = &cc->slot[m];
+        if (c->h == h && c->r == R && c->l == L && c->j == J && c->b == B) {
+            if (m == 1 && h == cc->last_h) {          /* twice in a row: to slot 0 */
+                step_coef_t t = cc->slot[0];
+                cc->slot[0] = *c;
+                *c = t;
+                c = &cc->slot[0];
+            }
+            cc->last_h = h;
+            return c;
+        }
+    }
+    int m = h == cc->last_h ? 0 : 1;
+    cc->last_h = h;
+    step_coef(p, h, &cc->slot[m]);
+    return &cc->slot[m];
+}
+
+static void solve_currents(const double i0[3], const double vp[3], const double vm[3],
+                           const double e[3], const step_coef_t *c, double i1[3], double *vn_out)
+{
+    double a = c->a, k = c->k;
     double A[3], cp[3], cm[3], bp[6], g[6];
     for (int x = 0; x < 3; x++) {
         A[x] = a * i0[x];
         cp[x] = vp[x] - e[x];
         cm[x] = vm[x] - e[x];
-        bp[2 * x] = cp[x] + A[x] / k;
-        bp[2 * x + 1] = cm[x] + A[x] / k;
     }
     /* fast path: the conduction mode of the start of the step holds to its end (legs
        with current keep their sign and rail, open legs stay between theirs); then v_n
@@ -157,6 +186,10 @@ static void solve_currents(const plant_params_t *p, const double i0[3], const do
                 return;
             }
         }
+    }
+    for (int x = 0; x < 3; x++) {
+        bp[2 * x] = cp[x] + A[x] / k;
+        bp[2 * x + 1] = cm[x] + A[x] / k;
     }
     /* insertion sort of the six breakpoints */
     for (int m = 1; m < 6; m++) {
@@ -196,11 +229,12 @@ static void solve_currents(const plant_params_t *p, const double i0[3], const do
     *vn_out = vn;
 }
 
-/* rotor speed after a step, trapezoidal in torque, implicit in B w */
+/* rotor speed after a step (m = 0: the whole step h, m = 1: its first half), trapezoidal in
+   torque, implicit in B w */
 static double next_speed(const plant_params_t *p, double w0, double te_avg, double tl,
-                         double h, double *tl_applied)
+                         const step_coef_t *c, int m, double *tl_applied)
 {
-    double hj = h / p->inertia_kg_m2, hb = 0.5 * hj * p->friction_n_m_s, den = 1.0 / (1.0 + hb);
+    double hj = c->hj[m], hb = c->hb[m], den = c->den[m];
     if (p->load_mode == LOAD_ACTIVE) {
         *tl_applied = tl;
         return (w0 * (1.0 - hb) + hj * (te_avg - tl)) * den;
@@ -220,8 +254,9 @@ static double next_speed(const plant_params_t *p, double w0, double te_avg, doub
 }
 
 static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
-                    double t_load_n_m, double h)
+                    double t_load_n_m, double h, plant_cache_t *cc)
 {
+    const step_coef_t *c = coef_for(p, h, cc);
     double P = (double)p->pole_pairs, J = p->inertia_kg_m2, vbus = p->bus_voltage_v;
     double vp[3], vm[3], foff[3], i0[3], f[3], e[3], i1[3], vn, tl_applied;
     for (int x = 0; x < 3; x++) {
@@ -246,7 +281,7 @@ static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3
         double wmax = fabs(w0) + h * (fabs(t_load_n_m) + p->friction_n_m_s * fabs(w0)) / J;
         double peak = (p->emf_shape == EMF_SINUSOIDAL ? 1.7320508075688772 : 2.0) * p->lambda_m_v_s * P * wmax;
         if (peak < vbus + 2.0 * p->diode_drop_v) {
-            double w1 = next_speed(p, w0, 0.0, t_load_n_m, h, &tl_applied);
+            double w1 = next_speed(p, w0, 0.0, t_load_n_m, c, 0, &tl_applied);
             for (int x = 0; x < 3; x++) { s->v_term[x] = 0.0; s->e_v[x] = 0.0; }
             s->i_bus_a = s->i_link_on_a = s->i_peak_a = 0.0;
             s->v_neutral = 0.0;
@@ -266,12 +301,12 @@ static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3
         w_mid = 0.0;
     } else {
         double tmp;
-        w_mid = next_speed(p, w0, te0, t_load_n_m, 0.5 * h, &tmp);
+        w_mid = next_speed(p, w0, te0, t_load_n_m, c, 1, &tmp);
     }
     double th_mid = th0 + 0.25 * h * (w0 + w_mid);
     shapes(p, P * th_mid, f);
     for (int x = 0; x < 3; x++) e[x] = p->lambda_m_v_s * P * w_mid * f[x];
-    solve_currents(p, i0, vp, vm, e, h, i1, &vn);
+    solve_currents(i0, vp, vm, e, c, i1, &vn);
 
     double w1;
     double te1p = torque_at(p, th0 + h * w_mid, i1);
@@ -279,7 +314,7 @@ static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3
         w1 = 0.0;
         tl_applied = 0.0;
     } else {
-        w1 = next_speed(p, w0, 0.5 * (te0 + te1p), t_load_n_m, h, &tl_applied);
+        w1 = next_speed(p, w0, 0.5 * (te0 + te1p), t_load_n_m, c, 0, &tl_applied);
     }
     double th1 = th0 + 0.5 * h * (w0 + w1);
     (void)J;
@@ -332,12 +367,12 @@ int plant_sizeof(int which)
  * step (first-order error in the other phases); locating the crossing keeps
  * the step second order.  The crossing time comes from the exponential
  * solution of that phase with the conduction mode at the start of the step. */
-void plant_step(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
-                double t_load_n_m, double h)
+void plant_step_cached(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
+                       double t_load_n_m, double h, plant_cache_t *cc)
 {
     if (!(h > 0.0)) return;
     plant_state_t save = *s;
-    substep(p, s, leg, t_load_n_m, h);
+    substep(p, s, leg, t_load_n_m, h, cc);
     double best = h;
     int bx = -1;
     for (int x = 0; x < 3; x++) {
@@ -365,12 +400,12 @@ void plant_step(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
     if (bx < 0 || best < 1e-3 * h || best > 0.999 * h)
         return;
     *s = save;
-    substep(p, s, leg, t_load_n_m, best);
+    substep(p, s, leg, t_load_n_m, best, cc);
     /* the crossing phase ends at zero; the rest keep the sum at zero */
     double r = s->i_a[bx];
     s->te_valid = 0;                  /* the currents are adjusted below */
     if (fabs(r) > 0.02 * fabs(save.i_a[bx])) {   /* estimate off: leave it to the implicit rule */
-        substep(p, s, leg, t_load_n_m, h - best);
+        substep(p, s, leg, t_load_n_m, h - best, cc);
         return;
     }
     s->i_a[bx] = 0.0;
@@ -378,5 +413,19 @@ void plant_step(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
     for (int y = 0; y < 3; y++) if (y != bx && s->i_a[y] != 0.0) others++;
     for (int y = 0; y < 3; y++) if (y != bx && s->i_a[y] != 0.0) s->i_a[y] += r / others;
     if (others == 1) for (int y = 0; y < 3; y++) if (y != bx) s->i_a[y] = 0.0;
-    substep(p, s, leg, t_load_n_m, h - best);
+    substep(p, s, leg, t_load_n_m, h - best, cc);
+}
+
+void plant_step(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
+                double t_load_n_m, double h)
+{
+    plant_cache_t cc;
+    plant_cache_reset(&cc);
+    plant_step_cached(p, s, leg, t_load_n_m, h, &cc);
+}
+
+void plant_cache_reset(plant_cache_t *cc)
+{
+    memset(cc, 0, sizeof *cc);
+    cc->slot[0].h = cc->slot[1].h = -1.0;       /* no step has a negative length */
 }

@@ -181,6 +181,7 @@ int twin_init(const twin_config_t *cfg)
     g.cfg = *cfg;
     g.pp = cfg->plant;
     plant_reset(&g.ps);
+    plant_cache_reset(&g.pcache);
     g.tosc_ps = (int64_t)llround(PS_PER_S / cfg->fosc_hz);
     g.tcy_ps = 4 * g.tosc_ps;
     g.host_frame_ps = (int64_t)llround(10.0 * PS_PER_S / cfg->host_baud);
@@ -251,7 +252,7 @@ int twin_run_until(int64_t t_end)
         pic_compute_legs();
         double h = (double)(tn - g.now) / PS_PER_S;
         double tmid = ((double)g.now + 0.5 * (double)(tn - g.now)) / PS_PER_S;
-        plant_step(&g.pp, &g.ps, g.leg, load_at(tmid), h);
+        plant_step_cached(&g.pp, &g.ps, g.leg, load_at(tmid), h, &g.pcache);
         int64_t t_prev = g.now;
         g.now = tn;
         pic_after_plant_step(t_prev, theta_measured());

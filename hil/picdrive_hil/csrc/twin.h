@@ -75,6 +75,23 @@ double plant_theta_e(const plant_params_t *p, const plant_state_t *s);
 int    plant_sizeof(int which);
 #pragma GCC visibility pop
 
+/* Coefficients of a step of length h (exponentials of the RL solution, the rotor's implicit
+ * factors over h and h/2), cached by whoever steps the plant repeatedly: plant_step_cached()
+ * gives exactly plant_step()'s result (same arithmetic), without recomputing them for a
+ * step length it has seen.  Not part of the ctypes API. */
+typedef struct {
+    double h, r, l, j, b;          /* key: step length and the parameters used */
+    double a, k;                   /* exp(-h R/L), (1 - a)/R */
+    double hj[2], hb[2], den[2];   /* over h and h/2: h/J, h B/(2J), 1/(1 + h B/(2J)) */
+} step_coef_t;
+typedef struct {
+    step_coef_t slot[2];
+    double last_h;
+} plant_cache_t;
+void plant_cache_reset(plant_cache_t *cc);
+void plant_step_cached(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
+                       double t_load_n_m, double h_s, plant_cache_t *cc);
+
 /* ------------------------------------------------------------------ twin */
 
 /* A pin: port 0..4 = A..E, bit 0..7; port 0xFF = not connected. */
