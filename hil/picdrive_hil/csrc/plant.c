@@ -66,7 +66,7 @@ double plant_theta_e(const plant_params_t *p, const plant_state_t *s)
     return (double)p->pole_pairs * s->theta_rad;
 }
 
-static void shapes(const plant_params_t *p, double th_e, double f[3])
+static inline __attribute__((always_inline)) void shapes(const plant_params_t *p, double th_e, double f[3])
 {
     if (p->emf_shape == EMF_SINUSOIDAL) {
         double s = sin(th_e), c = cos(th_e);
@@ -231,7 +231,7 @@ static void solve_currents(const double i0[3], const double vp[3], const double 
 
 /* rotor speed after a step (m = 0: the whole step h, m = 1: its first half), trapezoidal in
    torque, implicit in B w */
-static double next_speed(const plant_params_t *p, double w0, double te_avg, double tl,
+static inline __attribute__((always_inline)) double next_speed(const plant_params_t *p, double w0, double te_avg, double tl,
                          const step_coef_t *c, int m, double *tl_applied)
 {
     double hj = c->hj[m], hb = c->hb[m], den = c->den[m];
