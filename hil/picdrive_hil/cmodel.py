@@ -141,6 +141,8 @@ def bind_plant(lib: C.CDLL) -> C.CDLL:
     lib.plant_emf_shape.restype = C.c_double
     lib.plant_hall_code.argtypes = [C.POINTER(PlantParams), C.c_double]
     lib.plant_hall_code.restype = C.c_int
+    lib.plant_sin_cos_probe.argtypes = [C.c_double, C.c_double, C.POINTER(C.c_double)]
+    lib.plant_sin_cos_probe.restype = None
     return lib
 
 

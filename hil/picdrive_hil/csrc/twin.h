@@ -73,12 +73,14 @@ double plant_emf_shape(const plant_params_t *p, double theta_e);   /* phase A, p
 int    plant_hall_code(const plant_params_t *p, double theta_mech); /* bits: 0=A 1=B 2=C */
 double plant_theta_e(const plant_params_t *p, const plant_state_t *s);
 int    plant_sizeof(int which);
+void   plant_sin_cos_probe(double anchor, double th, double out[2]);   /* tests: the sinusoidal EMF's sin/cos */
 #pragma GCC visibility pop
 
 /* Coefficients of a step of length h (exponentials of the RL solution, the rotor's implicit
- * factors over h and h/2), cached by whoever steps the plant repeatedly: plant_step_cached()
- * gives exactly plant_step()'s result (same arithmetic), without recomputing them for a
- * step length it has seen.  Not part of the ctypes API. */
+ * factors over h and h/2) and the anchor of the sinusoidal EMF's sin/cos, kept by whoever
+ * steps the plant repeatedly (plant_step_cached).  plant_step() starts from an empty cache
+ * each call; with the trapezoidal EMF both give the same bits, with the sinusoidal one they
+ * agree to a few units in the last place (plant.c, sin_cos).  Not part of the ctypes API. */
 typedef struct {
     double h, r, l, j, b;          /* key: step length and the parameters used */
     double a, k;                   /* exp(-h R/L), (1 - a)/R */
@@ -87,6 +89,7 @@ typedef struct {
 typedef struct {
     step_coef_t slot[2];
     double last_h;
+    double sin_ref, sin_s, sin_c;  /* sinusoidal EMF: anchor angle, its sin and cos (libm) */
 } plant_cache_t;
 void plant_cache_reset(plant_cache_t *cc);
 void plant_step_cached(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
