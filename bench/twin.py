@@ -3,7 +3,16 @@
 
 1. Real-time factor (simulated seconds per wall second, and per CPU second of
    this process) of the full firmware-in-the-loop twin at each bundled
-   profile's PWM rate, with the motor idle and running.  Target >= 200.
+   profile's PWM rate, with the motor idle and running (median of 5 runs, and
+   the spread).  Target >= 200.
+1b. Instructions per simulated second of the same twin on a fixed, deterministic
+   scenario (valgrind --tool=callgrind, the instructions executed inside the
+   ctypes calls: the twin's C, the firmware and libm): the same figure on
+   every run, unlike the wall clock of a shared machine.  The scenario: the
+   firmware's link watchdog set to its maximum and the setpoint to the HIL step
+   target over the twin's UART (free-running), the profile's load torque, start,
+   0.5 s to speed, then 2 s measured (the difference of two callgrind runs, with
+   and without those 2 s).  Skipped with a note if valgrind is not installed.
 2. The same simulated seconds through gym-electric-motor's PMSM environment
    (``Cont-SC-PMSM-v0``) with the profile's motor constants, at a time step of
    one PWM period and at its default 100 us; the ratio side by side.
@@ -16,7 +25,11 @@
    error, from the twin's true rotor speed sampled every 50 us.  Target:
    ratio <= 1.25 with <= 1 % overshoot and <= 0.2 % steady error.
 
-Usage: python3 bench/twin.py [--seconds 20] [--quick]
+Usage: python3 bench/twin.py [--seconds 20] [--quick] [--sections rtf,instr,gem,step]
+                             [--twin PROFILE FIRMWARE_DIR ...]
+--twin (repeatable) gives sections 1 and 1b the profile (name or .toml) and
+firmware folder to run instead of the bundled profiles with firmware_build/<name>
+(or their mixed-pid firmware generated on the spot).
 The machine's load average is printed: on a shared machine the wall-clock
 figure drops while the CPU-time figure does not.
 """
@@ -25,6 +38,9 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
+import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -56,6 +72,21 @@ def firmware_for(prof, method, tmp: Path) -> Path:
     return out
 
 
+def bench_firmware(prof, tmp: Path) -> tuple[Path, str]:
+    """The firmware the bench runs: firmware_build/<name> when it was generated from this
+    profile, else the mixed-pid design's firmware generated now.  Raises PicdriveError
+    (with the reason) when neither is possible."""
+    from picdrive_hil.twin import firmware_profile_hash
+    fw = ROOT / "firmware_build" / prof.name
+    if fw.exists() and firmware_profile_hash(fw) in (None, prof.sha256[:8]):
+        return fw, f"firmware_build/{prof.name}"
+    why = f"firmware_build/{prof.name} is from another profile; " if fw.exists() else ""
+    try:
+        return firmware_for(prof, "mixed-pid", tmp), f"{why}generated, mixed-pid"
+    except Exception as e:
+        raise RuntimeError(f"{why}mixed-pid firmware not generated: {e}") from None
+
+
 def configure(tw, speed_rpm: float | None):
     """Through the link (real time, briefly): a long watchdog and a setpoint;
     returns the server stopped, so that the twin can then run free."""
@@ -83,33 +114,121 @@ def rtf(tw, seconds: float) -> tuple[float, float]:
     return seconds / (t1 - t0), seconds / (c1 - c0)
 
 
-def bench_rtf(seconds: float, tmp: Path) -> dict:
+def twins(pairs, tmp: Path):
+    """(profile, firmware folder, how) for sections 1 and 1b: the --twin pairs, or each
+    bundled profile with its bench firmware; (name, None, reason) where there is none."""
+    if pairs:
+        for prof_arg, fw in pairs:
+            yield quiet_profile(prof_arg), Path(fw), str(fw)
+        return
+    for name in PROFILES:
+        prof = quiet_profile(name)
+        try:
+            fw, how = bench_firmware(prof, tmp)
+        except RuntimeError as e:
+            yield prof, None, str(e)
+            continue
+        yield prof, fw, how
+
+
+def bench_rtf(seconds: float, tmp: Path, pairs=()) -> dict:
     from picdrive_hil.twin import Twin
     out = {}
     print("1. Real-time factor of the firmware-in-the-loop twin (simulated s per wall s | per CPU s)")
-    for name in PROFILES:
-        prof = quiet_profile(name)
-        fw = ROOT / "firmware_build" / name
-        label = f"{name} (firmware_build/{name})"
-        if not fw.exists():
-            fw = firmware_for(prof, "mixed-pid", tmp)
-            label = f"{name} (generated, mixed-pid)"
+    for prof, fw, how in twins(pairs, tmp):
+        name = prof.name
+        if fw is None:
+            print(f"   {name}: not measured ({how})")
+            continue
+        label = f"{name} ({how})"
         tw = Twin(prof, fw)
         configure(tw, prof.speed_step_rpm())
         w_idle, c_idle = rtf(tw, seconds)
         tw.set_load_torque(prof.control.load_torque_n_m)        # the HIL operating point
         send(tw, "start", 201)
         tw.run(0.5)
-        runs = [rtf(tw, seconds / 3) for _ in range(3)]
+        runs = [rtf(tw, seconds / 5) for _ in range(5)]
         w_run, c_run = (float(np.median([r[k] for r in runs])) for k in (0, 1))
         s = tw.state()
         spread = ", ".join(f"{r[0]:.0f}" for r in runs)
         print(f"   {label:46s} PWM {prof.inverter.pwm_frequency_hz / 1e3:.0f} kHz: idle {w_idle:6.0f} | {c_idle:6.0f}   "
               f"running at {s['speed_rpm']:.0f} rpm, {prof.control.load_torque_n_m:g} N m {w_run:6.0f} | {c_run:6.0f}"
-              f"  (3 runs, wall: {spread})")
+              f"  (5 runs, wall: {spread})")
         out[name] = (w_idle, c_idle, w_run, c_run)
         tw.close()
     return out
+
+
+def link_id_scale(fw: Path, name: str) -> tuple[int, float]:
+    """Id and scale of a link parameter, from the firmware's generated link_fw.h."""
+    h = (fw / "link_fw.h").read_text()
+    m = re.search(rf"#define\s+LINK_ID_{name.upper()}\s+0x([0-9A-Fa-f]+)u\s+/\*[^*]*?scale ([-+0-9.eE]+)", h)
+    if not m:
+        raise RuntimeError(f"{fw / 'link_fw.h'} has no LINK_ID_{name.upper()} with its scale")
+    return int(m.group(1), 16), float(m.group(2))
+
+
+def scenario(profile, fw: Path, warm_s: float, meas_s: float) -> None:
+    """The fixed instruction-count scenario (free-running, deterministic): link watchdog at
+    its maximum and the setpoint at the HIL step target over the UART, the profile's load,
+    start, warm_s to speed, then meas_s."""
+    from picdrive import codec
+    from picdrive_hil.twin import Twin
+    prof = quiet_profile(profile)
+    tw = Twin(prof, fw, seed=0)
+    lt_id, _ = link_id_scale(fw, "link_timeout")
+    sp_id, sp_scale = link_id_scale(fw, "speed_setpoint")
+    tw.run(0.01)
+    tw.uart_write(codec.encode_command("param_set", 1, {"id": lt_id, "value": 60000}))
+    tw.run(0.01)
+    tw.uart_write(codec.encode_command("set_speed", 2, {"value": int(round(prof.speed_step_rpm() / sp_scale))}))
+    tw.run(0.01)
+    tw.set_load_torque(prof.control.load_torque_n_m)
+    tw.uart_write(codec.encode_command("start", 3))
+    tw.run(warm_s)
+    if meas_s > 0:
+        tw.run(meas_s)
+    s = tw.state()
+    print(f"scenario: t {s['t_s']:.4f} s, {s['speed_rpm']:.3f} rpm, isr {s['isr_high_calls']}+{s['isr_low_calls']}, "
+          f"polls {s['poll_calls']}")
+
+
+def bench_instructions(tmp: Path, pairs=(), warm_s: float = 0.5, meas_s: float = 2.0) -> None:
+    print("1b. Instructions per simulated second (callgrind, inside the ctypes calls; deterministic)")
+    vg = shutil.which("valgrind")
+    if vg is None:
+        print("   valgrind is not installed (apt-get install valgrind): not measured")
+        return
+    from picdrive_hil.twin import Twin
+    for prof, fw, how in twins(pairs, tmp):
+        name = prof.name
+        if fw is None:
+            print(f"   {name}: not measured ({how})")
+            continue
+        prof_arg = str(prof.path) if getattr(prof, "path", None) else name
+        try:
+            Twin(prof, fw).close()                      # build (and cache) the library natively
+        except Exception as e:
+            print(f"   {name}: not measured ({e})")
+            continue
+        counts, says = [], ""
+        for k, meas in enumerate((0.0, meas_s)):
+            out = tmp / f"callgrind.{name}.{k}.out"
+            cmd = [vg, "--tool=callgrind", f"--callgrind-out-file={out}", "--toggle-collect=ffi_call",
+                   sys.executable, str(Path(__file__).resolve()), "--scenario", prof_arg, str(fw), str(warm_s), str(meas)]
+            res = subprocess.run(cmd, capture_output=True, text=True,
+                                 env={**os.environ, "PYTHONHASHSEED": "0", "OPENBLAS_NUM_THREADS": "1"})
+            m = re.search(r"^totals:\s+(\d+)", out.read_text(), re.M) if out.exists() else None
+            if res.returncode != 0 or not m:
+                print(f"   {name}: callgrind run failed: {(res.stderr or res.stdout).strip().splitlines()[-1:]}")
+                break
+            counts.append(int(m.group(1)))
+            says = next((ln for ln in res.stdout.splitlines() if ln.startswith("scenario:")), "")
+        else:
+            per_s = (counts[1] - counts[0]) / meas_s
+            print(f"   {name:22s} ({how}): {per_s / 1e6:7.2f} M instructions per simulated second "
+                  f"({prof.inverter.pwm_frequency_hz / 1e3:.0f} kHz PWM: {per_s / prof.inverter.pwm_frequency_hz:.0f} "
+                  f"per PWM period); {says.removeprefix('scenario: ')}")
 
 
 def bench_gem(seconds: float, twin_rtf: dict) -> None:
@@ -141,6 +260,9 @@ def bench_gem(seconds: float, twin_rtf: dict) -> None:
                         env.reset()
                 c1, t1 = time.process_time(), time.perf_counter()
             w, c = n * tau / (t1 - t0), n * tau / (c1 - c0)
+            if name not in twin_rtf:
+                print(f"   {name:22s} tau {tau * 1e6:5.0f} us: {w:6.3f} | {c:6.3f} sim s per s")
+                continue
             tw_w, tw_c = twin_rtf[name][2], twin_rtf[name][3]
             print(f"   {name:22s} tau {tau * 1e6:5.0f} us: {w:6.3f} | {c:6.3f} sim s per s;  twin running / gem = "
                   f"{tw_w / w:6.0f}x wall, {tw_c / c:6.0f}x CPU")
@@ -159,7 +281,11 @@ def bench_physical_limit(tmp: Path) -> None:
         w = target * 2 * math.pi / 60
         tl = prof.control.load_torque_n_m
         for method in METHODS:
-            fw = firmware_for(prof, method, tmp)
+            try:
+                fw = firmware_for(prof, method, tmp)
+            except Exception as e:
+                print(f"   {name} / {method}: not measured (firmware not generated: {e})")
+                continue
             for load in (tl, 0.0):
                 t_min = m.inertia_kg_m2 * w / (m.kt_n_m_per_a * inv.current_limit_a - load)
                 tw = Twin(prof, fw)
@@ -194,15 +320,33 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=20.0, help="simulated seconds per real-time-factor run")
     ap.add_argument("--quick", action="store_true", help="5 s runs")
+    ap.add_argument("--sections", default="rtf,instr,gem,step",
+                    help="comma-separated: rtf (real-time factor), instr (callgrind instruction count), "
+                         "gem (gym-electric-motor), step (closed-loop step vs t_min)")
+    ap.add_argument("--twin", nargs=2, action="append", metavar=("PROFILE", "FIRMWARE_DIR"), default=[],
+                    help="run sections 1 and 1b on this profile (name or .toml) and firmware folder (repeatable)")
+    ap.add_argument("--scenario", nargs=4, metavar=("PROFILE", "FIRMWARE", "WARM_S", "MEAS_S"),
+                    help=argparse.SUPPRESS)       # the instruction-count scenario (run under callgrind)
     args = ap.parse_args()
+    if args.scenario:
+        scenario(args.scenario[0], Path(args.scenario[1]), float(args.scenario[2]), float(args.scenario[3]))
+        return 0
+    sections = {x.strip() for x in args.sections.split(",") if x.strip()}
+    unknown = sections - {"rtf", "instr", "gem", "step"}
+    if unknown:
+        ap.error(f"--sections: unknown {', '.join(sorted(unknown))} (rtf, instr, gem, step)")
     secs = 5.0 if args.quick else args.seconds
     la = os.getloadavg()
     print(f"bench/twin.py on {os.cpu_count()} CPUs, load average {la[0]:.2f} {la[1]:.2f} {la[2]:.2f}")
     with tempfile.TemporaryDirectory(prefix="picdrive-bench-twin-") as d:
         tmp = Path(d)
-        r = bench_rtf(secs, tmp)
-        bench_gem(secs, r)
-        bench_physical_limit(tmp)
+        r = bench_rtf(secs, tmp, args.twin) if "rtf" in sections else {}
+        if "instr" in sections:
+            bench_instructions(tmp, args.twin)
+        if "gem" in sections:
+            bench_gem(secs, r)
+        if "step" in sections:
+            bench_physical_limit(tmp)
     return 0
 
 
