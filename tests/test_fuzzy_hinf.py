@@ -103,3 +103,58 @@ def test_hinf_norm_against_frequency_sweep():
     sweep = max(np.linalg.svd(C @ np.linalg.solve(1j * x * np.eye(4) - A, B), compute_uv=False)[0] for x in ws)
     assert sweep <= h * (1 + 1e-5) and h <= sweep * 1.001
     assert hinf_norm(np.diag([1.0, -1.0]), np.ones((2, 1)), np.ones((1, 2)))[0] == np.inf
+
+
+# ---------------------------------------------------------------------------
+# the six-step variant: Theorem 1 on the drive's DC equivalent, verified on the six-step model
+# ---------------------------------------------------------------------------
+from picdrive import fuzzy_hinf  # noqa: E402
+from picdrive.tsfuzzy import emf_range, six_step_model  # noqa: E402
+
+
+@pytest.fixture(scope="module", params=["duy2008", "assawinchaichote2016"])
+def six_step(request):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        p = load_profile(request.param)
+    return p, fuzzy_hinf.design(p, progress=False)
+
+
+def test_six_step_design_verified_with_its_certificate(six_step):
+    p, r = six_step
+    assert r.ok, r.reasons
+    c = r.certificate
+    assert c["model"] == "six-step" and c["state_names"] == ["d_omega_m", "d_i", "d_z"]
+    ts = fuzzy_hinf.model_for(p, c["model"], c["model_options"])
+    assert ts.offsets.shape[0] == 2                                   # the EMF polytope's two vertices
+    assert c["emf_range_v_s"] == pytest.approx(list(emf_range(p)))
+    # the certificate re-assembled independently: every LMI strictly negative, K = Y P^-1
+    marg = lmi_margins(ts, np.asarray(c["P"]), [np.asarray(y) for y in c["Y"]], c["gamma"], c["delta"], c["alpha"], c["rho"])
+    assert max(marg.values()) < 0
+    for K, Y in zip(c["K"], c["Y"]):
+        assert np.asarray(K) == pytest.approx(np.asarray(Y) @ np.linalg.inv(np.asarray(c["P"])), rel=1e-6, abs=1e-9)
+    # mapping onto the law: kp = -K_w, kc = -K_i, ki = K_z, with the firmware's window and a sized integrator
+    for rule, K in zip(r.law.rules, c["K"]):
+        k = np.ravel(K)
+        assert (rule.kp, rule.kc, rule.ki) == pytest.approx((-k[0], -k[1], k[2]))
+    assert r.law.current_limit_a == p.inverter.current_limit_a and r.law.kb_v_s_per_rad == p.motor.kb_v_s_per_rad
+    v = r.verification
+    assert v["integrator_headroom_v"]["value"] >= 0 and v["sampled_spectral_radius"]["value"] <= 0.95
+    assert v["hinf_norm"]["value"] <= c["certified_gain"] * (1 + 1e-6)
+    assert v["sim_overshoot_pct"]["value"] <= 2.0 and v["sim_step_target_rpm"]["value"] == pytest.approx(p.speed_step_rpm())
+    # the disk search: the kept disk is the first tried whose sampled loop is within the bound
+    tries = c["disk_tries"]
+    assert tries[-1]["pole_disk_rad_s"] == pytest.approx(r.options["pole_disk_rad_s"])
+    assert all(t.get("sampled_spectral_radius", 2.0) > 0.95 or t["status"] != "verified" for t in tries[:-1])
+
+
+def test_six_step_without_current_feedback_is_infeasible_and_says_so():
+    """zero gain on the current (speed + integral only) needs a Lyapunov matrix block-diagonal in
+    the current, which the coupling Kb/J, -Kb/L rules out on the bundled motor: every disk is
+    infeasible and the design fails with the reason (docs/design-fuzzy.md: what current feedback costs)."""
+    p = load_profile("duy2008")
+    ts = six_step_model(p)
+    s = solve_theorem1(ts, 1e5, delta=None, zero_gain_states=(1,))
+    assert not s.feasible and s.status == "infeasible"
+    r = fuzzy_hinf.design(p, progress=False, zero_gain_states=[1], pole_disk_rad_s=1000.0)
+    assert not r.ok and "infeasible" in r.reasons[0]

@@ -127,12 +127,19 @@ def test_speed_quantum(duy):
     # 500 lines x 4 counts at 1 kHz: 2 pi / (2000 * 1e-3) rad/s per count
     assert speed_quantum_rad_s(duy) == pytest.approx(2 * math.pi / 2.0)
     hall = duy.replace(sensors={"speed_source": "hall"})
-    assert speed_quantum_rad_s(hall) == pytest.approx(2 * math.pi / (24 * 1e-3))
+    edges = 6 * duy.motor.pole_pairs                 # hall edges per mechanical turn
+    assert speed_quantum_rad_s(hall) == pytest.approx(2 * math.pi / (edges * 1e-3))
 
 
 def test_batch_simulation_equals_law_step_simulation(duy):
-    """simulate_sampled_batch (the GA's saturated step) is law_step written for arrays."""
-    from picdrive.mixed_pid import pid_law
+    """simulate_sampled_batch (eq 1, saturated step) is law_step written for arrays (a law without
+    the current window: the batch has none; the six-step batch of picdrive.simulate has it)."""
+    import dataclasses
+
+    from picdrive.mixed_pid import pid_law as _pid_law
+
+    def pid_law(*a):
+        return dataclasses.replace(_pid_law(*a), current_limit_a=None)
     from picdrive.tfmodel import simulate_sampled, simulate_sampled_batch
     kp = np.array([0.1, 0.5, 3.0, 0.3]); ki = np.array([10.0, 40.0, 300.0, 0.0]); kd = np.array([0, 1e-3, 5e-3, 2e-3])
     ref = 2400 * math.pi / 30

@@ -441,18 +441,28 @@ OPTIONS: dict[str, str] = {
     "rho": "uncertainty bound rho (default profile design.rho)",
     "rules": "number of fuzzy rules r (default profile design.rules)",
     "resistance_uncertainty": "relative R uncertainty (default profile design.resistance_uncertainty)",
-    "pole_disk_rad_s": "closed-loop poles inside |s| < this (default: from the sample rate and the plant)",
-    "integral_weight_rad_s": "weight of the speed-error integral in z (tracking variants)",
+    "pole_disk_rad_s": "closed-loop poles inside |s| < this (six-step default: the largest of pi/(2 Ts) x 0.8^k "
+                       "whose sampled loop with the firmware's measurement has spectral radius <= "
+                       "max_spectral_radius and passes the verification)",
+    "integral_weight_rad_s": "weight of the speed-error integral in z (default: six-step, the motor's mechanical "
+                             "corner (B + Kt Kb/R)/J; dq tracking, 0.2 of it)",
+    "max_spectral_radius": "six-step: the disk search's bound on the sampled loop's spectral radius (default 0.95)",
+    "emf_polytope": "six-step: the EMF polytope over the commutated pair's EMF range (default true)",
+    "plant_model": "six-step: 'six-step' (default, DC equivalent with the commutated EMF range) or 'dq' (the dq "
+                   "tracking model with v_d = 0, zero gain on i_d)",
     "solver": f"cvxpy solver (default {DEFAULT_SOLVER})",
     "simulate": "run the nonlinear verification simulation (default true)",
-    "setpoint_weight": "six-step: law's b (default 0 if the integrator headroom allows, else 1)",
-    "zero_gain_states": "six-step: states with zero gain (default [2], i_d; [0, 1, 2] is integral-only)",
+    "setpoint_weight": "six-step: law's b (default 1: P on the error; 0 is the bare state feedback, same loop, "
+                       "slower reference response)",
+    "zero_gain_states": "six-step: states with zero gain (default none; [1] drops the current feedback, which the "
+                        "block-diagonal Lyapunov structure then makes infeasible on the bundled motors)",
 }
 
 
 def model_for(profile, model: str, options: dict | None = None):
-    """Rebuild the TS model a certificate refers to (``paper``, ``tracking-dq``, ``tracking-six-step``)."""
-    from .tsfuzzy import paper_model, tracking_model
+    """Rebuild the TS model a certificate refers to (``paper``, ``tracking-dq``, ``tracking-six-step``,
+    ``six-step``)."""
+    from .tsfuzzy import paper_model, six_step_model, tracking_model
     o = dict(options or {})
     kw = {k: o[k] for k in ("rules", "resistance_uncertainty", "rho") if o.get(k) is not None}
     if model == "paper":
@@ -460,18 +470,22 @@ def model_for(profile, model: str, options: dict | None = None):
     if model == "paper-as-printed":
         from .repro2016 import paper_as_printed_model
         return paper_as_printed_model()
+    if o.get("integral_weight_rad_s") is not None:
+        kw["integral_weight_rad_s"] = o["integral_weight_rad_s"]
     if model in ("tracking-dq", "tracking-six-step"):
-        if o.get("integral_weight_rad_s") is not None:
-            kw["integral_weight_rad_s"] = o["integral_weight_rad_s"]
         return tracking_model(profile, inputs=model.split("-", 1)[1], **kw)
+    if model == "six-step":
+        if o.get("emf_polytope") is not None:
+            kw["emf_polytope"] = bool(o["emf_polytope"])
+        return six_step_model(profile, **kw)
     raise FuzzyHinfError(f"unknown fuzzy model {model!r}")
 
 
 def default_pole_disk(profile, ts) -> float:
     """Pole-disk radius, rad/s: a quarter of the sample rate in rad/s
     (``pi/(2 Ts)``: the hold's half-sample delay costs at most 22 deg there),
-    but never inside the plant's own modes (the six-step drive cannot move the
-    i_d mode), which get 25 % room."""
+    but never inside the plant's own modes (the dq model's i_d mode cannot be
+    moved by a six-step drive), which get 25 % room."""
     ts_s = 1.0 / profile.control.speed_loop_hz
     plant = max(float(np.max(np.abs(np.linalg.eigvals(ts.A[i] + ts.offsets[v]))))
                 for i in range(ts.r) for v in range(ts.offsets.shape[0]))
@@ -479,78 +493,58 @@ def default_pole_disk(profile, ts) -> float:
 
 
 def integrator_need_v(profile, rules, b: float) -> float:
-    """Largest ``|I*| = |u* + kp (1 - b) w* + kc i*|`` over the operating region, V: the
-    integrator range an equilibrium of the law needs (top speed and standstill, with and without load)."""
-    from .dqmodel import dq_params, equilibrium
-    from .tsfuzzy import operating_region
-    p = dq_params(profile)
-    reg = operating_region(profile)
+    """Largest ``|I*| = |u* + kp (1 - b) w* + kc i*|`` the law's integrator holds at the six-step
+    equilibria (standstill and the step target, with and without the load, R at its uncertainty
+    extremes), V."""
+    from .verify import six_step_equilibrium
+    eps = float(profile.design.get("resistance_uncertainty", 0.1))
     need = 0.0
-    for w in (0.0, reg["omega_top_rad_s"]):
-        for load in (0.0, reg["load_n_m"]):
-            iq, id_, vq = equilibrium(p, w, load)
-            for g in rules:
-                need = max(need, abs(vq / p.kv_vq_per_u + g.kp * (1.0 - b) * w + g.kc * p.ki_ibus_per_iq * iq))
+    for w in (0.0, profile.speed_step_rpm() * 2 * math.pi / 60):
+        for load in (0.0, profile.control.load_torque_n_m):
+            for rs in (1.0 - eps, 1.0, 1.0 + eps):
+                i, u = six_step_equilibrium(profile, w, load, rs)
+                for g in rules:
+                    need = max(need, abs(u + g.kp * (1.0 - b) * w + g.kc * i))
     return need
 
 
-def integrator_headroom(profile, rules, b: float, i_lim_v: float | None = None) -> tuple[float, str]:
-    """Smallest ``I_lim - I*`` over the operating region, V, and where.
-
-    At an equilibrium the law's integrator holds ``I* = u* + kp (1 - b) w* +
-    kc i*``; law_step clamps it to ``+-I_lim`` (``integrator_limit_v``,
-    default the output limit), so ``I* > I_lim`` means the drive never reaches
-    the setpoint.  Checked at the top speed and at standstill, with and
-    without the load, blended gains.
-    """
-    from .control_law import Rule, ScheduledLaw
-    from .dqmodel import dq_params, equilibrium
-    from .tsfuzzy import operating_region
-    p = dq_params(profile)
-    reg = operating_region(profile)
-    law = ScheduledLaw(rules=tuple(rules), premise_rad_s=tuple(reg.get("premise_rad_s", (0.0, 1.0)))
-                       if False else (0.0, max(reg["omega_top_rad_s"], 1.0)), sample_time_s=1.0,
-                       u_min_v=-1.0, u_max_v=1.0) if len(rules) == 1 else None
-    worst, where = math.inf, ""
-    for w in (0.0, reg["omega_top_rad_s"]):
-        for load in (0.0, reg["load_n_m"]):
-            iq, id_, vq = equilibrium(p, w, load)
-            u = vq / p.kv_vq_per_u
-            for g in rules:
-                I = u + g.kp * (1.0 - b) * w + g.kc * p.ki_ibus_per_iq * iq
-                room = (reg["u_max_v"] if i_lim_v is None else i_lim_v) - abs(I)
-                if room < worst:
-                    worst, where = room, f"{w * 60 / (2 * math.pi):.0f} rpm, load {load:g} N m"
-    return worst, where
-
-
 def _law_from_gains(profile, ts, K, setpoint_weight: float | None = None) -> "ScheduledLaw":
-    """Six-step gains ``u = K [d_omega, d_i_q, d_i_d, d_z]`` -> the firmware's law.
+    """Six-step gains -> the firmware's law.
 
-    ``u = K_w w + K_iq i_q + K_z z`` with ``i_bus = k_i i_q`` is the law's
-    ``u = kp (b r - y) + I - kc i`` with ``b = 0``, ``kp = -K_w``,
-    ``kc = -K_iq / k_i``, ``ki = K_z`` (``I = int ki (r - y)``); ``K_id = 0``
-    by construction.
+    Six-step model (states ``[d_omega, d_i, d_z]``): ``u = K_w w + K_i i + K_z z``
+    is the law's ``u = kp (b r - y) + I - kc i`` with ``kp = -K_w``, ``kc = -K_i``,
+    ``ki = K_z`` (``I = int ki (r - y)``).  dq tracking model (``[d_omega, d_i_q,
+    d_i_d, d_z]``, ``i_bus = k_i i_q``): ``kc = -K_iq / k_i``, ``K_id = 0`` by
+    construction.  The law carries the firmware's current window and an
+    integrator range of 1.25 x what its equilibria need.
     """
     from .control_law import Rule, ScheduledLaw
-    from .dqmodel import dq_params
-    p = dq_params(profile)
     rules = []
+    dq = ts.n == 4
+    k_i = 1.0
+    if dq:
+        from .dqmodel import dq_params
+        k_i = dq_params(profile).ki_ibus_per_iq
     for k in K:
         k = np.asarray(k, float).reshape(-1)
-        if abs(k[2]) > 1e-9 * max(1.0, np.max(np.abs(k))):
+        if dq and abs(k[2]) > 1e-9 * max(1.0, np.max(np.abs(k))):
             raise FuzzyHinfError(f"six-step gain has a nonzero i_d weight {k[2]:g}: the structure constraint failed")
-        rules.append(Rule(kp=float(-k[0]), ki=float(k[3]), kd=0.0, kc=float(-k[1] / p.ki_ibus_per_iq)))
+        rules.append(Rule(kp=float(-k[0]), ki=float(k[-1]), kd=0.0, kc=float(-k[1] / k_i)))
     u_max = profile.inverter.bus_voltage_v * profile.max_duty()
-    # b = 0 is the designed state feedback u = -kp w - kc i + int ki e (b only moves the zero of the
-    # reference response; the certified loop w -> z is the same).  At equilibrium the integrator
-    # holds u* + kp w* + kc i*: its range integrator_limit_v is set to cover that with 25 % margin.
-    b = 0.0 if setpoint_weight is None else float(setpoint_weight)
+    b = 1.0 if setpoint_weight is None else float(setpoint_weight)
     i_lim = 1.25 * max(u_max, integrator_need_v(profile, rules, b))
+    m = profile.motor
     return ScheduledLaw(rules=tuple(rules), premise_rad_s=tuple(ts.premise_rad_s),
                         sample_time_s=1.0 / profile.control.speed_loop_hz, u_min_v=-u_max, u_max_v=u_max,
                         setpoint_weight=b, derivative_filter_hz=None, integrator_limit_v=i_lim,
+                        current_limit_a=profile.inverter.current_limit_a, kb_v_s_per_rad=m.kb_v_s_per_rad,
+                        r_ohm=m.r_line_ohm,
                         notes=f"fuzzy-hinf six-step: u = kp ({b:g} r - w) - kc i_bus + int ki (r - w) per rule")
+
+
+def _sampled_radius(profile, law) -> float:
+    from .verify import _sampled_check
+    return float(_sampled_check(profile, law)["value"])
 
 
 def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: float | None = None, **options):
@@ -561,6 +555,13 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
     full state + integral; needs a field-oriented drive, ``law: null``) or
     ``paper`` (Theorem 1 exactly as the 2016 paper: regulator ``u = K x``,
     ``law: null``).  ``gamma``: prescribed level (default: minimised).
+
+    Six-step: Theorem 1 on :func:`picdrive.tsfuzzy.six_step_model` (the drive's
+    DC equivalent with the commutated EMF polytope and R uncertainty) with a
+    pole disk; the disk is the largest of ``pi/(2 Ts) x 0.8^k`` at which the law
+    (gamma minimised) keeps the sampled loop with the firmware's measurement
+    within ``max_spectral_radius`` and passes :func:`picdrive.verify.verify_design`.
+    Every tried disk is recorded (``certificate.disk_tries``).
     """
     import time as _t
     from .result import DesignResult
@@ -578,117 +579,134 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
     delta = None if delta is None else float(delta)
     solver = options.get("solver", DEFAULT_SOLVER)
     simulate = bool(options.get("simulate", True))
+    plant_model = options.get("plant_model", "six-step")
+    if plant_model not in ("six-step", "dq"):
+        raise FuzzyHinfError(f"option plant_model={plant_model!r}: 'six-step' or 'dq'")
     model_opts = {k: options.get(k) for k in ("rules", "resistance_uncertainty", "integral_weight_rad_s")}
     model_opts["rho"] = rho
-    model = {"paper": "paper", "tracking": "tracking-dq", "six-step": "tracking-six-step"}[variant]
+    if variant == "six-step" and plant_model == "six-step":
+        model = "six-step"
+        if options.get("emf_polytope") is not None:
+            model_opts["emf_polytope"] = bool(options["emf_polytope"])
+        if model_opts["integral_weight_rad_s"] is None:
+            m = profile.motor
+            model_opts["integral_weight_rad_s"] = (m.viscous_friction_n_m_s + m.kt_n_m_per_a * m.kb_v_s_per_rad
+                                                   / m.r_line_ohm) / m.inertia_kg_m2
+    else:
+        model = {"paper": "paper", "tracking": "tracking-dq", "six-step": "tracking-six-step"}[variant]
     t0 = _t.perf_counter()
     ts = model_for(profile, model, model_opts)
     t_model = _t.perf_counter() - t0
-    zero = tuple(options.get("zero_gain_states", (2,))) if variant == "six-step" else ()
-    disk = None
-    if variant != "paper":
-        disk = float(options["pole_disk_rad_s"]) if options.get("pole_disk_rad_s") is not None \
-            else default_pole_disk(profile, ts)
-    t1 = _t.perf_counter()
-    if gamma is None:
-        sol = minimise_gamma(ts, delta=delta, alpha=alpha, rho=rho, zero_gain_states=zero, pole_disk_rad_s=disk,
-                             solver=solver)
-    else:
-        sol = solve_theorem1(ts, float(gamma), delta=delta, alpha=alpha, rho=rho, zero_gain_states=zero,
-                             pole_disk_rad_s=disk, solver=solver)
-    gamma_search = []
-    if variant == "six-step" and gamma is None and sol.feasible:
-        # The law's integrator range is sized from the gains (integrator_limit_v), so this search
-        # normally stops at once; it relaxes gamma on a x2 grid if a user-given range does not fit.
-        sw = options.get("setpoint_weight")
-        b = 0.0 if sw is None else float(sw)
-        g = sol.gamma
-        for _ in range(16):
-            law_ = _law_from_gains(profile, ts, sol.K, b)
-            room, _w = integrator_headroom(profile, law_.rules, b, law_.i_lim_v)
-            gamma_search.append({"gamma": sol.gamma, "integrator_headroom_v": room})
-            if room >= 0:
-                break
-            g *= 2.0
-            s2 = solve_theorem1(ts, g, delta=None, alpha=alpha, rho=rho, zero_gain_states=zero,
-                                pole_disk_rad_s=disk, solver=solver)
-            if not s2.feasible:
-                break
-            sol = s2
-    t_lmi = _t.perf_counter() - t1
-    res = DesignResult(method="fuzzy-hinf", variant=variant, status="verified", profile_name=profile.name,
-                       profile_sha256=profile.sha256, law=None,
-                       profile_path=None if profile.path is None else str(profile.path),
-                       options={"gamma": gamma, **{k: v for k, v in options.items()}, "alpha": alpha, "rho": rho,
-                                "delta": delta, "pole_disk_rad_s": disk})
-    res.timings_s = {"model": t_model, "lmi": t_lmi}
-    if not sol.feasible:
-        res.fail(f"Theorem 1 LMIs infeasible for {variant!r} (gamma={gamma if gamma is not None else 'minimised'}, "
-                 f"delta={delta if delta is not None else 'free'}, alpha={alpha:g}, rho={rho:g}): solver status "
-                 f"{sol.status!r}, largest LMI eigenvalue {sol.max_eig:.3g}; try a larger gamma or delta=None")
-        res.certificate = {"model": model, "model_options": model_opts, "solver_status": sol.status,
-                           "gamma": sol.gamma, "feasible": False}
-        return res
-    cert = sol.certificate()
-    cert.update(model=model, model_options=model_opts, certified_gain=certified_gain(ts, sol.gamma, alpha),
-                pole_disk_rad_s=disk, premise_rad_s=list(ts.premise_rad_s),
-                state_names=list(ts.state_names), input_names=list(ts.input_names))
-    cert.pop("ellipsoid_P", None)
-    if gamma_search:
-        cert["gamma_search"] = gamma_search
-    res.certificate = cert
     if variant == "six-step":
-        sw = options.get("setpoint_weight")
-        res.law = _law_from_gains(profile, ts, sol.K, None if sw is None else float(sw))
-        room, where = integrator_headroom(profile, res.law.rules, res.law.setpoint_weight, res.law.i_lim_v)
-        res.certificate["integrator_headroom_v"] = room
-        res.verification["integrator_headroom_v"] = {
-            "value": room, "limit": 0.0, "ok": bool(room >= 0.0), "unit": "V",
-            "note": f"I_lim - |u* + kp (1-b) w* + kc i*| at the worst equilibrium ({where}); b = "
-                    f"{res.law.setpoint_weight:g}"}
-        if room < 0:
-            res.fail(f"verification 'integrator_headroom_v' failed: the law's integrator would need {-room:.3g} V "
-                     f"more than its range at {where}")
-    elif variant == "tracking":
-        res.certificate["why_no_law"] = ("two inputs (v_q, v_d) and full dq state feedback: needs a field-oriented "
-                                         "drive; the six-step firmware commands one voltage and measures speed and "
-                                         "bus current only (use --variant six-step)")
+        zero = tuple(int(z) for z in options.get("zero_gain_states", (2,) if model == "tracking-six-step" else ()))
     else:
-        res.certificate["why_no_law"] = ("the 2016 paper's regulator u = K x (two inputs v_q, v_d, no integral "
-                                         "action, regulates x to 0): not a speed tracker and not realisable on a "
-                                         "six-step drive (use --variant six-step)")
-    t2 = _t.perf_counter()
-    verify_design(profile, res, simulate=simulate)
-    # Six-step with gamma minimised: the minimal-gamma gains may still fail the large-signal checks
-    # (current limit, saturation) that the LMIs do not model; relax gamma (x2, at most 4 times) and
-    # keep the first design that passes.  The tried gammas are recorded.
-    tries = [{"gamma": sol.gamma, "status": res.status, "reasons": list(res.reasons)}]
-    g = sol.gamma
-    while variant == "six-step" and gamma is None and not res.ok and len(tries) <= 4 and sol.feasible:
-        g *= 2.0
-        s2 = solve_theorem1(ts, g, delta=None, alpha=alpha, rho=rho, zero_gain_states=zero,
-                            pole_disk_rad_s=disk, solver=solver)
-        if not s2.feasible:
+        zero = ()
+    sw = options.get("setpoint_weight")
+    b = None if sw is None else float(sw)
+    rho_max = float(options.get("max_spectral_radius", 0.95))
+    res_opts = {"gamma": gamma, **{k: v for k, v in options.items()}, "alpha": alpha, "rho": rho, "delta": delta}
+
+    def solve(disk):
+        if gamma is None:
+            return minimise_gamma(ts, delta=delta, alpha=alpha, rho=rho, zero_gain_states=zero,
+                                  pole_disk_rad_s=disk, solver=solver)
+        return solve_theorem1(ts, float(gamma), delta=delta, alpha=alpha, rho=rho, zero_gain_states=zero,
+                              pole_disk_rad_s=disk, solver=solver)
+
+    def result_of(sol, disk):
+        res = DesignResult(method="fuzzy-hinf", variant=variant, status="verified", profile_name=profile.name,
+                           profile_sha256=profile.sha256, law=None,
+                           profile_path=None if profile.path is None else str(profile.path),
+                           options={**res_opts, "pole_disk_rad_s": disk})
+        if not sol.feasible:
+            res.fail(f"Theorem 1 LMIs infeasible for {variant!r} (gamma={gamma if gamma is not None else 'minimised'}, "
+                     f"delta={delta if delta is not None else 'free'}, alpha={alpha:g}, rho={rho:g}, pole disk "
+                     f"{disk if disk is not None else 'none'}): solver status {sol.status!r}, largest LMI eigenvalue "
+                     f"{sol.max_eig:.3g}; try a larger gamma or delta=None")
+            res.certificate = {"model": model, "model_options": model_opts, "solver_status": sol.status,
+                               "gamma": sol.gamma, "feasible": False, "pole_disk_rad_s": disk}
+            return res
+        cert = sol.certificate()
+        cert.update(model=model, model_options=model_opts, certified_gain=certified_gain(ts, sol.gamma, alpha),
+                    pole_disk_rad_s=disk, premise_rad_s=list(ts.premise_rad_s),
+                    state_names=list(ts.state_names), input_names=list(ts.input_names))
+        cert.pop("ellipsoid_P", None)
+        if "emf_range_v_s" in ts.info:
+            cert["emf_range_v_s"] = list(ts.info["emf_range_v_s"])
+        res.certificate = cert
+        if variant == "six-step":
+            res.law = _law_from_gains(profile, ts, sol.K, b)
+        elif variant == "tracking":
+            cert["why_no_law"] = ("two inputs (v_q, v_d) and full dq state feedback: needs a field-oriented "
+                                  "drive; the six-step firmware commands one voltage and measures speed and "
+                                  "bus current only (use --variant six-step)")
+        else:
+            cert["why_no_law"] = ("the 2016 paper's regulator u = K x (two inputs v_q, v_d, no integral "
+                                  "action, regulates x to 0): not a speed tracker and not realisable on a "
+                                  "six-step drive (use --variant six-step)")
+        return res
+
+    t1 = _t.perf_counter()
+    timings = {"model": t_model}
+    if variant != "six-step":
+        disk = None
+        if variant != "paper":
+            disk = float(options["pole_disk_rad_s"]) if options.get("pole_disk_rad_s") is not None \
+                else default_pole_disk(profile, ts)
+        sol = solve(disk)
+        timings["lmi"] = _t.perf_counter() - t1
+        res = result_of(sol, disk)
+        res.timings_s = timings
+        if sol.feasible:
+            t2 = _t.perf_counter()
+            verify_design(profile, res, simulate=simulate)
+            res.timings_s["verify"] = _t.perf_counter() - t2
+        return res
+
+    # six-step: the pole disk from the sampled loop with the firmware's measurement and the verification
+    if options.get("pole_disk_rad_s") is not None:
+        disks = [float(options["pole_disk_rad_s"])]
+    else:
+        top = math.pi / 2.0 * profile.control.speed_loop_hz
+        floor = default_pole_disk(profile, ts) if model == "tracking-six-step" else 0.0
+        disks = [top * 0.8 ** k for k in range(12) if top * 0.8 ** k >= floor]
+    tries: list[dict] = []
+    res = None
+    t_lmi = t_ver = 0.0
+    for disk in disks:
+        ta = _t.perf_counter()
+        sol = solve(disk)
+        t_lmi += _t.perf_counter() - ta
+        r = result_of(sol, disk)
+        entry: dict[str, Any] = {"pole_disk_rad_s": disk, "gamma": sol.gamma if sol.feasible else None}
+        if not sol.feasible:
+            entry["status"] = f"infeasible ({sol.status})"
+            tries.append(entry)
+            res = res or r
+            continue
+        rad = _sampled_radius(profile, r.law)
+        entry["sampled_spectral_radius"] = rad
+        if rad > rho_max and len(disks) > 1:
+            entry["status"] = f"sampled spectral radius {rad:.4f} > {rho_max:g}"
+            tries.append(entry)
+            res = r
+            continue
+        tb = _t.perf_counter()
+        verify_design(profile, r, simulate=simulate)
+        t_ver += _t.perf_counter() - tb
+        entry["status"] = r.status
+        entry["reasons"] = list(r.reasons)
+        tries.append(entry)
+        res = r
+        if r.ok:
             break
-        r2 = DesignResult(method="fuzzy-hinf", variant=variant, status="verified", profile_name=profile.name,
-                          profile_sha256=profile.sha256, law=_law_from_gains(profile, ts, s2.K, res.law.setpoint_weight),
-                          profile_path=res.profile_path, options=res.options, timings_s=res.timings_s)
-        c2 = s2.certificate()
-        c2.update({k: cert[k] for k in ("model", "model_options", "pole_disk_rad_s", "premise_rad_s",
-                                          "state_names", "input_names")},
-                  certified_gain=certified_gain(ts, s2.gamma, alpha))
-        c2.pop("ellipsoid_P", None)
-        r2.certificate = c2
-        room, where = integrator_headroom(profile, r2.law.rules, r2.law.setpoint_weight, r2.law.i_lim_v)
-        r2.verification["integrator_headroom_v"] = {"value": room, "limit": 0.0, "ok": bool(room >= 0.0), "unit": "V",
-                                                   "note": f"I_lim - |I*| at the worst equilibrium ({where})"}
-        if room < 0:
-            r2.fail(f"verification 'integrator_headroom_v' failed at {where}")
-        verify_design(profile, r2, simulate=simulate)
-        tries.append({"gamma": s2.gamma, "status": r2.status, "reasons": list(r2.reasons)})
-        res = r2
-    res.certificate["gamma_tries"] = tries
-    if len(tries) > 1:
-        res.certificate["gamma_min"] = tries[0]["gamma"]
-    res.timings_s["verify"] = _t.perf_counter() - t2
+    if res is None:
+        raise FuzzyHinfError("no pole disk to try: give pole_disk_rad_s")
+    if res.law is not None and res.status != "failed" and not res.verification:
+        verify_design(profile, res, simulate=simulate)
+    if not res.ok and not res.reasons:
+        res.fail("no pole disk gave a law within the sampled-loop bound: " +
+                 "; ".join(f"{t['pole_disk_rad_s']:.0f} rad/s: {t['status']}" for t in tries))
+    res.certificate["disk_tries"] = tries
+    res.timings_s = {**timings, "lmi": t_lmi, "verify": t_ver}
     return res

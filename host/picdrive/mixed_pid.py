@@ -77,7 +77,10 @@ DEFAULTS: dict[str, tuple] = {
     "p_crossover": (0.8, float, 0.0, 1.0, "GA crossover probability"),
     "p_mutation": (0.05, float, 0.0, 1.0, "GA mutation probability per gene"),
     "elite": (1, int, 0, 1000, "GA: chromosomes copied unchanged to the next generation"),
-    "current_fraction": (0.9, float, 0.01, 10.0, "drive: peak current of the simulated step <= this x inverter.current_limit_a"),
+    "current_fraction": (0.9, float, 0.01, 10.0, "drive: peak line current of the simulated step <= this x "
+                         "inverter.overcurrent_trip_a (the current window holds the steady current at the limit)"),
+    "overshoot_max_pct": (1.0, float, 0.0, 100.0, "drive: overshoot of the simulated six-step step (the bridge "
+                          "cannot brake) <= this, % of the step"),
     "de_popsize": (15, int, 4, 1000, "de: scipy population multiplier"),
     "de_maxiter": (300, int, 1, 100000, "de: scipy maximum generations"),
 }
@@ -105,7 +108,7 @@ class Problem:
     step_rad_s: float = 0.0
     u_max_v: float = math.inf
     current_max_a: float = math.inf
-    speed_max_rad_s: float = math.inf
+    speed_max_rad_s: float = math.inf       # peak speed of the step: min(speed_max_rpm, target x (1 + overshoot))
     step_sim_s: float = 0.0
     xi_peak: float = math.inf          # ||xi_d||_inf of the Tustin xi (drive)
 
@@ -163,16 +166,18 @@ def evaluate(pb: Problem, gains, *, simulate_all: bool = False) -> dict[str, np.
 
 
 def _step_peaks(pb: Problem, kp, ki, kd, rows) -> tuple[np.ndarray, np.ndarray]:
-    """Peak |current| and peak speed of the saturated step (drive variant), for the selected rows; nan elsewhere."""
+    """Peak |line current| and peak speed of the step from rest on the six-step drive (drive variant:
+    :func:`picdrive.simulate.simulate_six_step_batch`, the law with its current window, the bridge's
+    conduction rule, the firmware's measurement), for the selected rows; nan elsewhere."""
+    from .simulate import simulate_six_step_batch
     kp, ki, kd, rows = np.broadcast_arrays(kp, ki, kd, rows)
     i_pk = np.full(kp.shape, np.nan)
     w_pk = np.full(kp.shape, np.nan)
     if rows.any() and pb.profile is not None:
-        sim = simulate_sampled_batch(pb.profile, kp[rows], ki[rows], kd[rows], ts=pb.ts, u_max_v=pb.u_max_v,
-                                     t_end_s=pb.step_sim_s, ref_rad_s=pb.step_rad_s,
-                                     delay_samples=pb.sp.delay_samples, measurement=pb.sp.measurement)
-        i_pk[rows] = np.max(np.abs(sim["current_a"]), axis=0)
-        w_pk[rows] = np.max(sim["speed_rad_s"], axis=0)
+        sim = simulate_six_step_batch(pb.profile, kp[rows], ki[rows], kd[rows], t_end_s=pb.step_sim_s,
+                                      ref_rad_s=pb.step_rad_s, n_sub=4)
+        i_pk[rows] = sim["peak_current_a"]
+        w_pk[rows] = sim["peak_speed_rad_s"]
     return i_pk, w_pk
 
 
@@ -270,21 +275,26 @@ def make_problem(profile, variant: str = "drive", **options) -> Problem:
         pb.profile = profile
         pb.step_rad_s = profile.speed_step_rpm() * RPM
         pb.u_max_v = profile.inverter.bus_voltage_v * profile.max_duty()
-        pb.current_max_a = _opt(options, "current_fraction") * profile.inverter.current_limit_a
-        pb.speed_max_rad_s = profile.control.speed_max_rpm * RPM
-        pb.step_sim_s = min(max(0.05, 12 * tau), 0.5)
+        pb.current_max_a = _opt(options, "current_fraction") * profile.inverter.overcurrent_trip_a
+        pb.speed_max_rad_s = min(profile.control.speed_max_rpm * RPM,
+                                 pb.step_rad_s * (1.0 + _opt(options, "overshoot_max_pct") / 100.0))
+        pb.step_sim_s = min(max(0.15, 15 * tau), 0.5)
         xi = xi_tustin(d, ts)
         pb.xi_peak = float(hinf_exact_z(xi.num, xi.den)[0])
     return pb
 
 
 def pid_law(profile, kp: float, ki: float, kd: float, notes: str = "") -> ScheduledLaw:
-    """One-rule ScheduledLaw (plain PID, b = 1, derivative on measurement) for a profile."""
+    """One-rule ScheduledLaw (plain PID, b = 1, derivative on measurement) for a profile, with the
+    firmware's current window (the profile's current limit, Kb and line R)."""
     u = profile.inverter.bus_voltage_v * profile.max_duty()
     prem = tuple(float(x) * RPM for x in profile.design["premise_rpm"])
+    m = profile.motor
     return ScheduledLaw(rules=(Rule(float(kp), float(ki), float(kd)),), premise_rad_s=prem,
                         sample_time_s=1.0 / profile.control.speed_loop_hz, u_min_v=-u, u_max_v=u,
-                        setpoint_weight=1.0, derivative_filter_hz=None, notes=notes)
+                        setpoint_weight=1.0, derivative_filter_hz=None, notes=notes,
+                        current_limit_a=profile.inverter.current_limit_a, kb_v_s_per_rad=m.kb_v_s_per_rad,
+                        r_ohm=m.r_line_ohm)
 
 
 def _continuous_figures(plant: TF, kp, ki, kd, d) -> dict[str, Any]:

@@ -65,11 +65,11 @@ def compare_designs(profile, outdir: Path, *, progress: bool = True) -> str:
     png = f"compare_{profile.name}.png"
     fig.savefig(outdir / png, dpi=90); plt.close(fig)
     head = [f"### {profile.name}", "",
-            f"Step from rest to {plan['target_rpm']:.0f} rpm" + (" (capped by the dq model, see docs/design-fuzzy.md)"
-                                                                 if plan["capped"] else "")
-            + f", 2016 disturbances, load step of {plan['load_n_m']:g} N m at {plan['t_load_s']:g} s; "
-              "dq model, six-step drive, sampled law.", "",
-            "| design | rise [ms] | settling [ms] | overshoot [%] | steady error [rpm] | peak u [V] | peak i_bus [A] |",
+            f"Step from rest to {plan['target_rpm']:.0f} rpm, the 2016 load-torque disturbance w3, load step of "
+            f"{plan['load_n_m']:g} N m at {plan['t_load_s']:g} s; the verification's six-step drive model "
+            "(DC equivalent with the commutated pair's EMF, the bridge's conduction rule, the firmware's "
+            "measurement and current window), sampled law.", "",
+            "| design | rise [ms] | settling [ms] | overshoot [%] | steady error [rpm] | peak u [V] | peak i_line [A] |",
             "|---|---|---|---|---|---|---|"]
     return "\n".join(head + rows + ["", f"![{profile.name}]({png})", ""])
 

@@ -32,7 +32,8 @@ import numpy as np
 from .control_law import memberships
 from .dqmodel import DqParams, dq_params, equilibrium, jacobian, max_speed_rad_s
 
-__all__ = ["TSModel", "rule_centres", "paper_model", "tracking_model", "operating_region"]
+__all__ = ["TSModel", "rule_centres", "paper_model", "tracking_model", "six_step_model", "operating_region",
+           "emf_range"]
 
 
 @dataclass(frozen=True)
@@ -153,18 +154,21 @@ def paper_model(profile, *, rules: int | None = None, premise_rad_s=None,
 
 def operating_region(profile, premise_rad_s=None) -> dict:
     """Equilibria a speed controller must hold: speeds up to the step target
-    (``profile.speed_step_rpm()``, capped at 95 % of what the dq model with the
-    six-step drive, ``v_d = 0``, can hold under the load) within the premise
-    range, loads 0..``control.load_torque_n_m``.
+    (``profile.speed_step_rpm()``, the six-step DC equivalent's reach, which the
+    twin confirms) within the premise range, loads 0..``control.load_torque_n_m``.
 
-    Returns the top speed, the box of equilibrium currents and the voltages.
+    Returns the top speed, the box of the dq model's equilibrium currents there
+    (v_d = 0; they exist whatever voltage they need) and the speed the dq model
+    holds at the bridge voltage (``omega_hold_rad_s``: for a sinusoidal motor its
+    steady-state reach, for a trapezoidal one far below what the six-step bridge
+    holds, see docs/design-fuzzy.md).
     """
     p = _params(profile)
     prem = _premise(profile, premise_rad_s)
     u_max = profile.inverter.bus_voltage_v * profile.max_duty()
     load = profile.control.load_torque_n_m
     w_hold = max_speed_rad_s(p, p.kv_vq_per_u * u_max, load)
-    w_top = min(prem[1], profile.speed_step_rpm() * 2 * math.pi / 60, 0.95 * w_hold)
+    w_top = min(prem[1], profile.speed_step_rpm() * 2 * math.pi / 60)
     iq_hi, id_hi, vq_hi = equilibrium(p, w_top, load)
     return {"u_max_v": u_max, "load_n_m": load, "omega_hold_rad_s": w_hold, "omega_top_rad_s": w_top,
             "iq_max_a": iq_hi, "id_max_a": id_hi, "u_top_v": vq_hi / p.kv_vq_per_u}
@@ -235,3 +239,75 @@ def tracking_model(profile, *, inputs: str = "six-step", rules: int | None = Non
                    info={**base.info, "operating_region": reg, "integral_weight_rad_s": wi, "inputs": inputs,
                          "state_scale": np.append(base.info["state_scale"], base.info["state_scale"][0] / wi),
                          "input_scale": base.info["input_scale"][:m]})
+
+
+def emf_range(profile) -> tuple[float, float]:
+    """Smallest and largest back-EMF constant of the phase pair the forward hall table drives,
+    over a turn (V per mechanical rad/s; :func:`picdrive.simulate.commutated_emf`)."""
+    from .simulate import commutated_emf
+    k, _ = commutated_emf(profile)
+    k = k[k > 0]
+    return float(np.min(k)), float(np.max(k))
+
+
+def six_step_model(profile, *, rules: int | None = None, premise_rad_s=None,
+                   resistance_uncertainty: float | None = None, rho: float | None = None,
+                   integral_weight_rad_s: float | None = None, emf_polytope: bool = True) -> TSModel:
+    """Tracking model of the six-step drive: the DC equivalent (2008 eq 1) with integral action.
+
+    States ``[d_omega, d_i, d_z]`` (mechanical rad/s, line current A, ``z = int (r - omega) dt``
+    in rad), input ``u`` (the six-step DC-equivalent voltage, V)::
+
+        J d_omega' = k_e d_i - B d_omega - w3
+        L d_i'     = u - R d_i - k_e d_omega + 0.1 L w2
+        d_z'       = -d_omega
+
+    The measurements the firmware has are the speed and the bus current, which
+    is this line current, so every state but ``z`` (which the law integrates)
+    is measured.  ``k_e`` is the back-EMF (= torque) constant of the phase pair
+    the hall table drives: it moves with the rotor angle inside each sector
+    between the bounds of :func:`emf_range` (the controller does not know the
+    angle), so with ``emf_polytope`` the model is the 2-vertex polytope over
+    ``k_e`` (``dA``); without it ``k_e = Kb``.  The DC equivalent is linear, so
+    the r rules (centres of the law's memberships) share their matrices; the
+    certificate then holds for every blend of the rule gains.  R uncertainty
+    as Assumption 1 on the current equation (``dA = E F H1``,
+    ``H1 = -eps R/L`` on ``d_i``).  Output ``z = [d_omega, w_i d_z]``.
+    """
+    m = profile.motor
+    d = profile.design
+    r = int(rules if rules is not None else d.get("rules", 2))
+    prem = _premise(profile, premise_rad_s)
+    eps = resistance_uncertainty if resistance_uncertainty is not None else d.get("resistance_uncertainty", 0.1)
+    rho = rho if rho is not None else d.get("rho", 1.0)
+    R, L, J, B, kb = m.r_line_ohm, m.l_line_h, m.inertia_kg_m2, m.viscous_friction_n_m_s, m.kb_v_s_per_rad
+    n = 3
+    A0 = np.array([[-B / J, kb / J, 0.0], [-kb / L, -R / L, 0.0], [-1.0, 0.0, 0.0]])
+    A = np.repeat(A0[None], r, 0)
+    Bm = np.repeat(np.array([[0.0], [1.0 / L], [0.0]])[None], r, 0)
+    Bw = np.array([[0.0, 0.0, -1.0 / J], [0.0, 0.1, 0.0], [0.0, 0.0, 0.0]])
+    if integral_weight_rad_s is None:
+        integral_weight_rad_s = 0.2 * (B + m.kt_n_m_per_a * kb / R) / J
+    wi = float(integral_weight_rad_s)
+    C = np.zeros((r, 2, n))
+    C[:, 0, 0] = 1.0
+    C[:, 1, 2] = wi
+    D = np.zeros((r, 2, 1))
+    E = np.array([[0.0], [1.0], [0.0]])
+    H1 = np.zeros((r, 1, n))
+    H1[:, 0, 1] = -eps * R / L
+    k_lo, k_hi = emf_range(profile)
+    offs = None
+    if emf_polytope:
+        G = np.array([[0.0, 1.0 / J, 0.0], [-1.0 / L, 0.0, 0.0], [0.0, 0.0, 0.0]])
+        offs = np.stack([(k - kb) * G for k in (k_lo, k_hi)])
+    w_top = min(prem[1], profile.speed_step_rpm() * 2 * math.pi / 60)
+    i_s = profile.inverter.current_limit_a
+    return TSModel(A=A, B=Bm, Bw=Bw, C=C, D=D, H1=H1, H2=np.zeros((r, 1, 1)), H3=np.zeros((r, 1, n)),
+                   H4=np.zeros((r, 1, 1)), rho=float(rho), premise_rad_s=prem, dA=offs, E=E,
+                   state_names=("d_omega_m", "d_i", "d_z"), input_names=("u",),
+                   disturbance_names=("w1", "w2", "w3"), output_names=("d_omega_m", "w_i d_z"),
+                   info={"rule_centres_rad_s": rule_centres(prem, r), "resistance_uncertainty": eps,
+                         "integral_weight_rad_s": wi, "inputs": "six-step", "emf_range_v_s": (k_lo, k_hi),
+                         "state_scale": np.array([max(w_top, 1.0), i_s, max(w_top, 1.0) / wi]),
+                         "input_scale": np.array([profile.inverter.bus_voltage_v])})

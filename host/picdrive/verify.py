@@ -4,33 +4,55 @@
 (:class:`picdrive.control_law.ScheduledLaw`, the thing the firmware runs)
 and, when present, the certificate, and fills ``result.verification`` with
 entries ``{"value", "limit", "ok", "unit", "note"}``; any failed entry calls
-``result.fail(reason)``.  Checks:
+``result.fail(reason)``.
 
-* ``sampled_spectral_radius`` -- the *discrete-time* closed loop of the law
-  (its integrator, derivative memory and filter included) sampled at
-  ``speed_loop_hz`` with a zero-order hold, on the dq model linearised at the
-  equilibria of every premise point (rule centres; speed 0 and the step
-  target too) with and without the profile's load, and R at nominal and
-  +-``design.resistance_uncertainty``: largest |eigenvalue|, limit 1.
-* ``lmi_max_eig`` (certificates with P, Y_j): the LMIs re-assembled from the
-  profile's model and the certificate, largest eigenvalue, limit 0 (in the
-  scaled coordinates of the solver, an exact congruence).
-* ``continuous_max_real_eig`` (certificates with K_j): ``A_i + dA_v + B_i K_j``
-  for every rule pair and polytope vertex, R at the uncertainty extremes.
-* ``hinf_norm`` (certificates with K_j): the H-inf norm w -> z of each
-  vertex closed loop (exact, Hamiltonian bisection), limit the certified bound.
-* ``sim_*`` -- nonlinear simulation of the sampled law on the dq model
-  (six-step drive): a step from rest to the step target with the 2016
-  disturbances (:func:`picdrive.simulate.disturbances_2016`), then a
-  load-torque step of ``control.load_torque_n_m``: settling within 2 % before
-  the load step and again after it, peak speed vs ``speed_max_rpm``, peak
-  bus current vs ``current_limit_a``, peak |u| vs the bridge voltage,
-  saturation in steady state, final speed error.
+The plant every law is judged on is the drive the firmware runs: the
+six-step bridge (high-side PWM, low side on) on the motor's DC equivalent
+(2008 eq 1 constants of the profile), with the pair's back-EMF as the hall
+table commutates it, the conduction rule of the bridge (the current cannot
+reverse while ``0 <= u <`` back-EMF: no braking torque; ``u < 0`` plugs after
+one sample with all switches off), the firmware's measurement chain (M/T
+speed with half a sample of extrapolation, one ADC sample of the bus
+current) and its current window (:func:`picdrive.simulate.simulate_six_step`).
+``tests/test_verify_twin.py`` checks that this model predicts the motor twin
+(firmware in the loop, three-phase plant) for every committed design.
 
-The step target is ``profile.speed_step_rpm()``, capped at 95 % of the speed
-the dq model with the six-step drive (``v_d = 0``) can hold under the load
-(:func:`picdrive.tsfuzzy.operating_region`); when the cap applies, the entry
-``sim_step_target_rpm`` says so.
+Checks:
+
+* ``law_current_window`` -- the law carries the firmware's current window
+  (``current_limit_a``, ``kb_v_s_per_rad``, ``r_ohm`` = the profile's
+  ``inverter.current_limit_a``, ``motor.kb_v_s_per_rad``, ``motor.r_line_ohm``):
+  the firmware applies it whatever the design says, so the float law must too.
+* ``sampled_spectral_radius`` -- the discrete-time closed loop of the law
+  (integrator, derivative memory and filter, current feedback) on the
+  linear six-step plant (DC equivalent) sampled at ``speed_loop_hz``, with
+  the firmware's speed measurement (``1.5 w_avg[k] - 0.5 w_avg[k-1]``) and the
+  command applied one PWM period after the sample; the gains at 0, the rule
+  centres and the step target; R nominal and +-``design.resistance_uncertainty``.
+  Largest |eigenvalue|, limit 1.
+* ``integrator_headroom_v`` -- the integrator range ``I_lim`` against what the
+  law's integrator holds at the six-step equilibria up to the step target
+  with and without the load (``u* + kp (1 - b) w* + kc i*``).
+* ``lmi_max_eig``, ``continuous_max_real_eig``, ``hinf_norm`` -- certificate
+  checks (fuzzy designs) on the TS model the certificate refers to (the dq
+  model): the LMIs re-assembled, every rule pair and polytope vertex, the
+  achieved H-inf norm against the certified bound.
+* ``dq_hold_rpm`` (sinusoidal motors only) -- steady-state reachability on the
+  dq model (v_d = 0): the step target within what it holds under the load.
+  For a trapezoidal motor the dq model does not describe the six-step drive
+  (it holds far less than the bridge does) and is not used.
+* ``sim_*`` -- nonlinear simulation of the sampled law on the six-step
+  drive: a step from rest to ``profile.speed_step_rpm()`` with the 2016
+  load-torque disturbance w3, then a load-torque step of
+  ``control.load_torque_n_m``: settling within 2 % before the load step and
+  again after it, overshoot within the same 2 % band (the bridge cannot brake:
+  an overshoot beyond the band coasts back on friction alone), final error
+  (all on the speed averaged over one hall sector, :func:`sector_mean`; the
+  ripple inside a sector is reported as a figure, ``sim_speed_ripple_pct``),
+  peak line current vs the overcurrent trip, the firmware's current
+  walk-down backup never needed, saturation in steady state; the same step
+  and load step with R at +-``design.resistance_uncertainty``
+  (``sim_resistance_uncertainty``).
 """
 from __future__ import annotations
 
@@ -40,21 +62,22 @@ from typing import Any
 import numpy as np
 import scipy.linalg as sla
 
-from .dqmodel import dq_params, equilibrium, jacobian
+from .dqmodel import dq_params, equilibrium, max_speed_rad_s
 from .metrics import step_metrics
 
-__all__ = ["verify_design", "hinf_norm", "sampled_closed_loop", "law_check_points", "sim_plan", "run_sim",
-           "VerifyConfig"]
+__all__ = ["verify_design", "hinf_norm", "sampled_closed_loop", "six_step_closed_loop", "law_check_points",
+           "sim_plan", "run_sim", "step_figures", "six_step_equilibrium", "VerifyConfig"]
 
 RPM = 2.0 * math.pi / 60.0
 
 
 class VerifyConfig:
-    """Durations of the verification simulation (s); tests may shorten them."""
+    """Durations and bands of the verification simulation; tests may shorten the durations."""
 
     step_phase_s: float = 0.6      # step from rest, then the load step at this time
     load_phase_s: float = 0.6
-    n_sub: int = 20
+    band: float = 0.02             # settling band and steady-error limit, fraction of the step target
+    commutated: bool = True        # the pair's EMF per rotor angle (simulate.commutated_emf), not the DC Kb
 
 
 # ---------------------------------------------------------------------------
@@ -141,36 +164,118 @@ def sampled_closed_loop(A, b_u, c_y, c_i, gains, ts: float, derivative_filter_hz
     return Acl
 
 
+def six_step_closed_loop(profile, gains, ts: float, derivative_filter_hz: float | None, *, r_factor: float = 1.0,
+                         delay_s: float | None = None) -> np.ndarray:
+    """Discrete closed-loop matrix of the law on the linear six-step plant (DC equivalent).
+
+    Plant ``L i' = u - R i - Kb w``, ``J w' = Kt i - B w`` (R x ``r_factor``);
+    the command of sample k acts from ``t_k + delay_s`` (default one PWM
+    period) to ``t_{k+1} + delay_s``; the speed the law sees is the firmware's
+    ``y_k = 1.5 w_avg[k] - 0.5 w_avg[k-1]`` (``w_avg`` the mean over the last
+    sample); the current it sees is the line current at the sample.  State
+    ``[i, w, w_avg, w_avg_prev, u_prev, I, y_prev, d]``; the law is linear when
+    unsaturated (deviation coordinates, r = 0)."""
+    m = profile.motor
+    R, L, J, B = m.r_line_ohm * r_factor, m.l_line_h, m.inertia_kg_m2, m.viscous_friction_n_m_s
+    kb, kt = m.kb_v_s_per_rad, m.kt_n_m_per_a
+    hd = (1.0 / profile.inverter.pwm_frequency_hz) if delay_s is None else float(delay_s)
+    hd = min(max(hd, 0.0), ts)
+    # x = [i, w, s] with s' = w (s: angle over the sample), input u
+    Ac = np.array([[-R / L, -kb / L, 0.0], [kt / J, -B / J, 0.0], [0.0, 1.0, 0.0]])
+    Bc = np.array([1.0 / L, 0.0, 0.0])
+
+    def zoh(h):
+        M = sla.expm(np.block([[Ac, Bc[:, None]], [np.zeros((1, 4))]]) * h)
+        return M[:3, :3], M[:3, 3]
+    F1, G1 = zoh(hd)
+    F2, G2 = zoh(ts - hd)
+    kp, ki, kd, kc = gains.kp, gains.ki, gains.kd, gains.kc
+    a = 1.0
+    if derivative_filter_hz:
+        a = ts / (ts + 1.0 / (2 * math.pi * derivative_filter_hz))
+    N = 8
+
+    def step(z):
+        i, w, wa, wap, up, I, yp, d = z
+        y = 1.5 * wa - 0.5 * wap
+        I1 = I - ki * ts * y
+        d1 = (1 - a) * d + a * kd * (yp - y) / ts
+        u = -kp * y + I1 + d1 - kc * i
+        x = F1 @ np.array([i, w, 0.0]) + G1 * up
+        x = F2 @ x + G2 * u
+        return np.array([x[0], x[1], x[2] / ts, wa, u, I1, y, d1])
+    return np.column_stack([step(e) for e in np.eye(N)])
+
+
 def law_check_points(profile, law) -> list[float]:
     """Speeds (rad/s) at which the sampled loop is checked: 0, the rule centres, the step target."""
-    from .tsfuzzy import operating_region, rule_centres
+    from .tsfuzzy import rule_centres
     pts = {0.0}
     n1, n2 = law.premise_rad_s
     if law.n_rules > 1:
         pts.update(float(c) for c in rule_centres((n1, n2), law.n_rules))
-    pts.add(operating_region(profile)["omega_top_rad_s"])
+    pts.add(profile.speed_step_rpm() * RPM)
     return sorted(pts)
 
 
 def _sampled_check(profile, law) -> dict:
-    p0 = dq_params(profile)
     eps = float(profile.design.get("resistance_uncertainty", 0.1))
     worst, where = -1.0, ""
     for w in law_check_points(profile, law):
         g = law.gains_at(w)
-        for load in (0.0, profile.control.load_torque_n_m):
-            for rs in (1.0 - eps, 1.0, 1.0 + eps):
-                p = p0.replace(r_ohm=p0.r_ohm * rs)
-                iq, id_, _ = equilibrium(p, w, load)
-                A, B = jacobian(p, (w, iq, id_))
-                b_u = B[:, 0] * p.kv_vq_per_u
-                Acl = sampled_closed_loop(A, b_u, np.array([1.0, 0, 0]), np.array([0, p.ki_ibus_per_iq, 0]), g,
-                                          law.sample_time_s, law.derivative_filter_hz)
-                rad = float(np.max(np.abs(np.linalg.eigvals(Acl))))
-                if rad > worst:
-                    worst, where = rad, f"{w / RPM:.0f} rpm, load {load:g} N m, R x {rs:g}"
+        for rs in (1.0 - eps, 1.0, 1.0 + eps):
+            Acl = six_step_closed_loop(profile, g, law.sample_time_s, law.derivative_filter_hz, r_factor=rs)
+            rad = float(np.max(np.abs(np.linalg.eigvals(Acl))))
+            if rad > worst:
+                worst, where = rad, f"gains at {w / RPM:.0f} rpm, R x {rs:g}"
     return {"value": worst, "limit": 1.0, "ok": bool(worst < 1.0), "unit": "1",
-            "note": f"largest |eig| of the sampled closed loop; worst at {where}"}
+            "note": "largest |eig| of the sampled closed loop on the six-step DC-equivalent plant with the "
+                    f"firmware's speed measurement; worst at {where}"}
+
+
+def six_step_equilibrium(profile, omega_rad_s: float, load_n_m: float = 0.0, r_factor: float = 1.0):
+    """Steady state of the six-step DC-equivalent drive at a speed: ``(i, u)`` (A, V)."""
+    m = profile.motor
+    i = (m.viscous_friction_n_m_s * omega_rad_s + load_n_m) / m.kt_n_m_per_a
+    return i, m.kb_v_s_per_rad * omega_rad_s + m.r_line_ohm * r_factor * i
+
+
+def _headroom_check(profile, law) -> dict:
+    eps = float(profile.design.get("resistance_uncertainty", 0.1))
+    b = law.setpoint_weight
+    worst, where = math.inf, ""
+    for w in (0.0, profile.speed_step_rpm() * RPM):
+        for load in (0.0, profile.control.load_torque_n_m):
+            for rs in (1.0 - eps, 1.0 + eps):
+                i, u = six_step_equilibrium(profile, w, load, rs)
+                g = law.gains_at(w)
+                need = abs(u + g.kp * (1.0 - b) * w + g.kc * i)
+                room = law.i_lim_v - need
+                if room < worst:
+                    worst, where = room, f"{w / RPM:.0f} rpm, load {load:g} N m, R x {rs:g}"
+    return {"value": worst, "limit": 0.0, "ok": bool(worst >= 0.0), "unit": "V",
+            "note": f"I_lim - |u* + kp (1-b) w* + kc i*| at the worst six-step equilibrium ({where}); b = {b:g}"}
+
+
+def _window_check(profile, law) -> dict:
+    want = (profile.inverter.current_limit_a, profile.motor.kb_v_s_per_rad, profile.motor.r_line_ohm)
+    have = (law.current_limit_a, law.kb_v_s_per_rad, law.r_ohm)
+    ok = have[0] is not None and all(abs(x - y) <= 1e-9 * max(1.0, abs(y)) for x, y in zip(have, want))
+    return {"value": list(have), "limit": list(want), "ok": bool(ok), "unit": "A, V s/rad, ohm",
+            "note": "the law's current window (current_limit_a, kb_v_s_per_rad, r_ohm) must be the firmware's: "
+                    "the profile's inverter.current_limit_a, motor.kb_v_s_per_rad, motor.r_line_ohm"}
+
+
+def _dq_reachability(profile) -> dict | None:
+    if profile.motor.back_emf_shape != "sinusoidal":
+        return None
+    p = dq_params(profile)
+    u_max = profile.inverter.bus_voltage_v * profile.max_duty()
+    hold = max_speed_rad_s(p, p.kv_vq_per_u * u_max, profile.control.load_torque_n_m) / RPM
+    tgt = profile.speed_step_rpm()
+    return {"value": hold, "limit": tgt, "ok": bool(hold >= tgt), "unit": "rpm",
+            "note": "speed the dq model (v_d = 0, sinusoidal motor) holds under the load at the bridge voltage; "
+                    "must reach the step target"}
 
 
 # ---------------------------------------------------------------------------
@@ -218,82 +323,168 @@ def _certificate_checks(profile, result) -> dict:
 
 
 # ---------------------------------------------------------------------------
-# Nonlinear simulation
+# Nonlinear simulation on the six-step drive
 # ---------------------------------------------------------------------------
 def sim_plan(profile) -> dict:
     """Step target (rpm), load, durations of the verification simulation."""
-    from .tsfuzzy import operating_region
-    reg = operating_region(profile)
-    target = reg["omega_top_rad_s"] / RPM
-    return {"target_rpm": target, "profile_target_rpm": profile.speed_step_rpm(),
-            "capped": bool(target < profile.speed_step_rpm() * (1 - 1e-9)),
-            "hold_rpm": reg["omega_hold_rad_s"] / RPM, "load_n_m": profile.control.load_torque_n_m,
+    return {"target_rpm": profile.speed_step_rpm(), "profile_target_rpm": profile.speed_step_rpm(),
+            "capped": False, "load_n_m": profile.control.load_torque_n_m,
             "t_load_s": VerifyConfig.step_phase_s, "t_end_s": VerifyConfig.step_phase_s + VerifyConfig.load_phase_s}
 
 
-def run_sim(profile, law, plan=None, *, disturbances: bool = True, params=None):
-    """The verification run: step from rest to the target, 2016 disturbances, load step."""
-    from .simulate import disturbances_2016, simulate_law, step_load
+def run_sim(profile, law, plan=None, *, disturbances: bool = True, r_factor: float = 1.0,
+            commutated: bool | None = None):
+    """The verification run on the six-step drive: step from rest to the target (the 2016 load-torque
+    disturbance w3 on [0, 0.2] s when ``disturbances``), then the load step.  Returns
+    :class:`picdrive.simulate.SixStepResult`."""
+    from .simulate import disturbances_2016, simulate_six_step
     plan = plan or sim_plan(profile)
     load = plan["load_n_m"]
-    dist = None
+    tl = plan["t_load_s"]
+    w3 = None
     if disturbances:
-        dist = lambda t: disturbances_2016(t, amplitude=(1.0, 1.0, 0.1 * load))[0]
-    return simulate_law(profile, law, t_end=plan["t_end_s"], ref_rpm=plan["target_rpm"],
-                        load=step_load(plan["t_load_s"], load), disturbance=dist, params=params,
-                        n_sub=VerifyConfig.n_sub)
+        w3 = lambda t: float(disturbances_2016(t, amplitude=(0.0, 0.0, 0.1 * load))[0, 2])
+    return simulate_six_step(profile, law, t_end=plan["t_end_s"], ref_rpm=plan["target_rpm"],
+                             load=lambda t: load if t >= tl - 1e-12 else 0.0, torque_disturbance=w3,
+                             r_factor=r_factor,
+                             commutated=VerifyConfig.commutated if commutated is None else commutated)
+
+
+def sector_period_s(profile, rpm: float) -> float:
+    """Time one hall sector (60 electrical degrees) lasts at a speed, s: the shortest interval over
+    which a six-step drive delivers its mean torque (inside it the pair's EMF, hence the torque per
+    ampere, ripples with the rotor angle)."""
+    return 60.0 / (max(abs(rpm), 1e-9) * profile.motor.pole_pairs * 6.0)
+
+
+def sector_mean(profile, y: np.ndarray, ts: float, rpm: float) -> np.ndarray:
+    """``y`` (samples ``ts`` apart) averaged over one hall sector at ``rpm`` (centred moving mean;
+    the ends use what exists)."""
+    n = max(1, int(round(sector_period_s(profile, rpm) / ts)))
+    if n <= 1:
+        return np.asarray(y, float)
+    y = np.asarray(y, float)
+    c = np.concatenate([[0.0], np.cumsum(y)])
+    k = np.arange(y.size)
+    lo = np.clip(k - n // 2, 0, y.size)
+    hi = np.clip(lo + n, 0, y.size)
+    lo = np.maximum(0, hi - n)
+    return (c[hi] - c[lo]) / (hi - lo)
+
+
+def step_figures(sim, plan, profile=None) -> dict:
+    """Step and load-step figures of a verification run (rpm, s, %).
+
+    Settling, overshoot, load recovery and final error are judged on the speed
+    averaged over one hall sector at the target (:func:`sector_mean`; with a
+    ``profile``), the commutation's own torque ripple being no regulation error;
+    ``ripple_pct`` is the peak-to-peak of the raw speed about that mean in the
+    last 10 % of the run, ``peak_rpm_raw`` the raw peak."""
+    t, raw = sim.t, sim.rpm
+    tl, target = plan["t_load_s"], plan["target_rpm"]
+    ts = float(t[1] - t[0])
+    rpm = sector_mean(profile, raw, ts, target) if profile is not None else raw
+    a = t < tl
+    m1 = step_metrics(t[a], rpm[a], target, y0=0.0)
+    band = VerifyConfig.band
+    dev = np.abs(rpm[~a] - target) / target
+    outside = np.nonzero(dev > band)[0]
+    rec = 0.0 if outside.size == 0 else (math.inf if outside[-1] == dev.size - 1 else float(t[~a][outside[-1] + 1] - tl))
+    n_tail = max(1, int(0.1 * t.size))
+    inside = np.nonzero(np.abs(raw - target) <= 0.01 * target)[0]
+    return {"settling_s": m1.settling_time_s, "rise_s": m1.rise_time_s, "overshoot_pct": m1.overshoot_pct,
+            "peak_rpm": m1.peak, "peak_rpm_raw": float(np.max(sim.omega_fine if sim.omega_fine.size else sim.omega)
+                                                       * 60 / (2 * math.pi)),
+            "load_recovery_s": rec, "load_dip_rpm": float(target - np.min(rpm[~a])),
+            "final_error_rpm": float(target - np.mean(rpm[-n_tail:])),
+            "ripple_pct": float(100 * np.ptp(raw[-n_tail:] - rpm[-n_tail:]) / target),
+            "t_reach_s": float(t[inside[0]]) if inside.size else math.inf,
+            "peak_current_a": float(np.max(np.abs(sim.i_fine))) if sim.i_fine.size else 0.0}
 
 
 def _sim_checks(profile, law) -> dict:
     plan = sim_plan(profile)
-    sim = run_sim(profile, law, plan)
     out: dict[str, Any] = {}
-    out["sim_step_target_rpm"] = {
-        "value": plan["target_rpm"], "limit": plan["profile_target_rpm"], "ok": True, "unit": "rpm",
-        "note": ("capped at 95 % of the speed the dq model with the six-step drive holds under load "
-                 f"({plan['hold_rpm']:.0f} rpm)" if plan["capped"] else "profile.speed_step_rpm()")}
-    if not np.all(np.isfinite(sim.omega)):
+    target = plan["target_rpm"]
+    tl = plan["t_load_s"]
+    t_end = plan["t_end_s"]
+    band = VerifyConfig.band
+    out["sim_step_target_rpm"] = {"value": target, "limit": plan["profile_target_rpm"], "ok": True, "unit": "rpm",
+                                  "note": "profile.speed_step_rpm() (a figure, not a check)"}
+    try:
+        sim = run_sim(profile, law, plan)
+    except FloatingPointError:
         out["sim_finite"] = {"value": False, "limit": True, "ok": False, "unit": "", "note": "simulation diverged"}
         return out
-    t, rpm = sim.t, sim.rpm
-    tl = plan["t_load_s"]
-    target = plan["target_rpm"]
-    a = t < tl
-    m1 = step_metrics(t[a], rpm[a], target, y0=0.0)
-    out["sim_settling_s"] = {"value": m1.settling_time_s, "limit": tl, "ok": bool(m1.settling_time_s < 0.8 * tl),
-                             "unit": "s", "note": "2 % band, step from rest (must settle within 80 % of the phase)"}
-    out["sim_rise_s"] = {"value": m1.rise_time_s, "limit": tl, "ok": bool(m1.rise_time_s < tl), "unit": "s"}
-    out["sim_overshoot_pct"] = {"value": m1.overshoot_pct,
-                                "limit": max(0.0, (profile.control.speed_max_rpm / target - 1) * 100),
-                                "ok": bool(m1.peak <= profile.control.speed_max_rpm), "unit": "%",
-                                "note": "the peak must stay below control.speed_max_rpm"}
-    # after the load step: recovery into the 2 % band
-    dev = np.abs(rpm[~a] - target) / target
-    outside = np.nonzero(dev > 0.02)[0]
-    rec = 0.0 if outside.size == 0 else (math.inf if outside[-1] == dev.size - 1 else float(t[~a][outside[-1] + 1] - tl))
-    out["sim_load_recovery_s"] = {"value": rec, "limit": t[-1] - tl, "ok": bool(rec < 0.8 * (t[-1] - tl)),
-                                  "unit": "s", "note": "back into the 2 % band after the load-torque step"}
-    out["sim_load_dip_rpm"] = {"value": float(target - np.min(rpm[~a])), "limit": target, "ok": bool(np.min(rpm[~a]) > 0),
+    f = step_figures(sim, plan, profile)
+    out["sim_settling_s"] = {"value": f["settling_s"], "limit": tl, "ok": bool(f["settling_s"] < 0.8 * tl),
+                             "unit": "s", "note": f"{100 * band:g} % band, step from rest (must settle within 80 % "
+                                                  "of the phase)"}
+    out["sim_rise_s"] = {"value": f["rise_s"], "limit": tl, "ok": bool(f["rise_s"] < tl), "unit": "s"}
+    out["sim_overshoot_pct"] = {"value": f["overshoot_pct"], "limit": 100 * band,
+                                "ok": bool(f["overshoot_pct"] <= 100 * band), "unit": "%",
+                                "note": "within the settling band: the bridge cannot brake, a larger overshoot "
+                                        "coasts back on friction alone"}
+    out["sim_load_recovery_s"] = {"value": f["load_recovery_s"], "limit": t_end - tl,
+                                  "ok": bool(f["load_recovery_s"] < 0.8 * (t_end - tl)), "unit": "s",
+                                  "note": f"back into the {100 * band:g} % band after the load-torque step"}
+    out["sim_load_dip_rpm"] = {"value": f["load_dip_rpm"], "limit": target, "ok": bool(f["load_dip_rpm"] < target),
                                "unit": "rpm", "note": "speed dip after the load step (must not stall)"}
-    n_tail = max(1, int(0.1 * t.size))
-    err = float(target - np.mean(rpm[-n_tail:]))
-    out["sim_final_error_rpm"] = {"value": err, "limit": 0.02 * target, "ok": bool(abs(err) <= 0.02 * target),
-                                  "unit": "rpm", "note": "mean over the last 10 % of the run"}
+    out["sim_speed_ripple_pct"] = {"value": f["ripple_pct"], "limit": None, "ok": True, "unit": "%",
+                                   "note": "a figure, not a check: peak-to-peak speed ripple about the sector mean "
+                                           "under the load, the commutation's torque ripple (a property of the motor "
+                                           "and the six-step bridge; higher loop gains reduce it)"}
+    out["sim_peak_rpm"] = {"value": f["peak_rpm_raw"], "limit": profile.control.speed_max_rpm,
+                           "ok": bool(f["peak_rpm_raw"] <= profile.control.speed_max_rpm), "unit": "rpm",
+                           "note": "raw peak speed vs control.speed_max_rpm"}
+    out["sim_final_error_rpm"] = {"value": f["final_error_rpm"], "limit": band * target,
+                                  "ok": bool(abs(f["final_error_rpm"]) <= band * target), "unit": "rpm",
+                                  "note": "mean over the last 10 % of the run, under the load"}
     u_bridge = profile.inverter.bus_voltage_v * profile.max_duty()
     out["sim_peak_u_v"] = {"value": float(np.max(np.abs(sim.u))), "limit": u_bridge,
                            "ok": bool(np.max(np.abs(sim.u)) <= u_bridge + 1e-9), "unit": "V"}
+    t = sim.t
     tail = np.zeros(t.size, bool)
     for t0, t1 in ((0.8 * tl, tl), (t[-1] - 0.2 * (t[-1] - tl), t[-1] + 1)):
         tail |= (t >= t0) & (t < t1)
-    sat_tail = float(np.mean(sim.saturated[tail]))
+    sat = sim.saturated
+    # on the edge for most of a hall sector (brief touches from the commutation ripple excepted)
+    sat_sector = sector_mean(profile, sat.astype(float), law.sample_time_s, target) >= 0.5
+    sat_tail = float(np.mean(sat_sector[tail]))
     out["sim_saturated_steady_fraction"] = {"value": sat_tail, "limit": 0.0, "ok": bool(sat_tail == 0.0), "unit": "1",
-                                            "note": "fraction of the steady-state windows with u at its limit"}
-    out["sim_saturated_time_s"] = {"value": float(np.sum(sim.saturated) * law.sample_time_s), "limit": 0.5 * tl,
-                                   "ok": bool(np.sum(sim.saturated) * law.sample_time_s <= 0.5 * tl), "unit": "s"}
-    ipk = float(np.max(np.abs(sim.i_bus)))
-    out["sim_peak_bus_current_a"] = {"value": ipk, "limit": profile.inverter.current_limit_a,
-                                     "ok": bool(ipk <= profile.inverter.current_limit_a), "unit": "A"}
-    # integrator headroom at the end (b = 0 designs hold u* + kp w + kc i in the integrator)
+                                            "note": "fraction of the steady-state windows with u at the edge of "
+                                                    "its window for most of a hall sector (raw: "
+                                                    f"{float(np.mean(sat[tail])):.3g})"}
+    out["sim_saturated_time_s"] = {"value": float(np.sum(sat) * law.sample_time_s), "limit": 0.5 * tl,
+                                   "ok": bool(np.sum(sat) * law.sample_time_s <= 0.5 * tl), "unit": "s"}
+    trip = profile.inverter.overcurrent_trip_a
+    out["sim_peak_bus_current_a"] = {"value": f["peak_current_a"], "limit": trip,
+                                     "ok": bool(f["peak_current_a"] < trip), "unit": "A",
+                                     "note": f"peak line current (every PWM period) vs the overcurrent trip; the "
+                                             f"current limit is {profile.inverter.current_limit_a:g} A"}
+    n_cap = int(np.sum(sim.cap_active))
+    out["sim_current_backup_samples"] = {"value": n_cap, "limit": 0, "ok": bool(n_cap == 0), "unit": "samples",
+                                         "note": "samples with the firmware's walk-down backup (measured current "
+                                                 "above the limit) engaged: the window alone must hold the current"}
+    # R at the extremes of its uncertainty: the same step and load step, same limits
+    eps = float(profile.design.get("resistance_uncertainty", 0.1))
+    worst = {}
+    ok = True
+    for rs in (1.0 - eps, 1.0 + eps):
+        try:
+            fr = step_figures(run_sim(profile, law, plan, disturbances=False, r_factor=rs), plan, profile)
+        except FloatingPointError:
+            ok = False
+            worst[f"R x {rs:g}"] = "diverged"
+            continue
+        good = (fr["settling_s"] < 0.8 * tl and fr["overshoot_pct"] <= 100 * band
+                and fr["load_recovery_s"] < 0.8 * (t_end - tl) and abs(fr["final_error_rpm"]) <= band * target
+                and fr["peak_current_a"] < trip)
+        ok &= bool(good)
+        worst[f"R x {rs:g}"] = {k: round(fr[k], 4) for k in ("settling_s", "overshoot_pct", "load_recovery_s",
+                                                             "final_error_rpm", "peak_current_a")}
+    out["sim_resistance_uncertainty"] = {"value": worst, "limit": "the same limits", "ok": ok, "unit": "",
+                                         "note": f"step and load step with R x (1 -+ {eps:g})"}
     return out
 
 
@@ -304,12 +495,17 @@ def verify_design(profile, result, *, simulate: bool = True):
     checks: dict[str, Any] = {}
     law = result.law
     if law is not None:
+        checks["law_current_window"] = _window_check(profile, law)
         checks["sampled_spectral_radius"] = _sampled_check(profile, law)
+        checks["integrator_headroom_v"] = _headroom_check(profile, law)
         if law.u_max_v > profile.inverter.bus_voltage_v * profile.max_duty() + 1e-9 or \
                 law.u_min_v < -profile.inverter.bus_voltage_v * profile.max_duty() - 1e-9:
             checks["law_output_limits_v"] = {"value": [law.u_min_v, law.u_max_v],
                                              "limit": profile.inverter.bus_voltage_v * profile.max_duty(),
                                              "ok": False, "unit": "V", "note": "outside +- bus voltage x max duty"}
+        dq = _dq_reachability(profile)
+        if dq is not None:
+            checks["dq_hold_rpm"] = dq
     checks.update(_certificate_checks(profile, result))
     if law is not None and simulate and checks.get("sampled_spectral_radius", {}).get("ok", True):
         checks.update(_sim_checks(profile, law))

@@ -181,12 +181,36 @@ def paper2016_unit_study(profile="assawinchaichote2016", *, t_end_s: float = 5.0
     return out
 
 
-def design(profile, *, progress: bool = True, preset: str | None = None, rule: str = "ultimate",
+AUTO_ORDER = ("ultimate", "some-overshoot", "no-overshoot")
+
+
+def design(profile, *, progress: bool = True, preset: str | None = None, rule: str = "auto",
            delay_samples: int = 1, measurement: str = "average", **options) -> DesignResult:
     """Ziegler-Nichols PID (or the ``paper2016`` preset) for a profile, verified.
 
-    ``progress`` is accepted for the common interface (ZN has no long steps).
+    ``rule="auto"`` (default): the rows of the ultimate-sensitivity table in
+    the order classic, some-overshoot, no-overshoot, and the first whose law
+    passes the verification on the six-step drive is kept (the bridge cannot
+    brake, so the overshoot limit of the verification is what selects; on the
+    duy2008 motor the milder rows overshoot *more*: their lower kp leaves the
+    approach to the integrator).  The rows tried are recorded
+    (``certificate.rule_tries``).  ``progress`` is accepted for the common
+    interface (ZN has no long steps).
     """
+    if rule == "auto" and preset is None and not options:
+        tries, res = [], None
+        for row in AUTO_ORDER:
+            res = design(profile, progress=progress, rule=row, delay_samples=delay_samples,
+                         measurement=measurement)
+            tries.append({"rule": row, "status": res.status, "reasons": list(res.reasons)})
+            if res.ok:
+                break
+        res.certificate["rule_tries"] = tries
+        res.options["rule"] = "auto"
+        if not res.ok:
+            res.fail("no row of the ZN table passed the verification: " +
+                     "; ".join(f"{t['rule']}: {t['reasons'][0] if t['reasons'] else t['status']}" for t in tries))
+        return res
     if options:
         raise ZnError(f"unknown zn option(s) {', '.join(sorted(options))}; accepted: preset, rule, "
                       "delay_samples, measurement")
@@ -207,7 +231,7 @@ def design(profile, *, progress: bool = True, preset: str | None = None, rule: s
                     conversion="K_law = K_paper * (60/2pi) [rpm per rad/s] * Kb/(P lambda_m) [u per v_q]")
     else:
         if rule not in RULES:
-            raise ZnError(f"ZN rule {rule!r} is unknown; choose one of {', '.join(RULES)}")
+            raise ZnError(f"ZN rule {rule!r} is unknown; choose one of auto, {', '.join(RULES)}")
         kp, ki, kd, fig = zn_gains(rule, sp, plant)
         variant = rule
         cert.update(rule=rule, **fig)
