@@ -1076,7 +1076,8 @@ def closed_loop_compare(profile, law, plan: FixedPointPlan, *, t_end_s: float = 
     wf, wq = np.zeros(n), np.zeros(n)
     stf = LawState()
     p = law_params_from_plan(plan)
-    p.ilim = INT16_MAX                 # no current limits (the float reference has none)
+    if law.current_limit_a is None:    # the float reference has no window: disable the firmware's
+        p.ilim = INT16_MAX
     st = CoreState()
     core_reset(plan, st)
     target = plan.to_speed_raw(w_ref)
