@@ -3,7 +3,7 @@
  * and duplicate-SEQ replay, parameter store with range checks, EEPROM image, telemetry,
  * triggered capture, link-loss watchdog.
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
- * protocol 1.0, table hash 0xCC8B0E12UL
+ * protocol 1.0, table hash 0x9FCC80F8UL
  *
  * No heap, no floating point (scales are float32 bit patterns, only reported), explicit
  * widths, 32-bit casts before products that can exceed 16 bits.
@@ -58,7 +58,7 @@ static const link_entry_t link_table[LINK_N_ENTRIES] = {
     { LINK_ID_CONTROLLER, LINK_T_UINT8, 0x03u, 12u, 0x3F800000UL, 0L, 1L, 1L, (uint8_t)offsetof(link_params_t, controller), "controller" },
     { LINK_ID_PREMISE_LOW, LINK_T_INT16, 0x03u, 1u, 0x3E18C9EBUL, 0L, 32767L, 0L, (uint8_t)offsetof(link_params_t, premise_low), "premise_low" },
     { LINK_ID_PREMISE_HIGH, LINK_T_INT16, 0x03u, 1u, 0x3E18C9EBUL, 0L, 32767L, 17425L, (uint8_t)offsetof(link_params_t, premise_high), "premise_high" },
-    { LINK_ID_SETPOINT_WEIGHT, LINK_T_INT16, 0x03u, 0u, 0x38800000UL, 0L, 32767L, 0L, (uint8_t)offsetof(link_params_t, setpoint_weight), "setpoint_weight" },
+    { LINK_ID_SETPOINT_WEIGHT, LINK_T_INT16, 0x03u, 0u, 0x38800000UL, 0L, 32767L, 16384L, (uint8_t)offsetof(link_params_t, setpoint_weight), "setpoint_weight" },
     { LINK_ID_U_MIN, LINK_T_INT16, 0x03u, 3u, 0x3B800000UL, -11304L, 0L, -11304L, (uint8_t)offsetof(link_params_t, u_min), "u_min" },
     { LINK_ID_U_MAX, LINK_T_INT16, 0x03u, 3u, 0x3B800000UL, 0L, 11304L, 11304L, (uint8_t)offsetof(link_params_t, u_max), "u_max" },
     { LINK_ID_CURRENT_LIMIT, LINK_T_INT16, 0x03u, 4u, 0x3BA00000UL, 0L, 1023L, 307L, (uint8_t)offsetof(link_params_t, current_limit), "current_limit" },
@@ -76,14 +76,14 @@ static const link_entry_t link_table[LINK_N_ENTRIES] = {
     { LINK_ID_FAULT, LINK_T_INT16, 0x04u, 11u, 0x3F800000UL, -32768L, 32767L, 0L, 0u, "fault" },
     { LINK_ID_MU1, LINK_T_INT16, 0x04u, 0u, 0x39800000UL, 0L, 4096L, 4096L, 0u, "mu1" },
     { LINK_ID_POSITION, LINK_T_INT16, 0x04u, 10u, 0x3F800000UL, -32768L, 32767L, 0L, 0u, "position" },
-    { LINK_ID_RULE1_KP, LINK_T_INT16, 0x03u, 5u, 0x3A000000UL, -32768L, 32767L, 11783L, (uint8_t)offsetof(link_params_t, rule1_kp), "rule1_kp" },
-    { LINK_ID_RULE1_KI, LINK_T_INT16, 0x03u, 6u, 0x3BFA0000UL, -32768L, 32767L, 13961L, (uint8_t)offsetof(link_params_t, rule1_ki), "rule1_ki" },
+    { LINK_ID_RULE1_KP, LINK_T_INT16, 0x03u, 5u, 0x39800000UL, -32768L, 32767L, 13859L, (uint8_t)offsetof(link_params_t, rule1_kp), "rule1_kp" },
+    { LINK_ID_RULE1_KI, LINK_T_INT16, 0x03u, 6u, 0x3CFA0000UL, -32768L, 32767L, 9644L, (uint8_t)offsetof(link_params_t, rule1_ki), "rule1_ki" },
     { LINK_ID_RULE1_KD, LINK_T_INT16, 0x03u, 7u, 0x3283126FUL, -32768L, 32767L, 0L, (uint8_t)offsetof(link_params_t, rule1_kd), "rule1_kd" },
-    { LINK_ID_RULE1_KC, LINK_T_INT16, 0x03u, 8u, 0x3B4CCCCDUL, -32768L, 32767L, 10179L, (uint8_t)offsetof(link_params_t, rule1_kc), "rule1_kc" },
-    { LINK_ID_RULE2_KP, LINK_T_INT16, 0x03u, 5u, 0x3A000000UL, -32768L, 32767L, 10355L, (uint8_t)offsetof(link_params_t, rule2_kp), "rule2_kp" },
-    { LINK_ID_RULE2_KI, LINK_T_INT16, 0x03u, 6u, 0x3BFA0000UL, -32768L, 32767L, 15017L, (uint8_t)offsetof(link_params_t, rule2_ki), "rule2_ki" },
+    { LINK_ID_RULE1_KC, LINK_T_INT16, 0x03u, 8u, 0x3B4CCCCDUL, -32768L, 32767L, 14101L, (uint8_t)offsetof(link_params_t, rule1_kc), "rule1_kc" },
+    { LINK_ID_RULE2_KP, LINK_T_INT16, 0x03u, 5u, 0x39800000UL, -32768L, 32767L, 13859L, (uint8_t)offsetof(link_params_t, rule2_kp), "rule2_kp" },
+    { LINK_ID_RULE2_KI, LINK_T_INT16, 0x03u, 6u, 0x3CFA0000UL, -32768L, 32767L, 9644L, (uint8_t)offsetof(link_params_t, rule2_ki), "rule2_ki" },
     { LINK_ID_RULE2_KD, LINK_T_INT16, 0x03u, 7u, 0x3283126FUL, -32768L, 32767L, 0L, (uint8_t)offsetof(link_params_t, rule2_kd), "rule2_kd" },
-    { LINK_ID_RULE2_KC, LINK_T_INT16, 0x03u, 8u, 0x3B4CCCCDUL, -32768L, 32767L, 13368L, (uint8_t)offsetof(link_params_t, rule2_kc), "rule2_kc" },
+    { LINK_ID_RULE2_KC, LINK_T_INT16, 0x03u, 8u, 0x3B4CCCCDUL, -32768L, 32767L, 14101L, (uint8_t)offsetof(link_params_t, rule2_kc), "rule2_kc" },
 };
 
 static const uint8_t link_persisted[18] = {

@@ -491,8 +491,8 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
 
 
 def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: float, load_n_m: float = 0.0,
-                            n_sub: int = 4, r_factor: float = 1.0) -> dict:
-    """:func:`simulate_six_step` (DC equivalent, ``measurement="firmware"``) for many one-rule PID laws at once.
+                            n_sub: int = 4, r_factor: float = 1.0, commutated: bool = False) -> dict:
+    """:func:`simulate_six_step` (``measurement="firmware"``, forward table) for many one-rule PID laws at once.
 
     The law is ``control_law.law_step`` written for arrays: one rule, b = 1,
     unfiltered derivative on the measurement, the profile's current window
@@ -509,9 +509,11 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
     """
     kp, ki, kd = (np.atleast_1d(np.asarray(v, float)) for v in (kp, ki, kd))
     kp, ki, kd = np.broadcast_arrays(kp, ki, kd)
-    pl = six_step_plant(profile, r_factor=r_factor)
+    pl = six_step_plant(profile, r_factor=r_factor, commutated=commutated)
     ts = 1.0 / profile.control.speed_loop_hz
     R, L, J, B, kb = pl.r_ohm, pl.l_h, pl.j_kg_m2, pl.b_n_m_s, pl.kb_v_s_per_rad
+    tab = np.asarray(pl.emf_table[0]) if commutated else None      # forward table (a PID's step from rest)
+    ang_k = pl.pole_pairs * (tab.size if tab is not None else 1) / (2 * math.pi)
     tau = L / R
     vbus, ub = pl.bus_voltage_v, pl.u_bridge_v
     span = R * pl.current_limit_a
@@ -563,7 +565,8 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
                 d_dir, d_duty = n_dir, n_duty
             v_pos = np.where(d_dir > 0, d_duty * vbus, -vbus)
             v_neg = np.where(d_dir < 0, -d_duty * vbus, vbus)
-            em = kb * w
+            ke = kb if tab is None else tab[((th + 0.5 * h * w) * ang_k).astype(np.int64) % tab.size]
+            em = ke * w
             pos = (i > 0) | ((i == 0) & (em < v_pos))
             neg = ~pos & ((i < 0) | ((i == 0) & (em > v_neg)))
             cond = pos | neg
@@ -577,7 +580,7 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
             i1 = np.where(cond & ~cross, i1, 0.0)
             gc = np.exp(-hc / tau)
             i_mean = np.where(cond, (i_inf * hc + (i - i_inf) * tau * (1.0 - gc)) / h, 0.0)
-            te = kb * i_mean
+            te = ke * i_mean
             tload = np.where(w > 0, load_n_m, np.where(w < 0, -load_n_m,
                                                        np.where(np.abs(te) <= load_n_m, te,
                                                                 np.copysign(load_n_m, te))))
