@@ -46,22 +46,26 @@ def design_path(profile_name: str, method: str) -> Path:
 
 @dataclass
 class Limits:
-    """Pass limits of a step, from the profile and the design's own verification."""
+    """Pass limits of a step, from the profile and the design's own verification (the same
+    criteria the verification applied to its six-step model, which tests/test_verify_twin.py
+    checks predicts the twin)."""
 
     target_rpm: float
-    settle_s: float          # design verification: sim_settling_s limit
+    settle_s: float          # design verification: settled within 80 % of its step phase (sim_settling_s)
     band_pct: float          # design verification: final-error band (% of its step target)
-    overshoot_pct: float     # profile: the peak must stay below control.speed_max_rpm
-    load_recovery_s: float   # design verification: sim_load_recovery_s limit
+    overshoot_pct: float     # design verification: sim_overshoot_pct limit (the settling band: no braking),
+                             # and never above control.speed_max_rpm
+    load_recovery_s: float   # design verification: back in the band within 80 % of its load phase
 
     @classmethod
     def of(cls, prof, design, target_rpm: float | None = None) -> "Limits":
         v = design.verification
         tgt = prof.speed_step_rpm() if target_rpm is None else target_rpm
         band = 100.0 * v["sim_final_error_rpm"]["limit"] / v["sim_step_target_rpm"]["value"]
-        return cls(tgt, float(v["sim_settling_s"]["limit"]), band,
-                   100.0 * (prof.control.speed_max_rpm - abs(tgt)) / abs(tgt),
-                   float(v["sim_load_recovery_s"]["limit"]))
+        overshoot = min(float(v["sim_overshoot_pct"]["limit"]),
+                        100.0 * (prof.control.speed_max_rpm - abs(tgt)) / abs(tgt))
+        return cls(tgt, 0.8 * float(v["sim_settling_s"]["limit"]), band, overshoot,
+                   0.8 * float(v["sim_load_recovery_s"]["limit"]))
 
 
 @dataclass
@@ -129,14 +133,27 @@ class Bench:
         time.sleep(seconds)
 
 
-def step_of(data: np.ndarray, target: float):
-    """Step metrics of telemetry data, measured from the sample where the setpoint reached target."""
+def sector_speed(prof, data: np.ndarray, target: float) -> np.ndarray:
+    """The measured speed averaged over one hall sector at the target speed (picdrive.verify.sector_mean):
+    the speed a six-step drive regulates; inside a sector the pair's EMF, hence the torque per ampere,
+    ripples with the rotor angle (the 2016 motor under its 1 N m load: about +-2.5 % at 76 Hz with a
+    PID, which no 1 kHz speed law removes).  The design's verification judges the same mean."""
+    from picdrive.verify import sector_mean
+    t = data["t"]
+    ts = float(np.median(np.diff(t))) if t.size > 1 else 1.0 / prof.control.speed_loop_hz
+    return sector_mean(prof, data["speed"].astype(float), ts, target)
+
+
+def step_of(data: np.ndarray, target: float, prof=None):
+    """Step metrics of telemetry data, measured from the sample where the setpoint reached target
+    (on the sector-mean speed when the profile is given)."""
     sp = data["setpoint"]
     k = int(np.argmax(np.abs(sp - target) <= abs(target) * 1e-3 + 0.5))
     if abs(sp[k] - target) > abs(target) * 1e-3 + 0.5:
         raise AssertionError(f"the setpoint never reached {target} rpm in the record")
-    t, y = data["t"], data["speed"]
-    return step_metrics(t, y, target, y0=float(y[k]), t_step=float(t[k])), k
+    t = data["t"]
+    y = data["speed"] if prof is None else sector_speed(prof, data, target)
+    return step_metrics(t, y, target, y0=float(data["speed"][k]), t_step=float(t[k])), k
 
 
 class FirmwareCache:

@@ -15,7 +15,7 @@ def test_reversal(open_bench):
     b.stream()
     b.link.set_speed(-lim.target_rpm)
     data = b.collect(1.2)
-    m, _ = step_of(data, -lim.target_rpm)
+    m, _ = step_of(data, -lim.target_rpm, b.profile)
     print(f"{b.label} reversal {lim.target_rpm:+.0f} -> {-lim.target_rpm:+.0f} rpm: {m.summary('rpm')}")
     st = b.link.status()
     assert st.fault == P.Fault.NONE and st.state == P.State.RUN
