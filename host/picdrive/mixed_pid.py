@@ -112,6 +112,8 @@ class Problem:
     speed_max_rad_s: float = math.inf       # peak speed of the step: min(speed_max_rpm, target x (1 + overshoot))
     step_sim_s: float = 0.0
     xi_peak: float = math.inf          # ||xi_d||_inf of the Tustin xi (drive)
+    step_cache: dict = field(default_factory=dict, repr=False)   # (kp, ki, kd) -> (peak current, peak speed)
+    plant6: Any = None                 # the commutated six-step plant of the profile (built on first use)
 
     def cost(self, gains: np.ndarray):
         """GA/DE interface: (cost, feasible) of gains (pop, 3)."""
@@ -170,15 +172,23 @@ def _step_peaks(pb: Problem, kp, ki, kd, rows) -> tuple[np.ndarray, np.ndarray]:
     """Peak |line current| and peak speed of the step from rest on the six-step drive (drive variant:
     :func:`picdrive.simulate.simulate_six_step_batch`, the law with its current window, the bridge's
     conduction rule, the firmware's measurement), for the selected rows; nan elsewhere."""
-    from .simulate import simulate_six_step_batch
+    from .simulate import simulate_six_step_batch, six_step_plant
     kp, ki, kd, rows = np.broadcast_arrays(kp, ki, kd, rows)
     i_pk = np.full(kp.shape, np.nan)
     w_pk = np.full(kp.shape, np.nan)
     if rows.any() and pb.profile is not None:
-        sim = simulate_six_step_batch(pb.profile, kp[rows], ki[rows], kd[rows], t_end_s=pb.step_sim_s,
-                                      ref_rad_s=pb.step_rad_s, n_sub=4, commutated=True)
-        i_pk[rows] = sim["peak_current_a"]
-        w_pk[rows] = sim["peak_speed_rad_s"]
+        idx = np.flatnonzero(rows)
+        keys = [(float(a), float(b), float(c)) for a, b, c in zip(kp.flat[idx], ki.flat[idx], kd.flat[idx])]
+        new = sorted({k for k in keys if k not in pb.step_cache})          # the GA repeats chromosomes
+        if new:
+            g = np.array(new)
+            if pb.plant6 is None:
+                pb.plant6 = six_step_plant(pb.profile, commutated=True)
+            sim = simulate_six_step_batch(pb.profile, g[:, 0], g[:, 1], g[:, 2], t_end_s=pb.step_sim_s,
+                                          ref_rad_s=pb.step_rad_s, n_sub=4, plant=pb.plant6)
+            pb.step_cache.update(zip(new, zip(sim["peak_current_a"].tolist(), sim["peak_speed_rad_s"].tolist())))
+        i_pk.flat[idx] = [pb.step_cache[k][0] for k in keys]
+        w_pk.flat[idx] = [pb.step_cache[k][1] for k in keys]
     return i_pk, w_pk
 
 

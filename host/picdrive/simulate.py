@@ -491,7 +491,8 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
 
 
 def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: float, load_n_m: float = 0.0,
-                            n_sub: int = 4, r_factor: float = 1.0, commutated: bool = False) -> dict:
+                            n_sub: int = 4, r_factor: float = 1.0, commutated: bool = False,
+                            plant: SixStepPlant | None = None) -> dict:
     """:func:`simulate_six_step` (``measurement="firmware"``, forward table) for many one-rule PID laws at once.
 
     The law is ``control_law.law_step`` written for arrays: one rule, b = 1,
@@ -509,10 +510,10 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
     """
     kp, ki, kd = (np.atleast_1d(np.asarray(v, float)) for v in (kp, ki, kd))
     kp, ki, kd = np.broadcast_arrays(kp, ki, kd)
-    pl = six_step_plant(profile, r_factor=r_factor, commutated=commutated)
+    pl = plant if plant is not None else six_step_plant(profile, r_factor=r_factor, commutated=commutated)
     ts = 1.0 / profile.control.speed_loop_hz
     R, L, J, B, kb = pl.r_ohm, pl.l_h, pl.j_kg_m2, pl.b_n_m_s, pl.kb_v_s_per_rad
-    tab = np.asarray(pl.emf_table[0]) if commutated else None      # forward table (a PID's step from rest)
+    tab = np.asarray(pl.emf_table[0]) if pl.emf_table else None      # forward table (a PID's step from rest)
     ang_k = pl.pole_pairs * (tab.size if tab is not None else 1) / (2 * math.pi)
     tau = L / R
     vbus, ub = pl.bus_voltage_v, pl.u_bridge_v
@@ -573,17 +574,24 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
             v = np.where(pos, v_pos, v_neg)
             i_inf = (v - em) / R
             i1 = i_inf + (i - i_inf) * g
-            cross = cond & (((i > 0) & (i1 < 0)) | ((i < 0) & (i1 > 0)))
-            with np.errstate(divide="ignore", invalid="ignore"):
-                hc = np.where(cross, tau * np.log(np.where(cross, (i - i_inf) / (0.0 - i_inf), 1.0)), h)
-            hc = np.where(cond, hc, 0.0)
+            cross = cond & (i * i1 < 0)
+            if cross.any():                                   # a current zero inside the step
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    hc = np.where(cross, tau * np.log(np.where(cross, (i - i_inf) / (0.0 - i_inf), 1.0)), h)
+                hc = np.where(cond, hc, 0.0)
+                gc = np.exp(-hc / tau)
+            else:
+                hc = np.where(cond, h, 0.0)
+                gc = np.where(cond, g, 1.0)
             i1 = np.where(cond & ~cross, i1, 0.0)
-            gc = np.exp(-hc / tau)
             i_mean = np.where(cond, (i_inf * hc + (i - i_inf) * tau * (1.0 - gc)) / h, 0.0)
             te = ke * i_mean
-            tload = np.where(w > 0, load_n_m, np.where(w < 0, -load_n_m,
-                                                       np.where(np.abs(te) <= load_n_m, te,
-                                                                np.copysign(load_n_m, te))))
+            if load_n_m > 0:
+                tload = np.where(w > 0, load_n_m, np.where(w < 0, -load_n_m,
+                                                           np.where(np.abs(te) <= load_n_m, te,
+                                                                    np.copysign(load_n_m, te))))
+            else:
+                tload = 0.0
             w1 = (w * (1.0 - 0.5 * h * B / J) + h / J * (te - tload)) / (1.0 + 0.5 * h * B / J)
             if load_n_m > 0:
                 w1 = np.where((w != 0) & ((w1 > 0) != (w > 0)) & ((tload > 0) == (w > 0)), 0.0, w1)
