@@ -192,6 +192,7 @@ class Twin:
             if n != C.sizeof(st):
                 raise TwinError(f"ctypes mirror {st.__name__} ({C.sizeof(st)} B) differs from the C struct ({n} B)")
         self._lock = threading.RLock()
+        self._rx_buf = C.create_string_buffer(65536)
         noise_rpm = self.profile.sensors.speed_noise_rpm if speed_noise_rpm is None else speed_noise_rpm
         cfg = self._config(seed, noise_rpm)
         if self._lib.twin_init(C.byref(cfg)) != 0:
@@ -416,10 +417,11 @@ class Twin:
 
     def uart_read(self, max_bytes: int = 65536) -> bytes:
         """Board -> host bytes that have left the wire."""
-        buf = C.create_string_buffer(max_bytes)
         with self._lock:
-            n = self._lib.twin_uart_host_read(buf, max_bytes)
-        return buf.raw[:n]
+            # one buffer for the twin's life (the real-time server calls this every chunk)
+            buf = self._rx_buf if max_bytes <= len(self._rx_buf) else C.create_string_buffer(max_bytes)
+            n = self._lib.twin_uart_host_read(buf, min(max_bytes, len(buf)))
+            return C.string_at(buf, n)
 
     def uart_pending(self) -> int:
         """Host bytes not yet received by the board."""
