@@ -324,3 +324,112 @@ def test_halls_through_input_capture_commutate_like_the_int_pins():
         t.close()
     assert speeds["int"] > 100.0
     assert speeds["ic"] == pytest.approx(speeds["int"], rel=0.01)
+
+
+QEI_INDEX_FW = r"""
+#include <xc.h>
+#include <stdint.h>
+/* the QEI alone: x4 update, position counter reset by the index pulse */
+void fw_init(void) { ANSEL0 = 0; MAXCNTL = 0xFF; MAXCNTH = 0xFF; QEICON = (uint8_t)(5u << 2); }
+void fw_poll(void) {}
+void fw_isr_high(void) {}
+void fw_isr_low(void) {}
+"""
+
+
+def test_qei_index_mode_counts_from_the_last_index_both_ways(tmp_path):
+    """QEI in x4 index-reset mode against the true encoder count, the rotor turned
+    several revolutions forward, then backward: POSCNT is the count since the last
+    index pulse (forward: n mod 4 lines; backward: it wraps below the index,
+    MAXCNT = 0xFFFF), IC2QEIF is set at the index and UP_DOWN follows the
+    direction; the INDX pin (RA2) is high exactly on the index count."""
+    from picdrive import p18f4431
+    from picdrive_hil import build
+    from picdrive_hil.twin import BoardConfig, shim_dir
+    src = tmp_path / "qeifw.c"
+    src.write_text(QEI_INDEX_FW)
+    fw = build.Group((src,), (shim_dir(),), ("-std=c99", "-O2", "-Wall", "-Werror"))
+    tw = Twin("duy2008", firmware=fw, board=BoardConfig(), speed_noise_rpm=0.0)
+    bits = p18f4431.bits()
+    cpr = 4 * tw.profile.sensors.encoder_lines
+
+    def poscnt():
+        return tw.sfr("POSCNTL") | (tw.sfr("POSCNTH") << 8)
+
+    def turn(w, seconds):
+        for _ in range(int(round(seconds / 1e-3))):
+            tw.set_plant_state(w)        # held against friction (the bridge is off)
+            tw.run(1e-3)
+        tw.set_plant_state(0.0)          # standing: the next main-loop pass sees the final count
+        tw.run(2e-3)
+        return tw.state()["encoder_count"]
+
+    tw.run(1e-3)
+    n = turn(50.0, 0.4)                  # ~3.2 revolutions forward
+    assert n > 3 * cpr
+    assert poscnt() == n % cpr
+    assert tw.sfr("PIR3") >> bits["PIR3"]["IC2QEIF"] & 1
+    assert tw.sfr("QEICON") >> bits["QEICON"]["UP_DOWN"] & 1
+    n = turn(-50.0, 0.25)                # ~2 revolutions back
+    assert 0 < n < 2 * cpr and n % cpr != 0
+    assert poscnt() == (n % cpr - cpr) & 0xFFFF
+    assert not tw.sfr("QEICON") >> bits["QEICON"]["UP_DOWN"] & 1
+    # the INDX pin: park the rotor on an index count and next to it
+    for k, want in ((0, 1), (1, 0), (-1, 0), (0, 1)):
+        tw.set_plant_state(0.0, (cpr + k + 0.5) * 2 * math.pi / cpr)
+        tw.run(2e-3)
+        assert tw.state()["encoder_count"] == cpr + k
+        assert tw.sfr("PORTA") >> 2 & 1 == want
+    tw.close()
+
+
+PWM_UDIS_FW = r"""
+#include <xc.h>
+#include <stdint.h>
+/* PCPWM at PTPER 499, PWM0..5 complementary, duty 800/2000; the hall pins (RC3..RC5)
+   sequence the test: code 1 sets UDIS, 2 writes PDC0 = 1200, 3 clears UDIS */
+void fw_init(void)
+{
+    PTPERL = (uint8_t)499u; PTPERH = (uint8_t)(499u >> 8);
+    PDC0L = (uint8_t)800u; PDC0H = (uint8_t)(800u >> 8);
+    OVDCOND = 0xFF;
+    PWMCON0 = 0x40;
+    PTCON0 = 0;
+    PTCON1 = 0x80;
+}
+void fw_poll(void)
+{
+    uint8_t code = (uint8_t)((PORTC >> 3) & 7u);
+    if (code == 1u) PWMCON1bits.UDIS = 1;
+    if (code == 2u) { PDC0L = (uint8_t)1200u; PDC0H = (uint8_t)(1200u >> 8); }
+    if (code == 3u) PWMCON1bits.UDIS = 0;
+}
+void fw_isr_high(void) {}
+void fw_isr_low(void) {}
+"""
+
+
+def test_pcpwm_duty_buffer_waits_for_udis_cleared_in_a_later_call(tmp_path):
+    """A duty written while UDIS is set (in another firmware call) reaches the
+    output only at the first period boundary after UDIS is cleared; a duty written
+    with UDIS clear at the next boundary."""
+    from picdrive_hil import build
+    from picdrive_hil.twin import BoardConfig, shim_dir
+    src = tmp_path / "udisfw.c"
+    src.write_text(PWM_UDIS_FW)
+    fw = build.Group((src,), (shim_dir(),), ("-std=c99", "-O2", "-Wall", "-Werror"))
+    tw = Twin("duy2008", firmware=fw, board=BoardConfig(), speed_noise_rpm=0.0)
+    tw.inject("lock_rotor", locked=True)
+    tw.inject("hall", code=0)
+    tw.run(2e-3)
+    assert tw.state()["duty"][0] == pytest.approx(0.4)
+    tw.inject("hall", code=1)            # UDIS = 1
+    tw.run(2e-3)
+    tw.inject("hall", code=2)            # PDC0 = 1200, buffered
+    tw.run(3e-3)
+    assert tw.state()["duty"][0] == pytest.approx(0.4)
+    tw.inject("hall", code=3)            # UDIS = 0: loads at the next period
+    tw.run(2e-3)
+    assert tw.state()["duty"][0] == pytest.approx(0.6)
+    assert tw.sfr("PWMCON1") & 0x02 == 0
+    tw.close()
