@@ -53,8 +53,7 @@ def test_disturbances_finite_energy_and_deterministic():
 # ---------------------------------------------------------------------------
 # the six-step drive model (verification's plant)
 # ---------------------------------------------------------------------------
-from picdrive.simulate import (commutated_emf, simulate_six_step, simulate_six_step_batch,  # noqa: E402
-                               six_step_plant)
+from picdrive.simulate import commutated_emf, simulate_six_step, simulate_six_step_batch  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -56,8 +56,7 @@ from .h2hinf import (hinf_exact_z, xi_tustin, j3_discrete, j3_jury_dewey, h2_lya
                      routh_hurwitz, sampled_loop, sampled_loop_polys, schur_char, schur_stable, sensitivity_peak, sensitivity_peak_z,
                      tracking_error_polys)
 from .result import DesignResult
-from .tfmodel import (TF, SampledPlant, loop_polys, motor_tf, sampled_plant, simulate_sampled,
-                      simulate_sampled_batch, speed_quantum_rad_s)
+from .tfmodel import TF, SampledPlant, loop_polys, motor_tf, sampled_plant, simulate_sampled, speed_quantum_rad_s
 
 __all__ = ["MixedPidError", "Problem", "make_problem", "term_limits", "evaluate", "design", "pid_law",
            "check_pid_design", "VARIANTS", "DEFAULTS"]

@@ -542,8 +542,6 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
             y = wa + 0.5 * (wa - wa_prev)
             wa_prev = wa
         th_prev = th.copy()
-        conducting = (d_dir != 0) & (d_duty > 0)
-        i_m = np.where(conducting, d_dir * np.maximum(0.0, d_dir * i), 0.0)
         lo = np.minimum(np.maximum(-ub, kb * y - span), ub)
         hi = np.maximum(np.minimum(ub, kb * y + span), -ub)
         e = r - y
@@ -560,7 +558,6 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
         dir_fw = np.where(u != 0.0, newdir, dir_fw)
         n_dir = np.where(hold, 0.0, np.where(dir_fw, -1.0, 1.0))
         n_duty = np.abs(u) / vbus
-        del i_m
         for s, (h, g) in enumerate(zip(steps, gs)):
             if s == 1:
                 d_dir, d_duty = n_dir, n_duty

@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg as sla
 
-from .dqmodel import dq_params, equilibrium, max_speed_rad_s
+from .dqmodel import dq_params, max_speed_rad_s
 from .metrics import step_metrics
 
 __all__ = ["verify_design", "hinf_norm", "sampled_closed_loop", "six_step_closed_loop", "law_check_points",
