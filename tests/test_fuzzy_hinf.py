@@ -146,6 +146,14 @@ def test_six_step_design_verified_with_its_certificate(six_step):
     tries = c["disk_tries"]
     assert tries[-1]["pole_disk_rad_s"] == pytest.approx(r.options["pole_disk_rad_s"])
     assert all(t.get("sampled_spectral_radius", 2.0) > 0.95 or t["status"] != "verified" for t in tries[:-1])
+    # the setpoint weight: 1 + Kb/kp (the reference path carries the back-EMF), its midpoint with 1, or 1 --
+    # the first that verifies within the 0.5 % overshoot margin; every one tried is recorded
+    ws = tries[-1]["setpoint_weights"]
+    kp = r.law.gains_at(p.speed_step_rpm() * np.pi / 30).kp
+    assert ws[0]["b"] == pytest.approx(1 + p.motor.kb_v_s_per_rad / kp) and ws[-1]["b"] == r.law.setpoint_weight
+    assert all(w["status"] != "verified" for w in ws[:-1]) and ws[-1]["status"] == "verified"
+    if r.law.setpoint_weight > 1:
+        assert v["sim_overshoot_pct"]["value"] <= 0.5
 
 
 def test_six_step_without_current_feedback_is_infeasible_and_says_so():

@@ -3,7 +3,7 @@
  * and duplicate-SEQ replay, parameter store with range checks, EEPROM image, telemetry,
  * triggered capture, link-loss watchdog.
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
- * protocol 1.0, table hash 0x9FCC80F8UL
+ * protocol 1.0, table hash 0x02670AFBUL
  *
  * No heap, no floating point (scales are float32 bit patterns, only reported), explicit
  * widths, 32-bit casts before products that can exceed 16 bits.
@@ -58,7 +58,7 @@ static const link_entry_t link_table[LINK_N_ENTRIES] = {
     { LINK_ID_CONTROLLER, LINK_T_UINT8, 0x03u, 12u, 0x3F800000UL, 0L, 1L, 1L, (uint8_t)offsetof(link_params_t, controller), "controller" },
     { LINK_ID_PREMISE_LOW, LINK_T_INT16, 0x03u, 1u, 0x3E18C9EBUL, 0L, 32767L, 0L, (uint8_t)offsetof(link_params_t, premise_low), "premise_low" },
     { LINK_ID_PREMISE_HIGH, LINK_T_INT16, 0x03u, 1u, 0x3E18C9EBUL, 0L, 32767L, 17425L, (uint8_t)offsetof(link_params_t, premise_high), "premise_high" },
-    { LINK_ID_SETPOINT_WEIGHT, LINK_T_INT16, 0x03u, 0u, 0x38800000UL, 0L, 32767L, 16384L, (uint8_t)offsetof(link_params_t, setpoint_weight), "setpoint_weight" },
+    { LINK_ID_SETPOINT_WEIGHT, LINK_T_INT16, 0x03u, 0u, 0x38800000UL, 0L, 32767L, 17078L, (uint8_t)offsetof(link_params_t, setpoint_weight), "setpoint_weight" },
     { LINK_ID_U_MIN, LINK_T_INT16, 0x03u, 3u, 0x3B800000UL, -11304L, 0L, -11304L, (uint8_t)offsetof(link_params_t, u_min), "u_min" },
     { LINK_ID_U_MAX, LINK_T_INT16, 0x03u, 3u, 0x3B800000UL, 0L, 11304L, 11304L, (uint8_t)offsetof(link_params_t, u_max), "u_max" },
     { LINK_ID_CURRENT_LIMIT, LINK_T_INT16, 0x03u, 4u, 0x3BA00000UL, 0L, 1023L, 307L, (uint8_t)offsetof(link_params_t, current_limit), "current_limit" },

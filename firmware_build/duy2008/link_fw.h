@@ -3,7 +3,7 @@
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
  *
  * protocol 1.0, 30 table entries (2 rules),
- * table hash 0x9FCC80F8UL, build id 0x28232359UL, profile hash 0x4B0E5FBAUL
+ * table hash 0x02670AFBUL, build id 0x8CF0E6ACUL, profile hash 0x4B0E5FBAUL
  *
  * Frame: SOF 0xA5, LEN (0..40), TYPE, SEQ, payload, CRC-16/CCITT-FALSE over
  * LEN..payload, high byte first.  A bad CRC or an impossible LEN drops only the SOF byte and the
@@ -32,9 +32,9 @@
 
 #define LINK_PROTO_MAJOR        1u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0x28232359UL
+#define LINK_BUILD_ID           0x8CF0E6ACUL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
-#define LINK_TABLE_HASH         0x9FCC80F8UL
+#define LINK_TABLE_HASH         0x02670AFBUL
 #define LINK_SAMPLE_HZ          1000u
 #define LINK_N_RULES            2u
 #define LINK_N_ENTRIES          30u
@@ -192,7 +192,7 @@ typedef struct {
     uint8_t   controller;      /* enum, raw x 1, [0, 1], default 1, persisted */
     int16_t   premise_low;     /* rpm, raw x 0.149207756, [0, 32767], default 0, persisted */
     int16_t   premise_high;    /* rpm, raw x 0.149207756, [0, 32767], default 17425, persisted */
-    int16_t   setpoint_weight; /* 1, raw x 6.10351562e-05, [0, 32767], default 16384, persisted */
+    int16_t   setpoint_weight; /* 1, raw x 6.10351562e-05, [0, 32767], default 17078, persisted */
     int16_t   u_min;           /* V, raw x 0.00390625, [-11304, 0], default -11304, persisted */
     int16_t   u_max;           /* V, raw x 0.00390625, [0, 11304], default 11304, persisted */
     int16_t   current_limit;   /* A, raw x 0.0048828125, [0, 1023], default 307, persisted */

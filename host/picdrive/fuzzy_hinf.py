@@ -452,8 +452,8 @@ OPTIONS: dict[str, str] = {
                    "tracking model with v_d = 0, zero gain on i_d)",
     "solver": f"cvxpy solver (default {DEFAULT_SOLVER})",
     "simulate": "run the nonlinear verification simulation (default true)",
-    "setpoint_weight": "six-step: law's b (default 1: P on the error; 0 is the bare state feedback, same loop, "
-                       "slower reference response)",
+    "setpoint_weight": "six-step: law's b (default: the largest of 1 + Kb/kp, its midpoint with 1, and 1 that "
+                       "passes the verification; the certified loop is the same for every b)",
     "zero_gain_states": "six-step: states with zero gain (default none; [1] drops the current feedback, which the "
                         "block-diagonal Lyapunov structure then makes infeasible on the bundled motors)",
 }
@@ -691,9 +691,38 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
             tries.append(entry)
             res = r
             continue
-        tb = _t.perf_counter()
-        verify_design(profile, r, simulate=simulate)
-        t_ver += _t.perf_counter() - tb
+        # the setpoint weight: b = 1 + Kb/kp makes the reference path carry the back-EMF (kp (b - 1) r =
+        # Kb r), so the integrator, which the law fills only into its output headroom, has only the IR
+        # drop of friction and load to find; b does not enter the certified loop w -> z
+        if b is None:
+            kp_t = r.law.gains_at(profile.speed_step_rpm() * 2 * math.pi / 60).kp
+            b_emf = 1.0 + profile.motor.kb_v_s_per_rad / kp_t if kp_t > 0 else 1.0
+            b_emf = min(b_emf, 1.9)
+            b_list = [b_emf, 0.5 * (1.0 + b_emf), 1.0] if b_emf > 1.0 + 1e-6 else [1.0]
+        else:
+            b_list = [b]
+        entry["setpoint_weights"] = []
+        for bb in b_list:
+            rb = result_of(sol, disk) if bb != b_list[0] else r
+            rb.law = _law_from_gains(profile, ts, sol.K, bb)
+            tb = _t.perf_counter()
+            verify_design(profile, rb, simulate=simulate)
+            t_ver += _t.perf_counter() - tb
+            note = ""
+            if rb.ok and bb != b_list[-1] and simulate:
+                # a weight above 1 is kept only with the 0.5 % overshoot margin (mixed-pid's GA bound): the model
+                # under-predicts the twin's overshoot by up to ~0.7 point (docs/design-fuzzy.md)
+                v = rb.verification
+                worst = max([v["sim_overshoot_pct"]["value"]] +
+                            [f["overshoot_pct"] for f in v["sim_resistance_uncertainty"]["value"].values()
+                             if isinstance(f, dict)])
+                if worst > 0.5:
+                    note = f"overshoot {worst:.3g} % > the 0.5 % margin kept for b > 1"
+            entry["setpoint_weights"].append({"b": bb, "status": rb.status if not note else "not kept",
+                                              "reasons": [x[:160] for x in rb.reasons] + ([note] if note else [])})
+            r = rb
+            if rb.ok and not note:
+                break
         entry["status"] = r.status
         entry["reasons"] = list(r.reasons)
         tries.append(entry)
