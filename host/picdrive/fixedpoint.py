@@ -1014,6 +1014,23 @@ def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
 # ---------------------------------------------------------------------------
 # Closed loop: the fixed-point loop against the float law on the DC-equivalent plant
 # ---------------------------------------------------------------------------
+def dc_plant_discrete(profile, ts: float):
+    """The six-step DC-equivalent plant (2008 eq 1 constants) discretised with a zero-order
+    hold of ``ts`` s: states [line current A, speed rad/s, angle rad], inputs [voltage V,
+    load torque N m]; returns (Ad, Bd)."""
+    import numpy as np
+    from scipy.linalg import expm
+    m = profile.motor
+    R, L, J, B = m.r_line_ohm, m.l_line_h, m.inertia_kg_m2, m.viscous_friction_n_m_s
+    kt, kb = m.kt_n_m_per_a, m.kb_v_s_per_rad
+    A = np.array([[-R / L, -kb / L, 0.0], [kt / J, -B / J, 0.0], [0.0, 1.0, 0.0]])
+    Bm = np.array([[1 / L, 0.0], [0.0, -1 / J], [0.0, 0.0]])
+    M = np.zeros((5, 5))
+    M[:3, :3], M[:3, 3:] = A, Bm
+    E = expm(M * ts)
+    return E[:3, :3], E[:3, 3:]
+
+
 def closed_loop_compare(profile, law, plan: FixedPointPlan, *, t_end_s: float = 1.0,
                         setpoint_rpm: float | None = None, load_step_s: float | None = None,
                         load_n_m: float | None = None, measurement: str = "firmware",
@@ -1045,24 +1062,14 @@ def closed_loop_compare(profile, law, plan: FixedPointPlan, *, t_end_s: float = 
     speed deviation as fractions of the setpoint.
     """
     import numpy as np
-    from scipy.linalg import expm
 
     from .control_law import LawState, law_step as float_step
 
     if measurement not in ("firmware", "instant", "average"):
         raise ValueError(f"measurement {measurement!r}")
     fmeas = float_measurement or ("average" if measurement == "average" else "instant")
-    m = profile.motor
-    R, L, J, B = m.r_line_ohm, m.l_line_h, m.inertia_kg_m2, m.viscous_friction_n_m_s
-    kt, kb = m.kt_n_m_per_a, m.kb_v_s_per_rad
     ts = law.sample_time_s
-    # states [i, w, theta]; inputs [v, T_load]
-    A = np.array([[-R / L, -kb / L, 0.0], [kt / J, -B / J, 0.0], [0.0, 1.0, 0.0]])
-    Bm = np.array([[1 / L, 0.0], [0.0, -1 / J], [0.0, 0.0]])
-    M = np.zeros((5, 5))
-    M[:3, :3], M[:3, 3:] = A, Bm
-    E = expm(M * ts)
-    Ad, Bd = E[:3, :3], E[:3, 3:]
+    Ad, Bd = dc_plant_discrete(profile, ts)
     sp_rpm = profile.speed_step_rpm() if setpoint_rpm is None else setpoint_rpm
     w_ref = sp_rpm * 2 * math.pi / 60
     t_load = profile.control.load_torque_n_m if load_n_m is None else load_n_m
@@ -1147,19 +1154,9 @@ def measurement_lag_effect(profile, law, *, t_end_s: float = 1.0) -> dict:
     measurement gives).  Not a fixed-point effect: how sensitive the design is
     to the measurement the firmware can make."""
     import numpy as np
-    plan_like = None
     from .control_law import LawState, law_step as float_step
-    from scipy.linalg import expm
-    m = profile.motor
-    R, L, J, B = m.r_line_ohm, m.l_line_h, m.inertia_kg_m2, m.viscous_friction_n_m_s
-    kt, kb = m.kt_n_m_per_a, m.kb_v_s_per_rad
     ts = law.sample_time_s
-    A = np.array([[-R / L, -kb / L, 0.0], [kt / J, -B / J, 0.0], [0.0, 1.0, 0.0]])
-    Bm = np.array([[1 / L, 0.0], [0.0, -1 / J], [0.0, 0.0]])
-    M = np.zeros((5, 5))
-    M[:3, :3], M[:3, 3:] = A, Bm
-    E = expm(M * ts)
-    Ad, Bd = E[:3, :3], E[:3, 3:]
+    Ad, Bd = dc_plant_discrete(profile, ts)
     w_ref = profile.speed_step_rpm() * 2 * math.pi / 60
     n = int(round(t_end_s / ts))
     out = {}
@@ -1174,5 +1171,4 @@ def measurement_lag_effect(profile, law, *, t_end_s: float = 1.0) -> dict:
             x = Ad @ x + Bd @ np.array([u, tl])
         out[meas] = ws
     dev = (out["average"] - out["instant"]) / w_ref
-    del plan_like
     return {"rms_dev": float(np.sqrt(np.mean(dev ** 2))), "max_dev": float(np.max(np.abs(dev)))}

@@ -140,8 +140,9 @@ def duty_limit(period: PwmPeriod, dt: DeadTime, bootstrap_refresh_ns: float,
 # ---------------------------------------------------------------------------
 # Commutation
 # ---------------------------------------------------------------------------
-def _emf(shape: str, th: np.ndarray) -> np.ndarray:
-    """Per-unit back-EMF of phase A at electrical angle th (rad)."""
+def emf_unit(shape: str, th: np.ndarray) -> np.ndarray:
+    """Per-unit back-EMF of phase A at electrical angle th (rad): rising zero at 0; the
+    trapezoid is flat over [30, 150] deg (the twin's convention too)."""
     if shape == "sinusoidal":
         return np.sin(th)
     t = np.mod(th + math.pi / 6, 2 * math.pi)
@@ -210,7 +211,7 @@ def commutation_table(hall_spacing_deg: int, hall_offset_deg: float,
     th_deg = (np.arange(n) + 0.5) * (360.0 / n)
     codes = hall_code_at(th_deg, hall_spacing_deg, hall_offset_deg)
     th = np.radians(th_deg)
-    f = [_emf(back_emf_shape, th - k * 2 * math.pi / 3) for k in range(3)]
+    f = [emf_unit(back_emf_shape, th - k * 2 * math.pi / 3) for k in range(3)]
     torque = {st: f[st[0]] - f[st[1]] for st in DRIVE_STATES}
     # centre of each state's own best window, for the tie-break
     fwd, rev = [None] * 8, [None] * 8

@@ -214,17 +214,6 @@ class SixStepPlant:
     emf_table: tuple = ()        # commutated model: ((fwd k_e per angle step), (rev ...)), V s/rad; () = DC equivalent
 
 
-def _emf_unit(shape: str, th: np.ndarray) -> np.ndarray:
-    """Per-unit phase-A back-EMF at electrical angle th: the twin's and pcpwm's convention
-    (rising zero at 0; trapezoid flat over [30, 150] deg)."""
-    if shape == "sinusoidal":
-        return np.sin(th)
-    t = np.mod(th + math.pi / 6, 2 * math.pi)
-    p3 = math.pi / 3
-    return np.select([t < p3, t < math.pi, t < math.pi + p3],
-                     [(t - math.pi / 6) / (math.pi / 6), 1.0, 1.0 - (t - math.pi) / (math.pi / 6)], -1.0)
-
-
 EMF_TABLE_N = 1440       # angle steps per electrical turn of the commutated EMF table (0.25 deg)
 
 
@@ -238,12 +227,12 @@ def commutated_emf(profile) -> tuple[np.ndarray, np.ndarray]:
     ``hall_offset_deg = 0`` the table commutates 30 degrees early and the pair's
     EMF (and torque per ampere) ripples within every sector.
     """
-    from .pcpwm import commutation_table, hall_code_at
+    from .pcpwm import commutation_table, emf_unit, hall_code_at
     m, se = profile.motor, profile.sensors
     tab = commutation_table(se.hall_spacing_deg, se.hall_offset_deg, m.back_emf_shape)
     th = (np.arange(EMF_TABLE_N) + 0.5) * (2 * math.pi / EMF_TABLE_N)
     codes = hall_code_at(np.degrees(th), se.hall_spacing_deg, se.hall_offset_deg)
-    f = [_emf_unit(m.back_emf_shape, th - k * 2 * math.pi / 3) for k in range(3)]
+    f = [emf_unit(m.back_emf_shape, th - k * 2 * math.pi / 3) for k in range(3)]
     k = m.lambda_m_v_s * m.pole_pairs
     out = []
     for states in (tab.forward, tab.reverse):
