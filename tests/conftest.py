@@ -5,8 +5,20 @@
 of a real board (``/dev/ttyUSB0``, ``COM5``, ``socket://host:port``).
 """
 import os
+import warnings
+
+import pytest
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+@pytest.fixture(scope="session")
+def profiles():
+    """The bundled profiles by name (their speed-range warnings silenced)."""
+    from picdrive.profile import bundled_profiles, load_profile
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return {n: load_profile(n) for n in bundled_profiles()}
 
 
 def pytest_addoption(parser):

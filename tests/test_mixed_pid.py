@@ -8,18 +8,9 @@ from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.ga import run_ga
 from picdrive.h2hinf import j3_jury_dewey, tracking_error_polys
 from picdrive.metrics import step_metrics
-from picdrive.profile import load_profile
 from picdrive.tfmodel import closed_loop_tf, motor_tf, simulate_sampled
 
 PROFILES = ["duy2008", "assawinchaichote2016"]
-
-
-@pytest.fixture(scope="module")
-def profiles():
-    import warnings
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return {n: load_profile(n) for n in PROFILES}
 
 
 @pytest.fixture(scope="module")

@@ -6,18 +6,9 @@ import pytest
 
 from picdrive import zn
 from picdrive.mixed_pid import term_limits
-from picdrive.profile import load_profile
 from picdrive.tfmodel import motor_tf, sampled_plant
 
 PROFILES = ["duy2008", "assawinchaichote2016"]
-
-
-@pytest.fixture(scope="module")
-def profiles():
-    import warnings
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return {n: load_profile(n) for n in PROFILES}
 
 
 @pytest.mark.parametrize("name", PROFILES)
