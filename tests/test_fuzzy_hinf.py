@@ -6,7 +6,7 @@ import pytest
 
 from picdrive.fuzzy_hinf import (assemble_xi, certified_gain, lmi_margins, minimise_gamma, solve_theorem1)
 from picdrive.profile import load_profile
-from picdrive.repro2016 import PRINTED, paper_as_printed_model, printed_checks
+from picdrive.repro2016 import paper_as_printed_model, printed_checks
 from picdrive.tsfuzzy import paper_model
 from picdrive.verify import hinf_norm
 

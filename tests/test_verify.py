@@ -12,7 +12,7 @@ from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.profile import load_profile
 from picdrive.repro2016 import PRINTED
 from picdrive.result import DesignResult
-from picdrive.verify import (VerifyConfig, run_sim, sampled_closed_loop, sector_mean, sim_plan,
+from picdrive.verify import (run_sim, sampled_closed_loop, sector_mean, sim_plan,
                              six_step_closed_loop, step_figures, verify_design)
 from picdrive.simulate import simulate_six_step
 

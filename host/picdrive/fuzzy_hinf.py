@@ -52,6 +52,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from .control_law import ScheduledLaw
 from .errors import PicdriveError
 
 __all__ = ["Theorem1Solution", "solve_theorem1", "minimise_gamma", "assemble_xi", "lmi_margins",

@@ -6,7 +6,6 @@ all (built in a temporary folder, then renamed into place).
 from __future__ import annotations
 
 import importlib
-import math
 import shutil
 import tempfile
 import warnings

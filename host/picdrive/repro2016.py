@@ -117,7 +117,7 @@ def claims(quick: bool = False) -> dict:
     from .control_law import Rule, ScheduledLaw
     from .fuzzy_hinf import certified_gain, design, minimise_gamma, solve_theorem1
     from .metrics import step_metrics
-    from .simulate import disturbances_2016, simulate_law, simulate_state_feedback, step_load
+    from .simulate import disturbances_2016, simulate_law, step_load
     from .tsfuzzy import paper_model
     out: dict = {"rows": []}
     rows = out["rows"]

@@ -110,7 +110,6 @@ def hinf_norm(A, B, C, D=None, *, rel_tol: float = 1e-6) -> tuple[float, float]:
             lb, wpk = s, w
     if lb == 0.0:
         return 0.0, 0.0
-    n = A.shape[0]
     for _ in range(100):
         g = (1.0 + 2.0 * rel_tol) * lb
         R = g * g * np.eye(D.shape[1]) - D.T @ D
@@ -286,7 +285,7 @@ def _certificate_checks(profile, result) -> dict:
     out: dict[str, Any] = {}
     if "K" not in cert or "model" not in cert:
         return out
-    from . import fuzzy_hinf, tsfuzzy
+    from . import fuzzy_hinf
     ts = fuzzy_hinf.model_for(profile, cert["model"], cert.get("model_options", {}))
     K = [np.asarray(k, float) for k in cert["K"]]
     if "P" in cert and "Y" in cert and cert.get("gamma") is not None:
