@@ -548,10 +548,11 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
         n_dir = np.where(hold, 0.0, np.where(dir_fw, -1.0, 1.0))
         n_duty = np.abs(u) / vbus
         for s, (h, g) in enumerate(zip(steps, gs)):
-            if s == 1:
-                d_dir, d_duty = n_dir, n_duty
-            v_pos = np.where(d_dir > 0, d_duty * vbus, -vbus)
-            v_neg = np.where(d_dir < 0, -d_duty * vbus, vbus)
+            if s <= 1:                          # the bridge's rails change only with the command
+                if s == 1:
+                    d_dir, d_duty = n_dir, n_duty
+                v_pos = np.where(d_dir > 0, d_duty * vbus, -vbus)
+                v_neg = np.where(d_dir < 0, -d_duty * vbus, vbus)
             ke = kb if tab is None else tab[((th + 0.5 * h * w) * ang_k).astype(np.int64) % tab.size]
             em = ke * w
             pos = (i > 0) | ((i == 0) & (em < v_pos))
