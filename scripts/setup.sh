@@ -17,4 +17,6 @@ if [ -n "$missing" ]; then
 fi
 echo "setup: installing picdrive (pip install -e '.[dev]')"
 python3 -m pip install -q --disable-pip-version-check -e '.[dev]'
+# pyenv puts console scripts behind shims that appear only after a rehash
+if command -v pyenv >/dev/null 2>&1; then pyenv rehash || true; fi
 echo "setup: done"
