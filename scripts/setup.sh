@@ -1,12 +1,15 @@
 #!/usr/bin/env bash
 # Installs everything picdrive needs on a fresh Debian machine with Python 3.11:
-#   apt: gputils (Microchip's p18f4431.inc), gcc-avr + avr-libc (a 16-bit-int C
-#        compiler that catches XC8 integer-promotion bugs on the host), gcc
+#   apt: gputils (Microchip's p18f4431.inc, gpasm, gplink), gpsim (PIC18 core
+#        simulator), gcc-avr + avr-libc (a 16-bit-int C compiler that catches
+#        XC8 integer-promotion bugs on the host), gcc
+#   the PIC18 toolchain: SDCC's pic16 port built from Debian's source package
+#        (scripts/pic_toolchain.sh; cached, about 2 minutes the first time)
 #   pip: picdrive itself (editable) with its test dependencies
 # Safe to run again; it skips what is already there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-APT_PKGS="gputils gcc-avr avr-libc gcc make"
+APT_PKGS="gputils gpsim gcc-avr avr-libc gcc make"
 missing=""
 for p in $APT_PKGS; do dpkg -s "$p" >/dev/null 2>&1 || missing="$missing $p"; done
 if [ -n "$missing" ]; then
@@ -15,6 +18,7 @@ if [ -n "$missing" ]; then
   $SUDO env DEBIAN_FRONTEND=noninteractive apt-get update -qq
   $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $missing >/dev/null
 fi
+bash scripts/pic_toolchain.sh
 echo "setup: installing picdrive (pip install -e '.[dev]')"
 python3 -m pip install -q --disable-pip-version-check -e '.[dev]'
 # pyenv puts console scripts behind shims that appear only after a rehash
