@@ -38,8 +38,8 @@ echo "deb-src http://deb.debian.org/debian $CODENAME main" > "$WORK/apt/sources.
 APTOPT=(-o "Dir::Etc::SourceList=$WORK/apt/sources.list" -o "Dir::Etc::SourceParts=/dev/null"
         -o "Dir::State::Lists=$WORK/apt/lists" -o "Debug::NoLocking=1")
 echo "pic toolchain: fetching Debian's sdcc source package"
-apt-get "${APTOPT[@]}" update -qq
-(cd "$WORK" && apt-get "${APTOPT[@]}" source -qq sdcc 2>&1 | grep -v "^W: Download is performed unsandboxed" || true)
+apt-get "${APTOPT[@]}" update -qq 2>&1 | grep -v "unsandboxed" || true
+(cd "$WORK" && apt-get "${APTOPT[@]}" source -qq sdcc 2>&1 | grep -v "unsandboxed\|^dpkg-source: info" || true)
 SRC="$(find "$WORK" -maxdepth 1 -type d -name 'sdcc-*' | head -n 1)"
 [ -n "$SRC" ] && [ -x "$SRC/configure" ] || { echo "pic toolchain: apt-get source sdcc gave no source tree" >&2; exit 1; }
 case "$SRC" in *4.2.0*) ;; *) echo "pic toolchain: note: sdcc source is $(basename "$SRC"), built as sdcc-4.2.0-pic16" ;; esac
