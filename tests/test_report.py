@@ -6,7 +6,7 @@ import pytest
 from picdrive.report import write_report
 
 
-@pytest.mark.timeout(170)
+@pytest.mark.timeout(400)
 def test_report_quick(tmp_path):
     out = tmp_path / "rep"
     md = write_report(out, quick=True, profiles=("assawinchaichote2016",), progress=False)
@@ -20,6 +20,14 @@ def test_report_quick(tmp_path):
     assert m and float(m.group(1)) == pytest.approx(2.391, abs=1e-3)
     assert "sqrt(0.0825) = 0.2872" in text
     assert re.search(r"\| K_1 = Y_1 P\^-1 \| \[0\.9577 .*\| \[0\.6759 ", text)
+    # every printed claim has its row, computed or marked failed with a reason (none is dropped)
+    from picdrive.repro2016 import CLAIMS
+    for claim in CLAIMS:
+        assert re.search(r"^\| " + re.escape(claim) + r"[ (|]", text, re.M), f"report lost the row {claim!r}"
+    m = re.search(r"^\| LMI \(15\) row 5 read as printed .*true H-inf norm ([0-9.e+-]+) \(([0-9.e+-]+) x\)", text, re.M)
+    assert m and float(m.group(2)) > 1.0          # read literally, the LMI certifies a bound the loop breaks
+    assert re.search(r"^\| the 2400 rpm miss is due to the fuzzy approximation \| yes \| no: the TS model is exact", text, re.M)
+    assert re.search(r"^\| Table 2 H-inf fuzzy: settling / overshoot \| 0\.04 s / no overshoot \| ([0-9.]+ s|failed: .+\| .+)", text, re.M)
     # the comparison table has a verified fuzzy row with numbers
     assert re.search(r"\| fuzzy-hinf \(verified\) \| [0-9.]+ \| [0-9.]+ \|", text)
     # rewriting replaces the folder whole
