@@ -24,5 +24,6 @@ def profiles():
 def pytest_addoption(parser):
     parser.addoption("--target", default="twin",
                      help="HIL target: 'twin' (default) or a serial URL of a real board")
-    parser.addoption("--profile", default="duy2008",
-                     help="HIL: profile of the board under test when --target is a serial URL")
+    parser.addoption("--profile", default=None,
+                     help="HIL: the bundled profile to test: required with a serial --target (the board's "
+                          "profile); with the twin, only that profile's tests run (default: all)")

@@ -8,8 +8,9 @@ import time
 import numpy as np
 import pytest
 
+from picdrive import codec
 from picdrive import protocol as P
-from picdrive.link import HandshakeMismatch, Link, LinkError, LinkTimeout, NackError, ParamError
+from picdrive.link import BadCrcError, HandshakeMismatch, Link, LinkError, LinkTimeout, NackError, ParamError
 from picdrive.protocol import Nack
 
 from linksupport import build
@@ -365,3 +366,116 @@ def test_close_is_clean(board):
         lk.status()
     with Link.open(url, baudrate=FAST) as lk2:            # the board accepts a new connection
         assert lk2.status().state == P.State.IDLE
+
+
+def test_protocol_errors_are_link_errors(board):
+    url = board.serve()
+
+    def truncate_status_reply(f):
+        if f.type == P.ack_type(P.COMMAND_BY_NAME["status"].code):
+            return codec.encode_frame(f.type, f.seq, f.payload[:-1])
+        return None
+
+    px = FrameProxy(url, to_host=truncate_status_reply)
+    try:
+        with Link.open(px.url, baudrate=FAST, keepalive=False) as lk:
+            with pytest.raises(LinkError, match="set_speed"):           # an argument that does not fit
+                lk.request("set_speed", {"value": 10 ** 9})
+            with pytest.raises(LinkError, match="reply to status cannot be decoded"):
+                lk.status()
+            with pytest.raises(P.ProtocolError):                        # still a ProtocolError too
+                lk.status()
+            assert lk.get("rule1_kp") == pytest.approx(300 / 1024)      # the link carries on
+    finally:
+        px.close()
+
+
+def test_bad_crc_nacks_on_every_try_are_reported_as_bad_crc_not_as_no_reply(board):
+    url = board.serve()
+
+    def corrupt_every_set(f):
+        if f.type == P.COMMAND_BY_NAME["param_set"].code:
+            b = bytearray(f.encode())
+            b[-3] ^= 0x40
+            return bytes(b)
+        return None
+
+    px = FrameProxy(url, to_board=corrupt_every_set)
+    try:
+        with Link.open(px.url, baudrate=FAST, timeout=0.2, retries=2, keepalive=False) as lk:
+            n = board.stat("param_changed")
+            with pytest.raises(BadCrcError) as ei:
+                lk.set("rule1_kp", 4.0)
+            msg = str(ei.value)
+            # the board NACKs one corrupted frame per valid frame it gets: the first try, then silence
+            assert msg.startswith("the board received param_set(rule1_kp=4096) corrupted: BAD_CRC NACK on 1 of 3")
+            assert "was not executed" in msg and "cable" in msg
+            assert isinstance(ei.value, NackError) and ei.value.code == Nack.BAD_CRC
+            assert board.stat("param_changed") == n
+    finally:
+        px.close()
+
+
+def test_a_reply_after_link_timeout_is_reported_and_the_timeout_says_it_may_have_run(board):
+    url = board.serve()
+    held = []
+
+    def hold_param_set_acks(f):
+        if f.type == P.ack_type(P.COMMAND_BY_NAME["param_set"].code):
+            held.append(f)
+            return b""
+        return None
+
+    px = FrameProxy(url, to_host=hold_param_set_acks)
+    try:
+        with Link.open(px.url, baudrate=FAST, timeout=0.1, retries=1, keepalive=False) as lk:
+            n = board.stat("param_changed")
+            with pytest.raises(LinkTimeout, match="may nevertheless have received and executed it") as ei:
+                lk.set("rule1_kp", 3.0)
+            assert ei.value.command == "param_set" and board.stat("param_changed") == n + 1   # it ran
+            assert held and lk.late_replies() == []
+            px.send_to_host(held[0].encode())                   # the reply turns up after all
+            t0 = time.monotonic()
+            late = []
+            while not late and time.monotonic() - t0 < 2.0:
+                late = lk.late_replies()
+                time.sleep(0.005)
+            assert len(late) == 1
+            r = late[0]
+            assert r.command == "param_set" and r.acked and r.seq == ei.value.seq == held[0].seq
+            assert lk.stats["late_replies"] == 1 and lk.stats["stale_replies"] == 0
+            assert lk.get("rule1_kp") == 3.0                   # and the link carries on
+    finally:
+        px.close()
+
+
+def test_keepalive_feeds_the_watchdog_only_while_the_application_is_alive():
+    b = FakeBoard(TABLE, baud=115200)
+    try:
+        url = b.serve()
+        with Link.open(url, app_timeout=0.3) as lk:
+            lk.start()
+            lk.set("link_timeout", 250)                      # heartbeat every 62 ms: margin on a loaded machine
+            for _ in range(10):                               # alive: calls app_alive from its loop
+                time.sleep(0.1)
+                lk.app_alive()
+            lk.configure_telemetry(["speed"])
+            lk.read_samples(seconds=0.8)                      # alive: waiting inside a link call
+            assert b.stat("link_lost") == 0 and lk.status().state == P.State.RUN
+            time.sleep(1.2)                                   # "hung": no call for > app_timeout + link_timeout
+            assert b.stat("link_lost") == 1 and b.stat("state") == P.State.FAULT
+            assert lk.stats["keepalive_withheld"] == 1
+            lk.fault_clear()                                  # back: the keep-alive resumes
+            lk.start()
+            time.sleep(0.25)
+            assert lk.status().state == P.State.RUN and b.stat("link_lost") == 1
+        time.sleep(0.5)                                       # closed while running: tripped (the host left)
+        with Link.open(url, app_timeout=None) as lk:          # explicit: the process vouches for itself
+            lk.fault_clear()
+            lk.start()
+            n = b.stat("link_lost")
+            time.sleep(0.8)
+            assert b.stat("link_lost") == n and lk.status().state == P.State.RUN
+            lk.stop()
+    finally:
+        b.close()

@@ -13,6 +13,7 @@ import pytest
 import serial
 
 from picdrive import codec
+from picdrive import protocol as P
 from picdrive.link import Link
 from picdrive.profile import ProfileWarning
 
@@ -132,3 +133,105 @@ def test_a_client_that_disconnects_leaves_the_board_running_and_a_new_one_connec
         lk.close()
         assert srv.error is None and srv.running
     tw.close()
+
+
+class FakeClock:
+    """The endpoint's wall clock, moved by the test (no real sleeps for the stall)."""
+
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self):
+        return self.t
+
+
+@needs_fw
+def test_pacing_resynchronises_after_a_stall_and_says_it_fell_behind():
+    from picdrive_hil.endpoint import TwinServer
+    from picdrive_hil.twin import Twin
+    tw = Twin("duy2008", FW)
+    clock, logs = FakeClock(), []
+    srv = TwinServer(tw, realtime=True, clock=clock, log=logs.append)     # stepped by hand, no thread
+    try:
+        dt = 0.002
+        for _ in range(50):
+            clock.t += dt
+            srv._step()
+        assert srv.lag_events == 0
+        clock.t += 0.5                                   # the process was stopped for 0.5 s
+        srv._step()
+        assert srv.lag_events == 1 and any("behind the wall clock" in m for m in logs)
+        for _ in range(20):                              # settle back into pace
+            clock.t += dt
+            srv._step()
+        s0, c0 = tw.t, clock.t
+        for _ in range(150):
+            clock.t += dt
+            srv._step()
+        # in step with the (fake) wall clock again: neither racing ahead nor falling behind
+        assert tw.t - s0 == pytest.approx(clock.t - c0, rel=0.03)
+        assert srv.lag_events == 1 and srv.status()["lag_events"] == 1
+        assert srv.status()["lag_s"] == pytest.approx(0.5, abs=0.01)
+    finally:
+        srv.stop()
+        tw.close()
+
+
+def _wait_sim(tw, seconds, wall_limit=30.0):
+    """Wait until the served twin's simulated clock advanced by ``seconds``."""
+    t_end, limit = tw.t + seconds, time.monotonic() + wall_limit
+    while tw.t < t_end:
+        assert time.monotonic() < limit, "the twin did not advance"
+        time.sleep(0.01)
+
+
+@needs_fw
+def test_a_departed_clients_queued_command_does_not_run_for_the_next_client():
+    import socket
+    from picdrive_hil.twin import Twin
+    tw = Twin("duy2008", FW)
+    try:
+        with tw.serve(port=0) as srv:
+            s = socket.create_connection((srv.host, srv.port))
+            # 0.5 s of line time of filler ahead of set_speed + start: still queued when it leaves
+            s.sendall(bytes(6000) + codec.encode_command("set_speed", 1, {"value": 2000})
+                      + codec.encode_command("start", 2))
+            s.close()
+            _wait_sim(tw, 1.0)
+            assert abs(tw.state()["speed_rpm"]) < 1.0              # the motor never started
+            assert srv.dropped_on_disconnect > 0 and tw.uart_pending() == 0
+            lk = Link.open(srv.url)                                 # the next client finds it idle
+            assert lk.status().state == P.State.IDLE
+            lk.close()
+    finally:
+        tw.close()
+
+
+@needs_fw
+def test_input_beyond_the_twins_queue_is_held_back_not_dropped():
+    import socket
+    from picdrive_hil.endpoint import TwinServer
+    from picdrive_hil.twin import Twin
+    tw = Twin("duy2008", FW)
+    clock = FakeClock()                                     # frozen: the board receives nothing meanwhile
+    srv = TwinServer(tw, realtime=True, clock=clock)
+    s = socket.create_connection((srv.host, srv.port))
+    try:
+        sent = 100_000                                      # > the 64 KiB input queue
+        s.setblocking(False)
+        data, off = bytes(sent), 0
+        for _ in range(2000):
+            if off < len(data):
+                try:
+                    off += s.send(data[off:])
+                except BlockingIOError:
+                    pass
+            srv._step()
+        assert off == sent
+        st = srv.status()
+        assert st["input_waiting"] > 0                       # held back by the endpoint ...
+        assert srv.bytes_in == tw.uart_pending() + st["input_waiting"]    # ... and none lost
+    finally:
+        s.close()
+        srv.stop()
+        tw.close()

@@ -164,6 +164,8 @@ def bind_twin(lib: C.CDLL) -> C.CDLL:
     lib.twin_uart_host_read.restype = C.c_int
     lib.twin_uart_host_pending.argtypes = []
     lib.twin_uart_host_pending.restype = C.c_int
+    lib.twin_uart_host_flush.argtypes = []
+    lib.twin_uart_host_flush.restype = C.c_int
     lib.twin_inject.argtypes = [C.c_int32, C.c_double, C.c_double]
     lib.twin_inject.restype = None
     lib.twin_eeprom_get.argtypes = [C.c_char_p]

@@ -10,8 +10,17 @@ have left the wire.
 
 Real-time mode paces the simulation to the wall clock (``speed`` simulated
 seconds per wall second, 1 by default), which is what a host with wall-clock
-timeouts needs.  Free-running mode (``realtime=False``) runs as fast as the
-twin can, for in-process use only.
+timeouts needs.  If the twin falls ``MAX_LAG_S`` or more behind (a loaded
+machine, a stopped process), it does not race to catch up: the debt is given
+up, pacing resumes from the present, and the server says so (a log line,
+``lag_events`` and ``lag_s``).  Free-running mode (``realtime=False``) runs as
+fast as the twin can, for in-process use only.
+
+Input: bytes the board has not yet received belong to the client that sent
+them; when that client disconnects they are dropped (``dropped_on_disconnect``)
+so that a departed client's command never runs for the next one.  When the
+twin's input queue is full the server stops reading the socket / pty until
+there is room again (TCP backpressure), so no byte is lost silently.
 """
 from __future__ import annotations
 
@@ -27,13 +36,14 @@ from .twin import Twin, TwinError
 
 CHUNK_S = 1e-3          # simulated time advanced per loop iteration in real time
 MAX_LAG_S = 0.25        # if the twin falls this far behind the wall clock, it drops the debt
+READ_BYTES = 4096       # bytes read from the socket / pty at a time
 
 
 class TwinServer:
     """Serve a Twin's UART on a socket (and a pty); see the module docstring."""
 
     def __init__(self, twin: Twin, *, port: int = 0, host: str = "127.0.0.1", realtime: bool = True,
-                 pty: bool = False, speed: float = 1.0, log=None):
+                 pty: bool = False, speed: float = 1.0, log=None, clock=time.perf_counter):
         if not (speed > 0):
             raise ValueError("speed must be > 0 (simulated seconds per wall second)")
         self.twin = twin
@@ -58,8 +68,15 @@ class TwinServer:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None
-        self.lag_events = 0
+        self.lag_events = 0             # times the twin fell MAX_LAG_S behind the wall clock
+        self.lag_s = 0.0                # simulated time given up by those resynchronisations
         self.bytes_in = self.bytes_out = 0
+        self.dropped_on_disconnect = 0  # bytes of departed clients the board had not yet received
+        self._clock = clock             # wall clock (seconds); a test may substitute its own
+        self._pend_sock = b""           # read from the client, not yet accepted by the twin (queue full)
+        self._pend_pty = b""
+        self._t_wall0: float | None = None
+        self._t_sim0 = 0.0
 
     @property
     def url(self) -> str:
@@ -139,27 +156,51 @@ class TwinServer:
             except OSError:
                 pass
             self._client = None
-            self.log("client disconnected")
+            # what the departed client sent and the board has not received is dropped: the next
+            # client must not have it run for them (queued pty bytes, if any, go with it)
+            n = self.twin.uart_flush_input() + len(self._pend_sock)
+            self._pend_sock = b""
+            self.dropped_on_disconnect += n
+            self.log("client disconnected" + (f"; {n} bytes it sent that the board had not yet received "
+                                              "were dropped" if n else ""))
+
+    def status(self) -> dict:
+        """Counters of the endpoint: bytes in/out, lag events and the simulated time they gave up,
+        bytes dropped on a client's disconnect, bytes waiting for room in the twin's input queue."""
+        return {"bytes_in": self.bytes_in, "bytes_out": self.bytes_out, "lag_events": self.lag_events,
+                "lag_s": self.lag_s, "dropped_on_disconnect": self.dropped_on_disconnect,
+                "input_waiting": len(self._pend_sock) + len(self._pend_pty)}
+
+    def _feed(self, data: bytes) -> bytes:
+        """Give bytes to the twin's UART input; returns what did not fit (kept for later)."""
+        if not data:
+            return b""
+        k = self.twin.uart_write(data)
+        return data[k:]
 
     def _pump_in(self) -> None:
-        if self._client is not None:
+        # bytes that did not fit last time go first; while some wait, nothing more is read, so
+        # the sender is held back by TCP flow control (or the pty's buffer) instead of losing bytes
+        self._pend_sock = self._feed(self._pend_sock)
+        self._pend_pty = self._feed(self._pend_pty)
+        if self._client is not None and not self._pend_sock:
             try:
-                data = self._client.recv(4096)
+                data = self._client.recv(READ_BYTES)
                 if not data:
                     self._drop_client()
                 else:
                     self.bytes_in += len(data)
-                    self.twin.uart_write(data)
+                    self._pend_sock = self._feed(data)
             except (BlockingIOError, InterruptedError):
                 pass
             except OSError:
                 self._drop_client()
-        if self._pty_master is not None:
+        if self._pty_master is not None and not self._pend_pty:
             try:
-                data = os.read(self._pty_master, 4096)
+                data = os.read(self._pty_master, READ_BYTES)
                 if data:
                     self.bytes_in += len(data)
-                    self.twin.uart_write(data)
+                    self._pend_pty = self._feed(data)
             except BlockingIOError:
                 pass
             except OSError as e:
@@ -182,30 +223,43 @@ class TwinServer:
             except OSError:
                 pass        # nobody has the pty open; like a UART, bytes are lost
 
+    def _step(self) -> None:
+        """One pass of the serving loop: accept, move bytes, advance the twin (paced)."""
+        if self._client is None:
+            self._accept()
+        self._pump_in()
+        if not self.realtime:
+            self.twin.run(CHUNK_S)
+            self._pump_out()
+            return
+        if self._t_wall0 is None:
+            self._t_wall0, self._t_sim0 = self._clock(), self.twin.t
+        target = self._t_sim0 + (self._clock() - self._t_wall0) * self.speed
+        now = self.twin.t
+        debt = target - now
+        if debt >= MAX_LAG_S * self.speed:
+            # fell behind (loaded machine, stopped process): give the debt up and pace from the
+            # present again; racing to catch up would run the board faster than its host's clock
+            self.lag_events += 1
+            self.lag_s += debt - CHUNK_S
+            self._t_sim0 -= debt - CHUNK_S
+            target = now + CHUNK_S
+            self.log(f"fell {debt / self.speed:.3f} s behind the wall clock (machine too slow or the process "
+                     f"was stopped); resynchronised: the board saw {debt - CHUNK_S:.3f} s less time than its host "
+                     f"({self.lag_events} time{'s' if self.lag_events != 1 else ''} so far, "
+                     f"{self.lag_s:.3f} s in all)")
+        if target > now:
+            self.twin.run_until(min(target, now + 4 * CHUNK_S))
+        self._pump_out()
+        # sleep until the next chunk is due or bytes arrive
+        nxt = (self.twin.t + CHUNK_S - self._t_sim0) / self.speed + self._t_wall0
+        self._wait_io(max(0.0, min(nxt - self._clock(), CHUNK_S)))
+
     def _run(self) -> None:
         try:
-            t_wall0 = time.perf_counter()
-            t_sim0 = self.twin.t
+            self._t_wall0 = None
             while not self._stop.is_set():
-                if self._client is None:
-                    self._accept()
-                self._pump_in()
-                if self.realtime:
-                    target = t_sim0 + (time.perf_counter() - t_wall0) * self.speed
-                    now = self.twin.t
-                    if target - now > MAX_LAG_S:
-                        self.lag_events += 1
-                        t_sim0 += target - now - CHUNK_S        # give up the debt, keep pace from here
-                        target = now + CHUNK_S
-                    if target > now:
-                        self.twin.run_until(min(target, now + 4 * CHUNK_S))
-                    self._pump_out()
-                    # sleep until the next chunk is due or bytes arrive
-                    nxt = (self.twin.t + CHUNK_S - t_sim0) / self.speed + t_wall0
-                    self._wait_io(max(0.0, min(nxt - time.perf_counter(), CHUNK_S)))
-                else:
-                    self.twin.run(CHUNK_S)
-                    self._pump_out()
+                self._step()
         except BaseException as e:                      # report, then stop serving
             self.error = e
             print(f"picdrive twin: stopped: {e}", file=sys.stderr)
@@ -213,11 +267,11 @@ class TwinServer:
 
     def _wait_io(self, timeout: float) -> None:
         fds = []
-        if self._client is not None:
-            fds.append(self._client)
-        else:
+        if self._client is None:
             fds.append(self._lsock)
-        if self._pty_master is not None:
+        elif not self._pend_sock:                  # bytes waiting for room: do not wake on more
+            fds.append(self._client)
+        if self._pty_master is not None and not self._pend_pty:
             fds.append(self._pty_master)
         try:
             select.select(fds, [], [], timeout)

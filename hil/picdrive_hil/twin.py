@@ -410,7 +410,9 @@ class Twin:
 
     # -- UART -----------------------------------------------------------------
     def uart_write(self, data: bytes) -> int:
-        """Queue host -> board bytes; they arrive one frame time apart at the host's baud."""
+        """Queue host -> board bytes; they arrive one frame time apart at the host's baud.
+        Returns how many were queued: fewer than given when the 64 KiB queue is full (the caller
+        keeps the rest and offers it again later)."""
         data = bytes(data)
         with self._lock:
             return self._lib.twin_uart_host_write(data, len(data))
@@ -422,6 +424,12 @@ class Twin:
             buf = self._rx_buf if max_bytes <= len(self._rx_buf) else C.create_string_buffer(max_bytes)
             n = self._lib.twin_uart_host_read(buf, min(max_bytes, len(buf)))
             return C.string_at(buf, n)
+
+    def uart_flush_input(self) -> int:
+        """Drop the host -> board bytes the board has not started to receive (a byte already on
+        the wire completes); returns how many were dropped."""
+        with self._lock:
+            return self._lib.twin_uart_host_flush()
 
     def uart_pending(self) -> int:
         """Host bytes not yet received by the board."""

@@ -19,18 +19,32 @@ A background thread reads and decodes frames (:class:`picdrive.codec.StreamDecod
 hands replies to the waiting command, queues telemetry samples and events.  Commands are
 serialised (thread-safe), time out after ``timeout`` seconds and are retried with the same
 SEQ (the board answers a retry from its reply store, never executing twice) up to
-``retries`` times before :class:`LinkTimeout`.  A keep-alive thread sends heartbeat often
-enough to feed the board's link watchdog.
+``retries`` times before :class:`LinkTimeout`.
 
-Errors: :class:`LinkError` (base), :class:`LinkTimeout`, :class:`NackError` (the board
-refused: command, code, reason), :class:`HandshakeMismatch` (the board's build is not what
-this host can talk to or was told to expect), :class:`ParamError` (refused on the host before
-sending: unknown name, read-only, out of range).
+Keep-alive contract: a keep-alive thread sends heartbeat often enough to feed the board's
+link watchdog, but only while the application shows it is alive: while one of its threads is
+inside a call into the link (a command, ``read_samples``, ``capture_read``...) or returned
+from one, or called :meth:`Link.app_alive`, within the last ``app_timeout`` seconds (default
+``APP_TIMEOUT_S`` = 2 s).  An application that hangs therefore stops feeding the watchdog, and
+the board stops the motor ``app_timeout`` + ``link_timeout`` after its last sign of life; an
+application that waits longer than ``app_timeout`` without calling the link must call
+``app_alive()`` from its main loop.  ``app_timeout=None`` restores a keep-alive that feeds the
+watchdog for as long as the process runs (the application then vouches for itself).
+
+Errors: :class:`LinkError` (base of all of them), :class:`LinkTimeout` (no reply: the board
+may nevertheless have executed the command; a reply that arrives later is reported by
+:meth:`Link.late_replies`), :class:`NackError` (the board refused: command, code, reason),
+:class:`BadCrcError` (a NackError: the board received the command corrupted on every try),
+:class:`HandshakeMismatch` (the board's build is not what this host can talk to or was told
+to expect), :class:`ParamError` (refused on the host before sending: unknown name, read-only,
+out of range), :class:`LinkProtocolError` (a command that cannot be encoded or a reply that
+cannot be decoded; also a :class:`picdrive.protocol.ProtocolError`).
 """
 from __future__ import annotations
 
 import collections
 import dataclasses
+import logging
 import os
 import select
 import threading
@@ -44,8 +58,15 @@ from . import codec
 from . import protocol as P
 from .errors import PicdriveError
 
-__all__ = ["Link", "LinkError", "LinkTimeout", "NackError", "HandshakeMismatch", "ParamError",
-           "BoardInfo", "Status", "TelemetryStats", "TelemetryConfig", "CaptureResult", "compare_tables"]
+__all__ = ["Link", "LinkError", "LinkTimeout", "NackError", "BadCrcError", "HandshakeMismatch", "ParamError",
+           "LinkProtocolError", "LateReply", "BoardInfo", "Status", "TelemetryStats", "TelemetryConfig",
+           "CaptureResult", "compare_tables", "APP_TIMEOUT_S"]
+
+log = logging.getLogger("picdrive.link")
+
+APP_TIMEOUT_S = 2.0
+"""Default ``app_timeout``: the keep-alive feeds the board's watchdog only while the application
+called into the link within this many seconds (module docstring)."""
 
 
 class LinkError(PicdriveError):
@@ -53,7 +74,18 @@ class LinkError(PicdriveError):
 
 
 class LinkTimeout(LinkError):
-    """No reply after the bounded retries."""
+    """No reply after the bounded retries.  The command may still have reached the board and been
+    executed (only its replies were lost): ``command``, ``seq``; a reply that arrives later is
+    reported by :meth:`Link.late_replies`."""
+
+    def __init__(self, message: str, command: str = "", seq: int | None = None):
+        self.command = command
+        self.seq = seq
+        super().__init__(message)
+
+
+class LinkProtocolError(LinkError, P.ProtocolError):
+    """A command that cannot be encoded (bad arguments) or a reply that cannot be decoded."""
 
 
 class NackError(LinkError):
@@ -70,6 +102,35 @@ class NackError(LinkError):
             self.code, self.reason, name = code, f"unknown NACK code {code}", str(code)
         self.detail = detail
         super().__init__(f"board rejected {command}{'(' + detail + ')' if detail else ''}: {name}: {self.reason}")
+
+
+class BadCrcError(NackError):
+    """The board answered every try of a command with a BAD_CRC NACK (or some tries with it and the
+    others not at all): the command reached the board corrupted and was not executed."""
+
+    def __init__(self, command: str, bad_crc: int, tries: int, detail: str = ""):
+        self.command, self.detail = command, detail
+        self.code = P.Nack.BAD_CRC
+        self.reason = P.NACK_REASONS[self.code]
+        self.bad_crc, self.tries = bad_crc, tries
+        silent = tries - bad_crc
+        LinkError.__init__(
+            self, f"the board received {command}{'(' + detail + ')' if detail else ''} corrupted: BAD_CRC NACK on "
+                  f"{bad_crc} of {tries} tries{f' (no reply to the other {silent})' if silent else ''}; it was not "
+                  "executed.  Bytes are corrupted on the way to the board: check the cable, its ground and "
+                  "shielding, and that both ends use the same baud rate")
+
+
+@dataclass(frozen=True)
+class LateReply:
+    """A reply that arrived after its command had raised LinkTimeout: the board did receive it
+    (``acked``: executed; else refused with ``nack_code``)."""
+    command: str
+    seq: int
+    acked: bool
+    nack_code: int | None
+    timed_out_at: float       # host time (time.monotonic) of the LinkTimeout
+    arrived_at: float
 
 
 class HandshakeMismatch(LinkError):
@@ -197,17 +258,19 @@ class Link:
     def open(cls, url: str, *, baudrate: int = 115200, timeout: float = 0.25, retries: int = 3,
              handshake: bool = True, keepalive: bool = True, expect_table_hash: int | None = None,
              expect_profile_hash: int | None = None, expect_build_id: int | None = None,
-             **serial_kwargs: Any) -> "Link":
+             app_timeout: float | None = APP_TIMEOUT_S, **serial_kwargs: Any) -> "Link":
         """Open ``url`` and handshake.  ``timeout``: seconds per try of a command;
         ``retries``: extra tries after the first.  ``expect_*``: refuse (HandshakeMismatch) a
-        board of another build or profile (e.g. the one a firmware folder was generated for)."""
+        board of another build or profile (e.g. the one a firmware folder was generated for).
+        ``app_timeout``: the keep-alive contract (module docstring; None: feed while the process
+        runs)."""
         import serial
         try:
             port = serial.serial_for_url(url, baudrate=baudrate, timeout=0, write_timeout=2.0, **serial_kwargs)
         except (serial.SerialException, OSError, ValueError) as e:
             raise LinkError(f"cannot open {url!r}: {e}; check the port name or URL (e.g. /dev/ttyUSB0, COM5, "
                             "socket://127.0.0.1:5000 for a running 'picdrive twin')") from None
-        link = cls(port, url=url, timeout=timeout, retries=retries)
+        link = cls(port, url=url, timeout=timeout, retries=retries, app_timeout=app_timeout)
         try:
             if handshake:
                 link.handshake(expect_table_hash=expect_table_hash, expect_profile_hash=expect_profile_hash,
@@ -223,9 +286,16 @@ class Link:
     """Idle time after which the host abandons a partial frame (see protocol.HOST_GAP_MS)."""
 
     def __init__(self, port, *, url: str = "", timeout: float = 0.25, retries: int = 3,
-                 telemetry_buffer: int = 1_000_000):
+                 telemetry_buffer: int = 1_000_000, app_timeout: float | None = APP_TIMEOUT_S):
         if timeout <= 0 or retries < 0:
             raise ValueError("timeout must be > 0 and retries >= 0")
+        if app_timeout is not None and not app_timeout > 0:
+            raise ValueError("app_timeout must be > 0 seconds (or None)")
+        self.app_timeout = app_timeout
+        self._app_calls = 0                     # application calls into the link in progress
+        self._app_last = time.monotonic()       # when the application last showed it is alive
+        self._timed_out: collections.OrderedDict[int, tuple[str, int, float]] = collections.OrderedDict()
+        self._late: collections.deque = collections.deque(maxlen=1000)
         self.url = url
         self.timeout = float(timeout)
         self.retries = int(retries)
@@ -255,7 +325,8 @@ class Link:
         self._events: collections.deque = collections.deque(maxlen=1000)
         self.on_event: Callable[[float, P.Event | int, int], None] | None = None
         self.stats = {"tx_bytes": 0, "rx_bytes": 0, "requests": 0, "retries": 0, "stale_replies": 0,
-                      "bad_crc_nacks": 0, "keepalive_errors": 0, "crc_errors": 0}
+                      "bad_crc_nacks": 0, "keepalive_errors": 0, "crc_errors": 0, "late_replies": 0,
+                      "keepalive_withheld": 0}
         self.last_keepalive_error: LinkError | None = None
         self._keepalive: threading.Thread | None = None
         self._keepalive_period = 0.1
@@ -318,6 +389,27 @@ class Link:
                     self.stats["bad_frames"] += 1
                     self.last_frame_error = e
 
+    def _late_reply(self, f: codec.Frame, late: tuple[str, int, float], now: float) -> None:
+        """A reply to a command that already raised LinkTimeout: the board did receive it."""
+        cmd, _, t_out = late
+        code = None
+        if f.is_nack and len(f.payload) == 2:
+            code = f.payload[1]
+        r = LateReply(cmd, f.seq, bool(f.is_ack), code, t_out, now)
+        self._late.append(r)
+        self.stats["late_replies"] += 1
+        what = "executed it" if r.acked else f"refused it (NACK {code})"
+        log.warning("late reply: %s (SEQ %d) timed out %.3f s ago, but the board received it and %s",
+                    cmd, f.seq, now - t_out, what)
+
+    def late_replies(self) -> list[LateReply]:
+        """Replies that arrived after their command raised LinkTimeout, since the last call: each
+        says the board did receive that command (and whether it executed it)."""
+        out = []
+        while self._late:
+            out.append(self._late.popleft())
+        return out
+
     def _die(self, err: LinkError) -> None:
         with self._cv:
             self._dead = err
@@ -334,7 +426,12 @@ class Link:
                         self._cv.notify_all()
                     return
                 if p is None or self._reply is not None or f.seq != p[0] or f.command_code != p[1]:
-                    self.stats["stale_replies"] += 1
+                    late = self._timed_out.get(f.seq)
+                    if late is not None and late[1] == f.command_code:
+                        del self._timed_out[f.seq]
+                        self._late_reply(f, late, now)
+                    else:
+                        self.stats["stale_replies"] += 1
                     return
                 if p[2] is not None and f.is_ack:
                     p[2](f)                               # runs before any frame that follows the reply
@@ -373,9 +470,46 @@ class Link:
                 on_ack: Callable[[codec.Frame], None] | None = None, timeout: float | None = None) -> dict:
         """Send a command and return its decoded ACK fields.  NACK -> NackError; no reply after
         ``1 + retries`` tries of ``timeout`` s (default: the link's) -> LinkTimeout.  Thread-safe."""
+        if threading.current_thread() is self._keepalive:
+            return self._request(cmd, args, detail=detail, on_ack=on_ack, timeout=timeout)
+        with self._app_call():
+            return self._request(cmd, args, detail=detail, on_ack=on_ack, timeout=timeout)
+
+    def _app_call(self):
+        """Context of an application call into the link (the keep-alive contract)."""
+        link = self
+
+        class _Ctx:
+            def __enter__(self):
+                with link._cv:
+                    link._app_calls += 1
+
+            def __exit__(self, *exc):
+                with link._cv:
+                    link._app_calls -= 1
+                    link._app_last = time.monotonic()
+        return _Ctx()
+
+    def app_alive(self) -> None:
+        """Tell the keep-alive that the application is alive (the keep-alive contract: call it
+        from the application's main loop when it goes longer than ``app_timeout`` without
+        calling the link)."""
+        with self._cv:
+            self._app_last = time.monotonic()
+            self._cv.notify_all()
+
+    def _app_is_alive(self, now: float) -> bool:
+        return self.app_timeout is None or self._app_calls > 0 or now - self._app_last <= self.app_timeout
+
+    def _request(self, cmd: str, args: dict | None, *, detail: str, on_ack, timeout: float | None) -> dict:
         try_s = self.timeout if timeout is None else float(timeout)
-        c = P.COMMAND_BY_NAME[cmd]
-        payload = codec.command_payload(c, args)
+        c = P.COMMAND_BY_NAME.get(cmd)
+        if c is None:
+            raise LinkProtocolError(f"unknown command {cmd!r}; known: {', '.join(P.COMMAND_BY_NAME)}")
+        try:
+            payload = codec.command_payload(c, args)
+        except P.ProtocolError as e:
+            raise LinkProtocolError(str(e)) from None
         with self._req_lock:
             if self._closing:
                 raise LinkError("the link is closed")
@@ -384,7 +518,7 @@ class Link:
             seq = self._next_seq()
             frame = codec.encode_frame(c.code, seq, payload)
             self.stats["requests"] += 1
-            tries = 0
+            tries = bad_crc = 0
             while True:
                 with self._cv:
                     self._pending = (seq, c.code, on_ack)
@@ -400,6 +534,7 @@ class Link:
                             break
                         self._cv.wait(left)
                     reply, self._pending = self._reply, None
+                    bad_crc += reply is None and self._bad_crc
                     dead = self._dead
                 if reply is not None:
                     break
@@ -408,15 +543,27 @@ class Link:
                 if self._closing:
                     raise LinkError("the link was closed while waiting for a reply")
                 if tries > self.retries:
+                    if bad_crc:
+                        raise BadCrcError(cmd, bad_crc, tries, detail)
+                    with self._cv:
+                        # remembered, so that a reply arriving later is reported, not dropped
+                        self._timed_out[seq] = (cmd, c.code, time.monotonic())
+                        while len(self._timed_out) > 128:
+                            self._timed_out.popitem(last=False)
                     raise LinkTimeout(
-                        f"no reply to {cmd}{'(' + detail + ')' if detail else ''} from {self.url or 'the board'} "
-                        f"after {tries} tries of {try_s:g} s: check the cable or URL, the baud rate, and "
-                        "that the board (or twin) is running")
+                        f"no reply to {cmd}{'(' + detail + ')' if detail else ''} (SEQ {seq}) from "
+                        f"{self.url or 'the board'} after {tries} tries of {try_s:g} s: the board may nevertheless "
+                        "have received and executed it (a lost reply looks the same), so read its state (status) "
+                        "before repeating it; a reply that still arrives is reported by late_replies().  Check the "
+                        "cable or URL, the baud rate, and that the board (or twin) is running", cmd, seq)
                 self.stats["retries"] += 1
-        if reply.is_nack:
-            _, code = codec.decode_nack(reply.payload)
-            raise NackError(cmd, code, detail)
-        return codec.decode_reply(c, reply.payload)
+        try:
+            if reply.is_nack:
+                _, code = codec.decode_nack(reply.payload)
+                raise NackError(cmd, code, detail)
+            return codec.decode_reply(c, reply.payload)
+        except P.ProtocolError as e:
+            raise LinkProtocolError(f"the board's reply to {cmd} cannot be decoded: {e}") from None
 
     # ---------------------------------------------------------------- handshake
     def hello(self) -> BoardInfo:
@@ -663,13 +810,28 @@ class Link:
         return not self._closing and self._dead is None
 
     def _keepalive_loop(self) -> None:
+        withheld = False
         while not self._closing and self._dead is None:
             period = self._keepalive_period
-            left = self._last_tx + period - time.monotonic()
+            now = time.monotonic()
+            left = self._last_tx + period - now
             if left > 0:
                 with self._cv:
                     self._cv.wait(left)
                 continue
+            if not self._app_is_alive(now):
+                # the application has not shown life within app_timeout: no heartbeat, so the
+                # board's watchdog stops the motor as it would if the host had gone
+                if not withheld:
+                    withheld = True
+                    self.stats["keepalive_withheld"] += 1
+                    log.warning("keep-alive withheld: the application has not called into the link for %.2f s "
+                                "(app_timeout %.2f s); the board's watchdog will stop the motor",
+                                now - self._app_last, self.app_timeout)
+                with self._cv:
+                    self._cv.wait(period)
+                continue
+            withheld = False
             try:
                 self.request("heartbeat")
             except LinkError as e:
@@ -776,6 +938,10 @@ class Link:
 
         ``n``: the oldest n buffered samples (waits for them; LinkTimeout after ``timeout``).
         ``seconds``: wait that long, then everything buffered."""
+        with self._app_call():                 # waiting here is the application being alive
+            return self._read_samples(n, seconds, timeout)
+
+    def _read_samples(self, n, seconds, timeout) -> np.ndarray:
         tm = self._tm
         if tm is None:
             raise LinkError("telemetry is not configured: call configure_telemetry() first")

@@ -15,6 +15,10 @@ lets the same C compile with gcc (architecture.md, seam 4):
   *)&picsim_sfr[0x9E])``; the unions are ``may_alias`` so that optimising
   compilers keep byte and bit accesses to the same register coherent); a register whose ``.inc`` section lists several
   names for one bit (``GIE``/``GIEH``/``GIE_GIEH``) gets them all;
+* the port registers ``PORTA``..``PORTE`` (and their bit structs) call
+  ``picsim_sfr_read(addr)`` at every access, so that a read sees the pins'
+  levels at that moment (e.g. just after the firmware changed ``ANSEL0``),
+  not the levels of the start of the firmware call;
 * ``PICSIM_WRITE(REG)`` / ``PICSIM_READ(REG)`` call
   ``picsim_sfr_written(addr)`` / ``picsim_sfr_read(addr)`` with the full
   data-memory address (``0xFAD`` for TXREG); on XC8 the firmware defines them
@@ -240,6 +244,11 @@ def _struct_c(fields: list[tuple[str, int]]) -> str:
     return "    __extension__ struct { " + " ".join(parts) + " };"
 
 
+PIN_READ_REGISTERS = ("PORTA", "PORTB", "PORTC", "PORTD", "PORTE")
+"""Registers whose every access notifies ``picsim_sfr_read``: a port read returns the pins'
+levels at that instant (the model refreshes the byte), as on the chip."""
+
+
 def render_host_shim(path=None) -> str:
     """The host ``xc.h``: SFRs in ``picsim_sfr[256]``, bit structs, notifications.
 
@@ -265,7 +274,8 @@ def render_host_shim(path=None) -> str:
     w(" * PICSIM_READ(REG) before a read tell the model about accesses that have a")
     w(" * side effect on the chip; the address passed is the full data-memory")
     w(" * address (0xF00 + index).  On XC8 these macros are defined empty by the")
-    w(" * firmware.")
+    w(" * firmware.  The port registers (PORTA..PORTE) notify picsim_sfr_read at")
+    w(" * every access by themselves, so that a pin read sees the pin's level then.")
     w(" *")
     w(" * Not defined here (XC8 declares them 16/24-bit; use the L/H bytes):")
     for i in range(0, len(skipped), 8):
@@ -295,7 +305,10 @@ def render_host_shim(path=None) -> str:
     w("")
     w("/* ---- special-function registers ---- */")
     for n, a in by_addr:
-        w(f"#define {n} (picsim_sfr[0x{a - SFR_BASE:02X}])")
+        if n in PIN_READ_REGISTERS:
+            w(f"#define {n} (*(picsim_sfr_read(0x{a:03X}u), &picsim_sfr[0x{a - SFR_BASE:02X}]))")
+        else:
+            w(f"#define {n} (picsim_sfr[0x{a - SFR_BASE:02X}])")
     w("")
     w("/* ---- full data-memory addresses (for the peripheral model) ---- */")
     for n, a in by_addr:
@@ -311,7 +324,11 @@ def render_host_shim(path=None) -> str:
         for fields in _bit_structs(inc.bit_groups[reg]):
             w(_struct_c(fields))
         w(f"}} {reg}bits_t;")
-        w(f"#define {reg}bits (*(volatile {reg}bits_t *)&picsim_sfr[0x{a - SFR_BASE:02X}])")
+        if reg in PIN_READ_REGISTERS:
+            w(f"#define {reg}bits (*(volatile {reg}bits_t *)(picsim_sfr_read(0x{a:03X}u), "
+              f"&picsim_sfr[0x{a - SFR_BASE:02X}]))")
+        else:
+            w(f"#define {reg}bits (*(volatile {reg}bits_t *)&picsim_sfr[0x{a - SFR_BASE:02X}])")
     w("")
     w("/* ---- bit masks (for the peripheral model) ---- */")
     b = bits(path)

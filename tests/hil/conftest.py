@@ -1,7 +1,11 @@
 """HIL suite fixtures (see hilbench.py for the bench and the limits).
 
 ``--target twin`` (default) or a serial URL of a real board (root conftest);
-``--profile`` names the real board's profile.
+``--profile`` names the real board's profile (required with a serial URL) or,
+with the twin, selects that profile's tests (the twin runs it with firmware
+generated from its committed design).  A profile the suite has no firmware
+and tests for is refused, and a serial target that does not answer fails the
+run instead of skipping it.
 """
 from __future__ import annotations
 
@@ -12,7 +16,7 @@ import pytest
 from picdrive.link import Link
 from picdrive.result import load_design
 
-from hilbench import Bench, FirmwareCache, design_path, match_design, profile
+from hilbench import PROFILES, Bench, FirmwareCache, design_path, match_design, profile
 
 _REPORT = pytest.StashKey[list]()
 
@@ -23,9 +27,43 @@ def pytest_configure(config):
 
 def pytest_collection_modifyitems(config, items):
     here = Path(__file__).resolve().parent
+    hil = False
     for it in items:
         if here in Path(str(it.fspath)).resolve().parents:
             it.add_marker(pytest.mark.hil)
+            hil = True
+    if hil:
+        check_options(config.getoption("--target"), config.getoption("--profile"))
+
+
+def check_options(target: str, prof: str | None) -> None:
+    """Refuse a --profile the suite cannot test, and a serial target without --profile."""
+    if prof is not None and prof not in PROFILES:
+        where = ("the twin target has no firmware for it" if target == "twin"
+                 else "the suite has no tests or design for a board of that profile")
+        raise pytest.UsageError(
+            f"--profile {prof}: {where}; the HIL suite generates firmware and tests only the bundled profiles "
+            f"with committed designs ({', '.join(PROFILES)}).  Choose one of them (or run 'picdrive twin' with "
+            "your profile and firmware and use the console)")
+    if target != "twin" and prof is None:
+        raise pytest.UsageError(f"--target {target}: name the board's profile with --profile "
+                                f"({' or '.join(PROFILES)})")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def target_answers(request):
+    """A serial target must answer (and run the named profile); else the run fails, it does not skip."""
+    target = request.config.getoption("--target")
+    if target == "twin":
+        return
+    prof = profile(request.config.getoption("--profile"))
+    from picdrive.link import LinkError
+    try:
+        with Link.open(target, expect_profile_hash=int(prof.sha256[:8], 16)):
+            pass
+    except LinkError as e:
+        pytest.fail(f"--target {target}: the board under test does not answer or is not the one named: {e}",
+                    pytrace=False)
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
@@ -58,6 +96,9 @@ def open_bench(request, target, firmware_cache):
     def _open(profile_name: str = "duy2008", method: str | None = None, perturb=None) -> Bench:
         prof = profile(profile_name)
         phash = int(prof.sha256[:8], 16)
+        selected = request.config.getoption("--profile")
+        if target == "twin" and selected is not None and profile_name != selected:
+            pytest.skip(f"--profile {selected} selects that profile's tests")
         if target == "twin":
             from picdrive_hil.twin import Twin
             method = method or "fuzzy-hinf"

@@ -21,6 +21,7 @@ class FrameProxy:
         self._lsock = socket.create_server(("127.0.0.1", 0))
         self.url = f"socket://127.0.0.1:{self._lsock.getsockname()[1]}"
         self._stop = threading.Event()
+        self._host: socket.socket | None = None
         self._t = threading.Thread(target=self._run, daemon=True, name="frameproxy")
         self._t.start()
 
@@ -32,6 +33,7 @@ class FrameProxy:
             except socket.timeout:
                 continue
             b = socket.create_connection(self._target)
+            self._host = h
             for s in (h, b):
                 s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             decs = {h: codec.StreamDecoder(), b: codec.StreamDecoder()}
@@ -58,6 +60,11 @@ class FrameProxy:
             finally:
                 h.close()
                 b.close()
+
+    def send_to_host(self, data: bytes) -> None:
+        """Bytes to the connected host, outside the stream (e.g. a reply held back earlier)."""
+        assert self._host is not None, "no host connected"
+        self._host.sendall(data)
 
     def close(self) -> None:
         self._stop.set()

@@ -9,7 +9,8 @@
  * PICSIM_READ(REG) before a read tell the model about accesses that have a
  * side effect on the chip; the address passed is the full data-memory
  * address (0xF00 + index).  On XC8 these macros are defined empty by the
- * firmware.
+ * firmware.  The port registers (PORTA..PORTE) notify picsim_sfr_read at
+ * every access by themselves, so that a pin read sees the pin's level then.
  *
  * Not defined here (XC8 declares them 16/24-bit; use the L/H bytes):
  *   ADRES CCPR1 CCPR2 PC PR5 PROD TBLPTR TMR0
@@ -76,11 +77,11 @@ void picsim_sfr_read(uint16_t addr);
 #define PTMRL (picsim_sfr[0x7D])
 #define PTCON1 (picsim_sfr[0x7E])
 #define PTCON0 (picsim_sfr[0x7F])
-#define PORTA (picsim_sfr[0x80])
-#define PORTB (picsim_sfr[0x81])
-#define PORTC (picsim_sfr[0x82])
-#define PORTD (picsim_sfr[0x83])
-#define PORTE (picsim_sfr[0x84])
+#define PORTA (*(picsim_sfr_read(0xF80u), &picsim_sfr[0x80]))
+#define PORTB (*(picsim_sfr_read(0xF81u), &picsim_sfr[0x81]))
+#define PORTC (*(picsim_sfr_read(0xF82u), &picsim_sfr[0x82]))
+#define PORTD (*(picsim_sfr_read(0xF83u), &picsim_sfr[0x83]))
+#define PORTE (*(picsim_sfr_read(0xF84u), &picsim_sfr[0x84]))
 #define TMR5L (picsim_sfr[0x87])
 #define TMR5H (picsim_sfr[0x88])
 #define LATA (picsim_sfr[0x89])
@@ -430,12 +431,12 @@ typedef union __attribute__((__may_alias__)) {
     __extension__ struct { uint8_t AN0:1; uint8_t AN1:1; uint8_t AN2:1; uint8_t AN3:1; uint8_t AN4:1; uint8_t AN5:1; uint8_t OSC2:1; uint8_t OSC1:1; };
     __extension__ struct { uint8_t :2; uint8_t VREFM:1; uint8_t VREFP:1; uint8_t :1; uint8_t LVDIN:1; uint8_t CLKO:1; uint8_t CLKI:1; };
 } PORTAbits_t;
-#define PORTAbits (*(volatile PORTAbits_t *)&picsim_sfr[0x80])
+#define PORTAbits (*(volatile PORTAbits_t *)(picsim_sfr_read(0xF80u), &picsim_sfr[0x80]))
 typedef union __attribute__((__may_alias__)) {
     uint8_t picsim_byte;   /* whole register (host shim only; not in XC8) */
     __extension__ struct { uint8_t RB0:1; uint8_t RB1:1; uint8_t RB2:1; uint8_t RB3:1; uint8_t RB4:1; uint8_t RB5:1; uint8_t RB6:1; uint8_t RB7:1; };
 } PORTBbits_t;
-#define PORTBbits (*(volatile PORTBbits_t *)&picsim_sfr[0x81])
+#define PORTBbits (*(volatile PORTBbits_t *)(picsim_sfr_read(0xF81u), &picsim_sfr[0x81]))
 typedef union __attribute__((__may_alias__)) {
     uint8_t picsim_byte;   /* whole register (host shim only; not in XC8) */
     __extension__ struct { uint8_t RC0:1; uint8_t RC1:1; uint8_t RC2:1; uint8_t RC3:1; uint8_t RC4:1; uint8_t RC5:1; uint8_t RC6:1; uint8_t RC7:1; };
@@ -444,19 +445,19 @@ typedef union __attribute__((__may_alias__)) {
     __extension__ struct { uint8_t :1; uint8_t NOT_FLTA:1; uint8_t NOT_FLTB:1; uint8_t T5CKI:1; uint8_t SDI:1; uint8_t SCL:1; uint8_t NOT_SS:1; uint8_t SDO:1; };
     __extension__ struct { uint8_t :1; uint8_t FLTA:1; uint8_t FLTB:1; uint8_t :3; uint8_t SS:1; uint8_t :1; };
 } PORTCbits_t;
-#define PORTCbits (*(volatile PORTCbits_t *)&picsim_sfr[0x82])
+#define PORTCbits (*(volatile PORTCbits_t *)(picsim_sfr_read(0xF82u), &picsim_sfr[0x82]))
 typedef union __attribute__((__may_alias__)) {
     uint8_t picsim_byte;   /* whole register (host shim only; not in XC8) */
     __extension__ struct { uint8_t RD0:1; uint8_t RD1:1; uint8_t RD2:1; uint8_t RD3:1; uint8_t RD4:1; uint8_t RD5:1; uint8_t RD6:1; uint8_t RD7:1; };
 } PORTDbits_t;
-#define PORTDbits (*(volatile PORTDbits_t *)&picsim_sfr[0x83])
+#define PORTDbits (*(volatile PORTDbits_t *)(picsim_sfr_read(0xF83u), &picsim_sfr[0x83]))
 typedef union __attribute__((__may_alias__)) {
     uint8_t picsim_byte;   /* whole register (host shim only; not in XC8) */
     __extension__ struct { uint8_t RE0:1; uint8_t RE1:1; uint8_t RE2:1; uint8_t RE3:1; uint8_t :4; };
     __extension__ struct { uint8_t :3; uint8_t NOT_MCLR:1; uint8_t :4; };
     __extension__ struct { uint8_t :3; uint8_t MCLR:1; uint8_t :4; };
 } PORTEbits_t;
-#define PORTEbits (*(volatile PORTEbits_t *)&picsim_sfr[0x84])
+#define PORTEbits (*(volatile PORTEbits_t *)(picsim_sfr_read(0xF84u), &picsim_sfr[0x84]))
 typedef union __attribute__((__may_alias__)) {
     uint8_t picsim_byte;   /* whole register (host shim only; not in XC8) */
     __extension__ struct { uint8_t LATA0:1; uint8_t LATA1:1; uint8_t LATA2:1; uint8_t LATA3:1; uint8_t LATA4:1; uint8_t LATA5:1; uint8_t LATA6:1; uint8_t LATA7:1; };

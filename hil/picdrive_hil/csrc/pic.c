@@ -847,10 +847,16 @@ void picsim_sfr_written(uint16_t addr)
     if (idx == R_PIR1 || idx == R_TXSTA) enforce_readonly();
 }
 
+static void port_refresh(uint8_t idx);
+
 void picsim_sfr_read(uint16_t addr)
 {
     uint8_t idx = (uint8_t)(addr >= 0xF00 ? addr - 0xF00 : addr);
-    if (idx == R_RCREG) {
+    if (idx >= R_PORTA && idx <= R_PORTE) {
+        /* the shim notifies every port access: the read sees the pins now, with the
+           TRIS/LAT/ANSEL the firmware has set so far in this call */
+        port_refresh(idx);
+    } else if (idx == R_RCREG) {
         rcreg_read();
     } else if (idx == R_ADCON0 || idx == R_EECON1) {
         /* a poll of GO_DONE or WR: the firmware spends POLL_TCY per iteration,
@@ -863,6 +869,13 @@ void picsim_sfr_read(uint16_t addr)
 
 /* registers the model changes with time, written before each firmware call */
 static inline void sync_write(uint8_t idx, uint8_t v) { picsim_sfr[idx] = v; g.shadow[idx] = v; }
+
+static void port_refresh(uint8_t idx)
+{
+    static const uint8_t port[5] = {R_PORTA, R_PORTB, R_PORTC, R_PORTD, R_PORTE};
+    for (int k = 0; k < 5; k++)
+        if (port[k] == idx) { sync_write(idx, port_value(k)); return; }
+}
 
 void pic_sync_inputs(void)
 {

@@ -333,6 +333,15 @@ int twin_uart_host_write(const uint8_t *buf, int32_t n)
     return k;
 }
 
+/* drop the host bytes the board has not started to receive (the sender went away);
+   a byte already on the wire completes.  Returns how many were dropped. */
+int twin_uart_host_flush(void)
+{
+    int n = (int)((g.hin_tail - g.hin_head) & (HOSTQ - 1));
+    g.hin_head = g.hin_tail;
+    return n;
+}
+
 int twin_uart_host_read(uint8_t *buf, int32_t max)
 {
     int k = 0;

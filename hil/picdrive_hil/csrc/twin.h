@@ -179,6 +179,7 @@ void twin_set_load_table(const double *t_s, const double *torque, int32_t n);
 int  twin_uart_host_write(const uint8_t *buf, int32_t n);
 int  twin_uart_host_read(uint8_t *buf, int32_t max);
 int  twin_uart_host_pending(void);         /* host bytes not yet on the board */
+int  twin_uart_host_flush(void);           /* drop the queued host bytes; returns how many */
 void twin_inject(int32_t kind, double value, double duration_s);
 void twin_eeprom_get(uint8_t *buf256);
 void twin_eeprom_set(const uint8_t *buf256);
