@@ -382,7 +382,7 @@ class Link:
             if self._dead is not None:
                 raise self._dead
             seq = self._next_seq()
-            frame = codec.encode_frame(c.code, seq, payload)
+            frame = codec.encode_frame(c.code, seq, payload, lead=True)
             self.stats["requests"] += 1
             tries = 0
             while True:

@@ -2,7 +2,7 @@
 
 Everything both ends must agree on lives in this module as plain data:
 
-* the frame (:data:`SOF`, :data:`MAX_PAYLOAD`, CRC-16/CCITT-FALSE);
+* the frame (COBS with the :data:`DELIMITER` 0x00, :data:`MAX_PAYLOAD`, CRC-16/CCITT-FALSE);
 * the message types (:data:`COMMANDS` and the board-initiated frames), each
   with its argument and reply layout (little-endian ``struct`` codes);
 * the NACK, fault, state, event, trigger and controller codes (``IntEnum``);
@@ -40,8 +40,8 @@ from typing import Any, Iterable, Mapping
 from .errors import PicdriveError
 
 __all__ = [
-    "ProtocolError", "PROTOCOL_VERSION", "SOF", "MAX_PAYLOAD", "MAX_FRAME", "FRAME_OVERHEAD",
-    "FRAME_GAP_MS", "HOST_GAP_MS", "RX_RING_BYTES", "REPLAY_BYTES", "CAPTURE_BYTES_DEFAULT", "PARAM_GET_MAX",
+    "ProtocolError", "PROTOCOL_VERSION", "DELIMITER", "MAX_PAYLOAD", "MAX_BODY", "BODY_OVERHEAD",
+    "MAX_FRAME", "FRAME_OVERHEAD", "HOST_GAP_MS", "RX_RING_BYTES", "REPLAY_BYTES", "CAPTURE_BYTES_DEFAULT", "PARAM_GET_MAX",
     "NAME_MAX", "EEPROM_BYTES", "EEPROM_LAYOUT_VERSION", "EEPROM_MAGIC", "EEPROM_HEADER_BYTES",
     "CTYPES", "CType", "UNITS", "FLAG_WRITABLE", "FLAG_PERSISTED", "FLAG_SIGNAL",
     "Nack", "Fault", "State", "Event", "Trigger", "CaptureState", "Controller", "EepromResult",
@@ -64,11 +64,13 @@ class ProtocolError(PicdriveError, ValueError):
 # ---------------------------------------------------------------------------
 # Frame
 # ---------------------------------------------------------------------------
-PROTOCOL_VERSION = (1, 0)
-"""(major, minor).  A host refuses a board with another major version."""
+PROTOCOL_VERSION = (2, 0)
+"""(major, minor).  A host refuses a board with another major version.  2.0: COBS framing with
+a 0x00 delimiter (1.x: start byte 0xA5 without stuffing)."""
 
-SOF = 0xA5
-"""Start-of-frame byte."""
+DELIMITER = 0x00
+"""Frame delimiter.  Frames are COBS-encoded, so it never occurs inside a frame: a receiver
+resynchronises exactly at the next delimiter, and no frame can hide inside another's payload."""
 
 MAX_PAYLOAD = 40
 """Largest payload (LEN) in bytes.  Sized for the PIC18F4431's 768 B of RAM:
@@ -76,21 +78,26 @@ the largest payloads are ``param_info`` replies (20 B + a name of up to
 :data:`NAME_MAX` characters), ``capture_read`` chunks and four-sample
 telemetry frames of four signals (34 B)."""
 
-FRAME_OVERHEAD = 6
-"""SOF, LEN, TYPE, SEQ, CRC high, CRC low."""
+BODY_OVERHEAD = 5
+"""LEN, TYPE, SEQ, CRC high, CRC low: the frame body is the payload plus these."""
+
+MAX_BODY = MAX_PAYLOAD + BODY_OVERHEAD
+
+FRAME_OVERHEAD = BODY_OVERHEAD + 2
+"""Bytes on the wire beyond the payload: the body's five, the COBS code byte (one block: a body
+is shorter than 254 bytes) and the delimiter.  The host sends one more delimiter before each
+command."""
 
 MAX_FRAME = MAX_PAYLOAD + FRAME_OVERHEAD
 
-FRAME_GAP_MS = 20
-"""An inter-byte gap longer than this abandons a partly received frame
-(valid down to 1200 baud, where one byte takes 8.3 ms)."""
-
 HOST_GAP_MS = 100
-"""The host's gap rule: longer than the board's, because USB-serial adapters and the OS deliver
-bytes in bursts (an FTDI chip holds them up to its 16 ms latency timer)."""
+"""The host abandons a partly received frame after this long without bytes (USB-serial adapters
+and the OS deliver bytes in bursts: an FTDI chip holds them up to its 16 ms latency timer).  The
+board needs no timer: the host's delimiter before each command ends any partial frame."""
 
 RX_RING_BYTES = 64
-"""Receive ring of the C module (power of two, >= MAX_FRAME + slack)."""
+"""Receive ring of the C module (power of two, holds a whole command frame: the RX interrupt only
+stores bytes, link_poll decodes a frame once its delimiter is in the ring)."""
 
 REPLAY_BYTES = 8
 """Replies up to this size are stored for duplicate-SEQ replay; every command
@@ -114,7 +121,7 @@ EEPROM_HEADER_BYTES = 8
 then the persisted parameters in table order (little-endian, C-type width),
 then CRC-16/CCITT-FALSE of everything before it, high byte first."""
 
-STATE_BYTES = 82
+STATE_BYTES = 89
 """Scalar state of the C module (struct S in link_fw.c), bytes, as avr-nm measures it;
 checked by tests/test_protocol.py."""
 
@@ -757,7 +764,7 @@ def ram_budget(table: Table, capture_bytes: int = CAPTURE_BYTES_DEFAULT) -> dict
     build (``avr-nm --size-sort -S``)."""
     return {
         "rx_ring": RX_RING_BYTES,
-        "tx_frame": MAX_FRAME,
+        "tx_frame": MAX_BODY,
         "telemetry_frame": MAX_PAYLOAD,
         "replay": REPLAY_BYTES,
         "param_store": table.param_store_bytes,
@@ -786,6 +793,46 @@ def _u32(name: str, v: int) -> int:
     if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 0xFFFFFFFF:
         raise ProtocolError(f"{name} = {v!r}: expected an unsigned 32-bit integer")
     return v
+
+
+_C_ROW_BYTES = 20       # id, ctype, flags, unit, scale bits, min, max, default: the param_info reply head
+_C_HANDLERS = {"start": "h_app", "stop": "h_app", "brake": "h_app", "fault_clear": "h_app",
+               "heartbeat": "h_none"}
+_C_IDLE_COMMANDS = ("eeprom_save", "eeprom_load")   # refused while the motor runs or brakes
+
+
+def _c_bytes(data: bytes) -> str:
+    return ", ".join(f"0x{b:02X}u" for b in data)
+
+
+def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, capture_words: int) -> dict:
+    """The flash tables of link_fw.c: one row per entry (the param_info reply head, little-endian),
+    store offsets and sizes, names, the hello reply and the EEPROM header."""
+    names, name_offsets = "", [0]
+    for e in table.entries:
+        names += e.name
+        name_offsets.append(len(names))
+    if len(names) > 255:
+        raise ProtocolError(f"the table's names take {len(names)} B; the C module indexes them with a byte "
+                            "(at most 255): use fewer rules")
+
+    def row(e: Entry) -> str:
+        return _c_bytes(struct.pack("<BBBBIiii", e.id, e.ct.code, e.flags, e.unit_index, e.scale_bits,
+                                    e.min_raw, e.max_raw, e.default_raw)) + ","
+
+    def size_code(e: Entry) -> int:     # bytes in the store (signals: 16 bits), bit 7: signed
+        return e.ct.size | (0x80 if e.ctype.startswith("int") else 0)
+
+    hello = struct.pack("<BBIIIBBHH", PROTOCOL_VERSION[0], PROTOCOL_VERSION[1], build_id, profile_hash,
+                        table.hash, len(table.entries), MAX_PAYLOAD, capture_words, sample_hz)
+    ee_head = EEPROM_MAGIC + bytes((EEPROM_LAYOUT_VERSION,)) + struct.pack("<I", table.hash) \
+        + bytes((table.eeprom_data_bytes,))
+    index = {e.name: i for i, e in enumerate(table.entries)}
+    return dict(row_bytes=_C_ROW_BYTES, row_bytes_of=row, size_code=size_code,
+                name_offsets=name_offsets, names_concat=names,
+                persisted_index=[index[e.name] for e in table.persisted],
+                hello_bytes=_c_bytes(hello), ee_head_bytes=_c_bytes(ee_head),
+                handler_of=lambda c: _C_HANDLERS.get(c.name, "h_" + c.name), idle_cmds=_C_IDLE_COMMANDS)
 
 
 def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float | None = None,
@@ -823,7 +870,7 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
         persisted=table.persisted, commands=COMMANDS, version=PROTOCOL_VERSION,
         build_id=build_id, profile_hash=profile_hash, table_hash=table.hash, sample_hz=hz,
         capture_words=capture_bytes // 2, capture_bytes=capture_bytes, sig_all=(1 << len(table.signals)) - 1,
-        sof=SOF, max_payload=MAX_PAYLOAD, max_frame=MAX_FRAME, frame_gap_ms=FRAME_GAP_MS,
+        max_payload=MAX_PAYLOAD, max_frame=MAX_FRAME, max_body=MAX_BODY,
         rx_ring=RX_RING_BYTES, name_max=NAME_MAX, replay_bytes=REPLAY_BYTES, param_get_max=PARAM_GET_MAX,
         nacks=list(Nack), faults=list(Fault), states=list(State), events=list(Event),
         triggers=list(Trigger), capture_states=list(CaptureState), controllers=list(Controller),
@@ -834,7 +881,8 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
         ee_image=table.eeprom_image_bytes, telem_header=TELEMETRY_HEADER_BYTES,
         capread_header=CAPTURE_READ_HEADER_BYTES, budget=ram_budget(table, capture_bytes), state_bytes=STATE_BYTES,
         critical_begin=critical_begin, critical_end=critical_end, c_int=_c_int,
-        cmd=COMMAND_BY_NAME, hexu=lambda v: f"0x{v:08X}UL",
+        cmd=COMMAND_BY_NAME, hexu=lambda v: f"0x{v:08X}UL", **_c_tables(table, build_id, profile_hash, hz,
+                                                                          capture_bytes // 2),
     )
     env = _env()
     return {name: env.get_template(name + ".j2").render(**ctx) for name in ("link_fw.h", "link_fw.c")}
@@ -852,7 +900,9 @@ def _check_definition() -> None:
     assert COMMAND_BY_NAME["param_info"].reply_size + NAME_MAX <= MAX_PAYLOAD
     assert 4 * PARAM_GET_MAX <= MAX_PAYLOAD
     assert TELEMETRY_HEADER_BYTES + 2 * len(DEFAULT_TELEMETRY_SIGNALS) * DEFAULT_SAMPLES_PER_FRAME <= MAX_PAYLOAD
-    assert RX_RING_BYTES & (RX_RING_BYTES - 1) == 0 and RX_RING_BYTES >= MAX_FRAME + 8
+    assert RX_RING_BYTES & (RX_RING_BYTES - 1) == 0 and RX_RING_BYTES > MAX_FRAME + 1
+    assert MAX_BODY < 254                 # one COBS block per frame
+    assert [c.code for c in COMMANDS] == list(range(1, len(COMMANDS) + 1))   # the C dispatch table
     assert len(SIGNALS) <= 16
     for d in static_defs(8):
         assert len(d.name) <= NAME_MAX and d.unit in UNITS, d.name
