@@ -2,25 +2,30 @@
  * link_fw.h -- picdrive serial link, C side.
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
  *
- * protocol 1.0, 30 table entries (2 rules),
- * table hash 0x02670AFBUL, build id 0x8CF0E6ACUL, profile hash 0x4B0E5FBAUL
+ * protocol 2.0, 30 table entries (2 rules),
+ * table hash 0x02670AFBUL, build id 0x3BEDA336UL, profile hash 0x4B0E5FBAUL
  *
- * Frame: SOF 0xA5, LEN (0..40), TYPE, SEQ, payload, CRC-16/CCITT-FALSE over
- * LEN..payload, high byte first.  A bad CRC or an impossible LEN drops only the SOF byte and the
- * receiver rescans from the next byte; a partial frame older than 20 ms is abandoned.
+ * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
+ * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
+ * CRC-16/CCITT-FALSE over LEN..payload, high byte first.  A frame whose decoded length is not
+ * LEN + 5 or whose CRC fails is dropped whole; the receiver resynchronises at the next 0x00.
  *
  * RAM (bytes) of this module: buffers and scalar state (the total is what avr-gcc allocates):
  *   rx_ring            64
- *   tx_frame           46
+ *   tx_frame           45
  *   telemetry_frame    40
  *   replay              8
  *   param_store        37
  *   capture           128
- *   state              82
- *   total             405
+ *   state              93
+ *   total             415
  *
  * Contexts: link_rx_byte(), link_tick_ms() and link_sample() may be called from interrupts,
- * link_poll() from the main loop.  They share only single-byte flags and ring indices.
+ * link_poll() from the main loop.  link_rx_byte() shares only single-byte ring indices and an
+ * 8-bit overflow count with the main loop; link_tick_ms() and link_sample() share 16/32-bit
+ * counters read by link_poll() inside LINK_CRITICAL_BEGIN()/END(), which must therefore mask
+ * the interrupt that calls them.  None of them calls a compiler helper (multiply, divide,
+ * generic pointer, flash table read), so none is shared with the main loop.
  * Parameter-store writes happen in link_poll() between LINK_CRITICAL_BEGIN() and
  * LINK_CRITICAL_END() (define them, e.g. to clear/set GIEH, if the speed-loop interrupt
  * reads link_params).
@@ -30,9 +35,9 @@
 
 #include <stdint.h>
 
-#define LINK_PROTO_MAJOR        1u
+#define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0x8CF0E6ACUL
+#define LINK_BUILD_ID           0x3BEDA336UL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
 #define LINK_TABLE_HASH         0x02670AFBUL
 #define LINK_SAMPLE_HZ          1000u
@@ -40,10 +45,10 @@
 #define LINK_N_ENTRIES          30u
 #define LINK_N_SIGNALS          11u
 
-#define LINK_SOF                0xA5u
+#define LINK_DELIMITER          0x00u
 #define LINK_MAX_PAYLOAD        40u
-#define LINK_MAX_FRAME          46u
-#define LINK_FRAME_GAP_MS       20u
+#define LINK_MAX_BODY           45u   /* LEN, TYPE, SEQ, payload, CRC */
+#define LINK_MAX_FRAME          47u   /* on the wire: COBS code + body + delimiter */
 #define LINK_RX_RING            64u
 #define LINK_REPLAY_BYTES       8u
 #define LINK_CAPTURE_WORDS      64u

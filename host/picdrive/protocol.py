@@ -121,8 +121,8 @@ EEPROM_HEADER_BYTES = 8
 then the persisted parameters in table order (little-endian, C-type width),
 then CRC-16/CCITT-FALSE of everything before it, high byte first."""
 
-STATE_BYTES = 89
-"""Scalar state of the C module (struct S in link_fw.c), bytes, as avr-nm measures it;
+STATE_BYTES = 93
+"""Scalar state of the C module (struct S and the value register V in link_fw.c), bytes, as avr-nm measures it;
 checked by tests/test_protocol.py."""
 
 TELEMETRY_HEADER_BYTES = 2            # u16 counter of the frame's first sample
@@ -131,7 +131,7 @@ CAPTURE_READ_HEADER_BYTES = 7         # state u8, total u16, trigger index u16, 
 DEFAULT_TELEMETRY_SIGNALS = ("speed", "setpoint", "voltage", "current")
 DEFAULT_SAMPLES_PER_FRAME = 4
 """The default telemetry frame: four signals, four samples (34 B payload,
-40 B on the wire) -- 1 kHz of four signals fits into 115200 baud."""
+41 B on the wire) -- 1 kHz of four signals fits into 115200 baud."""
 
 
 # ---------------------------------------------------------------------------
@@ -812,9 +812,6 @@ def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, ca
     for e in table.entries:
         names += e.name
         name_offsets.append(len(names))
-    if len(names) > 255:
-        raise ProtocolError(f"the table's names take {len(names)} B; the C module indexes them with a byte "
-                            "(at most 255): use fewer rules")
 
     def row(e: Entry) -> str:
         return _c_bytes(struct.pack("<BBBBIiii", e.id, e.ct.code, e.flags, e.unit_index, e.scale_bits,
@@ -823,15 +820,19 @@ def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, ca
     def size_code(e: Entry) -> int:     # bytes in the store (signals: 16 bits), bit 7: signed
         return e.ct.size | (0x80 if e.ctype.startswith("int") else 0)
 
-    hello = struct.pack("<BBIIIBBHH", PROTOCOL_VERSION[0], PROTOCOL_VERSION[1], build_id, profile_hash,
-                        table.hash, len(table.entries), MAX_PAYLOAD, capture_words, sample_hz)
-    ee_head = EEPROM_MAGIC + bytes((EEPROM_LAYOUT_VERSION,)) + struct.pack("<I", table.hash) \
-        + bytes((table.eeprom_data_bytes,))
+    def le(macro: str, n: int) -> str:   # the header's macros stay the authority
+        return ", ".join(f"(uint8_t)({macro} >> {8 * k}u)" if k else f"(uint8_t){macro}" for k in range(n))
+
+    hello = ", ".join(["LINK_PROTO_MAJOR", "LINK_PROTO_MINOR", le("LINK_BUILD_ID", 4), le("LINK_PROFILE_HASH", 4),
+                       le("LINK_TABLE_HASH", 4), "LINK_N_ENTRIES", "LINK_MAX_PAYLOAD", le("LINK_CAPTURE_WORDS", 2),
+                       le("LINK_SAMPLE_HZ", 2)])
+    ee_head = ", ".join([_c_bytes(EEPROM_MAGIC + bytes((EEPROM_LAYOUT_VERSION,))), le("LINK_TABLE_HASH", 4),
+                         "EE_DATA_BYTES"])
     index = {e.name: i for i, e in enumerate(table.entries)}
     return dict(row_bytes=_C_ROW_BYTES, row_bytes_of=row, size_code=size_code,
                 name_offsets=name_offsets, names_concat=names,
                 persisted_index=[index[e.name] for e in table.persisted],
-                hello_bytes=_c_bytes(hello), ee_head_bytes=_c_bytes(ee_head),
+                name_t="uint8_t" if len(names) <= 255 else "uint16_t", hello_bytes=hello, ee_head_bytes=ee_head,
                 handler_of=lambda c: _C_HANDLERS.get(c.name, "h_" + c.name), idle_cmds=_C_IDLE_COMMANDS)
 
 
@@ -940,19 +941,29 @@ def render_markdown(table: Table | None = None) -> str:
     a("")
     a("## Frame")
     a("")
-    a("| byte | field |")
+    a("| byte of the body | field |")
     a("|---|---|")
-    a(f"| 0 | SOF `0x{SOF:02X}` |")
-    a(f"| 1 | LEN: payload length, 0..{MAX_PAYLOAD} |")
-    a("| 2 | TYPE |")
-    a("| 3 | SEQ |")
-    a("| 4 .. 4+LEN-1 | payload (little-endian integers) |")
+    a(f"| 0 | LEN: payload length, 0..{MAX_PAYLOAD} |")
+    a("| 1 | TYPE |")
+    a("| 2 | SEQ |")
+    a("| 3 .. 3+LEN-1 | payload (little-endian integers) |")
     a("| last 2 | CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) over LEN..payload, high byte first |")
     a("")
-    a(f"Largest frame: {MAX_FRAME} bytes.  No byte stuffing.  A receiver that finds LEN > {MAX_PAYLOAD} or a "
-      "bad CRC drops only the SOF byte and rescans from the next byte, so a valid frame that follows garbage "
-      f"is accepted at the latest {MAX_FRAME - 2} bytes after its SOF.  A partly received frame whose next "
-      f"byte does not arrive within {FRAME_GAP_MS} ms is abandoned the same way (SOF dropped, rescan).")
+    a(f"On the wire a frame is the body COBS-encoded (consistent overhead byte stuffing: one code byte, as a "
+      f"body is at most {MAX_BODY} B), then the delimiter `0x{DELIMITER:02X}`, which occurs nowhere else.  "
+      f"Largest frame: {MAX_FRAME} bytes.  The host sends a delimiter before each command too, so a partial "
+      "frame before it (a cable plugged in mid-frame, a host restarted mid-write) is dropped at once.")
+    a("")
+    a("A receiver collects the bytes up to each delimiter and accepts them only if they COBS-decode to a body "
+      "of exactly LEN + 5 bytes whose CRC holds; otherwise it drops them whole and starts afresh after the "
+      "delimiter.  Consequences: resynchronisation is exact (the first frame after any garbage is accepted as "
+      "soon as its delimiter arrives, if a delimiter preceded it); a frame carried inside a payload is "
+      "stuffed and can never be taken for a frame; a frame that lost bytes either ends at the next delimiter "
+      "(rejected by its length and CRC) or merges with the next frame (both rejected); a LEN that does not "
+      "match the frame's length is rejected whatever the CRC.  What remains is the CRC's chance rate "
+      "(2^-16 per corrupted frame, less with the length check): `bench/fuzz_link.py` measures it per kind of "
+      "corruption.  The board has no inter-byte timer; the host drops a partial frame after "
+      f"{HOST_GAP_MS} ms without bytes.  Version 1.x framed with a start byte 0xA5 and no stuffing.")
     a("")
     a("## Exchanges")
     a("")
@@ -970,9 +981,12 @@ def render_markdown(table: Table | None = None) -> str:
     a(f"* Board-initiated frames: telemetry (TYPE 0x{MSG_TELEMETRY:02X}, SEQ = telemetry generation, payload "
       "u16 counter of the frame's first sample then the samples), events (TYPE "
       f"0x{MSG_EVENT:02X}, SEQ = event counter, payload event, code).")
-    a("* Watchdog: while the drive state is RUN, a board that receives no valid frame for `link_timeout` ms "
-      "switches its outputs off, latches fault LINK_LOST and sends event WATCHDOG.  Idle boards never time "
-      "out.  The host keeps the link alive with heartbeat.")
+    a("* Watchdog: while the drive state is RUN, a board that receives no valid host command for "
+      "`link_timeout` ms switches its outputs off, latches fault LINK_LOST and sends event WATCHDOG.  Idle "
+      "boards never time out.  The host keeps the link alive with heartbeat.")
+    a("* Frames of the board's own types (ACKs, NACK, telemetry, event) arriving at the board are ignored: "
+      "no reply, and they do not feed the watchdog, so a loop-back fault (the board's frames echoed back) "
+      "cannot keep a motor running without a host.")
     a("* Direction is the sign of the speed setpoint (no separate reverse command).")
     a("")
     a("## Commands")
@@ -1057,7 +1071,7 @@ def render_markdown(table: Table | None = None) -> str:
     a("void    link_init(void);                  /* defaults, boot event; then link_eeprom_load() */")
     a("void    link_rx_byte(uint8_t b);          /* UART RX interrupt */")
     a("void    link_poll(void);                  /* main loop: dispatch, replies, events, telemetry */")
-    a("void    link_tick_ms(void);               /* 1 kHz: watchdog, frame gap, uptime */")
+    a("void    link_tick_ms(void);               /* 1 kHz: watchdog, uptime */")
     a("void    link_sample(void);                /* once per speed-loop sample: telemetry + capture */")
     a("void    link_event(uint8_t event, uint8_t code);   /* report BOOT cause / FAULT latched */")
     a("int16_t link_param_i16(uint8_t id);       /* raw value, saturated to int16 */")
@@ -1079,9 +1093,14 @@ def render_markdown(table: Table | None = None) -> str:
     a("```")
     a("")
     a("Contexts: `link_rx_byte`, `link_tick_ms` and `link_sample` may run in interrupts; `link_poll` runs in "
-      "the main loop.  They share only single-byte flags and ring indices.  `app_link_lost` is called from "
-      "`link_tick_ms`; `app_signal` from `link_sample` and `link_poll`.  Parameter-store writes happen in "
-      "`link_poll` inside `LINK_CRITICAL_BEGIN()`/`LINK_CRITICAL_END()`.")
+      "the main loop.  `link_rx_byte` only stores the byte in the ring (8-bit index, power-of-two size) or "
+      "counts an overflow in an 8-bit counter the main loop accumulates: it shares single bytes only, so any "
+      "interrupt priority may call it.  `link_tick_ms` and `link_sample` share 16/32-bit counters (uptime, "
+      "telemetry drops) that `link_poll` reads inside `LINK_CRITICAL_BEGIN()`/`LINK_CRITICAL_END()`, which "
+      "must mask their interrupt.  None of the three calls a compiler helper (no multiplication, division, "
+      "generic pointer or flash-table read), so no non-reentrant helper is shared with the main loop.  "
+      "`app_link_lost` is called from `link_tick_ms`; `app_signal` from `link_sample` and `link_poll`.  "
+      "Parameter-store writes happen in `link_poll` inside the same critical section.")
     a("")
     a("## Decisions (where the architecture leaves the choice open)")
     a("")
@@ -1094,7 +1113,8 @@ def render_markdown(table: Table | None = None) -> str:
         "command was corrupted resends at once instead of waiting for its timeout; garbage does not cause a "
         "NACK storm.",
         "Telemetry frames carry several samples (`samples_per_frame`, default 4 for the four default signals): "
-        "34 B of payload in a 40 B frame, 85 % payload efficiency, so 1 kHz of four signals fits 115200 baud.  "
+        f"34 B of payload in a {34 + FRAME_OVERHEAD} B frame, {34 / (34 + FRAME_OVERHEAD):.0%} payload efficiency, "
+        "so 1 kHz of four signals fits 115200 baud.  "
         "The frame's SEQ is the telemetry generation (incremented by each telem_config) so a host never decodes "
         "a frame with the wrong signal layout; the u16 counter of the first sample lets it count drops.",
         "The board double-buffers telemetry (one frame filling, one in the TX frame buffer) and streams a frame "
@@ -1104,8 +1124,9 @@ def render_markdown(table: Table | None = None) -> str:
         "(3.5 ms at 115200 baud).",
         "Direction is the sign of the speed setpoint; there is no reverse command.",
         "The watchdog is armed while app_signal(LINK_SIG_STATE) is RUN (not in BRAKE, IDLE or FAULT): it fires "
-        "once more than link_timeout ms have passed since the last valid frame (any frame that passes its CRC, "
-        "NACKed or not).  link_timeout has a floor of 20 ms, so it cannot be switched off.",
+        "once more than link_timeout ms have passed since the last valid host command (a frame that passes its "
+        "checks and carries a command TYPE, NACKed or not; not the board's own frame types).  link_timeout has "
+        "a floor of 20 ms, so it cannot be switched off.",
         "Capture triggers: immediate (pre_trigger must be 0), setpoint change (speed_setpoint written through "
         "the link or link_param_set), speed crossing a threshold upwards or downwards.  A record holds up to "
         "pre_trigger samples before the trigger (fewer if the trigger came before the history filled) and "
@@ -1114,8 +1135,11 @@ def render_markdown(table: Table | None = None) -> str:
         "about 4 ms per byte).  The image carries the table hash, so a board reflashed with another design "
         "ignores the old image (OTHER_BUILD) instead of loading numbers of other scales.",
         "Signals are 16-bit on the wire (int16 or uint16); position wraps at 16 bits.",
-        f"The host abandons a partial frame after {HOST_GAP_MS} ms without bytes (the board after {FRAME_GAP_MS} ms): "
-        "USB-serial adapters deliver bytes in bursts (an FTDI chip holds them up to its 16 ms latency timer).",
+        f"The host abandons a partial frame after {HOST_GAP_MS} ms without bytes: USB-serial adapters deliver "
+        "bytes in bursts (an FTDI chip holds them up to its 16 ms latency timer).  The board needs no timer.",
+        "The C module is table-driven for an 8-bit core: one flash row per table entry (the param_info reply "
+        "itself), store access by byte offset and size, commands dispatched through a table of handlers with "
+        "their argument lengths, no run-time multiplication or division.",
     ):
         a(f"* {item}")
     a("")
