@@ -73,7 +73,7 @@ def test_harness_catches_a_buffer_overflow():
 
 def test_harness_catches_a_crc_check_hole():
     """A receiver that skips the CRC of empty frames is caught by the reference comparison."""
-    exe = _mutant("|| body_crc(n) != 0u)", "|| (body_crc(n) != 0u && tx_buf[0] != 0u))")
+    exe = _mutant("|| (crc_hi | crc_lo) != 0u)", "|| ((crc_hi | crc_lo) != 0u && tx_buf[0] != 0u))")
     r, f = run_fuzz(exe, 200_000, 1)
     assert r.returncode == 1 and "FAIL" in f
 

@@ -46,6 +46,9 @@
 #define EE_DATA_BYTES      35u
 #define TELEM_HEADER       2u
 #define CAPREAD_HEADER     7u
+#if 20 != 20
+#error "row_of() multiplies by 20 with shifts"
+#endif
 #define PL                 3u                        /* payload offset in the frame body */
 #define BODY_OVERHEAD      5u                        /* LEN, TYPE, SEQ, CRC high, CRC low */
 #define A(i)               tx_buf[PL + (i)]
@@ -92,6 +95,7 @@ static const uint8_t link_rows[LINK_N_ENTRIES * ROW] = {
     0x46u, 0x04u, 0x03u, 0x07u, 0x6Fu, 0x12u, 0x83u, 0x32u, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* rule2_kd */
     0x47u, 0x04u, 0x03u, 0x08u, 0xCDu, 0xCCu, 0x4Cu, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x15u, 0x37u, 0x00u, 0x00u,   /* rule2_kc */
 };
+static const uint8_t link_ids[LINK_N_ENTRIES] = { LINK_ID_SPEED_SETPOINT, LINK_ID_CONTROLLER, LINK_ID_PREMISE_LOW, LINK_ID_PREMISE_HIGH, LINK_ID_SETPOINT_WEIGHT, LINK_ID_U_MIN, LINK_ID_U_MAX, LINK_ID_CURRENT_LIMIT, LINK_ID_ACCEL_LIMIT, LINK_ID_LINK_TIMEOUT, LINK_ID_STALL_TIMEOUT, LINK_ID_SPEED, LINK_ID_SETPOINT, LINK_ID_VOLTAGE, LINK_ID_CURRENT, LINK_ID_INTEGRATOR, LINK_ID_DUTY, LINK_ID_HALL, LINK_ID_STATE, LINK_ID_FAULT, LINK_ID_MU1, LINK_ID_POSITION, LINK_ID_RULE1_KP, LINK_ID_RULE1_KI, LINK_ID_RULE1_KD, LINK_ID_RULE1_KC, LINK_ID_RULE2_KP, LINK_ID_RULE2_KI, LINK_ID_RULE2_KD, LINK_ID_RULE2_KC };
 static const uint8_t link_off[LINK_N_ENTRIES] = { (uint8_t)offsetof(link_params_t, speed_setpoint), (uint8_t)offsetof(link_params_t, controller), (uint8_t)offsetof(link_params_t, premise_low), (uint8_t)offsetof(link_params_t, premise_high), (uint8_t)offsetof(link_params_t, setpoint_weight), (uint8_t)offsetof(link_params_t, u_min), (uint8_t)offsetof(link_params_t, u_max), (uint8_t)offsetof(link_params_t, current_limit), (uint8_t)offsetof(link_params_t, accel_limit), (uint8_t)offsetof(link_params_t, link_timeout), (uint8_t)offsetof(link_params_t, stall_timeout), NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, (uint8_t)offsetof(link_params_t, rule1_kp), (uint8_t)offsetof(link_params_t, rule1_ki), (uint8_t)offsetof(link_params_t, rule1_kd), (uint8_t)offsetof(link_params_t, rule1_kc), (uint8_t)offsetof(link_params_t, rule2_kp), (uint8_t)offsetof(link_params_t, rule2_ki), (uint8_t)offsetof(link_params_t, rule2_kd), (uint8_t)offsetof(link_params_t, rule2_kc) };
 static const uint8_t link_size[LINK_N_ENTRIES] = { 0x82u, 0x01u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x02u, 0x02u, 0x02u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u };
 static const uint8_t link_name_at[LINK_N_ENTRIES + 1u] = { 0u, 14u, 24u, 35u, 47u, 62u, 67u, 72u, 85u, 96u, 108u, 121u, 126u, 134u, 141u, 148u, 158u, 162u, 166u, 171u, 176u, 179u, 187u, 195u, 203u, 211u, 219u, 227u, 235u, 243u, 251u };
@@ -184,16 +188,9 @@ static struct {
 } S;
 
 /* ---- little helpers (offsets into tx_buf) ---- */
-static void put16(uint8_t o, uint16_t v)
-{
-    tx_buf[o] = (uint8_t)v;
-    tx_buf[(uint8_t)(o + 1u)] = (uint8_t)(v >> 8);
-}
-
-static uint16_t get16(uint8_t o)
-{
-    return (uint16_t)((uint16_t)tx_buf[o] | (uint16_t)((uint16_t)tx_buf[(uint8_t)(o + 1u)] << 8));
-}
+/* o: constant offsets, so the compiler addresses tx_buf directly */
+#define put16(o, v) do { uint16_t v_ = (v); tx_buf[(o)] = (uint8_t)v_; tx_buf[(o) + 1u] = (uint8_t)(v_ >> 8); } while (0)
+#define get16(o) ((uint16_t)((uint16_t)tx_buf[(o)] | (uint16_t)((uint16_t)tx_buf[(o) + 1u] << 8)))
 
 static void put_v(uint8_t o)           /* V, 4 bytes little-endian */
 {
@@ -221,61 +218,62 @@ static uint8_t popcount16(uint16_t m)
     return n;
 }
 
+/* CRC-16/CCITT-FALSE (poly 0x1021) byte-wise without a table, on two bytes of state: 8-bit
+ * shifts and XORs only (a shift form needs no 512 B table and no 16-bit arithmetic) */
+static uint8_t crc_hi, crc_lo, crc_x;
+#define CRC_INIT() do { crc_hi = 0xFFu; crc_lo = 0xFFu; } while (0)
+#define CRC_STEP(b) do {                                                        \
+        crc_x = (uint8_t)(crc_hi ^ (uint8_t)(b));                                \
+        crc_x = (uint8_t)(crc_x ^ (uint8_t)(crc_x >> 4));                        \
+        crc_hi = (uint8_t)(crc_lo ^ (uint8_t)(crc_x >> 3) ^ (uint8_t)(crc_x << 4)); \
+        crc_lo = (uint8_t)(crc_x ^ (uint8_t)(crc_x << 5));                       \
+    } while (0)
+
 uint16_t link_crc16_update(uint16_t crc, uint8_t b)
 {
-    /* CRC-16/CCITT-FALSE (poly 0x1021) byte-wise without a table: 8-bit operations only */
-    uint8_t hi = (uint8_t)(crc >> 8), lo = (uint8_t)crc;
-    uint8_t x = (uint8_t)(hi ^ b);
-    x = (uint8_t)(x ^ (uint8_t)(x >> 4));
-    hi = (uint8_t)(lo ^ (uint8_t)(x >> 3) ^ (uint8_t)(x << 4));
-    lo = (uint8_t)(x ^ (uint8_t)(x << 5));
-    return (uint16_t)((uint16_t)((uint16_t)hi << 8) | lo);
+    crc_hi = (uint8_t)(crc >> 8);
+    crc_lo = (uint8_t)crc;
+    CRC_STEP(b);
+    return (uint16_t)((uint16_t)((uint16_t)crc_hi << 8) | crc_lo);
 }
 
 uint16_t link_crc16(const uint8_t *p, uint8_t n)
 {
-    uint16_t crc = 0xFFFFu;
+    CRC_INIT();
     while (n != 0u) {
-        crc = link_crc16_update(crc, *p);
+        CRC_STEP(*p);
         p++;
         n--;
     }
-    return crc;
+    return (uint16_t)((uint16_t)((uint16_t)crc_hi << 8) | crc_lo);
 }
 
-/* CRC of tx_buf[0..n-1] */
-static uint16_t body_crc(uint8_t n)
+/* CRC of tx_buf[0..n-1] into crc_hi, crc_lo */
+static void body_crc(uint8_t n)
 {
-    uint16_t crc = 0xFFFFu;
     uint8_t i;
+    CRC_INIT();
     for (i = 0u; i < n; i++) {
-        crc = link_crc16_update(crc, tx_buf[i]);
+        CRC_STEP(tx_buf[i]);
     }
-    return crc;
 }
 
 /* ---- parameter store: table-driven, no switch per parameter or type ---- */
 static uint8_t entry_index(uint8_t id)
 {
     uint8_t i;
-    uint16_t o = 0u;
     for (i = 0u; i < LINK_N_ENTRIES; i++) {
-        if (link_rows[o] == id) {
+        if (link_ids[i] == id) {
             return i;
         }
-        o = (uint16_t)(o + ROW);
     }
     return NONE;
 }
 
-static uint16_t row_of(uint8_t idx)
+static uint16_t row_of(uint8_t idx)    /* idx * 20, by shifts */
 {
-    uint16_t o = 0u;
-    while (idx != 0u) {
-        o = (uint16_t)(o + ROW);
-        idx--;
-    }
-    return o;
+    uint16_t o = (uint16_t)((uint16_t)idx << 2);
+    return (uint16_t)(o + (uint16_t)(o << 2));
 }
 
 static void row_v(uint16_t o)          /* V = the int32 at link_rows[o] */
@@ -321,7 +319,7 @@ static void store_put_at(uint8_t idx)  /* the parameter = V (already range-check
 static void value_at(uint8_t idx)      /* V = parameter or signal */
 {
     if (link_off[idx] == NONE) {
-        int16_t v = app_signal((uint8_t)(link_rows[row_of(idx)] - LINK_SIGNAL_BASE_ID));
+        int16_t v = app_signal((uint8_t)(link_ids[idx] - LINK_SIGNAL_BASE_ID));
         V.b[0] = (uint8_t)v;
         V.b[1] = (uint8_t)((uint16_t)v >> 8);
         sign_extend(link_size[idx]);
@@ -396,55 +394,48 @@ static uint8_t ee_rd(uint8_t a)
     return app_eeprom_read((uint8_t)(LINK_EE_BASE + a));
 }
 
-static uint16_t ee_crc(uint8_t n)
+static void ee_crc(uint8_t n)           /* into crc_hi, crc_lo */
 {
-    uint16_t crc = 0xFFFFu;
     uint8_t a;
+    CRC_INIT();
     for (a = 0u; a < n; a++) {
-        crc = link_crc16_update(crc, ee_rd(a));
+        CRC_STEP(ee_rd(a));
     }
-    return crc;
+}
+
+static uint8_t ee_off;
+
+static void ee_put(uint8_t b)          /* write the next image byte, CRC it */
+{
+    app_eeprom_write((uint8_t)(LINK_EE_BASE + ee_off), b);
+    ee_off++;
+    CRC_STEP(b);
 }
 
 uint8_t link_eeprom_save(void)
 {
-    uint8_t off = 0u, i, k, n, idx;
-    uint16_t crc;
+    uint8_t i, k, n, idx, hi, lo;
+    ee_off = 0u;
+    CRC_INIT();
     for (k = 0u; k < EE_HEADER; k++) {
-        app_eeprom_write((uint8_t)(LINK_EE_BASE + off), link_ee_head[k]);
-        off++;
+        ee_put(link_ee_head[k]);
     }
     for (i = 0u; i < (uint8_t)sizeof link_persisted; i++) {
         idx = link_persisted[i];
         n = (uint8_t)(link_size[idx] & 0x7Fu);
         store_get_at(idx);
         for (k = 0u; k < n; k++) {
-            app_eeprom_write((uint8_t)(LINK_EE_BASE + off), V.b[k]);
-            off++;
+            ee_put(V.b[k]);
         }
     }
-    crc = ee_crc(off);
-    app_eeprom_write((uint8_t)(LINK_EE_BASE + off), (uint8_t)(crc >> 8));
-    app_eeprom_write((uint8_t)(LINK_EE_BASE + off + 1u), (uint8_t)crc);
-    /* read-back verify: the data against the store, the CRC bytes against the CRC */
-    off = EE_HEADER;
-    for (i = 0u; i < (uint8_t)sizeof link_persisted; i++) {
-        idx = link_persisted[i];
-        n = (uint8_t)(link_size[idx] & 0x7Fu);
-        store_get_at(idx);
-        for (k = 0u; k < n; k++) {
-            if (ee_rd(off) != V.b[k]) {
-                return LINK_NACK_EEPROM_ERROR;
-            }
-            off++;
-        }
-    }
-    for (k = 0u; k < EE_HEADER; k++) {
-        if (ee_rd(k) != link_ee_head[k]) {
-            return LINK_NACK_EEPROM_ERROR;
-        }
-    }
-    if (ee_rd(off) != (uint8_t)(crc >> 8) || ee_rd((uint8_t)(off + 1u)) != (uint8_t)crc) {
+    hi = crc_hi;
+    lo = crc_lo;
+    ee_put(hi);
+    ee_put(lo);
+    /* read-back verify: the image with its CRC leaves 0 (CRC-16 catches any 1-3 bad bits), and
+     * the CRC bytes are the ones computed from the store */
+    ee_crc(ee_off);
+    if ((crc_hi | crc_lo) != 0u || ee_rd((uint8_t)(ee_off - 2u)) != hi || ee_rd((uint8_t)(ee_off - 1u)) != lo) {
         return LINK_NACK_EEPROM_ERROR;
     }
     return 0u;
@@ -463,7 +454,6 @@ static void ee_value(uint8_t off, uint8_t idx)
 uint8_t link_eeprom_load(void)
 {
     uint8_t off, i, k, idx, pass;
-    uint16_t crc;
     if (ee_rd(0u) != link_ee_head[0] || ee_rd(1u) != link_ee_head[1]) {
         return LINK_EE_BLANK;
     }
@@ -473,8 +463,8 @@ uint8_t link_eeprom_load(void)
         }
     }
     off = (uint8_t)(EE_HEADER + EE_DATA_BYTES);
-    crc = ee_crc(off);
-    if (ee_rd(off) != (uint8_t)(crc >> 8) || ee_rd((uint8_t)(off + 1u)) != (uint8_t)crc) {
+    ee_crc(off);
+    if (ee_rd(off) != crc_hi || ee_rd((uint8_t)(off + 1u)) != crc_lo) {
         return LINK_EE_CORRUPT;
     }
     /* pass 0: every value in range, or nothing is loaded; pass 1: store */
@@ -494,7 +484,7 @@ uint8_t link_eeprom_load(void)
         }
     }
     for (i = 0u; i < (uint8_t)sizeof link_persisted; i++) {
-        app_param_changed(link_rows[row_of(link_persisted[i])]);
+        app_param_changed(link_ids[link_persisted[i]]);
     }
     return LINK_EE_OK;
 }
@@ -608,7 +598,10 @@ static uint8_t rx_frame(void)
         n = 0u;
         if (S.rx_skip == 0u && end != S.rx_tail) {
             n = rx_decode(end);
-            if (n < BODY_OVERHEAD || (uint8_t)(tx_buf[0] + BODY_OVERHEAD) != n || body_crc(n) != 0u) {
+            if (n >= BODY_OVERHEAD) {
+                body_crc(n);           /* over the CRC too: a good frame leaves 0 */
+            }
+            if (n < BODY_OVERHEAD || (uint8_t)(tx_buf[0] + BODY_OVERHEAD) != n || (crc_hi | crc_lo) != 0u) {
                 if (S.crc_errors != 0xFFFFu) {
                     S.crc_errors++;
                 }
@@ -634,14 +627,13 @@ static uint8_t rx_frame(void)
 /* ---- transmit: body in tx_buf, COBS-encoded byte by byte as the UART queue has room ---- */
 static void tx_seal(uint8_t type, uint8_t seq, uint8_t len)
 {
-    uint16_t crc;
     tx_buf[0] = len;
     tx_buf[1] = type;
     tx_buf[2] = seq;
     len = (uint8_t)(len + PL);
-    crc = body_crc(len);
-    tx_buf[len] = (uint8_t)(crc >> 8);
-    tx_buf[(uint8_t)(len + 1u)] = (uint8_t)crc;
+    body_crc(len);
+    tx_buf[len] = crc_hi;
+    tx_buf[(uint8_t)(len + 1u)] = crc_lo;
     S.tx_len = (uint8_t)(len + 2u);
     S.tx_pos = 0u;
     S.tx_state = 1u;
