@@ -824,7 +824,7 @@ def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, ca
         return ", ".join(f"(uint8_t)({macro} >> {8 * k}u)" if k else f"(uint8_t){macro}" for k in range(n))
 
     hello = ", ".join(["LINK_PROTO_MAJOR", "LINK_PROTO_MINOR", le("LINK_BUILD_ID", 4), le("LINK_PROFILE_HASH", 4),
-                       le("LINK_TABLE_HASH", 4), "LINK_N_ENTRIES", "LINK_MAX_PAYLOAD", le("LINK_CAPTURE_WORDS", 2),
+                       le("LINK_TABLE_HASH", 4), "LINK_N_ENTRIES", "LINK_MAX_PAYLOAD", le("LINK_HELLO_CAPTURE_WORDS", 2),
                        le("LINK_SAMPLE_HZ", 2)])
     ee_head = ", ".join([_c_bytes(EEPROM_MAGIC + bytes((EEPROM_LAYOUT_VERSION,))), le("LINK_TABLE_HASH", 4),
                          "EE_DATA_BYTES"])
@@ -838,7 +838,7 @@ def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, ca
 
 def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float | None = None,
              capture_bytes: int = CAPTURE_BYTES_DEFAULT, critical_begin: str = "",
-             critical_end: str = "") -> dict[str, str]:
+             critical_end: str = "", capture: bool = True, eeprom: bool = True) -> dict[str, str]:
     """Render the C link module for ``table``.
 
     Returns ``{"link_fw.h": text, "link_fw.c": text}``.  ``build_id`` and
@@ -851,6 +851,10 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
     loop (e.g. ``"INTCONbits.GIEH = 0;"``); empty when the speed loop reads
     the store from the main loop only.  Both can also be set with
     ``-DLINK_CRITICAL_BEGIN()=...`` at compile time.
+    ``capture``/``eeprom``: generate the triggered capture (commands and buffer) and the EEPROM
+    persistence, or leave them out to save flash (``LINK_WITH_CAPTURE``/``LINK_WITH_EEPROM``;
+    a build without capture NACKs its commands UNKNOWN_COMMAND and reports 0 capture words in
+    hello; one without EEPROM refuses eeprom_save and loads nothing).
     """
     if not isinstance(table, Table):
         raise ProtocolError("render_c needs a protocol.Table from build_table()")
@@ -882,6 +886,7 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
         ee_image=table.eeprom_image_bytes, telem_header=TELEMETRY_HEADER_BYTES,
         capread_header=CAPTURE_READ_HEADER_BYTES, budget=ram_budget(table, capture_bytes), state_bytes=STATE_BYTES,
         critical_begin=critical_begin, critical_end=critical_end, c_int=_c_int,
+        with_capture=bool(capture), with_eeprom=bool(eeprom),
         cmd=COMMAND_BY_NAME, hexu=lambda v: f"0x{v:08X}UL", **_c_tables(table, build_id, profile_hash, hz,
                                                                           capture_bytes // 2),
     )
