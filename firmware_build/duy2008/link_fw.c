@@ -18,11 +18,6 @@
 #include <stddef.h>
 #include "link_fw.h"
 
-#if defined(__SDCC_pic16) || defined(__SDCC_PIC16)
-#define LINK_DATA __data                 /* 2-byte data-space pointers, not 3-byte generic ones */
-#else
-#define LINK_DATA
-#endif
 
 #ifndef LINK_CRITICAL_BEGIN
 #define LINK_CRITICAL_BEGIN() do { extern void fw_lock(void); fw_lock(); } while (0)
@@ -100,17 +95,21 @@ static const uint8_t link_off[LINK_N_ENTRIES] = { (uint8_t)offsetof(link_params_
 static const uint8_t link_size[LINK_N_ENTRIES] = { 0x82u, 0x01u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x02u, 0x02u, 0x02u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u };
 static const uint8_t link_name_at[LINK_N_ENTRIES + 1u] = { 0u, 14u, 24u, 35u, 47u, 62u, 67u, 72u, 85u, 96u, 108u, 121u, 126u, 134u, 141u, 148u, 158u, 162u, 166u, 171u, 176u, 179u, 187u, 195u, 203u, 211u, 219u, 227u, 235u, 243u, 251u };
 static const char link_names[] = "speed_setpointcontrollerpremise_lowpremise_highsetpoint_weightu_minu_maxcurrent_limitaccel_limitlink_timeoutstall_timeoutspeedsetpointvoltagecurrentintegratordutyhallstatefaultmu1positionrule1_kprule1_kirule1_kdrule1_kcrule2_kprule2_kirule2_kdrule2_kc";
+static const uint8_t link_hello[20] = { LINK_PROTO_MAJOR, LINK_PROTO_MINOR, (uint8_t)LINK_BUILD_ID, (uint8_t)(LINK_BUILD_ID >> 8u), (uint8_t)(LINK_BUILD_ID >> 16u), (uint8_t)(LINK_BUILD_ID >> 24u), (uint8_t)LINK_PROFILE_HASH, (uint8_t)(LINK_PROFILE_HASH >> 8u), (uint8_t)(LINK_PROFILE_HASH >> 16u), (uint8_t)(LINK_PROFILE_HASH >> 24u), (uint8_t)LINK_TABLE_HASH, (uint8_t)(LINK_TABLE_HASH >> 8u), (uint8_t)(LINK_TABLE_HASH >> 16u), (uint8_t)(LINK_TABLE_HASH >> 24u), LINK_N_ENTRIES, LINK_MAX_PAYLOAD, (uint8_t)LINK_HELLO_CAPTURE_WORDS, (uint8_t)(LINK_HELLO_CAPTURE_WORDS >> 8u), (uint8_t)LINK_SAMPLE_HZ, (uint8_t)(LINK_SAMPLE_HZ >> 8u) };
+#if LINK_WITH_EEPROM
 static const uint8_t link_persisted[18] = { 1u, 2u, 3u, 4u, 5u, 6u, 7u, 8u, 9u, 10u, 22u, 23u, 24u, 25u, 26u, 27u, 28u, 29u };   /* entry indices */
-static const uint8_t link_hello[20] = { LINK_PROTO_MAJOR, LINK_PROTO_MINOR, (uint8_t)LINK_BUILD_ID, (uint8_t)(LINK_BUILD_ID >> 8u), (uint8_t)(LINK_BUILD_ID >> 16u), (uint8_t)(LINK_BUILD_ID >> 24u), (uint8_t)LINK_PROFILE_HASH, (uint8_t)(LINK_PROFILE_HASH >> 8u), (uint8_t)(LINK_PROFILE_HASH >> 16u), (uint8_t)(LINK_PROFILE_HASH >> 24u), (uint8_t)LINK_TABLE_HASH, (uint8_t)(LINK_TABLE_HASH >> 8u), (uint8_t)(LINK_TABLE_HASH >> 16u), (uint8_t)(LINK_TABLE_HASH >> 24u), LINK_N_ENTRIES, LINK_MAX_PAYLOAD, (uint8_t)LINK_CAPTURE_WORDS, (uint8_t)(LINK_CAPTURE_WORDS >> 8u), (uint8_t)LINK_SAMPLE_HZ, (uint8_t)(LINK_SAMPLE_HZ >> 8u) };
 static const uint8_t link_ee_head[EE_HEADER] = { 0x50u, 0x44u, 0x01u, (uint8_t)LINK_TABLE_HASH, (uint8_t)(LINK_TABLE_HASH >> 8u), (uint8_t)(LINK_TABLE_HASH >> 16u), (uint8_t)(LINK_TABLE_HASH >> 24u), EE_DATA_BYTES };
+#endif
 
 /* ---- buffers ---- */
 static uint8_t rx_ring[LINK_RX_RING];          /* written by link_rx_byte only */
 static uint8_t tx_buf[LINK_MAX_BODY];          /* frame body: decoded command, then the reply being sent */
 static uint8_t tm_buf[LINK_MAX_PAYLOAD];       /* telemetry payload being filled by link_sample */
 static uint8_t rp_data[LINK_REPLAY_BYTES];     /* last short reply, for duplicate-SEQ replay */
+#if LINK_WITH_CAPTURE
 static uint8_t cap_buf[2u * LINK_CAPTURE_WORDS]; /* capture ring, sample-major, int16 little-endian: byte
                                                   * indices, so no index is scaled by a multiply helper */
+#endif
 static union { int32_t l; uint8_t b[4]; } V;   /* the value being moved (main loop only) */
 
 /* ---- scalar state ---- */
@@ -130,6 +129,10 @@ static struct {
     uint8_t nack_type;
     uint8_t nack_seq;
     uint8_t n;                         /* argument bytes of the command, then reply bytes */
+    uint8_t crc_hi;                    /* CRC state (main loop): in S, so in one bank with the rest */
+    uint8_t crc_lo;
+    uint8_t crc_x;
+    uint8_t ee_off;                    /* next EEPROM image byte */
     /* transmit: COBS-encoded on the fly from tx_buf */
     uint8_t tx_len;                    /* body bytes; 0 = free */
     uint8_t tx_pos;
@@ -192,20 +195,24 @@ static struct {
 #define put16(o, v) do { uint16_t v_ = (v); tx_buf[(o)] = (uint8_t)v_; tx_buf[(o) + 1u] = (uint8_t)(v_ >> 8); } while (0)
 #define get16(o) ((uint16_t)((uint16_t)tx_buf[(o)] | (uint16_t)((uint16_t)tx_buf[(o) + 1u] << 8)))
 
-static void put_v(uint8_t o)           /* V, 4 bytes little-endian */
+static void mcopy(LINK_DATA uint8_t *d, const LINK_DATA uint8_t *src, uint8_t n)   /* RAM to RAM */
 {
-    uint8_t k;
-    for (k = 0u; k < 4u; k++) {
-        tx_buf[(uint8_t)(o + k)] = V.b[k];
+    while (n != 0u) {
+        *d = *src;
+        d++;
+        src++;
+        n--;
     }
 }
 
-static void get_v(uint8_t o)
+static void put_v(uint8_t o) LINK_WPARAM           /* V, 4 bytes little-endian */
 {
-    uint8_t k;
-    for (k = 0u; k < 4u; k++) {
-        V.b[k] = tx_buf[(uint8_t)(o + k)];
-    }
+    mcopy(&tx_buf[o], V.b, 4u);
+}
+
+static void get_v(uint8_t o) LINK_WPARAM
+{
+    mcopy(V.b, &tx_buf[o], 4u);
 }
 
 static uint8_t popcount16(uint16_t m)
@@ -220,22 +227,19 @@ static uint8_t popcount16(uint16_t m)
 
 /* CRC-16/CCITT-FALSE (poly 0x1021) byte-wise without a table, on two bytes of state: 8-bit
  * shifts and XORs only (a shift form needs no 512 B table and no 16-bit arithmetic) */
-static uint8_t crc_hi, crc_lo, crc_x;
+#define crc_hi S.crc_hi
+#define crc_lo S.crc_lo
+#define crc_x S.crc_x
 #define CRC_INIT() do { crc_hi = 0xFFu; crc_lo = 0xFFu; } while (0)
-#define CRC_STEP(b) do {                                                        \
-        crc_x = (uint8_t)(crc_hi ^ (uint8_t)(b));                                \
-        crc_x = (uint8_t)(crc_x ^ (uint8_t)(crc_x >> 4));                        \
-        crc_hi = (uint8_t)(crc_lo ^ (uint8_t)(crc_x >> 3) ^ (uint8_t)(crc_x << 4)); \
-        crc_lo = (uint8_t)(crc_x ^ (uint8_t)(crc_x << 5));                       \
-    } while (0)
 
-uint16_t link_crc16_update(uint16_t crc, uint8_t b)
+static void crc_byte(uint8_t b) LINK_WPARAM
 {
-    crc_hi = (uint8_t)(crc >> 8);
-    crc_lo = (uint8_t)crc;
-    CRC_STEP(b);
-    return (uint16_t)((uint16_t)((uint16_t)crc_hi << 8) | crc_lo);
+    crc_x = (uint8_t)(crc_hi ^ b);
+    crc_x = (uint8_t)(crc_x ^ (uint8_t)(crc_x >> 4));
+    crc_hi = (uint8_t)(crc_lo ^ (uint8_t)(crc_x >> 3) ^ (uint8_t)(crc_x << 4));
+    crc_lo = (uint8_t)(crc_x ^ (uint8_t)(crc_x << 5));
 }
+#define CRC_STEP(b) crc_byte(b)
 
 uint16_t link_crc16(const uint8_t *p, uint8_t n)
 {
@@ -249,7 +253,7 @@ uint16_t link_crc16(const uint8_t *p, uint8_t n)
 }
 
 /* CRC of tx_buf[0..n-1] into crc_hi, crc_lo */
-static void body_crc(uint8_t n)
+static void body_crc(uint8_t n) LINK_WPARAM
 {
     uint8_t i;
     CRC_INIT();
@@ -259,7 +263,7 @@ static void body_crc(uint8_t n)
 }
 
 /* ---- parameter store: table-driven, no switch per parameter or type ---- */
-static uint8_t entry_index(uint8_t id)
+static uint8_t entry_index(uint8_t id) LINK_WPARAM
 {
     uint8_t i;
     for (i = 0u; i < LINK_N_ENTRIES; i++) {
@@ -270,7 +274,7 @@ static uint8_t entry_index(uint8_t id)
     return NONE;
 }
 
-static uint16_t row_of(uint8_t idx)    /* idx * 20, by shifts */
+static uint16_t row_of(uint8_t idx) LINK_WPARAM    /* idx * 20, by shifts */
 {
     uint16_t o = (uint16_t)((uint16_t)idx << 2);
     return (uint16_t)(o + (uint16_t)(o << 2));
@@ -284,7 +288,7 @@ static void row_v(uint16_t o)          /* V = the int32 at link_rows[o] */
     }
 }
 
-static void sign_extend(uint8_t sz)    /* V.b[0..n-1] hold a value of size code sz */
+static void sign_extend(uint8_t sz) LINK_WPARAM    /* V.b[0..n-1] hold a value of size code sz */
 {
     uint8_t n = (uint8_t)(sz & 0x7Fu), fill = 0u, k;
     if ((sz & 0x80u) != 0u && (V.b[n - 1u] & 0x80u) != 0u) {
@@ -295,7 +299,7 @@ static void sign_extend(uint8_t sz)    /* V.b[0..n-1] hold a value of size code 
     }
 }
 
-static void store_get_at(uint8_t idx)  /* V = the parameter's value */
+static void store_get_at(uint8_t idx) LINK_WPARAM  /* V = the parameter's value */
 {
     LINK_DATA uint8_t *p = (LINK_DATA uint8_t *)&link_params;
     uint8_t off = link_off[idx], sz = link_size[idx], k;
@@ -305,7 +309,7 @@ static void store_get_at(uint8_t idx)  /* V = the parameter's value */
     sign_extend(sz);
 }
 
-static void store_put_at(uint8_t idx)  /* the parameter = V (already range-checked) */
+static void store_put_at(uint8_t idx) LINK_WPARAM  /* the parameter = V (already range-checked) */
 {
     LINK_DATA uint8_t *p = (LINK_DATA uint8_t *)&link_params;
     uint8_t off = link_off[idx], sz = (uint8_t)(link_size[idx] & 0x7Fu), k;
@@ -316,7 +320,7 @@ static void store_put_at(uint8_t idx)  /* the parameter = V (already range-check
     LINK_CRITICAL_END();
 }
 
-static void value_at(uint8_t idx)      /* V = parameter or signal */
+static void value_at(uint8_t idx) LINK_WPARAM      /* V = parameter or signal */
 {
     if (link_off[idx] == NONE) {
         int16_t v = app_signal((uint8_t)(link_ids[idx] - LINK_SIGNAL_BASE_ID));
@@ -328,7 +332,7 @@ static void value_at(uint8_t idx)      /* V = parameter or signal */
     }
 }
 
-static uint8_t in_range(uint8_t idx)   /* V within the entry's [min, max] */
+static uint8_t in_range(uint8_t idx) LINK_WPARAM   /* V within the entry's [min, max] */
 {
     int32_t v = V.l, lo, hi;
     uint16_t o = row_of(idx);
@@ -362,7 +366,7 @@ int16_t link_param_i16(uint8_t id)
     return (int16_t)v;
 }
 
-static uint8_t set_v(uint8_t id)       /* write V to entry id: 0 or a NACK code */
+static uint8_t set_v(uint8_t id) LINK_WPARAM       /* write V to entry id: 0 or a NACK code */
 {
     uint8_t i = entry_index(id);
     if (i == NONE) {
@@ -389,12 +393,13 @@ uint8_t link_param_set(uint8_t id, int32_t raw)
 }
 
 /* ---- EEPROM image ---- */
-static uint8_t ee_rd(uint8_t a)
+#if LINK_WITH_EEPROM
+static uint8_t ee_rd(uint8_t a) LINK_WPARAM
 {
     return app_eeprom_read((uint8_t)(LINK_EE_BASE + a));
 }
 
-static void ee_crc(uint8_t n)           /* into crc_hi, crc_lo */
+static void ee_crc(uint8_t n) LINK_WPARAM           /* into crc_hi, crc_lo */
 {
     uint8_t a;
     CRC_INIT();
@@ -403,9 +408,9 @@ static void ee_crc(uint8_t n)           /* into crc_hi, crc_lo */
     }
 }
 
-static uint8_t ee_off;
+#define ee_off S.ee_off
 
-static void ee_put(uint8_t b)          /* write the next image byte, CRC it */
+static void ee_put(uint8_t b) LINK_WPARAM          /* write the next image byte, CRC it */
 {
     app_eeprom_write((uint8_t)(LINK_EE_BASE + ee_off), b);
     ee_off++;
@@ -488,6 +493,17 @@ uint8_t link_eeprom_load(void)
     }
     return LINK_EE_OK;
 }
+#else  /* generated without EEPROM persistence: nothing to load, saving is refused */
+uint8_t link_eeprom_save(void)
+{
+    return LINK_NACK_EEPROM_ERROR;
+}
+
+uint8_t link_eeprom_load(void)
+{
+    return LINK_EE_BLANK;
+}
+#endif
 
 /* ---- init, events ---- */
 void link_init(void)
@@ -523,7 +539,7 @@ void link_event(uint8_t event, uint8_t code)
 }
 
 /* ---- receive: the interrupt only stores the byte ---- */
-void link_rx_byte(uint8_t b)
+void link_rx_byte(uint8_t b) LINK_WPARAM
 {
     uint8_t h = S.rx_head;
     uint8_t next = (uint8_t)((uint8_t)(h + 1u) & RX_MASK);
@@ -536,7 +552,7 @@ void link_rx_byte(uint8_t b)
 }
 
 /* COBS-decode ring bytes [rx_tail, end) into tx_buf; the frame length, or 0 if malformed */
-static uint8_t rx_decode(uint8_t end)
+static uint8_t rx_decode(uint8_t end) LINK_WPARAM
 {
     uint8_t t = S.rx_tail, o = 0u, run = 0u, zero = 0u, b;
     while (t != end) {
@@ -822,6 +838,7 @@ static uint8_t h_telem_config(void)
     return 0u;
 }
 
+#if LINK_WITH_CAPTURE
 static uint8_t h_capture_arm(void)
 {
     uint16_t mask = get16(PL), n = get16(PL + 2u), pre = get16(PL + 4u), dec = get16(PL + 6u), words = 0u;
@@ -907,6 +924,7 @@ static uint8_t h_capture_read(void)
     S.n = (uint8_t)(o - PL);
     return 0u;
 }
+#endif
 
 static uint8_t h_eeprom_save(void)
 {
@@ -945,6 +963,15 @@ static uint8_t h_none(void)
     return 0u;
 }
 
+#if !LINK_WITH_CAPTURE
+#define h_capture_arm h_unknown
+#define h_capture_read h_unknown
+static uint8_t h_unknown(void)          /* a command this build was generated without */
+{
+    return LINK_NACK_UNKNOWN_COMMAND;
+}
+#endif
+
 /* dispatch table, by command code - 1: handler, argument bytes (0xFF: checked by the handler),
  * bit 0 of the flags: refused while the motor runs or brakes */
 typedef uint8_t (*link_handler_t)(void);
@@ -970,9 +997,9 @@ static const link_handler_t cmd_fn[N_CMDS] = {
 static const uint8_t cmd_args[N_CMDS] = { 0u, 1u, 255u, 5u, 4u, 0u, 0u, 0u, 1u, 5u, 11u, 3u, 0u, 0u, 0u, 0u, 0u };
 static const uint8_t cmd_idle[N_CMDS] = { 0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u, 1u, 1u, 0u, 0u, 0u };
 
-static void dispatch(uint8_t blen)
+static void dispatch(uint8_t blen) LINK_WPARAM
 {
-    uint8_t type = tx_buf[1], seq = tx_buf[2], c, code, rtype, i;
+    uint8_t type = tx_buf[1], seq = tx_buf[2], c, code, rtype;
     if ((type & LINK_ACK_BIT) != 0u || type == LINK_MSG_NACK || type == LINK_MSG_EVENT
         || type == LINK_MSG_TELEMETRY) {
         return;                        /* a board frame (an echo, a loop-back): not for us, no reply */
@@ -986,9 +1013,7 @@ static void dispatch(uint8_t blen)
     LINK_HOOK_FRAME(type, seq, &A(0), S.n);
     if (S.rp_valid != 0u && type == S.rp_type && seq == S.rp_seq && tx_buf[(uint8_t)(blen - 2u)] == S.rp_crc0
         && tx_buf[(uint8_t)(blen - 1u)] == S.rp_crc1 && S.rp_len != NONE) {
-        for (i = 0u; i < S.rp_len; i++) {
-            A(i) = rp_data[i];
-        }
+        mcopy(&A(0), rp_data, S.rp_len);
         tx_seal(S.rp_rtype, seq, S.rp_len);
         return;
     }
@@ -1018,9 +1043,7 @@ static void dispatch(uint8_t blen)
     S.rp_rtype = rtype;
     S.rp_len = NONE;
     if (S.n <= LINK_REPLAY_BYTES) {
-        for (i = 0u; i < S.n; i++) {
-            rp_data[i] = A(i);
-        }
+        mcopy(rp_data, &A(0), S.n);
         S.rp_len = S.n;
     }
 }
@@ -1053,7 +1076,7 @@ static uint8_t send_event(void)
 
 void link_poll(void)
 {
-    uint8_t k, i, n;
+    uint8_t k, n;
     for (k = 0u; k < 8u; k++) {
         S.wd_armed = (uint8_t)(app_signal(LINK_SIG_STATE) == (int16_t)LINK_STATE_RUN);
         tx_drain();
@@ -1079,9 +1102,7 @@ void link_poll(void)
             continue;
         }
         if (S.tm_ready != 0u) {
-            for (i = 0u; i < S.tm_len; i++) {
-                A(i) = tm_buf[i];
-            }
+            mcopy(&A(0), tm_buf, S.tm_len);
             tx_seal(LINK_MSG_TELEMETRY, S.tm_gen, S.tm_len);
             S.tm_nsamp = 0u;
             S.tm_len = 0u;
@@ -1117,6 +1138,7 @@ void link_tick_ms(void)
 }
 
 /* ---- per speed-loop sample: telemetry and capture ---- */
+#if LINK_WITH_CAPTURE
 static void capture_sample(void)
 {
     uint8_t fire = 0u, j;
@@ -1183,6 +1205,7 @@ static void capture_sample(void)
         }
     }
 }
+#endif
 
 void link_sample(void)
 {
@@ -1222,7 +1245,9 @@ void link_sample(void)
             S.tm_counter++;
         }
     }
+#if LINK_WITH_CAPTURE
     if (S.cap_state == LINK_CAP_ARMED || S.cap_state == LINK_CAP_TRIGGERED) {
         capture_sample();
     }
+#endif
 }

@@ -121,7 +121,7 @@ EEPROM_HEADER_BYTES = 8
 then the persisted parameters in table order (little-endian, C-type width),
 then CRC-16/CCITT-FALSE of everything before it, high byte first."""
 
-STATE_BYTES = 93
+STATE_BYTES = 97
 """Scalar state of the C module (struct S and the value register V in link_fw.c), bytes, as avr-nm measures it;
 checked by tests/test_protocol.py."""
 
