@@ -160,34 +160,38 @@ static struct {
     volatile uint8_t tm_ready;         /* sample fills tm_buf and sets it; poll sends and clears it */
     uint16_t tm_mask;
     uint16_t tm_dec;
-    uint16_t tm_div;
-    uint16_t tm_counter;
     volatile uint16_t tm_dropped;
     uint8_t tm_spf;
-    uint8_t tm_nsamp;
-    uint8_t tm_len;
     uint8_t tm_gen;
+    struct {                           /* restarted by telem_config */
+        uint16_t div;
+        uint16_t counter;
+        uint8_t nsamp;
+        uint8_t len;
+    } tr;
     /* capture */
     volatile uint8_t cap_state;
     volatile uint8_t cap_sp_changed;
     uint8_t cap_nsig;
     uint8_t cap_trig;
-    uint8_t cap_prev_valid;
     uint16_t cap_mask;
     uint16_t cap_n;
     uint16_t cap_bytes;                /* 2 cap_n cap_nsig, built by additions at arm time */
     uint16_t cap_pre;
     uint16_t cap_dec;
-    uint16_t cap_div;
-    uint16_t cap_w;                    /* next sample slot */
-    uint16_t cap_wi;                   /* its byte index in cap_buf */
-    uint16_t cap_filled;
-    uint16_t cap_post;
-    uint16_t cap_total;
-    uint16_t cap_start;
-    uint16_t cap_tidx;
     int16_t cap_thr;
-    int16_t cap_prev;
+    struct {                           /* restarted by capture_arm */
+        uint16_t div;
+        uint16_t w;                    /* next sample slot */
+        uint16_t wi;                   /* its byte index in cap_buf */
+        uint16_t filled;
+        uint16_t post;
+        uint16_t total;
+        uint16_t start;
+        uint16_t tidx;
+        int16_t prev;
+        uint8_t prev_valid;
+    } cr;
 } S;
 
 /* ---- little helpers (offsets into tx_buf) ---- */
@@ -201,6 +205,15 @@ static void mcopy(LINK_DATA uint8_t *d, const LINK_DATA uint8_t *src, uint8_t n)
         *d = *src;
         d++;
         src++;
+        n--;
+    }
+}
+
+static void mzero(LINK_DATA uint8_t *d, uint8_t n)
+{
+    while (n != 0u) {
+        *d = 0u;
+        d++;
         n--;
     }
 }
@@ -508,12 +521,8 @@ uint8_t link_eeprom_load(void)
 /* ---- init, events ---- */
 void link_init(void)
 {
-    LINK_DATA uint8_t *p = (LINK_DATA uint8_t *)&S;
     uint8_t i;
-    uint16_t k;
-    for (k = 0u; k < (uint16_t)sizeof S; k++) {
-        p[k] = 0u;
-    }
+    mzero((LINK_DATA uint8_t *)&S, (uint8_t)sizeof S);
     for (i = 0u; i < LINK_N_ENTRIES; i++) {
         if (link_off[i] != NONE) {
             row_v((uint16_t)(row_of(i) + 16u));
@@ -824,10 +833,7 @@ static uint8_t h_telem_config(void)
     S.tm_dec = 0u;
     S.tm_mask = mask;
     S.tm_spf = spf;
-    S.tm_div = 0u;
-    S.tm_nsamp = 0u;
-    S.tm_len = 0u;
-    S.tm_counter = 0u;
+    mzero((LINK_DATA uint8_t *)&S.tr, (uint8_t)sizeof S.tr);
     S.tm_ready = 0u;
     S.tm_gen++;
     S.tm_dec = dec;
@@ -863,17 +869,9 @@ static uint8_t h_capture_arm(void)
     S.cap_bytes = words;
     S.cap_pre = pre;
     S.cap_dec = dec;
-    S.cap_div = 0u;
     S.cap_trig = trig;
     S.cap_thr = (int16_t)get16(PL + 9u);
-    S.cap_prev_valid = 0u;
-    S.cap_w = 0u;
-    S.cap_wi = 0u;
-    S.cap_filled = 0u;
-    S.cap_post = 0u;
-    S.cap_total = 0u;
-    S.cap_start = 0u;
-    S.cap_tidx = 0u;
+    mzero((LINK_DATA uint8_t *)&S.cr, (uint8_t)sizeof S.cr);
     S.cap_sp_changed = 0u;
     S.cap_state = LINK_CAP_ARMED;
     LINK_CRITICAL_END();
@@ -883,21 +881,21 @@ static uint8_t h_capture_arm(void)
 static uint8_t h_capture_read(void)
 {
     uint16_t start = get16(PL), p, wi = 0u;
-    uint8_t want = A(2), j, o, st = S.cap_state;
+    uint8_t want = A(2), j, o, st = S.cap_state, nb = (uint8_t)(S.cap_nsig << 1);
     if (st == LINK_CAP_ARMED || st == LINK_CAP_TRIGGERED) {
         return LINK_NACK_BUSY;
     }
     if (st != LINK_CAP_DONE) {
         return LINK_NACK_WRONG_STATE;
     }
-    if (start > S.cap_total) {
+    if (start > S.cr.total) {
         return LINK_NACK_OUT_OF_RANGE;
     }
     A(0) = st;
-    put16(PL + 1u, S.cap_total);
-    put16(PL + 3u, S.cap_tidx);
+    put16(PL + 1u, S.cr.total);
+    put16(PL + 3u, S.cr.tidx);
     put16(PL + 5u, start);
-    p = (uint16_t)(S.cap_start + start);   /* < 2 cap_n */
+    p = (uint16_t)(S.cr.start + start);   /* < 2 cap_n */
     if (p >= S.cap_n) {
         p = (uint16_t)(p - S.cap_n);
     }
@@ -906,15 +904,11 @@ static uint8_t h_capture_read(void)
     }
     wi = (uint16_t)(wi << 1);
     o = (uint8_t)(PL + CAPREAD_HEADER);
-    p = (uint16_t)(S.cap_total - start);   /* samples left */
-    while (want != 0u && p != 0u
-           && (uint8_t)(o + (uint8_t)(S.cap_nsig << 1)) <= (uint8_t)(PL + LINK_MAX_PAYLOAD)) {
-        for (j = 0u; j < S.cap_nsig; j++) {
-            tx_buf[o] = cap_buf[wi];
-            tx_buf[(uint8_t)(o + 1u)] = cap_buf[(uint16_t)(wi + 1u)];
-            o = (uint8_t)(o + 2u);
-            wi = (uint16_t)(wi + 2u);
-        }
+    p = (uint16_t)(S.cr.total - start);   /* samples left */
+    while (want != 0u && p != 0u && (uint8_t)(o + nb) <= (uint8_t)(PL + LINK_MAX_PAYLOAD)) {
+        mcopy(&tx_buf[o], &cap_buf[wi], nb);
+        o = (uint8_t)(o + nb);
+        wi = (uint16_t)(wi + nb);
         if (wi >= S.cap_bytes) {
             wi = 0u;
         }
@@ -1102,10 +1096,10 @@ void link_poll(void)
             continue;
         }
         if (S.tm_ready != 0u) {
-            mcopy(&A(0), tm_buf, S.tm_len);
-            tx_seal(LINK_MSG_TELEMETRY, S.tm_gen, S.tm_len);
-            S.tm_nsamp = 0u;
-            S.tm_len = 0u;
+            mcopy(&A(0), tm_buf, S.tr.len);
+            tx_seal(LINK_MSG_TELEMETRY, S.tm_gen, S.tr.len);
+            S.tr.nsamp = 0u;
+            S.tr.len = 0u;
             S.tm_ready = 0u;
             continue;
         }
@@ -1138,69 +1132,74 @@ void link_tick_ms(void)
 }
 
 /* ---- per speed-loop sample: telemetry and capture ---- */
-#if LINK_WITH_CAPTURE
-static void capture_sample(void)
+/* the masked signals' values, int16 little-endian, from p on; returns the bytes written */
+static uint8_t put_signals(LINK_DATA uint8_t *p, uint16_t m)
 {
-    uint8_t fire = 0u, j;
-    uint16_t m, wi, v;
-    int16_t sp;
-    S.cap_div++;
-    if (S.cap_div < S.cap_dec) {
-        return;
-    }
-    S.cap_div = 0u;
-    if (S.cap_state == LINK_CAP_ARMED) {
-        if (S.cap_trig == LINK_TRIG_IMMEDIATE) {
-            fire = 1u;
-        } else if (S.cap_trig == LINK_TRIG_SETPOINT_CHANGE) {
-            fire = S.cap_sp_changed;
-        } else {
-            sp = app_signal(LINK_SIG_SPEED);
-            if (S.cap_prev_valid != 0u) {
-                if (S.cap_trig == LINK_TRIG_SPEED_RISING) {
-                    fire = (uint8_t)(S.cap_prev < S.cap_thr && sp >= S.cap_thr);
-                } else {
-                    fire = (uint8_t)(S.cap_prev > S.cap_thr && sp <= S.cap_thr);
-                }
-            }
-            S.cap_prev = sp;
-            S.cap_prev_valid = 1u;
-        }
-        if (fire != 0u) {
-            S.cap_tidx = (S.cap_filled < S.cap_pre) ? S.cap_filled : S.cap_pre;
-            S.cap_post = 0u;
-            S.cap_state = LINK_CAP_TRIGGERED;
-        }
-    }
-    wi = S.cap_wi;
-    m = S.cap_mask;
+    uint8_t j, n = 0u;
+    uint16_t v;
     for (j = 0u; m != 0u; j++) {
         if ((m & 1u) != 0u) {
             v = (uint16_t)app_signal(j);
-            cap_buf[wi] = (uint8_t)v;
-            cap_buf[(uint16_t)(wi + 1u)] = (uint8_t)(v >> 8);
-            wi = (uint16_t)(wi + 2u);
+            p[n] = (uint8_t)v;
+            p[(uint8_t)(n + 1u)] = (uint8_t)(v >> 8);
+            n = (uint8_t)(n + 2u);
         }
         m = (uint16_t)(m >> 1);
     }
-    S.cap_w++;
-    if (S.cap_w >= S.cap_n) {
-        S.cap_w = 0u;
+    return n;
+}
+
+#if LINK_WITH_CAPTURE
+static void capture_sample(void)
+{
+    uint8_t fire = 0u, trig = S.cap_trig;
+    uint16_t wi;
+    int16_t sp, thr = S.cap_thr;
+    S.cr.div++;
+    if (S.cr.div < S.cap_dec) {
+        return;
+    }
+    S.cr.div = 0u;
+    if (S.cap_state == LINK_CAP_ARMED) {
+        if (trig == LINK_TRIG_IMMEDIATE) {
+            fire = 1u;
+        } else if (trig == LINK_TRIG_SETPOINT_CHANGE) {
+            fire = S.cap_sp_changed;
+        } else {
+            sp = app_signal(LINK_SIG_SPEED);
+            if (trig == LINK_TRIG_SPEED_FALLING) {   /* falling through thr = rising through ~thr */
+                sp = (int16_t)(-1 - sp);
+                thr = (int16_t)(-1 - thr);
+            }
+            fire = (uint8_t)(S.cr.prev_valid != 0u && S.cr.prev < thr && sp >= thr);
+            S.cr.prev = sp;
+            S.cr.prev_valid = 1u;
+        }
+        if (fire != 0u) {
+            S.cr.tidx = (S.cr.filled < S.cap_pre) ? S.cr.filled : S.cap_pre;
+            S.cr.post = 0u;
+            S.cap_state = LINK_CAP_TRIGGERED;
+        }
+    }
+    wi = (uint16_t)(S.cr.wi + put_signals(&cap_buf[S.cr.wi], S.cap_mask));
+    S.cr.w++;
+    if (S.cr.w >= S.cap_n) {
+        S.cr.w = 0u;
         wi = 0u;
     }
-    S.cap_wi = wi;
-    if (S.cap_filled < S.cap_n) {
-        S.cap_filled++;
+    S.cr.wi = wi;
+    if (S.cr.filled < S.cap_n) {
+        S.cr.filled++;
     }
     if (S.cap_state == LINK_CAP_TRIGGERED) {
-        S.cap_post++;
-        if (S.cap_post >= (uint16_t)(S.cap_n - S.cap_pre)) {
-            S.cap_total = (uint16_t)(S.cap_tidx + S.cap_post);
-            wi = (uint16_t)(S.cap_w + (uint16_t)(S.cap_n - S.cap_total));   /* < 2 cap_n */
+        S.cr.post++;
+        if (S.cr.post >= (uint16_t)(S.cap_n - S.cap_pre)) {
+            S.cr.total = (uint16_t)(S.cr.tidx + S.cr.post);
+            wi = (uint16_t)(S.cr.w + (uint16_t)(S.cap_n - S.cr.total));   /* < 2 cap_n */
             if (wi >= S.cap_n) {
                 wi = (uint16_t)(wi - S.cap_n);
             }
-            S.cap_start = wi;
+            S.cr.start = wi;
             S.cap_state = LINK_CAP_DONE;
         }
     }
@@ -1209,40 +1208,29 @@ static void capture_sample(void)
 
 void link_sample(void)
 {
-    uint8_t j, len;
-    uint16_t m, v;
+    uint8_t len;
     if (S.tm_dec != 0u) {
-        S.tm_div++;
-        if (S.tm_div >= S.tm_dec) {
-            S.tm_div = 0u;
+        S.tr.div++;
+        if (S.tr.div >= S.tm_dec) {
+            S.tr.div = 0u;
             if (S.tm_ready != 0u) {
                 if (S.tm_dropped != 0xFFFFu) {
                     S.tm_dropped++;
                 }
             } else {
-                len = S.tm_len;
-                if (S.tm_nsamp == 0u) {
-                    tm_buf[0] = (uint8_t)S.tm_counter;
-                    tm_buf[1] = (uint8_t)(S.tm_counter >> 8);
+                len = S.tr.len;
+                if (S.tr.nsamp == 0u) {
+                    tm_buf[0] = (uint8_t)S.tr.counter;
+                    tm_buf[1] = (uint8_t)(S.tr.counter >> 8);
                     len = TELEM_HEADER;
                 }
-                m = S.tm_mask;
-                for (j = 0u; m != 0u; j++) {
-                    if ((m & 1u) != 0u) {
-                        v = (uint16_t)app_signal(j);
-                        tm_buf[len] = (uint8_t)v;
-                        tm_buf[(uint8_t)(len + 1u)] = (uint8_t)(v >> 8);
-                        len = (uint8_t)(len + 2u);
-                    }
-                    m = (uint16_t)(m >> 1);
-                }
-                S.tm_len = len;
-                S.tm_nsamp++;
-                if (S.tm_nsamp >= S.tm_spf) {
+                S.tr.len = (uint8_t)(len + put_signals(&tm_buf[len], S.tm_mask));
+                S.tr.nsamp++;
+                if (S.tr.nsamp >= S.tm_spf) {
                     S.tm_ready = 1u;
                 }
             }
-            S.tm_counter++;
+            S.tr.counter++;
         }
     }
 #if LINK_WITH_CAPTURE
