@@ -91,6 +91,7 @@ static const uint8_t link_rows[LINK_N_ENTRIES * ROW] = {
     0x47u, 0x04u, 0x03u, 0x08u, 0xCDu, 0xCCu, 0x4Cu, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x15u, 0x37u, 0x00u, 0x00u,   /* rule2_kc */
 };
 static const uint8_t link_ids[LINK_N_ENTRIES] = { LINK_ID_SPEED_SETPOINT, LINK_ID_CONTROLLER, LINK_ID_PREMISE_LOW, LINK_ID_PREMISE_HIGH, LINK_ID_SETPOINT_WEIGHT, LINK_ID_U_MIN, LINK_ID_U_MAX, LINK_ID_CURRENT_LIMIT, LINK_ID_ACCEL_LIMIT, LINK_ID_LINK_TIMEOUT, LINK_ID_STALL_TIMEOUT, LINK_ID_SPEED, LINK_ID_SETPOINT, LINK_ID_VOLTAGE, LINK_ID_CURRENT, LINK_ID_INTEGRATOR, LINK_ID_DUTY, LINK_ID_HALL, LINK_ID_STATE, LINK_ID_FAULT, LINK_ID_MU1, LINK_ID_POSITION, LINK_ID_RULE1_KP, LINK_ID_RULE1_KI, LINK_ID_RULE1_KD, LINK_ID_RULE1_KC, LINK_ID_RULE2_KP, LINK_ID_RULE2_KI, LINK_ID_RULE2_KD, LINK_ID_RULE2_KC };
+static const uint8_t link_index_of[72] = { 0u, 1u, 2u, 3u, 4u, 5u, 6u, 7u, 8u, 9u, 10u, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, 11u, 12u, 13u, 14u, 15u, 16u, 17u, 18u, 19u, 20u, 21u, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, 22u, 23u, 24u, 25u, 26u, 27u, 28u, 29u };   /* by id */
 static const uint8_t link_off[LINK_N_ENTRIES] = { (uint8_t)offsetof(link_params_t, speed_setpoint), (uint8_t)offsetof(link_params_t, controller), (uint8_t)offsetof(link_params_t, premise_low), (uint8_t)offsetof(link_params_t, premise_high), (uint8_t)offsetof(link_params_t, setpoint_weight), (uint8_t)offsetof(link_params_t, u_min), (uint8_t)offsetof(link_params_t, u_max), (uint8_t)offsetof(link_params_t, current_limit), (uint8_t)offsetof(link_params_t, accel_limit), (uint8_t)offsetof(link_params_t, link_timeout), (uint8_t)offsetof(link_params_t, stall_timeout), NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, (uint8_t)offsetof(link_params_t, rule1_kp), (uint8_t)offsetof(link_params_t, rule1_ki), (uint8_t)offsetof(link_params_t, rule1_kd), (uint8_t)offsetof(link_params_t, rule1_kc), (uint8_t)offsetof(link_params_t, rule2_kp), (uint8_t)offsetof(link_params_t, rule2_ki), (uint8_t)offsetof(link_params_t, rule2_kd), (uint8_t)offsetof(link_params_t, rule2_kc) };
 static const uint8_t link_size[LINK_N_ENTRIES] = { 0x82u, 0x01u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x02u, 0x02u, 0x02u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u };
 static const uint8_t link_name_at[LINK_N_ENTRIES + 1u] = { 0u, 14u, 24u, 35u, 47u, 62u, 67u, 72u, 85u, 96u, 108u, 121u, 126u, 134u, 141u, 148u, 158u, 162u, 166u, 171u, 176u, 179u, 187u, 195u, 203u, 211u, 219u, 227u, 235u, 243u, 251u };
@@ -276,15 +277,9 @@ static void body_crc(uint8_t n) LINK_WPARAM
 }
 
 /* ---- parameter store: table-driven, no switch per parameter or type ---- */
-static uint8_t entry_index(uint8_t id) LINK_WPARAM
+static uint8_t entry_index(uint8_t id) LINK_WPARAM   /* one flash read, no search */
 {
-    uint8_t i;
-    for (i = 0u; i < LINK_N_ENTRIES; i++) {
-        if (link_ids[i] == id) {
-            return i;
-        }
-    }
-    return NONE;
+    return (id < (uint8_t)sizeof link_index_of) ? link_index_of[id] : NONE;
 }
 
 static uint16_t row_of(uint8_t idx) LINK_WPARAM    /* idx * 20, by shifts */

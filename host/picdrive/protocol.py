@@ -829,7 +829,10 @@ def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, ca
     ee_head = ", ".join([_c_bytes(EEPROM_MAGIC + bytes((EEPROM_LAYOUT_VERSION,))), le("LINK_TABLE_HASH", 4),
                          "EE_DATA_BYTES"])
     index = {e.name: i for i, e in enumerate(table.entries)}
-    return dict(row_bytes=_C_ROW_BYTES, row_bytes_of=row, size_code=size_code,
+    index_of = [None] * (max(e.id for e in table.entries) + 1)
+    for i, e in enumerate(table.entries):
+        index_of[e.id] = i
+    return dict(index_of=index_of, row_bytes=_C_ROW_BYTES, row_bytes_of=row, size_code=size_code,
                 name_offsets=name_offsets, names_concat=names,
                 persisted_index=[index[e.name] for e in table.persisted],
                 name_t="uint8_t" if len(names) <= 255 else "uint16_t", hello_bytes=hello, ee_head_bytes=ee_head,
