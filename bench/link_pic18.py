@@ -3,6 +3,7 @@
 
     python3 bench/link_pic18.py                  # the module firmware_build/duy2008 carries now
     python3 bench/link_pic18.py --rev c0631cc    # the same files at a git revision (before/after)
+    python3 bench/link_pic18.py --features       # + flash without capture / EEPROM (generation options)
 
 Compiles firmware_build/duy2008/link_fw.c for the PIC18F4431 (device header from
 picdrive.p18f4431.render_sdcc_device), links it with a small harness (app_* stubs: app_signal
@@ -172,6 +173,17 @@ def _object_sizes(obj: Path) -> tuple[int, int]:
     return flash, ram
 
 
+def flash_with(c_text: str, h_text: str, defines: list[str]) -> int:
+    """Flash of link_fw.o compiled with extra -D options."""
+    with tempfile.TemporaryDirectory() as td:
+        d = Path(td)
+        (d / "xc.h").write_text(render_sdcc_device()[0])
+        (d / "link_fw.c").write_text(c_text)
+        (d / "link_fw.h").write_text(h_text)
+        _run([str(SDCC / "bin/sdcc"), *CFLAGS, *defines, "-I.", "-c", "link_fw.c"], d)
+        return _object_sizes(d / "link_fw.o")[0]
+
+
 def measure(c_text: str, h_text: str) -> dict:
     with tempfile.TemporaryDirectory() as td:
         d = Path(td)
@@ -219,6 +231,7 @@ def measure(c_text: str, h_text: str) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     ap.add_argument("--rev", help="git revision of firmware_build/duy2008/link_fw.[ch] (default: working tree)")
+    ap.add_argument("--features", action="store_true", help="also the flash without capture, EEPROM, both")
     a = ap.parse_args()
     if not (SDCC / "bin/sdcc").exists():
         print(f"SDCC pic16 not found in {SDCC}: run scripts/pic_toolchain.sh", file=sys.stderr)
@@ -243,6 +256,12 @@ def main() -> int:
     print(f"  link_sample  {m['sample_max']:6d} cycles worst, {m['sample_mean']:.0f} mean "
           "(4 telemetry signals, 4-signal capture armed)")
     print(f"  link_tick_ms {m['tick']:6d} cycles")
+    if a.features:
+        for label, defs in (("without capture", ["-DLINK_WITH_CAPTURE=0"]),
+                            ("without EEPROM", ["-DLINK_WITH_EEPROM=0"]),
+                            ("without both", ["-DLINK_WITH_CAPTURE=0", "-DLINK_WITH_EEPROM=0"])):
+            f = flash_with(c_text, h_text, defs)
+            print(f"  flash {label:<16} {f:6d} B  ({m['flash'] - f} B less)")
     return 0
 
 
