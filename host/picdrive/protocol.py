@@ -1161,7 +1161,9 @@ def render_markdown(table: Table | None = None) -> str:
       "`NackError` (command, code, reason), `HandshakeMismatch` (differences), `ParamError` (refused on the "
       "host).  Tests run it against the rendered C module with a fake application behind a local socket "
       "(`tests/linksupport/`); `bench/link.py` measures the telemetry rate and RAM, `bench/fuzz_link.py` "
-      "fuzzes the receiver under ASan/UBSan.")
+      "fuzzes the receiver under ASan/UBSan, `bench/link_pic18.py` measures flash, RAM and cycles of the C "
+      "module compiled by SDCC for the PIC18F4431 and run in gpsim (`--rev` for an older build, `--features` "
+      "for the flash the capture and EEPROM options cost).")
     a("")
     return "\n".join(L)
 
