@@ -635,3 +635,27 @@ def test_modelled_uart_small_tx_queue_carries_whole_frames():
         assert len(out) <= 11520 + 1
     finally:
         b.close()
+
+
+def test_build_without_capture_and_eeprom():
+    """The generation options: a module rendered without capture NACKs its commands
+    UNKNOWN_COMMAND and reports 0 capture words; without EEPROM it refuses eeprom_save and
+    loads nothing.  Everything else works as in the full build."""
+    files = P.render_c(TABLE, build_id=1, profile_hash=2, sample_hz=1000, capture=False, eeprom=False)
+    assert "#define LINK_WITH_CAPTURE       0" in files["link_fw.h"]
+    b = FakeBoard(TABLE, files=files, txq_bytes=4096)
+    try:
+        assert b.boot() == P.EepromResult.BLANK
+        p = Peer(b)
+        p.frames()
+        assert p.ok("hello")["capture_words"] == 0
+        assert p.nack("capture_arm", {"mask": 1, "n_samples": 4, "pre_trigger": 0, "decimation": 1, "trigger": 0,
+                                      "threshold": 0}) == Nack.UNKNOWN_COMMAND
+        assert p.nack("capture_read", {"start": 0, "count": 1}) == Nack.UNKNOWN_COMMAND
+        assert p.nack("eeprom_save") == Nack.EEPROM_ERROR
+        assert p.nack("eeprom_load") == Nack.EEPROM_ERROR
+        p.ok("param_set", {"id": TABLE["rule1_kp"].id, "value": 123})
+        assert b.param("rule1_kp") == 123
+        assert p.ok("telem_config", {"mask": 3, "decimation": 1, "samples_per_frame": 1})["payload_len"] == 6
+    finally:
+        b.close()
