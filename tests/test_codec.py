@@ -17,28 +17,37 @@ bytes8 = st.integers(0, 255)
 frames = st.builds(codec.Frame, bytes8, bytes8, payloads)
 
 
+def cobs_reference(data: bytes) -> bytes | None:
+    """COBS decoding written from the definition: split at the code bytes, each block is
+    code - 1 data bytes followed by a zero, the zero after the last block is not part of the data."""
+    out, i = [], 0
+    while i < len(data):
+        code = data[i]
+        block = data[i + 1:i + code]
+        if code == 0 or len(block) != code - 1:
+            return None
+        out.append(block)
+        i += code
+    return b"\0".join(out)
+
+
 def reference(stream: bytes, gaps: set[int]) -> list[codec.Frame]:
-    """Whole-array statement of the rule: at each SOF, a candidate of LEN + 6 bytes that lies
-    in the stream, crosses no gap (a gap sits before byte index g) and has a good CRC is a
-    frame (skip it); otherwise skip one byte."""
-    out, i, n = [], 0, len(stream)
-    while i < n:
-        if stream[i] != P.SOF:
-            i += 1
+    """Whole-array statement of the rule: the bytes between two delimiters (or the start of the
+    stream / a gap and a delimiter) are one candidate; it is a frame if it COBS-decodes to LEN,
+    TYPE, SEQ, payload and a CRC that matches, LEN + 5 bytes in all."""
+    out, start = [], 0
+    for i, b in enumerate(stream):
+        if i in gaps:
+            start = i
+        if b != P.DELIMITER:
             continue
-        if i + 1 >= n or (i + 1) in gaps or stream[i + 1] > P.MAX_PAYLOAD:
-            i += 1
+        cand, start = stream[start:i], i + 1
+        body = cobs_reference(cand)
+        if not body or len(body) < 5 or body[0] + 5 != len(body):
             continue
-        need = stream[i + 1] + 6
-        if i + need > n or any(g in gaps for g in range(i + 1, i + need)):
-            i += 1
+        if binascii.crc_hqx(body[:-2], 0xFFFF) != struct.unpack(">H", body[-2:])[0]:
             continue
-        body = stream[i + 1:i + need - 2]
-        if binascii.crc_hqx(body, 0xFFFF) != struct.unpack(">H", stream[i + need - 2:i + need])[0]:
-            i += 1
-            continue
-        out.append(codec.Frame(stream[i + 2], stream[i + 3], bytes(stream[i + 4:i + need - 2])))
-        i += need
+        out.append(codec.Frame(body[1], body[2], bytes(body[3:-2])))
     return out
 
 
@@ -60,12 +69,23 @@ def stream_decode(stream: bytes, cuts: list[int], gaps: set[int]) -> list[codec.
 @given(frames)
 def test_frame_round_trip(f):
     data = f.encode()
-    assert len(data) == len(f.payload) + P.FRAME_OVERHEAD and data[0] == P.SOF and data[1] == len(f.payload)
+    assert len(data) == len(f.payload) + P.FRAME_OVERHEAD and data[-1] == P.DELIMITER
+    assert P.DELIMITER not in data[:-1]
     assert codec.StreamDecoder().feed(data) == [f]
+    assert codec.StreamDecoder().feed(codec.encode_frame(f.type, f.seq, f.payload, lead=True)) == [f]
 
 
-# streams built from frames, corrupted frames and garbage that is rich in SOF and LEN bytes
-garbage = st.lists(st.one_of(st.just(P.SOF), st.integers(0, P.MAX_PAYLOAD + 5), bytes8), max_size=60).map(bytes)
+@SETTINGS
+@given(st.binary(max_size=600))
+def test_cobs_round_trip_and_no_zero(data):
+    enc = codec.cobs_encode(data)
+    assert 0 not in enc and len(enc) <= len(data) + 1 + len(data) // 254
+    if len(data) < 254:
+        assert codec.cobs_decode(enc) == data == cobs_reference(enc)
+
+
+# streams built from frames, corrupted frames and garbage that is rich in delimiters and LEN bytes
+garbage = st.lists(st.one_of(st.just(P.DELIMITER), st.integers(0, P.MAX_PAYLOAD + 5), bytes8), max_size=60).map(bytes)
 
 
 @st.composite
@@ -91,42 +111,85 @@ def test_stream_decoder_applies_the_rule_for_any_chunking_and_gaps(case):
 
 
 @SETTINGS
-@given(st.lists(frames, min_size=1, max_size=6), st.binary(max_size=80).map(lambda b: b.replace(bytes([P.SOF]), b"")))
-def test_sof_free_garbage_never_hides_a_frame(fs, junk):
-    data = junk + b"".join(f.encode() for f in fs)
+@given(st.lists(frames, min_size=1, max_size=6), st.binary(max_size=80))
+def test_garbage_before_a_delimiter_never_hides_a_frame(fs, junk):
+    data = junk + b"\0" + b"".join(f.encode() for f in fs)
     assert codec.StreamDecoder().feed(data) == fs
 
 
 @SETTINGS
 @given(garbage, frames, frames)
-def test_resync_within_one_frame(junk, f, g):
-    """After any garbage, the second of two frames is always recovered, and the first is
-    recovered unless a candidate from the garbage that passed its CRC covers it: the decoder
-    never needs more than MAX_FRAME - 2 bytes beyond a frame's SOF to decide it."""
-    data = junk + f.encode() + g.encode()
-    ref = reference(data, set())
-    got = codec.StreamDecoder().feed(data + bytes(P.MAX_FRAME))   # + bytes that contain no SOF
-    assert got[:len(ref)] == ref
-    assert g in got
-    # no gap needed: the frame is out once MAX_FRAME - 2 bytes past its SOF have arrived
+def test_resync_at_the_next_delimiter(junk, f, g):
+    """After any garbage, a frame sent as the host sends it (a delimiter before it) is always
+    recovered, at its own delimiter: no byte after it is needed."""
     d = codec.StreamDecoder()
-    out = d.feed(junk + f.encode() + bytes(max(0, P.MAX_FRAME - 2 - len(f.encode()) + 1)))
-    if f not in reference(junk + f.encode(), set()):
-        return
-    assert f in out
+    d.feed(junk)
+    assert d.feed(codec.encode_frame(f.type, f.seq, f.payload, lead=True)) == [f]
+    assert d.feed(g.encode()) == [g]
 
 
 @SETTINGS
-@given(frames, st.lists(st.integers(16, 8 * (P.MAX_FRAME) - 1), min_size=1, max_size=3, unique=True))
-def test_one_to_three_bit_flips_outside_sof_and_len_are_rejected(f, bits):
+@given(frames, st.lists(st.integers(0, 8 * P.MAX_FRAME - 1), min_size=1, max_size=3, unique=True))
+def test_one_to_three_bit_flips_are_rejected(f, bits):
+    """Bit flips anywhere but in the delimiter: the frame is rejected (CRC-16 detects every
+    1-3 bit error within its length; a flip that makes a zero splits the frame into two
+    candidates that fail their length check)."""
     data = bytearray(f.encode())
-    bits = [b for b in bits if b < 8 * len(data)]
+    bits = [b for b in bits if b < 8 * (len(data) - 1)]
     for b in bits:
         data[b // 8] ^= 1 << (b % 8)
     if not bits:
         return
     d = codec.StreamDecoder()
-    assert d.feed(bytes(data)) == [] and d.crc_errors == 1
+    assert d.feed(bytes(data)) == [] and d.crc_errors >= 1
+
+
+# ---- the three defects of the 1.x framing (each test fails on it) ----
+def _frame_with_crc_low(byte: int, payload: bytes) -> codec.Frame:
+    for seq in range(256):
+        f = codec.Frame(0x04, seq, payload)
+        if codec.crc16(codec.frame_body(f.type, f.seq, f.payload)[:-2]) & 0xFF == byte:
+            return f
+    raise AssertionError("no SEQ gives that CRC byte")
+
+
+def test_a_frame_inside_a_payload_is_never_executed():
+    """1.x: a frame carried inside another frame's payload executed when the outer start byte
+    was lost.  Now the inner frame's bytes are stuffed: no loss of outer bytes exposes it."""
+    inner = codec.encode_frame(0x07, 0x42)             # "stop", as a host would send it
+    outer = codec.encode_frame(0x04, 0x01, inner[:-1] + b"\x00" * 0 + inner[:P.MAX_PAYLOAD - len(inner)])
+    assert len(outer) > len(inner)
+    for k in range(1, len(outer) - 1):                 # lose the first k bytes, then the rest
+        for data in (outer[k:], b"\0" + outer[k:]):
+            got = codec.StreamDecoder().feed(data)
+            assert codec.Frame(0x07, 0x42) not in got
+
+
+def test_a_frame_cut_one_byte_short_is_not_completed_by_the_next_frame():
+    """1.x: a frame missing its last byte was completed by the next frame's start byte when its
+    CRC low byte equalled it (1 in 256).  Now the cut frame merges with the next one (without
+    the host's leading delimiter) or is ended by that delimiter: rejected either way."""
+    for low in range(256):
+        f = _frame_with_crc_low(low, bytes((1, 2, 3, 4, 5)))
+        nxt = codec.Frame(0x11, 0x77)
+        cut = f.encode()[:-2]                           # the last body-carrying byte lost
+        for data in (cut + nxt.encode(), cut + codec.encode_frame(nxt.type, nxt.seq, b"", lead=True)):
+            got = codec.StreamDecoder().feed(data)
+            assert f not in got and all(g == nxt for g in got)
+
+
+def test_a_len_one_short_with_a_recomputed_crc_is_rejected():
+    """1.x: LEN one short and a CRC recomputed over the shorter frame was accepted (1 in 256,
+    when the byte after it completed the CRC).  Now LEN must equal the decoded length - 5."""
+    for seq in range(256):
+        body = bytearray(codec.frame_body(0x04, seq, bytes((9, 1, 2, 3, 4)))[:-2])
+        for delta in (-1, 1):
+            bad = bytearray(body)
+            bad[0] = (bad[0] + delta) & 0xFF
+            c = codec.crc16(bytes(bad))
+            wire = codec.cobs_encode(bytes(bad) + bytes((c >> 8, c & 0xFF))) + b"\0"
+            d = codec.StreamDecoder()
+            assert d.feed(wire) == [] and d.crc_errors == 1
 
 
 def _value_for(fmt, draw):

@@ -7,14 +7,13 @@ EUSART registers) and EEPROM persistence.
 The design is the bundled duy2008 fuzzy-hinf design when it is present and
 verified; otherwise a test-fixture law (labelled in the generated header).
 """
-import binascii
 import ctypes as C
 import struct
 import subprocess
 
 import pytest
 
-from picdrive import codegen, protocol
+from picdrive import codec, codegen, protocol
 from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.profile import load_profile
 from picdrive.result import DesignResult, save_design
@@ -332,15 +331,9 @@ def test_stall_and_link_loss(fw):
     _assert_fault(fw, protocol.Fault.LINK_LOST)
 
 
-def _frame(type_, seq, payload=b""):
-    body = bytes([len(payload), type_, seq]) + payload
-    crc = binascii.crc_hqx(body, 0xFFFF)                # over LEN, TYPE, SEQ, payload
-    return bytes([protocol.SOF]) + body + bytes([crc >> 8, crc & 0xFF])
-
-
 def test_hello_over_the_uart_registers(fw):
     fw.reset()
-    frame = _frame(protocol.COMMAND_BY_NAME["hello"].code, 7)
+    frame = codec.encode_command("hello", 7)
     for b in frame:
         fw.w("RCREG", b)
         fw.setbit("PIR1", "RCIF")
@@ -355,14 +348,10 @@ def test_hello_over_the_uart_registers(fw):
     n = C.c_int.in_dll(fw.lib, "stub_tx_n").value
     tx = bytes((C.c_uint8 * 4096).in_dll(fw.lib, "stub_tx")[:n])
     ack = protocol.ack_type(protocol.COMMAND_BY_NAME["hello"].code)
-    i = tx.find(bytes([protocol.SOF]))
-    while i >= 0 and not (tx[i + 2] == ack and tx[i + 3] == 7):
-        i = tx.find(bytes([protocol.SOF]), i + 1)
-    assert i >= 0, tx.hex()
-    ln = tx[i + 1]
-    payload = tx[i + 4:i + 4 + ln]
-    crc = binascii.crc_hqx(tx[i + 1:i + 4 + ln], 0xFFFF)
-    assert tx[i + 4 + ln:i + 6 + ln] == bytes([crc >> 8, crc & 0xFF])
+    dec = codec.StreamDecoder()
+    replies = [f for f in dec.feed(tx) if f.type == ack and f.seq == 7]
+    assert len(replies) == 1 and dec.crc_errors == 0 and dec.pending == 0, tx.hex()
+    payload = replies[0].payload
     major, minor, build_id, profile_hash, table_hash = struct.unpack_from("<BBIII", payload)
     assert (major, minor) == protocol.PROTOCOL_VERSION
     assert build_id == fw.fw.build_id and table_hash == fw.table.hash

@@ -316,10 +316,11 @@ def test_handshake_mismatch_wrong_announced_hash_and_protocol_version():
             Link.open(url, baudrate=FAST)
     finally:
         b.close()
-    h = files["link_fw.h"].replace("#define LINK_PROTO_MAJOR        1u", "#define LINK_PROTO_MAJOR        2u")
+    major = P.PROTOCOL_VERSION[0]
+    h = files["link_fw.h"].replace(f"#define LINK_PROTO_MAJOR        {major}u", f"#define LINK_PROTO_MAJOR        {major + 1}u")
     b, url = _served({**files, "link_fw.h": h})
     try:
-        with pytest.raises(HandshakeMismatch, match="the board speaks protocol 2.0, this host 1.0"):
+        with pytest.raises(HandshakeMismatch, match=f"the board speaks protocol {major + 1}.0, this host {major}.0"):
             Link.open(url, baudrate=FAST)
     finally:
         b.close()

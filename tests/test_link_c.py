@@ -1,7 +1,7 @@
 """The rendered C link module, driven through ctypes (tests/linksupport/fake_app.c as the app).
 
 Python <-> C byte identity of frames both ways, every NACK path, duplicate-SEQ replay, EEPROM
-image round trip and corrupt-image rejection, the watchdog (only while running), the frame gap,
+image round trip and corrupt-image rejection, the watchdog (only while running, fed by host commands only), resynchronisation at the delimiter,
 telemetry and capture.
 """
 import random
@@ -43,7 +43,8 @@ class Peer:
         if seq is None:
             self.seq = (self.seq + 1) & 0xFF
             seq = self.seq
-        data = codec.encode_frame(c.code, seq, codec.command_payload(c, args) if payload is None else payload)
+        data = codec.encode_frame(c.code, seq, codec.command_payload(c, args) if payload is None else payload,
+                                  lead=True)
         got = self.raw(data)
         replies = [f for f in got if f.is_reply]
         self.other += [f for f in got if not f.is_reply]
@@ -159,10 +160,15 @@ def test_malformed_length_every_command(peer, name):
 
 
 def test_unknown_command_and_board_only_types(peer):
-    for t in (0x00, 0x3F, P.MSG_TELEMETRY, P.MSG_EVENT, P.MSG_NACK, 0x81, 0xFF):
+    for t in (0x00, 0x12, 0x3F, 0x5F):
         peer.b.feed(codec.encode_frame(t, 9, b""))
         (f,) = peer.frames()
         assert f.is_nack and f.seq == 9 and codec.decode_nack(f.payload) == (t, Nack.UNKNOWN_COMMAND)
+    # the board's own frame types (an echo on a loop-back fault) are not answered: no NACK storm
+    for t in (P.MSG_TELEMETRY, P.MSG_EVENT, P.MSG_NACK, 0x81, 0xFF):
+        peer.b.feed(codec.encode_frame(t, 9, b"\x01\x02"))
+        assert peer.frames() == []
+    peer.ok("heartbeat")
 
 
 def test_param_get_set_ranges_and_read_only(peer):
@@ -221,7 +227,7 @@ def test_motion_commands_state_and_fault_active(peer):
 def test_bad_crc_nack_once_until_a_valid_frame(peer):
     good = codec.encode_command("heartbeat", 0x31)
     bad = bytearray(good)
-    bad[-1] ^= 0x01
+    bad[-2] ^= 0x01                                 # the CRC low byte (the last is the delimiter)
     peer.b.feed(bytes(bad))
     (f,) = peer.frames()
     assert f.is_nack and f.seq == 0x31 and codec.decode_nack(f.payload) == (P.COMMAND_BY_NAME["heartbeat"].code,
@@ -379,42 +385,59 @@ def test_watchdog_only_while_running(peer):
     assert b.stat("link_lost") == 2
 
 
-def test_any_valid_frame_feeds_the_watchdog_but_garbage_does_not(peer):
+def test_host_commands_feed_the_watchdog_but_garbage_does_not(peer):
     b = peer.b
     peer.ok("param_set", {"id": TABLE["link_timeout"].id, "value": 50})
     peer.ok("start")
     for _ in range(4):
         b.tick(40)
-        peer.nack("param_get", {"ids": [0x1F]})               # a NACKed command is still a valid frame
+        peer.nack("param_get", {"ids": [0x1F]})               # a NACKed command is still a host command
     for _ in range(4):
         b.tick(10)
-        b.feed(bytes([P.SOF, 3, 1, 2, 3, 4, 5, 6, 7]) + bytes(range(30)))   # garbage
+        b.feed(bytes([0xA5, 3, 1, 2, 3, 4, 5, 6, 7, 0]) + bytes(range(30)))   # garbage
     b.tick(20)
     assert b.stat("link_lost") == 1
 
 
-def test_resync_after_garbage_and_frame_gap(peer):
+def test_board_frames_echoed_back_do_not_feed_the_watchdog(peer):
+    """A loop-back fault (TX wired to RX, an echoing adapter): every frame the board sends comes
+    back with a valid CRC.  Only host commands feed the watchdog, so it still trips."""
+    b = peer.b
+    timeout = b.param("link_timeout")
+    peer.ok("telem_config", {"mask": 0xF, "decimation": 1, "samples_per_frame": 1})
+    peer.ok("start")
+    echoed = 0
+    for _ in range(2 * timeout):
+        b.tick(1)
+        b.sample(1)
+        b.lib.link_poll()
+        out = b.take_tx()
+        echoed += len(codec.StreamDecoder().feed(out))
+        b.feed(out)                                           # the loop-back
+    assert echoed > timeout                                   # telemetry kept coming back
+    assert b.stat("link_lost") == 1 and b.stat("state") == P.State.FAULT
+
+
+def test_resync_at_the_next_delimiter(peer):
     b = peer.b
     hb = codec.encode_command("heartbeat", 0x55)
-    # garbage with SOFs and plausible LENs, then a frame: answered at once
-    b.feed(bytes([0xA5, 0x05, 0x11, 0xA5, 0xA5, 0x00, 0x01]) + hb)
+    # garbage, then a frame: answered at once
+    b.feed(bytes([0xA5, 0x05, 0x11, 0xA5, 0xA5, 0x01, 0x02]) + hb)
     assert [f.seq for f in peer.frames() if f.is_ack] == [0x55]
-    # a truncated frame claiming 40 bytes swallows the next frame until the gap
-    b.feed(bytes([0xA5, 40, 0x03]))
-    b.feed(codec.encode_command("heartbeat", 0x56))
-    assert [f for f in peer.frames() if f.is_ack] == []
-    b.tick(P.FRAME_GAP_MS)                  # first tick: the last byte's ms; then 20 ms of silence
-    assert [f for f in peer.frames() if f.is_ack] == []
-    b.tick(1)
-    assert [f.seq for f in peer.frames() if f.is_ack] == [0x56]
-    # a gap inside a frame abandons it even if the rest arrives later
-    frame = codec.encode_command("heartbeat", 0x57)
+    # a truncated frame is dropped by the host's delimiter before the next command
+    b.feed(codec.encode_command("heartbeat", 0x56)[:-3])
+    b.feed(codec.encode_command("heartbeat", 0x57))
+    assert [f.seq for f in peer.frames() if f.is_ack] == [0x57]
+    # without the leading delimiter the two merge: both are dropped, nothing is executed
+    b.feed(codec.encode_frame(0x11, 0x58)[:-2])
+    b.feed(codec.encode_frame(0x11, 0x59))
+    assert [f for f in peer.frames() if not f.is_nack] == []
+    # a pause inside a frame changes nothing: the board has no frame timer
+    frame = codec.encode_command("heartbeat", 0x5A)
     b.feed(frame[:4])
-    b.tick(P.FRAME_GAP_MS + 1)
+    b.tick(1000)
     b.feed(frame[4:])
-    assert peer.frames() == []
-    b.feed(codec.encode_command("heartbeat", 0x58))
-    assert [f.seq for f in peer.frames() if f.is_ack] == [0x58]
+    assert [f.seq for f in peer.frames() if f.is_ack] == [0x5A]
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -438,21 +461,21 @@ def test_c_and_python_decoders_accept_the_same_frames(board, seed):
             data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
             data = bytes(data[:rng.randrange(1, len(data) + 1)])
         elif k < 0.9:
-            data = bytes(rng.choice([0xA5, rng.randrange(50), rng.randrange(256)]) for _ in range(rng.randrange(1, 30)))
+            data = bytes(rng.choice([0x00, 0xA5, rng.randrange(50), rng.randrange(256)])
+                         for _ in range(rng.randrange(1, 30)))
         else:
-            board.tick(P.FRAME_GAP_MS + 1)
-            py += dec.gap()
-            board.tick(1)
             board.feed(codec.encode_command("stop", 0))          # keep the watchdog out of the picture
             py += dec.feed(codec.encode_command("stop", 0))
             continue
         board.feed(data)
         py += dec.feed(data)
         board.take_tx()
-    board.tick(P.FRAME_GAP_MS + 1)
-    py += dec.gap()
+    board.feed(b"\0")
+    py += dec.feed(b"\0")
+    # the C module logs host commands only (board frame types are ignored)
+    py = [f for f in py if not (f.type & P.ACK_BIT or f.type in (P.MSG_NACK, P.MSG_EVENT, P.MSG_TELEMETRY))]
     c = [codec.Frame(t, s, p) for t, s, p, _ in board.log()]
-    assert c == py and len(c) > 100
+    assert c == py and len(c) > 60
 
 
 def test_telemetry_counter_generation_drops_and_decimation(peer):
@@ -586,9 +609,17 @@ def test_capture_arm_out_of_range(peer, args):
 
 def test_rx_overflow_counted_and_recovered(peer):
     for _ in range(100):
-        peer.b.lib.link_rx_byte(0x00)          # no poll in between: the ring fills
+        peer.b.lib.link_rx_byte(0x01)          # no poll in between: the ring fills
     peer.b.lib.link_poll()
     assert peer.ok("status")["rx_overflows"] == 100 - (P.RX_RING_BYTES - 1)
+    # a frame cut by an overflow is dropped, not executed
+    frame = codec.encode_command("heartbeat", 0x33)
+    for _ in range(P.RX_RING_BYTES):
+        peer.b.lib.link_rx_byte(0x01)
+    for x in frame[1:]:
+        peer.b.lib.link_rx_byte(x)
+    assert peer.frames() == []
+    assert peer.ok("status")["rx_overflows"] == 100 - (P.RX_RING_BYTES - 1) + len(frame) - 1 + 1
 
 
 def test_modelled_uart_small_tx_queue_carries_whole_frames():
@@ -602,5 +633,29 @@ def test_modelled_uart_small_tx_queue_carries_whole_frames():
         counters = [codec.decode_telemetry(f.payload, 4)[0] for f in tel]
         assert len(tel) > 200 and counters == list(range(counters[0], counters[0] + 4 * len(tel), 4))
         assert len(out) <= 11520 + 1
+    finally:
+        b.close()
+
+
+def test_build_without_capture_and_eeprom():
+    """The generation options: a module rendered without capture NACKs its commands
+    UNKNOWN_COMMAND and reports 0 capture words; without EEPROM it refuses eeprom_save and
+    loads nothing.  Everything else works as in the full build."""
+    files = P.render_c(TABLE, build_id=1, profile_hash=2, sample_hz=1000, capture=False, eeprom=False)
+    assert "#define LINK_WITH_CAPTURE       0" in files["link_fw.h"]
+    b = FakeBoard(TABLE, files=files, txq_bytes=4096)
+    try:
+        assert b.boot() == P.EepromResult.BLANK
+        p = Peer(b)
+        p.frames()
+        assert p.ok("hello")["capture_words"] == 0
+        assert p.nack("capture_arm", {"mask": 1, "n_samples": 4, "pre_trigger": 0, "decimation": 1, "trigger": 0,
+                                      "threshold": 0}) == Nack.UNKNOWN_COMMAND
+        assert p.nack("capture_read", {"start": 0, "count": 1}) == Nack.UNKNOWN_COMMAND
+        assert p.nack("eeprom_save") == Nack.EEPROM_ERROR
+        assert p.nack("eeprom_load") == Nack.EEPROM_ERROR
+        p.ok("param_set", {"id": TABLE["rule1_kp"].id, "value": 123})
+        assert b.param("rule1_kp") == 123
+        assert p.ok("telem_config", {"mask": 3, "decimation": 1, "samples_per_frame": 1})["payload_len"] == 6
     finally:
         b.close()

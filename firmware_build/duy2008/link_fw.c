@@ -1,15 +1,23 @@
 /*
- * link_fw.c -- picdrive serial link, C side: framing, CRC, resync, dispatcher with ACK/NACK
- * and duplicate-SEQ replay, parameter store with range checks, EEPROM image, telemetry,
- * triggered capture, link-loss watchdog.
+ * link_fw.c -- picdrive serial link, C side: COBS framing, CRC, dispatcher with ACK/NACK and
+ * duplicate-SEQ replay, parameter store with range checks, EEPROM image, telemetry, triggered
+ * capture, link-loss watchdog.
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
- * protocol 1.0, table hash 0x02670AFBUL
+ * protocol 2.0, table hash 0x02670AFBUL
  *
- * No heap, no floating point (scales are float32 bit patterns, only reported), explicit
- * widths, 32-bit casts before products that can exceed 16 bits.
+ * Written for an 8-bit core (PIC18, SDCC or XC8): no heap, no floating point (scales are
+ * float32 bit patterns, only reported), no run-time multiplication or division (sizes are
+ * built by additions; the compilers' multiply/divide helpers keep their operands in static RAM
+ * and are not reentrant), data-space pointers, tables in flash indexed by byte offsets, and
+ * no 32-bit arithmetic outside the parameter range checks.
+ *
+ * Contexts: link_rx_byte() (UART RX interrupt) only stores the byte in the ring and counts an
+ * overflow; link_tick_ms() and link_sample() (speed-loop interrupt) touch no flash table; all
+ * framing, CRC and dispatch run in link_poll() (main loop).
  */
 #include <stddef.h>
 #include "link_fw.h"
+
 
 #ifndef LINK_CRITICAL_BEGIN
 #define LINK_CRITICAL_BEGIN() do { extern void fw_lock(void); fw_lock(); } while (0)
@@ -17,7 +25,7 @@
 #ifndef LINK_CRITICAL_END
 #define LINK_CRITICAL_END() do { extern void fw_unlock(void); fw_unlock(); } while (0)
 #endif
-#ifndef LINK_HOOK_FRAME      /* test hook: called with every frame that passed the CRC */
+#ifndef LINK_HOOK_FRAME      /* test hook: called with every host command that passed the checks */
 #define LINK_HOOK_FRAME(type, seq, payload, len) ((void)0)
 #endif
 
@@ -26,120 +34,119 @@
 #endif
 
 #define RX_MASK            ((uint8_t)(LINK_RX_RING - 1u))
-#define SIGNAL_BASE_ID     LINK_SIGNAL_BASE_ID
 #define SIG_ALL            0x07FFu
 #define NONE               0xFFu
-#define EE_MAGIC0          0x50u
-#define EE_MAGIC1          0x44u
-#define EE_VERSION         1u
+#define ROW                20u          /* bytes of a table row (= param_info reply head) */
 #define EE_HEADER          8u
 #define EE_DATA_BYTES      35u
 #define TELEM_HEADER       2u
 #define CAPREAD_HEADER     7u
+#if 20 != 20
+#error "row_of() multiplies by 20 with shifts"
+#endif
+#define PL                 3u                        /* payload offset in the frame body */
+#define BODY_OVERHEAD      5u                        /* LEN, TYPE, SEQ, CRC high, CRC low */
+#define A(i)               tx_buf[PL + (i)]
+#define N_CMDS             17u
+
+#if LINK_MAX_BODY > 253u
+#error "one COBS block per frame: the body must stay below 254 bytes"
+#endif
 
 link_params_t link_params;
 
-/* ---- the table (flash) ---- */
-typedef struct {
-    uint8_t id;
-    uint8_t type;
-    uint8_t flags;
-    uint8_t unit;
-    uint32_t scale_bits;
-    int32_t min;
-    int32_t max;
-    int32_t def;
-    uint8_t offset;                    /* in link_params (parameters only) */
-    const char *name;
-} link_entry_t;
-
-static const link_entry_t link_table[LINK_N_ENTRIES] = {
-    { LINK_ID_SPEED_SETPOINT, LINK_T_INT16, 0x01u, 1u, 0x3E18C9EBUL, -17425L, 17425L, 0L, (uint8_t)offsetof(link_params_t, speed_setpoint), "speed_setpoint" },
-    { LINK_ID_CONTROLLER, LINK_T_UINT8, 0x03u, 12u, 0x3F800000UL, 0L, 1L, 1L, (uint8_t)offsetof(link_params_t, controller), "controller" },
-    { LINK_ID_PREMISE_LOW, LINK_T_INT16, 0x03u, 1u, 0x3E18C9EBUL, 0L, 32767L, 0L, (uint8_t)offsetof(link_params_t, premise_low), "premise_low" },
-    { LINK_ID_PREMISE_HIGH, LINK_T_INT16, 0x03u, 1u, 0x3E18C9EBUL, 0L, 32767L, 17425L, (uint8_t)offsetof(link_params_t, premise_high), "premise_high" },
-    { LINK_ID_SETPOINT_WEIGHT, LINK_T_INT16, 0x03u, 0u, 0x38800000UL, 0L, 32767L, 17078L, (uint8_t)offsetof(link_params_t, setpoint_weight), "setpoint_weight" },
-    { LINK_ID_U_MIN, LINK_T_INT16, 0x03u, 3u, 0x3B800000UL, -11304L, 0L, -11304L, (uint8_t)offsetof(link_params_t, u_min), "u_min" },
-    { LINK_ID_U_MAX, LINK_T_INT16, 0x03u, 3u, 0x3B800000UL, 0L, 11304L, 11304L, (uint8_t)offsetof(link_params_t, u_max), "u_max" },
-    { LINK_ID_CURRENT_LIMIT, LINK_T_INT16, 0x03u, 4u, 0x3BA00000UL, 0L, 1023L, 307L, (uint8_t)offsetof(link_params_t, current_limit), "current_limit" },
-    { LINK_ID_ACCEL_LIMIT, LINK_T_UINT16, 0x03u, 2u, 0x43153530UL, 0L, 65535L, 0L, (uint8_t)offsetof(link_params_t, accel_limit), "accel_limit" },
-    { LINK_ID_LINK_TIMEOUT, LINK_T_UINT16, 0x03u, 9u, 0x3F800000UL, 20L, 60000L, 500L, (uint8_t)offsetof(link_params_t, link_timeout), "link_timeout" },
-    { LINK_ID_STALL_TIMEOUT, LINK_T_UINT16, 0x03u, 9u, 0x3F800000UL, 10L, 60000L, 500L, (uint8_t)offsetof(link_params_t, stall_timeout), "stall_timeout" },
-    { LINK_ID_SPEED, LINK_T_INT16, 0x04u, 1u, 0x3E18C9EBUL, -32768L, 32767L, 0L, 0u, "speed" },
-    { LINK_ID_SETPOINT, LINK_T_INT16, 0x04u, 1u, 0x3E18C9EBUL, -32768L, 32767L, 0L, 0u, "setpoint" },
-    { LINK_ID_VOLTAGE, LINK_T_INT16, 0x04u, 3u, 0x3B800000UL, -32768L, 32767L, 0L, 0u, "voltage" },
-    { LINK_ID_CURRENT, LINK_T_INT16, 0x04u, 4u, 0x3BA00000UL, -1023L, 1023L, 0L, 0u, "current" },
-    { LINK_ID_INTEGRATOR, LINK_T_INT16, 0x04u, 3u, 0x3B800000UL, -32768L, 32767L, 0L, 0u, "integrator" },
-    { LINK_ID_DUTY, LINK_T_INT16, 0x04u, 10u, 0x3F800000UL, -2000L, 2000L, 0L, 0u, "duty" },
-    { LINK_ID_HALL, LINK_T_INT16, 0x04u, 11u, 0x3F800000UL, -32768L, 32767L, 0L, 0u, "hall" },
-    { LINK_ID_STATE, LINK_T_INT16, 0x04u, 12u, 0x3F800000UL, -32768L, 32767L, 0L, 0u, "state" },
-    { LINK_ID_FAULT, LINK_T_INT16, 0x04u, 11u, 0x3F800000UL, -32768L, 32767L, 0L, 0u, "fault" },
-    { LINK_ID_MU1, LINK_T_INT16, 0x04u, 0u, 0x39800000UL, 0L, 4096L, 4096L, 0u, "mu1" },
-    { LINK_ID_POSITION, LINK_T_INT16, 0x04u, 10u, 0x3F800000UL, -32768L, 32767L, 0L, 0u, "position" },
-    { LINK_ID_RULE1_KP, LINK_T_INT16, 0x03u, 5u, 0x39800000UL, -32768L, 32767L, 13859L, (uint8_t)offsetof(link_params_t, rule1_kp), "rule1_kp" },
-    { LINK_ID_RULE1_KI, LINK_T_INT16, 0x03u, 6u, 0x3CFA0000UL, -32768L, 32767L, 9644L, (uint8_t)offsetof(link_params_t, rule1_ki), "rule1_ki" },
-    { LINK_ID_RULE1_KD, LINK_T_INT16, 0x03u, 7u, 0x3283126FUL, -32768L, 32767L, 0L, (uint8_t)offsetof(link_params_t, rule1_kd), "rule1_kd" },
-    { LINK_ID_RULE1_KC, LINK_T_INT16, 0x03u, 8u, 0x3B4CCCCDUL, -32768L, 32767L, 14101L, (uint8_t)offsetof(link_params_t, rule1_kc), "rule1_kc" },
-    { LINK_ID_RULE2_KP, LINK_T_INT16, 0x03u, 5u, 0x39800000UL, -32768L, 32767L, 13859L, (uint8_t)offsetof(link_params_t, rule2_kp), "rule2_kp" },
-    { LINK_ID_RULE2_KI, LINK_T_INT16, 0x03u, 6u, 0x3CFA0000UL, -32768L, 32767L, 9644L, (uint8_t)offsetof(link_params_t, rule2_ki), "rule2_ki" },
-    { LINK_ID_RULE2_KD, LINK_T_INT16, 0x03u, 7u, 0x3283126FUL, -32768L, 32767L, 0L, (uint8_t)offsetof(link_params_t, rule2_kd), "rule2_kd" },
-    { LINK_ID_RULE2_KC, LINK_T_INT16, 0x03u, 8u, 0x3B4CCCCDUL, -32768L, 32767L, 14101L, (uint8_t)offsetof(link_params_t, rule2_kc), "rule2_kc" },
+/* ---- the table (flash): rows of id, ctype, flags, unit, scale bits, min, max, default
+ *      (little-endian: the param_info reply), then per entry the store offset, the size
+ *      (bit 7: signed) and the name's offset in link_names ---- */
+static const uint8_t link_rows[LINK_N_ENTRIES * ROW] = {
+    0x00u, 0x04u, 0x01u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0xEFu, 0xBBu, 0xFFu, 0xFFu, 0x11u, 0x44u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* speed_setpoint */
+    0x01u, 0x01u, 0x03u, 0x0Cu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x01u, 0x00u, 0x00u, 0x00u, 0x01u, 0x00u, 0x00u, 0x00u,   /* controller */
+    0x02u, 0x04u, 0x03u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0x00u, 0x00u, 0x00u, 0x00u, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* premise_low */
+    0x03u, 0x04u, 0x03u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0x00u, 0x00u, 0x00u, 0x00u, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x11u, 0x44u, 0x00u, 0x00u,   /* premise_high */
+    0x04u, 0x04u, 0x03u, 0x00u, 0x00u, 0x00u, 0x80u, 0x38u, 0x00u, 0x00u, 0x00u, 0x00u, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0xB6u, 0x42u, 0x00u, 0x00u,   /* setpoint_weight */
+    0x05u, 0x04u, 0x03u, 0x03u, 0x00u, 0x00u, 0x80u, 0x3Bu, 0xD8u, 0xD3u, 0xFFu, 0xFFu, 0x00u, 0x00u, 0x00u, 0x00u, 0xD8u, 0xD3u, 0xFFu, 0xFFu,   /* u_min */
+    0x06u, 0x04u, 0x03u, 0x03u, 0x00u, 0x00u, 0x80u, 0x3Bu, 0x00u, 0x00u, 0x00u, 0x00u, 0x28u, 0x2Cu, 0x00u, 0x00u, 0x28u, 0x2Cu, 0x00u, 0x00u,   /* u_max */
+    0x07u, 0x04u, 0x03u, 0x04u, 0x00u, 0x00u, 0xA0u, 0x3Bu, 0x00u, 0x00u, 0x00u, 0x00u, 0xFFu, 0x03u, 0x00u, 0x00u, 0x33u, 0x01u, 0x00u, 0x00u,   /* current_limit */
+    0x08u, 0x03u, 0x03u, 0x02u, 0x30u, 0x35u, 0x15u, 0x43u, 0x00u, 0x00u, 0x00u, 0x00u, 0xFFu, 0xFFu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* accel_limit */
+    0x09u, 0x03u, 0x03u, 0x09u, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x14u, 0x00u, 0x00u, 0x00u, 0x60u, 0xEAu, 0x00u, 0x00u, 0xF4u, 0x01u, 0x00u, 0x00u,   /* link_timeout */
+    0x0Au, 0x03u, 0x03u, 0x09u, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x0Au, 0x00u, 0x00u, 0x00u, 0x60u, 0xEAu, 0x00u, 0x00u, 0xF4u, 0x01u, 0x00u, 0x00u,   /* stall_timeout */
+    0x20u, 0x04u, 0x04u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* speed */
+    0x21u, 0x04u, 0x04u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* setpoint */
+    0x22u, 0x04u, 0x04u, 0x03u, 0x00u, 0x00u, 0x80u, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* voltage */
+    0x23u, 0x04u, 0x04u, 0x04u, 0x00u, 0x00u, 0xA0u, 0x3Bu, 0x01u, 0xFCu, 0xFFu, 0xFFu, 0xFFu, 0x03u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* current */
+    0x24u, 0x04u, 0x04u, 0x03u, 0x00u, 0x00u, 0x80u, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* integrator */
+    0x25u, 0x04u, 0x04u, 0x0Au, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x30u, 0xF8u, 0xFFu, 0xFFu, 0xD0u, 0x07u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* duty */
+    0x26u, 0x04u, 0x04u, 0x0Bu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* hall */
+    0x27u, 0x04u, 0x04u, 0x0Cu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* state */
+    0x28u, 0x04u, 0x04u, 0x0Bu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* fault */
+    0x29u, 0x04u, 0x04u, 0x00u, 0x00u, 0x00u, 0x80u, 0x39u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x10u, 0x00u, 0x00u, 0x00u, 0x10u, 0x00u, 0x00u,   /* mu1 */
+    0x2Au, 0x04u, 0x04u, 0x0Au, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* position */
+    0x40u, 0x04u, 0x03u, 0x05u, 0x00u, 0x00u, 0x80u, 0x39u, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x23u, 0x36u, 0x00u, 0x00u,   /* rule1_kp */
+    0x41u, 0x04u, 0x03u, 0x06u, 0x00u, 0x00u, 0xFAu, 0x3Cu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0xACu, 0x25u, 0x00u, 0x00u,   /* rule1_ki */
+    0x42u, 0x04u, 0x03u, 0x07u, 0x6Fu, 0x12u, 0x83u, 0x32u, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* rule1_kd */
+    0x43u, 0x04u, 0x03u, 0x08u, 0xCDu, 0xCCu, 0x4Cu, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x15u, 0x37u, 0x00u, 0x00u,   /* rule1_kc */
+    0x44u, 0x04u, 0x03u, 0x05u, 0x00u, 0x00u, 0x80u, 0x39u, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x23u, 0x36u, 0x00u, 0x00u,   /* rule2_kp */
+    0x45u, 0x04u, 0x03u, 0x06u, 0x00u, 0x00u, 0xFAu, 0x3Cu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0xACu, 0x25u, 0x00u, 0x00u,   /* rule2_ki */
+    0x46u, 0x04u, 0x03u, 0x07u, 0x6Fu, 0x12u, 0x83u, 0x32u, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* rule2_kd */
+    0x47u, 0x04u, 0x03u, 0x08u, 0xCDu, 0xCCu, 0x4Cu, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x15u, 0x37u, 0x00u, 0x00u,   /* rule2_kc */
 };
-
-static const uint8_t link_persisted[18] = {
-    LINK_ID_CONTROLLER,
-    LINK_ID_PREMISE_LOW,
-    LINK_ID_PREMISE_HIGH,
-    LINK_ID_SETPOINT_WEIGHT,
-    LINK_ID_U_MIN,
-    LINK_ID_U_MAX,
-    LINK_ID_CURRENT_LIMIT,
-    LINK_ID_ACCEL_LIMIT,
-    LINK_ID_LINK_TIMEOUT,
-    LINK_ID_STALL_TIMEOUT,
-    LINK_ID_RULE1_KP,
-    LINK_ID_RULE1_KI,
-    LINK_ID_RULE1_KD,
-    LINK_ID_RULE1_KC,
-    LINK_ID_RULE2_KP,
-    LINK_ID_RULE2_KI,
-    LINK_ID_RULE2_KD,
-    LINK_ID_RULE2_KC,
-};
+static const uint8_t link_ids[LINK_N_ENTRIES] = { LINK_ID_SPEED_SETPOINT, LINK_ID_CONTROLLER, LINK_ID_PREMISE_LOW, LINK_ID_PREMISE_HIGH, LINK_ID_SETPOINT_WEIGHT, LINK_ID_U_MIN, LINK_ID_U_MAX, LINK_ID_CURRENT_LIMIT, LINK_ID_ACCEL_LIMIT, LINK_ID_LINK_TIMEOUT, LINK_ID_STALL_TIMEOUT, LINK_ID_SPEED, LINK_ID_SETPOINT, LINK_ID_VOLTAGE, LINK_ID_CURRENT, LINK_ID_INTEGRATOR, LINK_ID_DUTY, LINK_ID_HALL, LINK_ID_STATE, LINK_ID_FAULT, LINK_ID_MU1, LINK_ID_POSITION, LINK_ID_RULE1_KP, LINK_ID_RULE1_KI, LINK_ID_RULE1_KD, LINK_ID_RULE1_KC, LINK_ID_RULE2_KP, LINK_ID_RULE2_KI, LINK_ID_RULE2_KD, LINK_ID_RULE2_KC };
+static const uint8_t link_index_of[72] = { 0u, 1u, 2u, 3u, 4u, 5u, 6u, 7u, 8u, 9u, 10u, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, 11u, 12u, 13u, 14u, 15u, 16u, 17u, 18u, 19u, 20u, 21u, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, 22u, 23u, 24u, 25u, 26u, 27u, 28u, 29u };   /* by id */
+static const uint8_t link_off[LINK_N_ENTRIES] = { (uint8_t)offsetof(link_params_t, speed_setpoint), (uint8_t)offsetof(link_params_t, controller), (uint8_t)offsetof(link_params_t, premise_low), (uint8_t)offsetof(link_params_t, premise_high), (uint8_t)offsetof(link_params_t, setpoint_weight), (uint8_t)offsetof(link_params_t, u_min), (uint8_t)offsetof(link_params_t, u_max), (uint8_t)offsetof(link_params_t, current_limit), (uint8_t)offsetof(link_params_t, accel_limit), (uint8_t)offsetof(link_params_t, link_timeout), (uint8_t)offsetof(link_params_t, stall_timeout), NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, NONE, (uint8_t)offsetof(link_params_t, rule1_kp), (uint8_t)offsetof(link_params_t, rule1_ki), (uint8_t)offsetof(link_params_t, rule1_kd), (uint8_t)offsetof(link_params_t, rule1_kc), (uint8_t)offsetof(link_params_t, rule2_kp), (uint8_t)offsetof(link_params_t, rule2_ki), (uint8_t)offsetof(link_params_t, rule2_kd), (uint8_t)offsetof(link_params_t, rule2_kc) };
+static const uint8_t link_size[LINK_N_ENTRIES] = { 0x82u, 0x01u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x02u, 0x02u, 0x02u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u };
+static const uint8_t link_name_at[LINK_N_ENTRIES + 1u] = { 0u, 14u, 24u, 35u, 47u, 62u, 67u, 72u, 85u, 96u, 108u, 121u, 126u, 134u, 141u, 148u, 158u, 162u, 166u, 171u, 176u, 179u, 187u, 195u, 203u, 211u, 219u, 227u, 235u, 243u, 251u };
+static const char link_names[] = "speed_setpointcontrollerpremise_lowpremise_highsetpoint_weightu_minu_maxcurrent_limitaccel_limitlink_timeoutstall_timeoutspeedsetpointvoltagecurrentintegratordutyhallstatefaultmu1positionrule1_kprule1_kirule1_kdrule1_kcrule2_kprule2_kirule2_kdrule2_kc";
+static const uint8_t link_hello[20] = { LINK_PROTO_MAJOR, LINK_PROTO_MINOR, (uint8_t)LINK_BUILD_ID, (uint8_t)(LINK_BUILD_ID >> 8u), (uint8_t)(LINK_BUILD_ID >> 16u), (uint8_t)(LINK_BUILD_ID >> 24u), (uint8_t)LINK_PROFILE_HASH, (uint8_t)(LINK_PROFILE_HASH >> 8u), (uint8_t)(LINK_PROFILE_HASH >> 16u), (uint8_t)(LINK_PROFILE_HASH >> 24u), (uint8_t)LINK_TABLE_HASH, (uint8_t)(LINK_TABLE_HASH >> 8u), (uint8_t)(LINK_TABLE_HASH >> 16u), (uint8_t)(LINK_TABLE_HASH >> 24u), LINK_N_ENTRIES, LINK_MAX_PAYLOAD, (uint8_t)LINK_HELLO_CAPTURE_WORDS, (uint8_t)(LINK_HELLO_CAPTURE_WORDS >> 8u), (uint8_t)LINK_SAMPLE_HZ, (uint8_t)(LINK_SAMPLE_HZ >> 8u) };
+#if LINK_WITH_EEPROM
+static const uint8_t link_persisted[18] = { 1u, 2u, 3u, 4u, 5u, 6u, 7u, 8u, 9u, 10u, 22u, 23u, 24u, 25u, 26u, 27u, 28u, 29u };   /* entry indices */
+static const uint8_t link_ee_head[EE_HEADER] = { 0x50u, 0x44u, 0x01u, (uint8_t)LINK_TABLE_HASH, (uint8_t)(LINK_TABLE_HASH >> 8u), (uint8_t)(LINK_TABLE_HASH >> 16u), (uint8_t)(LINK_TABLE_HASH >> 24u), EE_DATA_BYTES };
+#endif
 
 /* ---- buffers ---- */
-static uint8_t rx_ring[LINK_RX_RING];          /* written by link_rx_byte, read by link_poll */
-static uint8_t tx_buf[LINK_MAX_FRAME];         /* frame in flight; holds the command while it is dispatched */
+static uint8_t rx_ring[LINK_RX_RING];          /* written by link_rx_byte only */
+static uint8_t tx_buf[LINK_MAX_BODY];          /* frame body: decoded command, then the reply being sent */
 static uint8_t tm_buf[LINK_MAX_PAYLOAD];       /* telemetry payload being filled by link_sample */
 static uint8_t rp_data[LINK_REPLAY_BYTES];     /* last short reply, for duplicate-SEQ replay */
-static int16_t cap_buf[LINK_CAPTURE_WORDS];    /* capture ring */
+#if LINK_WITH_CAPTURE
+static uint8_t cap_buf[2u * LINK_CAPTURE_WORDS]; /* capture ring, sample-major, int16 little-endian: byte
+                                                  * indices, so no index is scaled by a multiply helper */
+#endif
+static union { int32_t l; uint8_t b[4]; } V;   /* the value being moved (main loop only) */
 
 /* ---- scalar state ---- */
 static struct {
-    /* receive: ISR owns head/activity/overflows, main owns tail */
+    /* receive: the RX interrupt owns rx_head and rx_ovf_isr (single bytes), the main loop the rest */
     volatile uint8_t rx_head;
     volatile uint8_t rx_tail;
-    volatile uint8_t rx_activity;      /* a byte arrived (rx ISR sets, tick clears) */
-    volatile uint8_t rx_stale;         /* tick: gap seen, bytes before rx_stale_head are old */
-    volatile uint8_t rx_stale_head;
-    volatile uint8_t rx_valid;         /* main: valid frame seen (tick clears: watchdog) */
-    volatile uint16_t rx_overflows;
-    uint8_t rx_gap_ms;
+    volatile uint8_t rx_ovf_isr;       /* bytes dropped, wraps; the main loop accumulates */
+    uint8_t rx_ovf_seen;
+    uint8_t rx_scan;                   /* first ring byte not yet searched for a delimiter */
+    uint8_t rx_skip;                   /* discard up to the next delimiter */
+    volatile uint8_t rx_valid;         /* a host command arrived (main sets, tick clears: watchdog) */
+    uint16_t rx_overflows;
     uint16_t crc_errors;
     uint8_t nack_armed;                /* one BAD_CRC NACK per valid frame */
     uint8_t nack_pending;
     uint8_t nack_type;
     uint8_t nack_seq;
-    /* transmit */
-    uint8_t tx_len;                    /* bytes of tx_buf to send; 0 = free */
+    uint8_t n;                         /* argument bytes of the command, then reply bytes */
+    uint8_t crc_hi;                    /* CRC state (main loop): in S, so in one bank with the rest */
+    uint8_t crc_lo;
+    uint8_t crc_x;
+    uint8_t ee_off;                    /* next EEPROM image byte */
+    /* transmit: COBS-encoded on the fly from tx_buf */
+    uint8_t tx_len;                    /* body bytes; 0 = free */
     uint8_t tx_pos;
+    uint8_t tx_run;
+    uint8_t tx_state;
     /* replay */
     uint8_t rp_valid;
     uint8_t rp_type;
     uint8_t rp_seq;
     uint8_t rp_rtype;
     uint8_t rp_len;                    /* NONE: reply too long to store (read-only command) */
-    uint16_t rp_crc;
+    uint8_t rp_crc0;
+    uint8_t rp_crc1;
     /* watchdog, time */
     volatile uint8_t wd_armed;
     uint16_t wd_ms;
@@ -154,57 +161,72 @@ static struct {
     volatile uint8_t tm_ready;         /* sample fills tm_buf and sets it; poll sends and clears it */
     uint16_t tm_mask;
     uint16_t tm_dec;
-    uint16_t tm_div;
-    uint16_t tm_counter;
     volatile uint16_t tm_dropped;
     uint8_t tm_spf;
-    uint8_t tm_nsamp;
-    uint8_t tm_len;
     uint8_t tm_gen;
+    struct {                           /* restarted by telem_config */
+        uint16_t div;
+        uint16_t counter;
+        uint8_t nsamp;
+        uint8_t len;
+    } tr;
     /* capture */
     volatile uint8_t cap_state;
     volatile uint8_t cap_sp_changed;
     uint8_t cap_nsig;
     uint8_t cap_trig;
-    uint8_t cap_prev_valid;
     uint16_t cap_mask;
     uint16_t cap_n;
+    uint16_t cap_bytes;                /* 2 cap_n cap_nsig, built by additions at arm time */
     uint16_t cap_pre;
     uint16_t cap_dec;
-    uint16_t cap_div;
-    uint16_t cap_w;
-    uint16_t cap_filled;
-    uint16_t cap_post;
-    uint16_t cap_total;
-    uint16_t cap_start;
-    uint16_t cap_tidx;
     int16_t cap_thr;
-    int16_t cap_prev;
+    struct {                           /* restarted by capture_arm */
+        uint16_t div;
+        uint16_t w;                    /* next sample slot */
+        uint16_t wi;                   /* its byte index in cap_buf */
+        uint16_t filled;
+        uint16_t post;
+        uint16_t total;
+        uint16_t start;
+        uint16_t tidx;
+        int16_t prev;
+        uint8_t prev_valid;
+    } cr;
 } S;
 
-/* ---- little helpers ---- */
-static void put16(uint8_t *p, uint16_t v)
+/* ---- little helpers (offsets into tx_buf) ---- */
+/* o: constant offsets, so the compiler addresses tx_buf directly */
+#define put16(o, v) do { uint16_t v_ = (v); tx_buf[(o)] = (uint8_t)v_; tx_buf[(o) + 1u] = (uint8_t)(v_ >> 8); } while (0)
+#define get16(o) ((uint16_t)((uint16_t)tx_buf[(o)] | (uint16_t)((uint16_t)tx_buf[(o) + 1u] << 8)))
+
+static void mcopy(LINK_DATA uint8_t *d, const LINK_DATA uint8_t *src, uint8_t n)   /* RAM to RAM */
 {
-    p[0] = (uint8_t)v;
-    p[1] = (uint8_t)(v >> 8);
+    while (n != 0u) {
+        *d = *src;
+        d++;
+        src++;
+        n--;
+    }
 }
 
-static void put32(uint8_t *p, uint32_t v)
+static void mzero(LINK_DATA uint8_t *d, uint8_t n)
 {
-    p[0] = (uint8_t)v;
-    p[1] = (uint8_t)(v >> 8);
-    p[2] = (uint8_t)(v >> 16);
-    p[3] = (uint8_t)(v >> 24);
+    while (n != 0u) {
+        *d = 0u;
+        d++;
+        n--;
+    }
 }
 
-static uint16_t get16(const uint8_t *p)
+static void put_v(uint8_t o) LINK_WPARAM           /* V, 4 bytes little-endian */
 {
-    return (uint16_t)((uint16_t)p[0] | (uint16_t)((uint16_t)p[1] << 8));
+    mcopy(&tx_buf[o], V.b, 4u);
 }
 
-static uint32_t get32(const uint8_t *p)
+static void get_v(uint8_t o) LINK_WPARAM
 {
-    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);
+    mcopy(V.b, &tx_buf[o], 4u);
 }
 
 static uint8_t popcount16(uint16_t m)
@@ -217,78 +239,117 @@ static uint8_t popcount16(uint16_t m)
     return n;
 }
 
-uint16_t link_crc16_update(uint16_t crc, uint8_t b)
+/* CRC-16/CCITT-FALSE (poly 0x1021) byte-wise without a table, on two bytes of state: 8-bit
+ * shifts and XORs only (a shift form needs no 512 B table and no 16-bit arithmetic) */
+#define crc_hi S.crc_hi
+#define crc_lo S.crc_lo
+#define crc_x S.crc_x
+#define CRC_INIT() do { crc_hi = 0xFFu; crc_lo = 0xFFu; } while (0)
+
+static void crc_byte(uint8_t b) LINK_WPARAM
 {
-    /* CRC-16/CCITT-FALSE, byte-wise without a table (poly 0x1021) */
-    uint8_t x = (uint8_t)((uint8_t)(crc >> 8) ^ b);
-    x = (uint8_t)(x ^ (uint8_t)(x >> 4));
-    return (uint16_t)((uint16_t)(crc << 8) ^ (uint16_t)((uint16_t)x << 12) ^ (uint16_t)((uint16_t)x << 5)
-                      ^ (uint16_t)x);
+    crc_x = (uint8_t)(crc_hi ^ b);
+    crc_x = (uint8_t)(crc_x ^ (uint8_t)(crc_x >> 4));
+    crc_hi = (uint8_t)(crc_lo ^ (uint8_t)(crc_x >> 3) ^ (uint8_t)(crc_x << 4));
+    crc_lo = (uint8_t)(crc_x ^ (uint8_t)(crc_x << 5));
 }
+#define CRC_STEP(b) crc_byte(b)
 
 uint16_t link_crc16(const uint8_t *p, uint8_t n)
 {
-    uint16_t crc = 0xFFFFu;
+    CRC_INIT();
     while (n != 0u) {
-        crc = link_crc16_update(crc, *p);
+        CRC_STEP(*p);
         p++;
         n--;
     }
-    return crc;
+    return (uint16_t)((uint16_t)((uint16_t)crc_hi << 8) | crc_lo);
 }
 
-/* ---- parameter store ---- */
-static uint8_t entry_index(uint8_t id)
+/* CRC of tx_buf[0..n-1] into crc_hi, crc_lo */
+static void body_crc(uint8_t n) LINK_WPARAM
 {
     uint8_t i;
-    for (i = 0u; i < LINK_N_ENTRIES; i++) {
-        if (link_table[i].id == id) {
-            return i;
-        }
-    }
-    return NONE;
-}
-
-/* typed access to link_params through the entry's offset (no switch per parameter) */
-static int32_t store_get_at(uint8_t idx)
-{
-    const uint8_t *p = (const uint8_t *)&link_params + link_table[idx].offset;
-    switch (link_table[idx].type) {
-    case LINK_T_UINT8: return (int32_t)*p;
-    case LINK_T_INT8: return (int32_t)*(const int8_t *)(const void *)p;
-    case LINK_T_UINT16: return (int32_t)*(const uint16_t *)(const void *)p;
-    case LINK_T_INT16: return (int32_t)*(const int16_t *)(const void *)p;
-    default: return *(const int32_t *)(const void *)p;
+    CRC_INIT();
+    for (i = 0u; i < n; i++) {
+        CRC_STEP(tx_buf[i]);
     }
 }
 
-static int32_t store_get(uint8_t id)
+/* ---- parameter store: table-driven, no switch per parameter or type ---- */
+static uint8_t entry_index(uint8_t id) LINK_WPARAM   /* one flash read, no search */
 {
-    uint8_t i = entry_index(id);
-    return (i == NONE) ? 0 : store_get_at(i);
+    return (id < (uint8_t)sizeof link_index_of) ? link_index_of[id] : NONE;
 }
 
-static void store_put_at(uint8_t idx, int32_t v)
+static uint16_t row_of(uint8_t idx) LINK_WPARAM    /* idx * 20, by shifts */
 {
-    uint8_t *p = (uint8_t *)&link_params + link_table[idx].offset;
+    uint16_t o = (uint16_t)((uint16_t)idx << 2);
+    return (uint16_t)(o + (uint16_t)(o << 2));
+}
+
+static void row_v(uint16_t o)          /* V = the int32 at link_rows[o] */
+{
+    uint8_t k;
+    for (k = 0u; k < 4u; k++) {
+        V.b[k] = link_rows[(uint16_t)(o + k)];
+    }
+}
+
+static void sign_extend(uint8_t sz) LINK_WPARAM    /* V.b[0..n-1] hold a value of size code sz */
+{
+    uint8_t n = (uint8_t)(sz & 0x7Fu), fill = 0u, k;
+    if ((sz & 0x80u) != 0u && (V.b[n - 1u] & 0x80u) != 0u) {
+        fill = 0xFFu;
+    }
+    for (k = n; k < 4u; k++) {
+        V.b[k] = fill;
+    }
+}
+
+static void store_get_at(uint8_t idx) LINK_WPARAM  /* V = the parameter's value */
+{
+    LINK_DATA uint8_t *p = (LINK_DATA uint8_t *)&link_params;
+    uint8_t off = link_off[idx], sz = link_size[idx], k;
+    for (k = 0u; k < (uint8_t)(sz & 0x7Fu); k++) {
+        V.b[k] = p[(uint8_t)(off + k)];
+    }
+    sign_extend(sz);
+}
+
+static void store_put_at(uint8_t idx) LINK_WPARAM  /* the parameter = V (already range-checked) */
+{
+    LINK_DATA uint8_t *p = (LINK_DATA uint8_t *)&link_params;
+    uint8_t off = link_off[idx], sz = (uint8_t)(link_size[idx] & 0x7Fu), k;
     LINK_CRITICAL_BEGIN();
-    switch (link_table[idx].type) {
-    case LINK_T_UINT8: *p = (uint8_t)v; break;
-    case LINK_T_INT8: *(int8_t *)(void *)p = (int8_t)v; break;
-    case LINK_T_UINT16: *(uint16_t *)(void *)p = (uint16_t)v; break;
-    case LINK_T_INT16: *(int16_t *)(void *)p = (int16_t)v; break;
-    default: *(int32_t *)(void *)p = v; break;
+    for (k = 0u; k < sz; k++) {
+        p[(uint8_t)(off + k)] = V.b[k];
     }
     LINK_CRITICAL_END();
 }
 
-static int32_t signal_value(uint8_t idx)
+static void value_at(uint8_t idx) LINK_WPARAM      /* V = parameter or signal */
 {
-    int16_t v = app_signal((uint8_t)(link_table[idx].id - SIGNAL_BASE_ID));
-    if (link_table[idx].type == LINK_T_UINT16) {
-        return (int32_t)(uint16_t)v;
+    if (link_off[idx] == NONE) {
+        int16_t v = app_signal((uint8_t)(link_ids[idx] - LINK_SIGNAL_BASE_ID));
+        V.b[0] = (uint8_t)v;
+        V.b[1] = (uint8_t)((uint16_t)v >> 8);
+        sign_extend(link_size[idx]);
+    } else {
+        store_get_at(idx);
     }
-    return (int32_t)v;
+}
+
+static uint8_t in_range(uint8_t idx) LINK_WPARAM   /* V within the entry's [min, max] */
+{
+    int32_t v = V.l, lo, hi;
+    uint16_t o = row_of(idx);
+    row_v((uint16_t)(o + 8u));
+    lo = V.l;
+    row_v((uint16_t)(o + 12u));
+    hi = V.l;
+    V.l = v;
+    return (uint8_t)(v >= lo && v <= hi);
 }
 
 int32_t link_param_get(uint8_t id)
@@ -297,10 +358,8 @@ int32_t link_param_get(uint8_t id)
     if (i == NONE) {
         return 0;
     }
-    if ((link_table[i].flags & LINK_FLAG_SIGNAL) != 0u) {
-        return signal_value(i);
-    }
-    return store_get_at(i);
+    value_at(i);
+    return V.l;
 }
 
 int16_t link_param_i16(uint8_t id)
@@ -315,19 +374,19 @@ int16_t link_param_i16(uint8_t id)
     return (int16_t)v;
 }
 
-uint8_t link_param_set(uint8_t id, int32_t raw)
+static uint8_t set_v(uint8_t id) LINK_WPARAM       /* write V to entry id: 0 or a NACK code */
 {
     uint8_t i = entry_index(id);
     if (i == NONE) {
         return LINK_NACK_UNKNOWN_PARAM;
     }
-    if ((link_table[i].flags & LINK_FLAG_WRITABLE) == 0u) {
+    if ((link_rows[(uint16_t)(row_of(i) + 2u)] & LINK_FLAG_WRITABLE) == 0u) {
         return LINK_NACK_READ_ONLY;
     }
-    if (raw < link_table[i].min || raw > link_table[i].max) {
+    if (!in_range(i)) {
         return LINK_NACK_OUT_OF_RANGE;
     }
-    store_put_at(i, raw);
+    store_put_at(i);
     if (id == LINK_ID_SPEED_SETPOINT) {
         S.cap_sp_changed = 1u;
     }
@@ -335,148 +394,136 @@ uint8_t link_param_set(uint8_t id, int32_t raw)
     return 0u;
 }
 
-static void store_defaults(void)
+uint8_t link_param_set(uint8_t id, int32_t raw)
 {
-    uint8_t i;
-    for (i = 0u; i < LINK_N_ENTRIES; i++) {
-        if ((link_table[i].flags & LINK_FLAG_SIGNAL) == 0u) {
-            store_put_at(i, link_table[i].def);
-        }
-    }
+    V.l = raw;
+    return set_v(id);
 }
 
 /* ---- EEPROM image ---- */
-static uint8_t entry_size(uint8_t type)
+#if LINK_WITH_EEPROM
+static uint8_t ee_rd(uint8_t a) LINK_WPARAM
 {
-    if (type == LINK_T_INT32) {
-        return 4u;
-    }
-    if (type == LINK_T_INT16 || type == LINK_T_UINT16) {
-        return 2u;
-    }
-    return 1u;
+    return app_eeprom_read((uint8_t)(LINK_EE_BASE + a));
 }
 
-static uint8_t ee_addr(uint8_t off)
+static void ee_crc(uint8_t n) LINK_WPARAM           /* into crc_hi, crc_lo */
 {
-    return (uint8_t)(LINK_EE_BASE + off);
-}
-
-static int32_t ee_value(uint8_t off, uint8_t type)
-{
-    uint32_t u = 0u;
-    uint8_t k, n = entry_size(type);
-    for (k = 0u; k < n; k++) {
-        u |= (uint32_t)app_eeprom_read(ee_addr((uint8_t)(off + k))) << (uint8_t)(8u * k);
-    }
-    switch (type) {
-    case LINK_T_INT8: return (int32_t)(int8_t)(uint8_t)u;
-    case LINK_T_INT16: return (int32_t)(int16_t)(uint16_t)u;
-    case LINK_T_INT32: return (int32_t)u;
-    default: return (int32_t)u;
-    }
-}
-
-static uint16_t ee_crc(uint8_t n)
-{
-    uint16_t crc = 0xFFFFu;
     uint8_t a;
+    CRC_INIT();
     for (a = 0u; a < n; a++) {
-        crc = link_crc16_update(crc, app_eeprom_read(ee_addr(a)));
+        CRC_STEP(ee_rd(a));
     }
-    return crc;
+}
+
+#define ee_off S.ee_off
+
+static void ee_put(uint8_t b) LINK_WPARAM          /* write the next image byte, CRC it */
+{
+    app_eeprom_write((uint8_t)(LINK_EE_BASE + ee_off), b);
+    ee_off++;
+    CRC_STEP(b);
 }
 
 uint8_t link_eeprom_save(void)
 {
-    uint8_t hdr[EE_HEADER];
-    uint8_t off = 0u, i, k, n, idx;
-    uint16_t crc = 0xFFFFu;
-    uint32_t v;
-    hdr[0] = EE_MAGIC0;
-    hdr[1] = EE_MAGIC1;
-    hdr[2] = EE_VERSION;
-    put32(&hdr[3], LINK_TABLE_HASH);
-    hdr[7] = EE_DATA_BYTES;
+    uint8_t i, k, n, idx, hi, lo;
+    ee_off = 0u;
+    CRC_INIT();
     for (k = 0u; k < EE_HEADER; k++) {
-        app_eeprom_write(ee_addr(off), hdr[k]);
-        crc = link_crc16_update(crc, hdr[k]);
-        off++;
+        ee_put(link_ee_head[k]);
     }
     for (i = 0u; i < (uint8_t)sizeof link_persisted; i++) {
-        idx = entry_index(link_persisted[i]);
-        n = entry_size(link_table[idx].type);
-        v = (uint32_t)store_get_at(idx);
+        idx = link_persisted[i];
+        n = (uint8_t)(link_size[idx] & 0x7Fu);
+        store_get_at(idx);
         for (k = 0u; k < n; k++) {
-            uint8_t b = (uint8_t)(v >> (uint8_t)(8u * k));
-            app_eeprom_write(ee_addr(off), b);
-            crc = link_crc16_update(crc, b);
-            off++;
+            ee_put(V.b[k]);
         }
     }
-    app_eeprom_write(ee_addr(off), (uint8_t)(crc >> 8));
-    app_eeprom_write(ee_addr((uint8_t)(off + 1u)), (uint8_t)crc);
-    /* read-back verify */
-    if (ee_crc(off) != crc || app_eeprom_read(ee_addr(off)) != (uint8_t)(crc >> 8)
-        || app_eeprom_read(ee_addr((uint8_t)(off + 1u))) != (uint8_t)crc) {
+    hi = crc_hi;
+    lo = crc_lo;
+    ee_put(hi);
+    ee_put(lo);
+    /* read-back verify: the image with its CRC leaves 0 (CRC-16 catches any 1-3 bad bits), and
+     * the CRC bytes are the ones computed from the store */
+    ee_crc(ee_off);
+    if ((crc_hi | crc_lo) != 0u || ee_rd((uint8_t)(ee_off - 2u)) != hi || ee_rd((uint8_t)(ee_off - 1u)) != lo) {
         return LINK_NACK_EEPROM_ERROR;
     }
     return 0u;
 }
 
+/* V = the persisted value at image offset off of entry idx */
+static void ee_value(uint8_t off, uint8_t idx)
+{
+    uint8_t sz = link_size[idx], k;
+    for (k = 0u; k < (uint8_t)(sz & 0x7Fu); k++) {
+        V.b[k] = ee_rd((uint8_t)(off + k));
+    }
+    sign_extend(sz);
+}
+
 uint8_t link_eeprom_load(void)
 {
-    uint8_t off, i, k, idx;
-    uint16_t crc;
-    int32_t v;
-    if (app_eeprom_read(ee_addr(0u)) != EE_MAGIC0 || app_eeprom_read(ee_addr(1u)) != EE_MAGIC1) {
+    uint8_t off, i, k, idx, pass;
+    if (ee_rd(0u) != link_ee_head[0] || ee_rd(1u) != link_ee_head[1]) {
         return LINK_EE_BLANK;
     }
-    if (app_eeprom_read(ee_addr(2u)) != EE_VERSION || app_eeprom_read(ee_addr(7u)) != EE_DATA_BYTES) {
-        return LINK_EE_OTHER_BUILD;
-    }
-    for (k = 0u; k < 4u; k++) {
-        if (app_eeprom_read(ee_addr((uint8_t)(3u + k))) != (uint8_t)(LINK_TABLE_HASH >> (uint8_t)(8u * k))) {
+    for (k = 2u; k < EE_HEADER; k++) {
+        if (ee_rd(k) != link_ee_head[k]) {
             return LINK_EE_OTHER_BUILD;
         }
     }
     off = (uint8_t)(EE_HEADER + EE_DATA_BYTES);
-    crc = ee_crc(off);
-    if (app_eeprom_read(ee_addr(off)) != (uint8_t)(crc >> 8)
-        || app_eeprom_read(ee_addr((uint8_t)(off + 1u))) != (uint8_t)crc) {
+    ee_crc(off);
+    if (ee_rd(off) != crc_hi || ee_rd((uint8_t)(off + 1u)) != crc_lo) {
         return LINK_EE_CORRUPT;
     }
-    /* every value in range, or nothing is loaded */
-    off = EE_HEADER;
-    for (i = 0u; i < (uint8_t)sizeof link_persisted; i++) {
-        idx = entry_index(link_persisted[i]);
-        v = ee_value(off, link_table[idx].type);
-        if (v < link_table[idx].min || v > link_table[idx].max) {
-            return LINK_EE_CORRUPT;
+    /* pass 0: every value in range, or nothing is loaded; pass 1: store */
+    for (pass = 0u; pass < 2u; pass++) {
+        off = EE_HEADER;
+        for (i = 0u; i < (uint8_t)sizeof link_persisted; i++) {
+            idx = link_persisted[i];
+            ee_value(off, idx);
+            if (pass == 0u) {
+                if (!in_range(idx)) {
+                    return LINK_EE_CORRUPT;
+                }
+            } else {
+                store_put_at(idx);
+            }
+            off = (uint8_t)(off + (uint8_t)(link_size[idx] & 0x7Fu));
         }
-        off = (uint8_t)(off + entry_size(link_table[idx].type));
-    }
-    off = EE_HEADER;
-    for (i = 0u; i < (uint8_t)sizeof link_persisted; i++) {
-        idx = entry_index(link_persisted[i]);
-        store_put_at(idx, ee_value(off, link_table[idx].type));
-        off = (uint8_t)(off + entry_size(link_table[idx].type));
     }
     for (i = 0u; i < (uint8_t)sizeof link_persisted; i++) {
-        app_param_changed(link_persisted[i]);
+        app_param_changed(link_ids[link_persisted[i]]);
     }
     return LINK_EE_OK;
 }
+#else  /* generated without EEPROM persistence: nothing to load, saving is refused */
+uint8_t link_eeprom_save(void)
+{
+    return LINK_NACK_EEPROM_ERROR;
+}
+
+uint8_t link_eeprom_load(void)
+{
+    return LINK_EE_BLANK;
+}
+#endif
 
 /* ---- init, events ---- */
 void link_init(void)
 {
-    volatile uint8_t *p = (volatile uint8_t *)&S;
-    uint16_t k;
-    for (k = 0u; k < (uint16_t)sizeof S; k++) {
-        p[k] = 0u;
+    uint8_t i;
+    mzero((LINK_DATA uint8_t *)&S, (uint8_t)sizeof S);
+    for (i = 0u; i < LINK_N_ENTRIES; i++) {
+        if (link_off[i] != NONE) {
+            row_v((uint16_t)(row_of(i) + 16u));
+            store_put_at(i);
+        }
     }
-    store_defaults();
     S.rp_len = NONE;
     S.nack_armed = 1u;
     S.ev_boot = 1u;
@@ -495,135 +542,165 @@ void link_event(uint8_t event, uint8_t code)
     }
 }
 
-/* ---- receive ---- */
-void link_rx_byte(uint8_t b)
+/* ---- receive: the interrupt only stores the byte ---- */
+void link_rx_byte(uint8_t b) LINK_WPARAM
 {
-    uint8_t next = (uint8_t)((uint8_t)(S.rx_head + 1u) & RX_MASK);
+    uint8_t h = S.rx_head;
+    uint8_t next = (uint8_t)((uint8_t)(h + 1u) & RX_MASK);
     if (next == S.rx_tail) {
-        if (S.rx_overflows != 0xFFFFu) {
-            S.rx_overflows++;
-        }
+        S.rx_ovf_isr++;
     } else {
-        rx_ring[S.rx_head] = b;
+        rx_ring[h] = b;
         S.rx_head = next;
     }
-    S.rx_activity = 1u;
 }
 
-static uint8_t rx_at(uint8_t i)
+/* COBS-decode ring bytes [rx_tail, end) into tx_buf; the frame length, or 0 if malformed */
+static uint8_t rx_decode(uint8_t end) LINK_WPARAM
 {
-    return rx_ring[(uint8_t)((uint8_t)(S.rx_tail + i) & RX_MASK)];
+    uint8_t t = S.rx_tail, o = 0u, run = 0u, zero = 0u, b;
+    while (t != end) {
+        b = rx_ring[t];
+        t = (uint8_t)((uint8_t)(t + 1u) & RX_MASK);
+        if (run == 0u) {               /* a code byte: the implied zero of the block before */
+            if (zero != 0u) {
+                if (o >= LINK_MAX_BODY) {
+                    return 0u;
+                }
+                tx_buf[o] = 0u;
+                o++;
+            }
+            run = (uint8_t)(b - 1u);
+            zero = 1u;
+        } else {
+            if (o >= LINK_MAX_BODY) {
+                return 0u;
+            }
+            tx_buf[o] = b;
+            o++;
+            run--;
+        }
+    }
+    return (run == 0u) ? o : 0u;       /* a block cut short: malformed */
 }
 
-static void rx_drop(uint8_t n)
+/* Next complete frame that passes the checks: its body is in tx_buf (tx_buf is free while a
+ * command is dispatched), its length is returned; 0 when none. */
+static uint8_t rx_frame(void)
 {
-    S.rx_tail = (uint8_t)((uint8_t)(S.rx_tail + n) & RX_MASK);
-}
-
-/* Find the next valid frame in the ring.  On success its LEN, TYPE, SEQ and payload are copied
- * to tx_buf[1..] (tx_buf is free while a command is dispatched) and its CRC is returned in *crc. */
-static uint8_t rx_parse(uint16_t *crc_out)
-{
+    uint8_t h, n, end;
     for (;;) {
-        uint8_t avail = (uint8_t)((uint8_t)(S.rx_head - S.rx_tail) & RX_MASK);
-        uint8_t old = 0xFFu;           /* bytes from the tail that arrived before a gap */
-        uint8_t len, need, i;
-        uint16_t crc, got;
-        if (S.rx_stale != 0u) {
-            old = (uint8_t)((uint8_t)(S.rx_stale_head - S.rx_tail) & RX_MASK);
-            if (old == 0u) {
-                S.rx_stale = 0u;
-                old = 0xFFu;
+        h = S.rx_head;
+        if (S.rx_ovf_isr != S.rx_ovf_seen) {   /* bytes were lost: drop what is here */
+            n = (uint8_t)(S.rx_ovf_isr - S.rx_ovf_seen);
+            S.rx_ovf_seen = (uint8_t)(S.rx_ovf_seen + n);
+            S.rx_overflows = (uint16_t)(S.rx_overflows + n);
+            if (S.rx_overflows < n) {  /* saturate */
+                S.rx_overflows = 0xFFFFu;
             }
-        }
-        if (avail == 0u) {
+            S.rx_tail = h;
+            S.rx_scan = h;
+            S.rx_skip = 1u;
             return 0u;
         }
-        if (rx_ring[S.rx_tail] != LINK_SOF) {
-            rx_drop(1u);
-            continue;
+        end = S.rx_scan;
+        while (end != h && rx_ring[end] != 0u) {
+            end = (uint8_t)((uint8_t)(end + 1u) & RX_MASK);
         }
-        if (avail < 2u) {
-            if (old < 2u) {            /* SOF alone before a gap: abandon */
-                rx_drop(1u);
-                continue;
+        if (end == h) {                /* no delimiter yet */
+            S.rx_scan = end;
+            if ((uint8_t)((uint8_t)(h - S.rx_tail) & RX_MASK) == RX_MASK) {
+                S.rx_tail = h;         /* a full ring without a delimiter: garbage */
+                S.rx_skip = 1u;
             }
             return 0u;
         }
-        len = rx_at(1u);
-        if (len > LINK_MAX_PAYLOAD) {  /* impossible LEN: drop the SOF, rescan */
-            rx_drop(1u);
-            continue;
-        }
-        need = (uint8_t)(len + 6u);
-        if (old != 0xFFu && need > old) {   /* frame spans a gap: abandon */
-            rx_drop(1u);
-            continue;
-        }
-        if (avail < need) {
-            return 0u;
-        }
-        crc = 0xFFFFu;
-        for (i = 1u; i < (uint8_t)(len + 4u); i++) {
-            crc = link_crc16_update(crc, rx_at(i));
-        }
-        got = (uint16_t)((uint16_t)((uint16_t)rx_at((uint8_t)(len + 4u)) << 8) | (uint16_t)rx_at((uint8_t)(len + 5u)));
-        if (crc != got) {
-            if (S.crc_errors != 0xFFFFu) {
-                S.crc_errors++;
+        n = 0u;
+        if (S.rx_skip == 0u && end != S.rx_tail) {
+            n = rx_decode(end);
+            if (n >= BODY_OVERHEAD) {
+                body_crc(n);           /* over the CRC too: a good frame leaves 0 */
             }
-            if (S.nack_armed != 0u) {
-                S.nack_armed = 0u;
-                S.nack_pending = 1u;
-                S.nack_type = rx_at(2u);
-                S.nack_seq = rx_at(3u);
+            if (n < BODY_OVERHEAD || (uint8_t)(tx_buf[0] + BODY_OVERHEAD) != n || (crc_hi | crc_lo) != 0u) {
+                if (S.crc_errors != 0xFFFFu) {
+                    S.crc_errors++;
+                }
+                if (S.nack_armed != 0u && n >= PL) {
+                    S.nack_armed = 0u;
+                    S.nack_pending = 1u;
+                    S.nack_type = tx_buf[1];
+                    S.nack_seq = tx_buf[2];
+                }
+                n = 0u;
             }
-            rx_drop(1u);
-            continue;
         }
-        for (i = 1u; i < (uint8_t)(len + 4u); i++) {
-            tx_buf[i] = rx_at(i);
+        S.rx_skip = 0u;
+        end = (uint8_t)((uint8_t)(end + 1u) & RX_MASK);
+        S.rx_tail = end;
+        S.rx_scan = end;
+        if (n != 0u) {
+            return n;
         }
-        rx_drop(need);
-        *crc_out = crc;
-        return 1u;
     }
 }
 
-/* ---- transmit ---- */
+/* ---- transmit: body in tx_buf, COBS-encoded byte by byte as the UART queue has room ---- */
 static void tx_seal(uint8_t type, uint8_t seq, uint8_t len)
 {
-    uint16_t crc;
-    tx_buf[0] = LINK_SOF;
-    tx_buf[1] = len;
-    tx_buf[2] = type;
-    tx_buf[3] = seq;
-    crc = link_crc16(&tx_buf[1], (uint8_t)(len + 3u));
-    tx_buf[(uint8_t)(len + 4u)] = (uint8_t)(crc >> 8);
-    tx_buf[(uint8_t)(len + 5u)] = (uint8_t)crc;
-    S.tx_len = (uint8_t)(len + 6u);
+    tx_buf[0] = len;
+    tx_buf[1] = type;
+    tx_buf[2] = seq;
+    len = (uint8_t)(len + PL);
+    body_crc(len);
+    tx_buf[len] = crc_hi;
+    tx_buf[(uint8_t)(len + 1u)] = crc_lo;
+    S.tx_len = (uint8_t)(len + 2u);
     S.tx_pos = 0u;
+    S.tx_state = 1u;
 }
 
 static void tx_drain(void)
 {
-    uint8_t room;
+    uint8_t room, k;
     if (S.tx_len == 0u) {
         return;
     }
     room = app_tx_free();
-    while (room != 0u && S.tx_pos < S.tx_len) {
-        app_tx_byte(tx_buf[S.tx_pos]);
-        S.tx_pos++;
+    while (room != 0u) {
+        if (S.tx_state == 1u) {        /* a block: its code is 1 + the non-zero bytes up to the next zero */
+            k = S.tx_pos;
+            while (k < S.tx_len && tx_buf[k] != 0u) {
+                k++;
+            }
+            S.tx_run = (uint8_t)(k - S.tx_pos);
+            app_tx_byte((uint8_t)(S.tx_run + 1u));
+            S.tx_state = 2u;
+        } else if (S.tx_state == 2u) {
+            if (S.tx_run != 0u) {
+                app_tx_byte(tx_buf[S.tx_pos]);
+                S.tx_pos++;
+                S.tx_run--;
+                room--;
+                continue;
+            }
+            if (S.tx_pos >= S.tx_len) {
+                S.tx_state = 3u;
+            } else {
+                S.tx_pos++;            /* the zero the next code implies */
+                S.tx_state = 1u;
+            }
+            continue;
+        } else {
+            app_tx_byte(0u);           /* delimiter */
+            S.tx_len = 0u;
+            S.tx_state = 0u;
+            return;
+        }
         room--;
-    }
-    if (S.tx_pos >= S.tx_len) {
-        S.tx_len = 0u;
-        S.tx_pos = 0u;
     }
 }
 
-/* ---- command handlers: arguments in a[0..n-1], reply written over them ---- */
+/* ---- command handlers: arguments in A(0..S.n-1), reply written over them, length in S.n ---- */
 static uint8_t drive_busy(void)
 {
     int16_t st = app_signal(LINK_SIG_STATE);
@@ -635,318 +712,328 @@ static uint8_t mask_ok(uint16_t mask)
     return (uint8_t)(mask != 0u && (mask & (uint16_t)~SIG_ALL) == 0u);
 }
 
-static uint8_t cmd_param_info(uint8_t *a, uint8_t *r)
+static uint8_t h_hello(void)
 {
-    const link_entry_t *e;
     uint8_t k;
-    if (a[0] >= LINK_N_ENTRIES) {
-        return LINK_NACK_UNKNOWN_PARAM;
+    for (k = 0u; k < 20u; k++) {
+        A(k) = link_hello[k];
     }
-    e = &link_table[a[0]];
-    a[0] = e->id;
-    a[1] = e->type;
-    a[2] = e->flags;
-    a[3] = e->unit;
-    put32(&a[4], e->scale_bits);
-    put32(&a[8], (uint32_t)e->min);
-    put32(&a[12], (uint32_t)e->max);
-    put32(&a[16], (uint32_t)e->def);
-    for (k = 0u; k < LINK_NAME_MAX && e->name[k] != '\0'; k++) {
-        a[20u + k] = (uint8_t)e->name[k];
-    }
-    *r = (uint8_t)(20u + k);
+    S.n = 20u;
     return 0u;
 }
 
-static uint8_t cmd_param_get(uint8_t *a, uint8_t n, uint8_t *r)
+static uint8_t h_param_info(void)
 {
-    uint8_t i, idx;
-    int32_t v;
+    uint8_t idx = A(0), k;
+    uint8_t a, e;
+    uint16_t o;
+    if (idx >= LINK_N_ENTRIES) {
+        return LINK_NACK_UNKNOWN_PARAM;
+    }
+    o = row_of(idx);
+    for (k = 0u; k < ROW; k++) {
+        A(k) = link_rows[(uint16_t)(o + k)];
+    }
+    a = link_name_at[idx];
+    e = link_name_at[(uint8_t)(idx + 1u)];
+    while (a != e) {
+        A(k) = (uint8_t)link_names[a];
+        k++;
+        a++;
+    }
+    S.n = k;
+    return 0u;
+}
+
+static uint8_t h_param_get(void)
+{
+    uint8_t n = S.n, i, idx;
     if (n == 0u || n > LINK_PARAM_GET_MAX) {
         return LINK_NACK_MALFORMED;
     }
     for (i = 0u; i < n; i++) {
-        if (entry_index(a[i]) == NONE) {
+        if (entry_index(A(i)) == NONE) {
             return LINK_NACK_UNKNOWN_PARAM;
         }
     }
-    /* last id first: value i goes to a[4i..4i+3], which holds only ids already answered */
+    /* last id first: value i goes to A(4i..4i+3), which holds only ids already answered */
     i = n;
     while (i != 0u) {
         i--;
-        idx = entry_index(a[i]);
-        if ((link_table[idx].flags & LINK_FLAG_SIGNAL) != 0u) {
-            v = signal_value(idx);
-        } else {
-            v = store_get_at(idx);
-        }
-        put32(&a[(uint8_t)(4u * i)], (uint32_t)v);
+        idx = entry_index(A(i));
+        value_at(idx);
+        put_v((uint8_t)(PL + (uint8_t)(i << 2)));
     }
-    *r = (uint8_t)(4u * n);
+    S.n = (uint8_t)(n << 2);
     return 0u;
 }
 
-static uint8_t cmd_telem_config(uint8_t *a, uint8_t *r)
+static uint8_t set_reply(uint8_t id, uint8_t at)   /* set id from A(at..at+3), reply the stored value there */
 {
-    uint16_t mask = get16(&a[0]);
-    uint16_t dec = get16(&a[2]);
-    uint8_t spf = a[4];
-    uint8_t nsig = popcount16(mask);
-    uint16_t len = (uint16_t)(TELEM_HEADER + (uint16_t)((uint16_t)((uint16_t)nsig * spf) * 2u));
-    if (dec != 0u && (!mask_ok(mask) || spf == 0u || len > LINK_MAX_PAYLOAD)) {
-        return LINK_NACK_OUT_OF_RANGE;
+    uint8_t code;
+    get_v((uint8_t)(PL + at));
+    code = set_v(id);
+    if (code == 0u) {
+        store_get_at(entry_index(id));
+        put_v((uint8_t)(PL + at));
+    }
+    return code;
+}
+
+static uint8_t h_param_set(void)
+{
+    S.n = 5u;
+    return set_reply(A(0), 1u);
+}
+
+static uint8_t h_set_speed(void)
+{
+    S.n = 4u;
+    return set_reply(LINK_ID_SPEED_SETPOINT, 0u);
+}
+
+static uint8_t h_select_controller(void)
+{
+    uint8_t code;
+    V.l = (int32_t)A(0);
+    code = set_v(LINK_ID_CONTROLLER);
+    A(0) = (uint8_t)link_params.controller;
+    S.n = 1u;
+    return code;
+}
+
+static uint8_t h_app(void)
+{
+    uint8_t code = app_command(tx_buf[1], &A(0), 0u);
+    S.n = 0u;
+    return code;
+}
+
+static uint8_t h_telem_config(void)
+{
+    uint16_t mask = get16(PL), dec = get16(PL + 2u);
+    uint8_t spf = A(4), nsig = popcount16(mask), len = TELEM_HEADER, k;
+    if (dec != 0u) {
+        if (!mask_ok(mask) || spf == 0u) {
+            return LINK_NACK_OUT_OF_RANGE;
+        }
+        for (k = 0u; k < spf; k++) {   /* TELEM_HEADER + 2 nsig spf, by additions */
+            len = (uint8_t)(len + (uint8_t)(nsig << 1));
+            if (len > LINK_MAX_PAYLOAD) {
+                return LINK_NACK_OUT_OF_RANGE;
+            }
+        }
     }
     LINK_CRITICAL_BEGIN();
     S.tm_dec = 0u;
     S.tm_mask = mask;
     S.tm_spf = spf;
-    S.tm_div = 0u;
-    S.tm_nsamp = 0u;
-    S.tm_len = 0u;
-    S.tm_counter = 0u;
+    mzero((LINK_DATA uint8_t *)&S.tr, (uint8_t)sizeof S.tr);
     S.tm_ready = 0u;
     S.tm_gen++;
     S.tm_dec = dec;
     LINK_CRITICAL_END();
-    a[0] = S.tm_gen;
-    a[1] = (uint8_t)(dec != 0u ? len : 0u);
-    *r = 2u;
+    A(0) = S.tm_gen;
+    A(1) = (uint8_t)(dec != 0u ? len : 0u);
+    S.n = 2u;
     return 0u;
 }
 
-static uint8_t cmd_capture_arm(const uint8_t *a)
+#if LINK_WITH_CAPTURE
+static uint8_t h_capture_arm(void)
 {
-    uint16_t mask = get16(&a[0]);
-    uint16_t n = get16(&a[2]);
-    uint16_t pre = get16(&a[4]);
-    uint16_t dec = get16(&a[6]);
-    uint8_t trig = a[8];
-    int16_t thr = (int16_t)get16(&a[9]);
-    uint8_t nsig = popcount16(mask);
-    if (!mask_ok(mask) || n == 0u || dec == 0u || trig > LINK_TRIG_SPEED_FALLING || pre >= n
-        || (trig == LINK_TRIG_IMMEDIATE && pre != 0u) || (uint32_t)n * (uint32_t)nsig > (uint32_t)LINK_CAPTURE_WORDS) {
+    uint16_t mask = get16(PL), n = get16(PL + 2u), pre = get16(PL + 4u), dec = get16(PL + 6u), words = 0u;
+    uint8_t trig = A(8), nsig = popcount16(mask), k;
+    S.n = 0u;
+    if (!mask_ok(mask) || n == 0u || n > LINK_CAPTURE_WORDS || dec == 0u || trig > LINK_TRIG_SPEED_FALLING
+        || pre >= n || (trig == LINK_TRIG_IMMEDIATE && pre != 0u)) {
         return LINK_NACK_OUT_OF_RANGE;
     }
+    for (k = 0u; k < nsig; k++) {      /* n * nsig, by additions (n <= LINK_CAPTURE_WORDS) */
+        words = (uint16_t)(words + n);
+        if (words > LINK_CAPTURE_WORDS) {
+            return LINK_NACK_OUT_OF_RANGE;
+        }
+    }
+    words = (uint16_t)(words << 1);
     LINK_CRITICAL_BEGIN();
     S.cap_state = LINK_CAP_IDLE;
     S.cap_mask = mask;
     S.cap_nsig = nsig;
     S.cap_n = n;
+    S.cap_bytes = words;
     S.cap_pre = pre;
     S.cap_dec = dec;
-    S.cap_div = 0u;
     S.cap_trig = trig;
-    S.cap_thr = thr;
-    S.cap_prev_valid = 0u;
-    S.cap_w = 0u;
-    S.cap_filled = 0u;
-    S.cap_post = 0u;
-    S.cap_total = 0u;
-    S.cap_start = 0u;
-    S.cap_tidx = 0u;
+    S.cap_thr = (int16_t)get16(PL + 9u);
+    mzero((LINK_DATA uint8_t *)&S.cr, (uint8_t)sizeof S.cr);
     S.cap_sp_changed = 0u;
     S.cap_state = LINK_CAP_ARMED;
     LINK_CRITICAL_END();
     return 0u;
 }
 
-static uint8_t cmd_capture_read(uint8_t *a, uint8_t *r)
+static uint8_t h_capture_read(void)
 {
-    uint16_t start = get16(&a[0]);
-    uint8_t want = a[2];
-    uint16_t k, s, slot, fit;
-    uint8_t j, o;
-    if (S.cap_state == LINK_CAP_ARMED || S.cap_state == LINK_CAP_TRIGGERED) {
+    uint16_t start = get16(PL), p, wi = 0u;
+    uint8_t want = A(2), j, o, st = S.cap_state, nb = (uint8_t)(S.cap_nsig << 1);
+    if (st == LINK_CAP_ARMED || st == LINK_CAP_TRIGGERED) {
         return LINK_NACK_BUSY;
     }
-    if (S.cap_state != LINK_CAP_DONE) {
+    if (st != LINK_CAP_DONE) {
         return LINK_NACK_WRONG_STATE;
     }
-    if (start > S.cap_total) {
+    if (start > S.cr.total) {
         return LINK_NACK_OUT_OF_RANGE;
     }
-    fit = (uint16_t)((LINK_MAX_PAYLOAD - CAPREAD_HEADER) / (uint16_t)(2u * S.cap_nsig));
-    k = (uint16_t)(S.cap_total - start);
-    if (k > want) {
-        k = want;
+    A(0) = st;
+    put16(PL + 1u, S.cr.total);
+    put16(PL + 3u, S.cr.tidx);
+    put16(PL + 5u, start);
+    p = (uint16_t)(S.cr.start + start);   /* < 2 cap_n */
+    if (p >= S.cap_n) {
+        p = (uint16_t)(p - S.cap_n);
     }
-    if (k > fit) {
-        k = fit;
+    for (j = 0u; j < S.cap_nsig; j++) {    /* byte index 2 p nsig, by additions */
+        wi = (uint16_t)(wi + p);
     }
-    a[0] = S.cap_state;
-    put16(&a[1], S.cap_total);
-    put16(&a[3], S.cap_tidx);
-    put16(&a[5], start);
-    o = CAPREAD_HEADER;
-    for (s = 0u; s < k; s++) {
-        slot = (uint16_t)((uint16_t)(S.cap_start + start + s) % S.cap_n);
-        for (j = 0u; j < S.cap_nsig; j++) {
-            put16(&a[o], (uint16_t)cap_buf[(uint16_t)((uint16_t)(slot * S.cap_nsig) + j)]);
-            o = (uint8_t)(o + 2u);
+    wi = (uint16_t)(wi << 1);
+    o = (uint8_t)(PL + CAPREAD_HEADER);
+    p = (uint16_t)(S.cr.total - start);   /* samples left */
+    while (want != 0u && p != 0u && (uint8_t)(o + nb) <= (uint8_t)(PL + LINK_MAX_PAYLOAD)) {
+        mcopy(&tx_buf[o], &cap_buf[wi], nb);
+        o = (uint8_t)(o + nb);
+        wi = (uint16_t)(wi + nb);
+        if (wi >= S.cap_bytes) {
+            wi = 0u;
         }
+        want--;
+        p--;
     }
-    *r = o;
+    S.n = (uint8_t)(o - PL);
     return 0u;
 }
+#endif
 
-static uint8_t cmd_status(uint8_t *a, uint8_t *r)
+static uint8_t h_eeprom_save(void)
 {
-    uint16_t ovf, drop;
-    uint32_t up;
-    a[0] = (uint8_t)app_signal(LINK_SIG_STATE);
-    a[1] = (uint8_t)app_signal(LINK_SIG_FAULT);
-    a[2] = S.cap_state;
-    a[3] = S.tm_gen;
-    put16(&a[4], S.crc_errors);
+    S.n = 0u;
+    return link_eeprom_save();
+}
+
+static uint8_t h_eeprom_load(void)
+{
+    S.n = 0u;
+    return (link_eeprom_load() != LINK_EE_OK) ? LINK_NACK_EEPROM_ERROR : 0u;
+}
+
+static uint8_t h_status(void)
+{
+    uint16_t drop;
+    A(0) = (uint8_t)app_signal(LINK_SIG_STATE);
+    A(1) = (uint8_t)app_signal(LINK_SIG_FAULT);
+    A(2) = S.cap_state;
+    A(3) = S.tm_gen;
+    put16(PL + 4u, S.crc_errors);
+    put16(PL + 6u, S.rx_overflows);
     LINK_CRITICAL_BEGIN();
-    ovf = S.rx_overflows;
     drop = S.tm_dropped;
-    up = S.uptime_ms;
+    V.l = (int32_t)S.uptime_ms;
     LINK_CRITICAL_END();
-    put16(&a[6], ovf);
-    put16(&a[8], drop);
-    put32(&a[10], up);
-    *r = 14u;
+    put16(PL + 8u, drop);
+    put_v(PL + 10u);
+    S.n = 14u;
     return 0u;
 }
 
-static void dispatch(uint16_t fcrc)
+static uint8_t h_none(void)
 {
-    uint8_t n = tx_buf[1];
-    uint8_t type = tx_buf[2];
-    uint8_t seq = tx_buf[3];
-    uint8_t *a = &tx_buf[4];
-    uint8_t code = 0u, r = 0u, rtype, i;
-    S.rx_valid = 1u;
+    S.n = 0u;
+    return 0u;
+}
+
+#if !LINK_WITH_CAPTURE
+#define h_capture_arm h_unknown
+#define h_capture_read h_unknown
+static uint8_t h_unknown(void)          /* a command this build was generated without */
+{
+    return LINK_NACK_UNKNOWN_COMMAND;
+}
+#endif
+
+/* dispatch table, by command code - 1: handler, argument bytes (0xFF: checked by the handler),
+ * bit 0 of the flags: refused while the motor runs or brakes */
+typedef uint8_t (*link_handler_t)(void);
+static const link_handler_t cmd_fn[N_CMDS] = {
+    h_hello,
+    h_param_info,
+    h_param_get,
+    h_param_set,
+    h_set_speed,
+    h_app,
+    h_app,
+    h_app,
+    h_select_controller,
+    h_telem_config,
+    h_capture_arm,
+    h_capture_read,
+    h_eeprom_save,
+    h_eeprom_load,
+    h_app,
+    h_status,
+    h_none,
+};
+static const uint8_t cmd_args[N_CMDS] = { 0u, 1u, 255u, 5u, 4u, 0u, 0u, 0u, 1u, 5u, 11u, 3u, 0u, 0u, 0u, 0u, 0u };
+static const uint8_t cmd_idle[N_CMDS] = { 0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u, 0u, 1u, 1u, 0u, 0u, 0u };
+
+static void dispatch(uint8_t blen) LINK_WPARAM
+{
+    uint8_t type = tx_buf[1], seq = tx_buf[2], c, code, rtype;
+    if ((type & LINK_ACK_BIT) != 0u || type == LINK_MSG_NACK || type == LINK_MSG_EVENT
+        || type == LINK_MSG_TELEMETRY) {
+        return;                        /* a board frame (an echo, a loop-back): not for us, no reply */
+    }
+    S.n = tx_buf[0];
+    c = (uint8_t)(type - 1u);
+    if (c < N_CMDS) {
+        S.rx_valid = 1u;               /* only a host command feeds the watchdog */
+    }
     S.nack_armed = 1u;
-    LINK_HOOK_FRAME(type, seq, a, n);
-    if (S.rp_valid != 0u && type == S.rp_type && seq == S.rp_seq && fcrc == S.rp_crc && S.rp_len != NONE) {
-        for (i = 0u; i < S.rp_len; i++) {
-            a[i] = rp_data[i];
-        }
+    LINK_HOOK_FRAME(type, seq, &A(0), S.n);
+    if (S.rp_valid != 0u && type == S.rp_type && seq == S.rp_seq && tx_buf[(uint8_t)(blen - 2u)] == S.rp_crc0
+        && tx_buf[(uint8_t)(blen - 1u)] == S.rp_crc1 && S.rp_len != NONE) {
+        mcopy(&A(0), rp_data, S.rp_len);
         tx_seal(S.rp_rtype, seq, S.rp_len);
         return;
     }
-    switch (type) {
-    case LINK_CMD_HELLO:
-        if (n != 0u) {
-            code = LINK_NACK_MALFORMED;
-            break;
-        }
-        a[0] = LINK_PROTO_MAJOR;
-        a[1] = LINK_PROTO_MINOR;
-        put32(&a[2], LINK_BUILD_ID);
-        put32(&a[6], LINK_PROFILE_HASH);
-        put32(&a[10], LINK_TABLE_HASH);
-        a[14] = LINK_N_ENTRIES;
-        a[15] = LINK_MAX_PAYLOAD;
-        put16(&a[16], LINK_CAPTURE_WORDS);
-        put16(&a[18], LINK_SAMPLE_HZ);
-        r = 20u;
-        break;
-    case LINK_CMD_PARAM_INFO:
-        code = (n != 1u) ? LINK_NACK_MALFORMED : cmd_param_info(a, &r);
-        break;
-    case LINK_CMD_PARAM_GET:
-        code = cmd_param_get(a, n, &r);
-        break;
-    case LINK_CMD_PARAM_SET:
-        if (n != 5u) {
-            code = LINK_NACK_MALFORMED;
-            break;
-        }
-        code = link_param_set(a[0], (int32_t)get32(&a[1]));
-        if (code == 0u) {
-            put32(&a[1], (uint32_t)store_get(a[0]));
-            r = 5u;
-        }
-        break;
-    case LINK_CMD_SET_SPEED:
-        if (n != 4u) {
-            code = LINK_NACK_MALFORMED;
-            break;
-        }
-        code = link_param_set(LINK_ID_SPEED_SETPOINT, (int32_t)get32(&a[0]));
-        if (code == 0u) {
-            put32(&a[0], (uint32_t)store_get(LINK_ID_SPEED_SETPOINT));
-            r = 4u;
-        }
-        break;
-    case LINK_CMD_START:
-    case LINK_CMD_STOP:
-    case LINK_CMD_BRAKE:
-    case LINK_CMD_FAULT_CLEAR:
-        code = (n != 0u) ? LINK_NACK_MALFORMED : app_command(type, a, n);
-        break;
-    case LINK_CMD_SELECT_CONTROLLER:
-        if (n != 1u) {
-            code = LINK_NACK_MALFORMED;
-            break;
-        }
-        code = link_param_set(LINK_ID_CONTROLLER, (int32_t)a[0]);
-        if (code == 0u) {
-            a[0] = (uint8_t)store_get(LINK_ID_CONTROLLER);
-            r = 1u;
-        }
-        break;
-    case LINK_CMD_TELEM_CONFIG:
-        code = (n != 5u) ? LINK_NACK_MALFORMED : cmd_telem_config(a, &r);
-        break;
-    case LINK_CMD_CAPTURE_ARM:
-        code = (n != 11u) ? LINK_NACK_MALFORMED : cmd_capture_arm(a);
-        break;
-    case LINK_CMD_CAPTURE_READ:
-        code = (n != 3u) ? LINK_NACK_MALFORMED : cmd_capture_read(a, &r);
-        break;
-    case LINK_CMD_EEPROM_SAVE:
-        if (n != 0u) {
-            code = LINK_NACK_MALFORMED;
-        } else if (drive_busy()) {
-            code = LINK_NACK_WRONG_STATE;
-        } else {
-            code = link_eeprom_save();
-        }
-        break;
-    case LINK_CMD_EEPROM_LOAD:
-        if (n != 0u) {
-            code = LINK_NACK_MALFORMED;
-        } else if (drive_busy()) {
-            code = LINK_NACK_WRONG_STATE;
-        } else if (link_eeprom_load() != LINK_EE_OK) {
-            code = LINK_NACK_EEPROM_ERROR;
-        }
-        break;
-    case LINK_CMD_STATUS:
-        code = (n != 0u) ? LINK_NACK_MALFORMED : cmd_status(a, &r);
-        break;
-    case LINK_CMD_HEARTBEAT:
-        code = (n != 0u) ? LINK_NACK_MALFORMED : 0u;
-        break;
-    default:
+    S.rp_crc0 = tx_buf[(uint8_t)(blen - 2u)];
+    S.rp_crc1 = tx_buf[(uint8_t)(blen - 1u)];
+    if (c >= N_CMDS) {
         code = LINK_NACK_UNKNOWN_COMMAND;
-        break;
+    } else if (cmd_args[c] != 0xFFu && cmd_args[c] != S.n) {
+        code = LINK_NACK_MALFORMED;
+    } else if (cmd_idle[c] != 0u && drive_busy()) {
+        code = LINK_NACK_WRONG_STATE;
+    } else {
+        code = cmd_fn[c]();
     }
     if (code != 0u) {
-        a[0] = type;
-        a[1] = code;
-        r = 2u;
+        A(0) = type;
+        A(1) = code;
+        S.n = 2u;
         rtype = LINK_MSG_NACK;
     } else {
         rtype = (uint8_t)(type | LINK_ACK_BIT);
     }
-    tx_seal(rtype, seq, r);
+    tx_seal(rtype, seq, S.n);
     S.rp_valid = 1u;
     S.rp_type = type;
     S.rp_seq = seq;
-    S.rp_crc = fcrc;
     S.rp_rtype = rtype;
-    if (r <= LINK_REPLAY_BYTES) {
-        for (i = 0u; i < r; i++) {
-            rp_data[i] = a[i];
-        }
-        S.rp_len = r;
-    } else {
-        S.rp_len = NONE;
+    S.rp_len = NONE;
+    if (S.n <= LINK_REPLAY_BYTES) {
+        mcopy(rp_data, &A(0), S.n);
+        S.rp_len = S.n;
     }
 }
 
@@ -969,8 +1056,8 @@ static uint8_t send_event(void)
     } else {
         return 0u;
     }
-    tx_buf[4] = ev;
-    tx_buf[5] = code;
+    A(0) = ev;
+    A(1) = code;
     tx_seal(LINK_MSG_EVENT, S.ev_counter, 2u);
     S.ev_counter++;
     return 1u;
@@ -978,23 +1065,23 @@ static uint8_t send_event(void)
 
 void link_poll(void)
 {
-    uint8_t k, i;
-    uint16_t fcrc = 0u;
-    S.wd_armed = (uint8_t)(app_signal(LINK_SIG_STATE) == (int16_t)LINK_STATE_RUN);
+    uint8_t k, n;
     for (k = 0u; k < 8u; k++) {
+        S.wd_armed = (uint8_t)(app_signal(LINK_SIG_STATE) == (int16_t)LINK_STATE_RUN);
         tx_drain();
         if (S.tx_len != 0u) {
             break;
         }
         if (S.nack_pending != 0u) {
             S.nack_pending = 0u;
-            tx_buf[4] = S.nack_type;
-            tx_buf[5] = LINK_NACK_BAD_CRC;
+            A(0) = S.nack_type;
+            A(1) = LINK_NACK_BAD_CRC;
             tx_seal(LINK_MSG_NACK, S.nack_seq, 2u);
             continue;
         }
-        if (rx_parse(&fcrc) != 0u) {
-            dispatch(fcrc);
+        n = rx_frame();
+        if (n != 0u) {
+            dispatch(n);
             continue;
         }
         if (S.nack_pending != 0u) {
@@ -1004,12 +1091,10 @@ void link_poll(void)
             continue;
         }
         if (S.tm_ready != 0u) {
-            for (i = 0u; i < S.tm_len; i++) {
-                tx_buf[(uint8_t)(4u + i)] = tm_buf[i];
-            }
-            tx_seal(LINK_MSG_TELEMETRY, S.tm_gen, S.tm_len);
-            S.tm_nsamp = 0u;
-            S.tm_len = 0u;
+            mcopy(&A(0), tm_buf, S.tr.len);
+            tx_seal(LINK_MSG_TELEMETRY, S.tm_gen, S.tr.len);
+            S.tr.nsamp = 0u;
+            S.tr.len = 0u;
             S.tm_ready = 0u;
             continue;
         }
@@ -1019,22 +1104,10 @@ void link_poll(void)
     S.wd_armed = (uint8_t)(app_signal(LINK_SIG_STATE) == (int16_t)LINK_STATE_RUN);
 }
 
-/* ---- time base: frame gap, watchdog ---- */
+/* ---- time base: watchdog, uptime ---- */
 void link_tick_ms(void)
 {
     S.uptime_ms++;
-    if (S.rx_activity != 0u) {
-        S.rx_activity = 0u;
-        S.rx_gap_ms = 0u;
-    } else if (S.rx_gap_ms < 255u) {
-        S.rx_gap_ms++;
-        if (S.rx_gap_ms == LINK_FRAME_GAP_MS) {
-            S.rx_stale_head = S.rx_head;
-            if (S.rx_activity == 0u) {   /* no byte slipped in since the check above */
-                S.rx_stale = 1u;
-            }
-        }
-    }
     if (S.wd_armed == 0u) {
         S.wd_ms = 0u;
     } else if (S.rx_valid != 0u) {
@@ -1044,7 +1117,7 @@ void link_tick_ms(void)
         if (S.wd_ms != 0xFFFFu) {
             S.wd_ms++;
         }
-        if ((int32_t)S.wd_ms >= (int32_t)link_params.link_timeout) {
+        if (S.wd_ms >= link_params.link_timeout) {
             S.wd_armed = 0u;
             S.wd_ms = 0u;
             app_link_lost();
@@ -1054,99 +1127,110 @@ void link_tick_ms(void)
 }
 
 /* ---- per speed-loop sample: telemetry and capture ---- */
+/* the masked signals' values, int16 little-endian, from p on; returns the bytes written */
+static uint8_t put_signals(LINK_DATA uint8_t *p, uint16_t m)
+{
+    uint8_t j, n = 0u;
+    uint16_t v;
+    for (j = 0u; m != 0u; j++) {
+        if ((m & 1u) != 0u) {
+            v = (uint16_t)app_signal(j);
+            p[n] = (uint8_t)v;
+            p[(uint8_t)(n + 1u)] = (uint8_t)(v >> 8);
+            n = (uint8_t)(n + 2u);
+        }
+        m = (uint16_t)(m >> 1);
+    }
+    return n;
+}
+
+#if LINK_WITH_CAPTURE
 static void capture_sample(void)
 {
-    uint8_t fire = 0u, j, k;
-    uint16_t base;
-    int16_t sp;
-    S.cap_div++;
-    if (S.cap_div < S.cap_dec) {
+    uint8_t fire = 0u, trig = S.cap_trig;
+    uint16_t wi;
+    int16_t sp, thr = S.cap_thr;
+    S.cr.div++;
+    if (S.cr.div < S.cap_dec) {
         return;
     }
-    S.cap_div = 0u;
+    S.cr.div = 0u;
     if (S.cap_state == LINK_CAP_ARMED) {
-        switch (S.cap_trig) {
-        case LINK_TRIG_IMMEDIATE:
+        if (trig == LINK_TRIG_IMMEDIATE) {
             fire = 1u;
-            break;
-        case LINK_TRIG_SETPOINT_CHANGE:
+        } else if (trig == LINK_TRIG_SETPOINT_CHANGE) {
             fire = S.cap_sp_changed;
-            break;
-        default:
+        } else {
             sp = app_signal(LINK_SIG_SPEED);
-            if (S.cap_prev_valid != 0u) {
-                if (S.cap_trig == LINK_TRIG_SPEED_RISING) {
-                    fire = (uint8_t)(S.cap_prev < S.cap_thr && sp >= S.cap_thr);
-                } else {
-                    fire = (uint8_t)(S.cap_prev > S.cap_thr && sp <= S.cap_thr);
-                }
+            if (trig == LINK_TRIG_SPEED_FALLING) {   /* falling through thr = rising through ~thr */
+                sp = (int16_t)(-1 - sp);
+                thr = (int16_t)(-1 - thr);
             }
-            S.cap_prev = sp;
-            S.cap_prev_valid = 1u;
-            break;
+            fire = (uint8_t)(S.cr.prev_valid != 0u && S.cr.prev < thr && sp >= thr);
+            S.cr.prev = sp;
+            S.cr.prev_valid = 1u;
         }
         if (fire != 0u) {
-            S.cap_tidx = (S.cap_filled < S.cap_pre) ? S.cap_filled : S.cap_pre;
-            S.cap_post = 0u;
+            S.cr.tidx = (S.cr.filled < S.cap_pre) ? S.cr.filled : S.cap_pre;
+            S.cr.post = 0u;
             S.cap_state = LINK_CAP_TRIGGERED;
         }
     }
-    base = (uint16_t)(S.cap_w * (uint16_t)S.cap_nsig);
-    k = 0u;
-    for (j = 0u; j < LINK_N_SIGNALS; j++) {
-        if ((S.cap_mask & (uint16_t)(1u << j)) != 0u) {
-            cap_buf[(uint16_t)(base + k)] = app_signal(j);
-            k++;
-        }
+    wi = (uint16_t)(S.cr.wi + put_signals(&cap_buf[S.cr.wi], S.cap_mask));
+    S.cr.w++;
+    if (S.cr.w >= S.cap_n) {
+        S.cr.w = 0u;
+        wi = 0u;
     }
-    S.cap_w++;
-    if (S.cap_w >= S.cap_n) {
-        S.cap_w = 0u;
-    }
-    if (S.cap_filled < S.cap_n) {
-        S.cap_filled++;
+    S.cr.wi = wi;
+    if (S.cr.filled < S.cap_n) {
+        S.cr.filled++;
     }
     if (S.cap_state == LINK_CAP_TRIGGERED) {
-        S.cap_post++;
-        if (S.cap_post >= (uint16_t)(S.cap_n - S.cap_pre)) {
-            S.cap_total = (uint16_t)(S.cap_tidx + S.cap_post);
-            S.cap_start = (uint16_t)((uint16_t)(S.cap_w + S.cap_n - S.cap_total) % S.cap_n);
+        S.cr.post++;
+        if (S.cr.post >= (uint16_t)(S.cap_n - S.cap_pre)) {
+            S.cr.total = (uint16_t)(S.cr.tidx + S.cr.post);
+            wi = (uint16_t)(S.cr.w + (uint16_t)(S.cap_n - S.cr.total));   /* < 2 cap_n */
+            if (wi >= S.cap_n) {
+                wi = (uint16_t)(wi - S.cap_n);
+            }
+            S.cr.start = wi;
             S.cap_state = LINK_CAP_DONE;
         }
     }
 }
+#endif
 
 void link_sample(void)
 {
-    uint8_t j;
+    uint8_t len;
     if (S.tm_dec != 0u) {
-        S.tm_div++;
-        if (S.tm_div >= S.tm_dec) {
-            S.tm_div = 0u;
+        S.tr.div++;
+        if (S.tr.div >= S.tm_dec) {
+            S.tr.div = 0u;
             if (S.tm_ready != 0u) {
                 if (S.tm_dropped != 0xFFFFu) {
                     S.tm_dropped++;
                 }
             } else {
-                if (S.tm_nsamp == 0u) {
-                    put16(&tm_buf[0], S.tm_counter);
-                    S.tm_len = TELEM_HEADER;
+                len = S.tr.len;
+                if (S.tr.nsamp == 0u) {
+                    tm_buf[0] = (uint8_t)S.tr.counter;
+                    tm_buf[1] = (uint8_t)(S.tr.counter >> 8);
+                    len = TELEM_HEADER;
                 }
-                for (j = 0u; j < LINK_N_SIGNALS; j++) {
-                    if ((S.tm_mask & (uint16_t)(1u << j)) != 0u) {
-                        put16(&tm_buf[S.tm_len], (uint16_t)app_signal(j));
-                        S.tm_len = (uint8_t)(S.tm_len + 2u);
-                    }
-                }
-                S.tm_nsamp++;
-                if (S.tm_nsamp >= S.tm_spf) {
+                S.tr.len = (uint8_t)(len + put_signals(&tm_buf[len], S.tm_mask));
+                S.tr.nsamp++;
+                if (S.tr.nsamp >= S.tm_spf) {
                     S.tm_ready = 1u;
                 }
             }
-            S.tm_counter++;
+            S.tr.counter++;
         }
     }
+#if LINK_WITH_CAPTURE
     if (S.cap_state == LINK_CAP_ARMED || S.cap_state == LINK_CAP_TRIGGERED) {
         capture_sample();
     }
+#endif
 }

@@ -2,25 +2,30 @@
  * link_fw.h -- picdrive serial link, C side.
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
  *
- * protocol 1.0, 30 table entries (2 rules),
- * table hash 0x02670AFBUL, build id 0x8CF0E6ACUL, profile hash 0x4B0E5FBAUL
+ * protocol 2.0, 30 table entries (2 rules),
+ * table hash 0x02670AFBUL, build id 0xE6D06936UL, profile hash 0x4B0E5FBAUL
  *
- * Frame: SOF 0xA5, LEN (0..40), TYPE, SEQ, payload, CRC-16/CCITT-FALSE over
- * LEN..payload, high byte first.  A bad CRC or an impossible LEN drops only the SOF byte and the
- * receiver rescans from the next byte; a partial frame older than 20 ms is abandoned.
+ * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
+ * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
+ * CRC-16/CCITT-FALSE over LEN..payload, high byte first.  A frame whose decoded length is not
+ * LEN + 5 or whose CRC fails is dropped whole; the receiver resynchronises at the next 0x00.
  *
  * RAM (bytes) of this module: buffers and scalar state (the total is what avr-gcc allocates):
  *   rx_ring            64
- *   tx_frame           46
+ *   tx_frame           45
  *   telemetry_frame    40
  *   replay              8
  *   param_store        37
  *   capture           128
- *   state              82
- *   total             405
+ *   state              97
+ *   total             419
  *
  * Contexts: link_rx_byte(), link_tick_ms() and link_sample() may be called from interrupts,
- * link_poll() from the main loop.  They share only single-byte flags and ring indices.
+ * link_poll() from the main loop.  link_rx_byte() shares only single-byte ring indices and an
+ * 8-bit overflow count with the main loop; link_tick_ms() and link_sample() share 16/32-bit
+ * counters read by link_poll() inside LINK_CRITICAL_BEGIN()/END(), which must therefore mask
+ * the interrupt that calls them.  None of them calls a compiler helper (multiply, divide,
+ * generic pointer, flash table read), so none is shared with the main loop.
  * Parameter-store writes happen in link_poll() between LINK_CRITICAL_BEGIN() and
  * LINK_CRITICAL_END() (define them, e.g. to clear/set GIEH, if the speed-loop interrupt
  * reads link_params).
@@ -30,9 +35,17 @@
 
 #include <stdint.h>
 
-#define LINK_PROTO_MAJOR        1u
+#if defined(__SDCC_pic16) || defined(__SDCC_PIC16)
+#define LINK_DATA __data                 /* 2-byte data-space pointers, not 3-byte generic ones */
+#define LINK_WPARAM __wparam             /* a single byte argument travels in W, not on the stack */
+#else
+#define LINK_DATA
+#define LINK_WPARAM
+#endif
+
+#define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0x8CF0E6ACUL
+#define LINK_BUILD_ID           0xE6D06936UL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
 #define LINK_TABLE_HASH         0x02670AFBUL
 #define LINK_SAMPLE_HZ          1000u
@@ -40,10 +53,10 @@
 #define LINK_N_ENTRIES          30u
 #define LINK_N_SIGNALS          11u
 
-#define LINK_SOF                0xA5u
+#define LINK_DELIMITER          0x00u
 #define LINK_MAX_PAYLOAD        40u
-#define LINK_MAX_FRAME          46u
-#define LINK_FRAME_GAP_MS       20u
+#define LINK_MAX_BODY           45u   /* LEN, TYPE, SEQ, payload, CRC */
+#define LINK_MAX_FRAME          47u   /* on the wire: COBS code + body + delimiter */
 #define LINK_RX_RING            64u
 #define LINK_REPLAY_BYTES       8u
 #define LINK_CAPTURE_WORDS      64u
@@ -51,6 +64,19 @@
 #define LINK_NAME_MAX           15u
 #define LINK_SIGNAL_BASE_ID     0x20u
 #define LINK_EE_IMAGE_BYTES     45u
+/* features (generation options; -DLINK_WITH_...=0 drops one): capture commands and buffer,
+ * EEPROM persistence.  bench/link_pic18.py measures what each costs. */
+#ifndef LINK_WITH_CAPTURE
+#define LINK_WITH_CAPTURE       1
+#endif
+#ifndef LINK_WITH_EEPROM
+#define LINK_WITH_EEPROM        1
+#endif
+#if LINK_WITH_CAPTURE
+#define LINK_HELLO_CAPTURE_WORDS LINK_CAPTURE_WORDS
+#else
+#define LINK_HELLO_CAPTURE_WORDS 0u        /* hello: no capture in this build */
+#endif
 #ifndef LINK_EE_BASE
 #define LINK_EE_BASE            0u
 #endif
@@ -213,7 +239,7 @@ extern link_params_t link_params;
 
 /* ---- the module ---- */
 void     link_init(void);                      /* defaults, queue the BOOT event */
-void     link_rx_byte(uint8_t b);              /* UART RX interrupt */
+void     link_rx_byte(uint8_t b) LINK_WPARAM;  /* UART RX interrupt: stores the byte, nothing more */
 void     link_poll(void);                      /* main loop */
 void     link_tick_ms(void);                   /* 1 kHz time base */
 void     link_sample(void);                    /* once per speed-loop sample */
@@ -224,7 +250,6 @@ uint8_t  link_param_set(uint8_t id, int32_t raw);   /* 0 or LINK_NACK_*; calls a
 uint8_t  link_eeprom_load(void);               /* LINK_EE_*; anything but OK keeps the values */
 uint8_t  link_eeprom_save(void);               /* 0 or LINK_NACK_EEPROM_ERROR (read-back verify) */
 uint16_t link_crc16(const uint8_t *p, uint8_t n);
-uint16_t link_crc16_update(uint16_t crc, uint8_t b);
 
 /* ---- implemented by the application ---- */
 uint8_t  app_command(uint8_t cmd, const uint8_t *arg, uint8_t n);  /* start/stop/brake/fault_clear: 0 or LINK_NACK_* */

@@ -1,13 +1,13 @@
 """Frame codec: the host side of :mod:`picdrive.protocol`, with the same tables.
 
-* :func:`encode_frame` / :class:`Frame` -- SOF, LEN, TYPE, SEQ, payload,
+* :func:`encode_frame` / :class:`Frame` -- body LEN, TYPE, SEQ, payload,
   CRC-16/CCITT-FALSE (``binascii.crc_hqx(data, 0xFFFF)``) over LEN..payload,
-  high byte first.
+  high byte first; on the wire COBS(body) then the delimiter 0x00.
+* :func:`cobs_encode`, :func:`cobs_decode` -- consistent overhead byte stuffing.
 * :class:`StreamDecoder` -- the streaming receiver with exactly the C
-  module's resynchronisation rule: an impossible LEN or a bad CRC drops only
-  the SOF byte and the scan restarts at the next byte; :meth:`StreamDecoder.gap`
-  (an inter-byte gap longer than ``FRAME_GAP_MS``) abandons every candidate
-  frame that is not complete in the bytes received before the gap.
+  module's rule: bytes up to each 0x00 are one candidate, dropped whole unless
+  it COBS-decodes to a body of LEN + 5 bytes whose CRC holds;
+  :meth:`StreamDecoder.gap` (no byte for ``HOST_GAP_MS``) drops a partial one.
 * :func:`encode_command`, :func:`decode_reply` -- payloads of the commands in
   :data:`picdrive.protocol.COMMANDS` (little-endian ``struct`` layouts).
 * :func:`decode_telemetry`, :func:`decode_event`, :func:`decode_nack`.
@@ -27,15 +27,67 @@ from . import protocol as P
 from .protocol import ProtocolError
 
 __all__ = [
-    "crc16", "Frame", "encode_frame", "StreamDecoder", "encode_command", "decode_reply",
-    "reply_payload", "command_payload", "decode_nack", "decode_event", "decode_telemetry", "telemetry_payload_len", "eeprom_image",
-    "parse_eeprom_image", "decode_param_info",
+    "crc16", "cobs_encode", "cobs_decode", "Frame", "encode_frame", "frame_body", "parse_body", "StreamDecoder",
+    "encode_command", "decode_reply", "reply_payload", "command_payload", "decode_nack", "decode_event",
+    "decode_telemetry", "telemetry_payload_len", "eeprom_image", "parse_eeprom_image", "decode_param_info",
 ]
+
+_DELIM = bytes((P.DELIMITER,))
 
 
 def crc16(data: bytes) -> int:
     """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, no final xor)."""
     return binascii.crc_hqx(data, 0xFFFF)
+
+
+def cobs_encode(data: bytes) -> bytes:
+    """COBS: each run of non-zero bytes (at most 254) is preceded by its length + 1; the zeros
+    are implied.  The result holds no 0x00."""
+    out = bytearray()
+    for block in bytes(data).split(b"\0"):
+        while len(block) >= 254:
+            out.append(255)
+            out += block[:254]
+            block = block[254:]
+        out.append(len(block) + 1)
+        out += block
+    return bytes(out)
+
+
+def cobs_decode(data: bytes) -> bytes | None:
+    """Inverse of :func:`cobs_encode` for bodies shorter than 254 bytes, as the C module decodes:
+    every code byte after the first implies the zero before its block.  None if a block is cut
+    short or a 0x00 occurs."""
+    out, i, n = bytearray(), 0, len(data)
+    while i < n:
+        code = data[i]
+        if code == 0 or i + code > n:
+            return None
+        if i:
+            out.append(0)
+        out += data[i + 1:i + code]
+        i += code
+    return bytes(out)
+
+
+def frame_body(type_: int, seq: int, payload: bytes = b"") -> bytes:
+    """LEN, TYPE, SEQ, payload, CRC (high byte first): the part of a frame the CRC protects."""
+    payload = bytes(payload)
+    if len(payload) > P.MAX_PAYLOAD:
+        raise ProtocolError(f"payload of {len(payload)} B exceeds the frame limit of {P.MAX_PAYLOAD} B")
+    if not (0 <= type_ <= 255 and 0 <= seq <= 255):
+        raise ProtocolError(f"TYPE {type_!r} and SEQ {seq!r} must be bytes (0..255)")
+    body = bytes((len(payload), type_, seq)) + payload
+    c = crc16(body)
+    return body + bytes((c >> 8, c & 0xFF))
+
+
+def parse_body(body: bytes) -> Frame | None:
+    """The frame of a decoded body, or None unless its length is LEN + 5 and its CRC holds."""
+    n = len(body)
+    if n < P.BODY_OVERHEAD or body[0] + P.BODY_OVERHEAD != n or crc16(body) != 0:
+        return None
+    return Frame(body[1], body[2], bytes(body[3:n - 2]))
 
 
 @dataclass(frozen=True)
@@ -70,97 +122,58 @@ class Frame:
         return None
 
 
-def encode_frame(type_: int, seq: int, payload: bytes = b"") -> bytes:
-    """Bytes of one frame.  Raises ProtocolError if the payload is too long."""
-    payload = bytes(payload)
-    if len(payload) > P.MAX_PAYLOAD:
-        raise ProtocolError(f"payload of {len(payload)} B exceeds the frame limit of {P.MAX_PAYLOAD} B")
-    if not (0 <= type_ <= 255 and 0 <= seq <= 255):
-        raise ProtocolError(f"TYPE {type_!r} and SEQ {seq!r} must be bytes (0..255)")
-    body = bytes((len(payload), type_, seq)) + payload
-    c = crc16(body)
-    return bytes((P.SOF,)) + body + bytes((c >> 8, c & 0xFF))
+def encode_frame(type_: int, seq: int, payload: bytes = b"", *, lead: bool = False) -> bytes:
+    """Bytes of one frame on the wire: COBS(body), 0x00 (``lead``: a 0x00 before it too, as the
+    host sends commands, so that a partial frame before it is dropped at once).  Raises
+    ProtocolError if the payload is too long."""
+    return (_DELIM if lead else b"") + cobs_encode(frame_body(type_, seq, payload)) + _DELIM
 
 
 class StreamDecoder:
-    """Streaming frame receiver, same rule as the C module's ``rx_parse``.
+    """Streaming frame receiver, same rule as the C module's ``rx_frame``.
 
     ``feed(data)`` returns the frames completed by ``data``; ``gap()`` is
-    called when no byte arrived for ``FRAME_GAP_MS`` and returns the frames
-    that the abandonment of stale candidates uncovers.  Counters:
-    ``crc_errors`` (complete candidates whose CRC failed), ``bytes_in``.
+    called when no byte arrived for ``HOST_GAP_MS`` and drops a partial
+    frame.  Counters: ``crc_errors`` (non-empty candidates rejected: bad
+    COBS, length or CRC), ``bytes_in``.
     """
 
     def __init__(self) -> None:
         self._buf = bytearray()
-        self._stale_end: int | None = None     # bytes [0, stale_end) arrived before a gap
         self.crc_errors = 0
         self.bytes_in = 0
 
     @property
     def pending(self) -> int:
-        """Bytes held (a partial candidate and what follows it)."""
+        """Bytes held (a partial frame)."""
         return len(self._buf)
 
     def feed(self, data: bytes) -> list[Frame]:
-        self._buf += data
+        data = bytes(data)
         self.bytes_in += len(data)
-        return self._parse()
+        parts = data.split(_DELIM)
+        out = []
+        for k, part in enumerate(parts[:-1]):
+            cand = bytes(self._buf) + part if k == 0 else part
+            self._buf.clear()
+            if not cand:
+                continue
+            body = cobs_decode(cand) if len(cand) <= P.MAX_BODY + 1 else None
+            f = parse_body(body) if body is not None else None
+            if f is None:
+                self.crc_errors += 1
+            else:
+                out.append(f)
+        self._buf += parts[-1]
+        return out
 
     def gap(self) -> list[Frame]:
-        self._stale_end = len(self._buf)
-        return self._parse()
+        """Drop a partial frame (what follows it up to the next 0x00 then fails its checks)."""
+        self._buf.clear()
+        return []
 
     def reset(self) -> None:
         self._buf.clear()
-        self._stale_end = None
-
-    def _parse(self) -> list[Frame]:
-        buf, out, i = self._buf, [], 0
-        sof, maxp = P.SOF, P.MAX_PAYLOAD
-        n = len(buf)
-        while True:
-            old = None
-            if self._stale_end is not None:
-                old = self._stale_end - i
-                if old <= 0:
-                    self._stale_end, old = None, None
-            avail = n - i
-            if avail == 0:
-                break
-            if buf[i] != sof:
-                j = buf.find(sof, i + 1)        # fast skip to the next SOF
-                if j < 0:
-                    j = n
-                i = j
-                continue
-            if avail < 2:
-                if old is not None and old < 2:
-                    i += 1
-                    continue
-                break
-            ln = buf[i + 1]
-            if ln > maxp:
-                i += 1
-                continue
-            need = ln + 6
-            if old is not None and need > old:
-                i += 1
-                continue
-            if avail < need:
-                break
-            if binascii.crc_hqx(buf[i + 1:i + 4 + ln], 0xFFFF) != (buf[i + 4 + ln] << 8 | buf[i + 5 + ln]):
-                self.crc_errors += 1
-                i += 1
-                continue
-            out.append(Frame(buf[i + 2], buf[i + 3], bytes(buf[i + 4:i + 4 + ln])))
-            i += need
-        del buf[:i]
-        if self._stale_end is not None:
-            self._stale_end -= i
-            if self._stale_end <= 0:
-                self._stale_end = None
-        return out
 
 
 # ---------------------------------------------------------------------------
@@ -201,9 +214,9 @@ def command_payload(cmd: str | P.Command, args: Mapping[str, Any] | None = None)
 
 
 def encode_command(cmd: str | P.Command, seq: int, args: Mapping[str, Any] | None = None) -> bytes:
-    """Frame bytes of a command."""
+    """Frame bytes of a command, as the host sends it (a 0x00 before the frame too)."""
     c = _command(cmd)
-    return encode_frame(c.code, seq, command_payload(c, args))
+    return encode_frame(c.code, seq, command_payload(c, args), lead=True)
 
 
 def reply_payload(cmd: str | P.Command, fields: Mapping[str, Any] | None = None) -> bytes:

@@ -516,7 +516,7 @@ class Link:
             if self._dead is not None:
                 raise self._dead
             seq = self._next_seq()
-            frame = codec.encode_frame(c.code, seq, payload)
+            frame = codec.encode_frame(c.code, seq, payload, lead=True)
             self.stats["requests"] += 1
             tries = bad_crc = 0
             while True:

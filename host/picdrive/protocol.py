@@ -2,7 +2,7 @@
 
 Everything both ends must agree on lives in this module as plain data:
 
-* the frame (:data:`SOF`, :data:`MAX_PAYLOAD`, CRC-16/CCITT-FALSE);
+* the frame (COBS with the :data:`DELIMITER` 0x00, :data:`MAX_PAYLOAD`, CRC-16/CCITT-FALSE);
 * the message types (:data:`COMMANDS` and the board-initiated frames), each
   with its argument and reply layout (little-endian ``struct`` codes);
 * the NACK, fault, state, event, trigger and controller codes (``IntEnum``);
@@ -40,8 +40,8 @@ from typing import Any, Iterable, Mapping
 from .errors import PicdriveError
 
 __all__ = [
-    "ProtocolError", "PROTOCOL_VERSION", "SOF", "MAX_PAYLOAD", "MAX_FRAME", "FRAME_OVERHEAD",
-    "FRAME_GAP_MS", "HOST_GAP_MS", "RX_RING_BYTES", "REPLAY_BYTES", "CAPTURE_BYTES_DEFAULT", "PARAM_GET_MAX",
+    "ProtocolError", "PROTOCOL_VERSION", "DELIMITER", "MAX_PAYLOAD", "MAX_BODY", "BODY_OVERHEAD",
+    "MAX_FRAME", "FRAME_OVERHEAD", "HOST_GAP_MS", "RX_RING_BYTES", "REPLAY_BYTES", "CAPTURE_BYTES_DEFAULT", "PARAM_GET_MAX",
     "NAME_MAX", "EEPROM_BYTES", "EEPROM_LAYOUT_VERSION", "EEPROM_MAGIC", "EEPROM_HEADER_BYTES",
     "CTYPES", "CType", "UNITS", "FLAG_WRITABLE", "FLAG_PERSISTED", "FLAG_SIGNAL",
     "Nack", "Fault", "State", "Event", "Trigger", "CaptureState", "Controller", "EepromResult",
@@ -64,11 +64,13 @@ class ProtocolError(PicdriveError, ValueError):
 # ---------------------------------------------------------------------------
 # Frame
 # ---------------------------------------------------------------------------
-PROTOCOL_VERSION = (1, 0)
-"""(major, minor).  A host refuses a board with another major version."""
+PROTOCOL_VERSION = (2, 0)
+"""(major, minor).  A host refuses a board with another major version.  2.0: COBS framing with
+a 0x00 delimiter (1.x: start byte 0xA5 without stuffing)."""
 
-SOF = 0xA5
-"""Start-of-frame byte."""
+DELIMITER = 0x00
+"""Frame delimiter.  Frames are COBS-encoded, so it never occurs inside a frame: a receiver
+resynchronises exactly at the next delimiter, and no frame can hide inside another's payload."""
 
 MAX_PAYLOAD = 40
 """Largest payload (LEN) in bytes.  Sized for the PIC18F4431's 768 B of RAM:
@@ -76,21 +78,26 @@ the largest payloads are ``param_info`` replies (20 B + a name of up to
 :data:`NAME_MAX` characters), ``capture_read`` chunks and four-sample
 telemetry frames of four signals (34 B)."""
 
-FRAME_OVERHEAD = 6
-"""SOF, LEN, TYPE, SEQ, CRC high, CRC low."""
+BODY_OVERHEAD = 5
+"""LEN, TYPE, SEQ, CRC high, CRC low: the frame body is the payload plus these."""
+
+MAX_BODY = MAX_PAYLOAD + BODY_OVERHEAD
+
+FRAME_OVERHEAD = BODY_OVERHEAD + 2
+"""Bytes on the wire beyond the payload: the body's five, the COBS code byte (one block: a body
+is shorter than 254 bytes) and the delimiter.  The host sends one more delimiter before each
+command."""
 
 MAX_FRAME = MAX_PAYLOAD + FRAME_OVERHEAD
 
-FRAME_GAP_MS = 20
-"""An inter-byte gap longer than this abandons a partly received frame
-(valid down to 1200 baud, where one byte takes 8.3 ms)."""
-
 HOST_GAP_MS = 100
-"""The host's gap rule: longer than the board's, because USB-serial adapters and the OS deliver
-bytes in bursts (an FTDI chip holds them up to its 16 ms latency timer)."""
+"""The host abandons a partly received frame after this long without bytes (USB-serial adapters
+and the OS deliver bytes in bursts: an FTDI chip holds them up to its 16 ms latency timer).  The
+board needs no timer: the host's delimiter before each command ends any partial frame."""
 
 RX_RING_BYTES = 64
-"""Receive ring of the C module (power of two, >= MAX_FRAME + slack)."""
+"""Receive ring of the C module (power of two, holds a whole command frame: the RX interrupt only
+stores bytes, link_poll decodes a frame once its delimiter is in the ring)."""
 
 REPLAY_BYTES = 8
 """Replies up to this size are stored for duplicate-SEQ replay; every command
@@ -114,8 +121,8 @@ EEPROM_HEADER_BYTES = 8
 then the persisted parameters in table order (little-endian, C-type width),
 then CRC-16/CCITT-FALSE of everything before it, high byte first."""
 
-STATE_BYTES = 82
-"""Scalar state of the C module (struct S in link_fw.c), bytes, as avr-nm measures it;
+STATE_BYTES = 97
+"""Scalar state of the C module (struct S and the value register V in link_fw.c), bytes, as avr-nm measures it;
 checked by tests/test_protocol.py."""
 
 TELEMETRY_HEADER_BYTES = 2            # u16 counter of the frame's first sample
@@ -124,7 +131,7 @@ CAPTURE_READ_HEADER_BYTES = 7         # state u8, total u16, trigger index u16, 
 DEFAULT_TELEMETRY_SIGNALS = ("speed", "setpoint", "voltage", "current")
 DEFAULT_SAMPLES_PER_FRAME = 4
 """The default telemetry frame: four signals, four samples (34 B payload,
-40 B on the wire) -- 1 kHz of four signals fits into 115200 baud."""
+41 B on the wire) -- 1 kHz of four signals fits into 115200 baud."""
 
 
 # ---------------------------------------------------------------------------
@@ -757,7 +764,7 @@ def ram_budget(table: Table, capture_bytes: int = CAPTURE_BYTES_DEFAULT) -> dict
     build (``avr-nm --size-sort -S``)."""
     return {
         "rx_ring": RX_RING_BYTES,
-        "tx_frame": MAX_FRAME,
+        "tx_frame": MAX_BODY,
         "telemetry_frame": MAX_PAYLOAD,
         "replay": REPLAY_BYTES,
         "param_store": table.param_store_bytes,
@@ -788,9 +795,53 @@ def _u32(name: str, v: int) -> int:
     return v
 
 
+_C_ROW_BYTES = 20       # id, ctype, flags, unit, scale bits, min, max, default: the param_info reply head
+_C_HANDLERS = {"start": "h_app", "stop": "h_app", "brake": "h_app", "fault_clear": "h_app",
+               "heartbeat": "h_none"}
+_C_IDLE_COMMANDS = ("eeprom_save", "eeprom_load")   # refused while the motor runs or brakes
+
+
+def _c_bytes(data: bytes) -> str:
+    return ", ".join(f"0x{b:02X}u" for b in data)
+
+
+def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, capture_words: int) -> dict:
+    """The flash tables of link_fw.c: one row per entry (the param_info reply head, little-endian),
+    store offsets and sizes, names, the hello reply and the EEPROM header."""
+    names, name_offsets = "", [0]
+    for e in table.entries:
+        names += e.name
+        name_offsets.append(len(names))
+
+    def row(e: Entry) -> str:
+        return _c_bytes(struct.pack("<BBBBIiii", e.id, e.ct.code, e.flags, e.unit_index, e.scale_bits,
+                                    e.min_raw, e.max_raw, e.default_raw)) + ","
+
+    def size_code(e: Entry) -> int:     # bytes in the store (signals: 16 bits), bit 7: signed
+        return e.ct.size | (0x80 if e.ctype.startswith("int") else 0)
+
+    def le(macro: str, n: int) -> str:   # the header's macros stay the authority
+        return ", ".join(f"(uint8_t)({macro} >> {8 * k}u)" if k else f"(uint8_t){macro}" for k in range(n))
+
+    hello = ", ".join(["LINK_PROTO_MAJOR", "LINK_PROTO_MINOR", le("LINK_BUILD_ID", 4), le("LINK_PROFILE_HASH", 4),
+                       le("LINK_TABLE_HASH", 4), "LINK_N_ENTRIES", "LINK_MAX_PAYLOAD", le("LINK_HELLO_CAPTURE_WORDS", 2),
+                       le("LINK_SAMPLE_HZ", 2)])
+    ee_head = ", ".join([_c_bytes(EEPROM_MAGIC + bytes((EEPROM_LAYOUT_VERSION,))), le("LINK_TABLE_HASH", 4),
+                         "EE_DATA_BYTES"])
+    index = {e.name: i for i, e in enumerate(table.entries)}
+    index_of = [None] * (max(e.id for e in table.entries) + 1)
+    for i, e in enumerate(table.entries):
+        index_of[e.id] = i
+    return dict(index_of=index_of, row_bytes=_C_ROW_BYTES, row_bytes_of=row, size_code=size_code,
+                name_offsets=name_offsets, names_concat=names,
+                persisted_index=[index[e.name] for e in table.persisted],
+                name_t="uint8_t" if len(names) <= 255 else "uint16_t", hello_bytes=hello, ee_head_bytes=ee_head,
+                handler_of=lambda c: _C_HANDLERS.get(c.name, "h_" + c.name), idle_cmds=_C_IDLE_COMMANDS)
+
+
 def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float | None = None,
              capture_bytes: int = CAPTURE_BYTES_DEFAULT, critical_begin: str = "",
-             critical_end: str = "") -> dict[str, str]:
+             critical_end: str = "", capture: bool = True, eeprom: bool = True) -> dict[str, str]:
     """Render the C link module for ``table``.
 
     Returns ``{"link_fw.h": text, "link_fw.c": text}``.  ``build_id`` and
@@ -803,6 +854,10 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
     loop (e.g. ``"INTCONbits.GIEH = 0;"``); empty when the speed loop reads
     the store from the main loop only.  Both can also be set with
     ``-DLINK_CRITICAL_BEGIN()=...`` at compile time.
+    ``capture``/``eeprom``: generate the triggered capture (commands and buffer) and the EEPROM
+    persistence, or leave them out to save flash (``LINK_WITH_CAPTURE``/``LINK_WITH_EEPROM``;
+    a build without capture NACKs its commands UNKNOWN_COMMAND and reports 0 capture words in
+    hello; one without EEPROM refuses eeprom_save and loads nothing).
     """
     if not isinstance(table, Table):
         raise ProtocolError("render_c needs a protocol.Table from build_table()")
@@ -823,7 +878,7 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
         persisted=table.persisted, commands=COMMANDS, version=PROTOCOL_VERSION,
         build_id=build_id, profile_hash=profile_hash, table_hash=table.hash, sample_hz=hz,
         capture_words=capture_bytes // 2, capture_bytes=capture_bytes, sig_all=(1 << len(table.signals)) - 1,
-        sof=SOF, max_payload=MAX_PAYLOAD, max_frame=MAX_FRAME, frame_gap_ms=FRAME_GAP_MS,
+        max_payload=MAX_PAYLOAD, max_frame=MAX_FRAME, max_body=MAX_BODY,
         rx_ring=RX_RING_BYTES, name_max=NAME_MAX, replay_bytes=REPLAY_BYTES, param_get_max=PARAM_GET_MAX,
         nacks=list(Nack), faults=list(Fault), states=list(State), events=list(Event),
         triggers=list(Trigger), capture_states=list(CaptureState), controllers=list(Controller),
@@ -834,7 +889,9 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
         ee_image=table.eeprom_image_bytes, telem_header=TELEMETRY_HEADER_BYTES,
         capread_header=CAPTURE_READ_HEADER_BYTES, budget=ram_budget(table, capture_bytes), state_bytes=STATE_BYTES,
         critical_begin=critical_begin, critical_end=critical_end, c_int=_c_int,
-        cmd=COMMAND_BY_NAME, hexu=lambda v: f"0x{v:08X}UL",
+        with_capture=bool(capture), with_eeprom=bool(eeprom),
+        cmd=COMMAND_BY_NAME, hexu=lambda v: f"0x{v:08X}UL", **_c_tables(table, build_id, profile_hash, hz,
+                                                                          capture_bytes // 2),
     )
     env = _env()
     return {name: env.get_template(name + ".j2").render(**ctx) for name in ("link_fw.h", "link_fw.c")}
@@ -852,7 +909,9 @@ def _check_definition() -> None:
     assert COMMAND_BY_NAME["param_info"].reply_size + NAME_MAX <= MAX_PAYLOAD
     assert 4 * PARAM_GET_MAX <= MAX_PAYLOAD
     assert TELEMETRY_HEADER_BYTES + 2 * len(DEFAULT_TELEMETRY_SIGNALS) * DEFAULT_SAMPLES_PER_FRAME <= MAX_PAYLOAD
-    assert RX_RING_BYTES & (RX_RING_BYTES - 1) == 0 and RX_RING_BYTES >= MAX_FRAME + 8
+    assert RX_RING_BYTES & (RX_RING_BYTES - 1) == 0 and RX_RING_BYTES > MAX_FRAME + 1
+    assert MAX_BODY < 254                 # one COBS block per frame
+    assert [c.code for c in COMMANDS] == list(range(1, len(COMMANDS) + 1))   # the C dispatch table
     assert len(SIGNALS) <= 16
     for d in static_defs(8):
         assert len(d.name) <= NAME_MAX and d.unit in UNITS, d.name
@@ -890,19 +949,29 @@ def render_markdown(table: Table | None = None) -> str:
     a("")
     a("## Frame")
     a("")
-    a("| byte | field |")
+    a("| byte of the body | field |")
     a("|---|---|")
-    a(f"| 0 | SOF `0x{SOF:02X}` |")
-    a(f"| 1 | LEN: payload length, 0..{MAX_PAYLOAD} |")
-    a("| 2 | TYPE |")
-    a("| 3 | SEQ |")
-    a("| 4 .. 4+LEN-1 | payload (little-endian integers) |")
+    a(f"| 0 | LEN: payload length, 0..{MAX_PAYLOAD} |")
+    a("| 1 | TYPE |")
+    a("| 2 | SEQ |")
+    a("| 3 .. 3+LEN-1 | payload (little-endian integers) |")
     a("| last 2 | CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) over LEN..payload, high byte first |")
     a("")
-    a(f"Largest frame: {MAX_FRAME} bytes.  No byte stuffing.  A receiver that finds LEN > {MAX_PAYLOAD} or a "
-      "bad CRC drops only the SOF byte and rescans from the next byte, so a valid frame that follows garbage "
-      f"is accepted at the latest {MAX_FRAME - 2} bytes after its SOF.  A partly received frame whose next "
-      f"byte does not arrive within {FRAME_GAP_MS} ms is abandoned the same way (SOF dropped, rescan).")
+    a(f"On the wire a frame is the body COBS-encoded (consistent overhead byte stuffing: one code byte, as a "
+      f"body is at most {MAX_BODY} B), then the delimiter `0x{DELIMITER:02X}`, which occurs nowhere else.  "
+      f"Largest frame: {MAX_FRAME} bytes.  The host sends a delimiter before each command too, so a partial "
+      "frame before it (a cable plugged in mid-frame, a host restarted mid-write) is dropped at once.")
+    a("")
+    a("A receiver collects the bytes up to each delimiter and accepts them only if they COBS-decode to a body "
+      "of exactly LEN + 5 bytes whose CRC holds; otherwise it drops them whole and starts afresh after the "
+      "delimiter.  Consequences: resynchronisation is exact (the first frame after any garbage is accepted as "
+      "soon as its delimiter arrives, if a delimiter preceded it); a frame carried inside a payload is "
+      "stuffed and can never be taken for a frame; a frame that lost bytes either ends at the next delimiter "
+      "(rejected by its length and CRC) or merges with the next frame (both rejected); a LEN that does not "
+      "match the frame's length is rejected whatever the CRC.  What remains is the CRC's chance rate "
+      "(2^-16 per corrupted frame, less with the length check): `bench/fuzz_link.py` measures it per kind of "
+      "corruption.  The board has no inter-byte timer; the host drops a partial frame after "
+      f"{HOST_GAP_MS} ms without bytes.  Version 1.x framed with a start byte 0xA5 and no stuffing.")
     a("")
     a("## Exchanges")
     a("")
@@ -920,9 +989,12 @@ def render_markdown(table: Table | None = None) -> str:
     a(f"* Board-initiated frames: telemetry (TYPE 0x{MSG_TELEMETRY:02X}, SEQ = telemetry generation, payload "
       "u16 counter of the frame's first sample then the samples), events (TYPE "
       f"0x{MSG_EVENT:02X}, SEQ = event counter, payload event, code).")
-    a("* Watchdog: while the drive state is RUN, a board that receives no valid frame for `link_timeout` ms "
-      "switches its outputs off, latches fault LINK_LOST and sends event WATCHDOG.  Idle boards never time "
-      "out.  The host keeps the link alive with heartbeat.")
+    a("* Watchdog: while the drive state is RUN, a board that receives no valid host command for "
+      "`link_timeout` ms switches its outputs off, latches fault LINK_LOST and sends event WATCHDOG.  Idle "
+      "boards never time out.  The host keeps the link alive with heartbeat.")
+    a("* Frames of the board's own types (ACKs, NACK, telemetry, event) arriving at the board are ignored: "
+      "no reply, and they do not feed the watchdog, so a loop-back fault (the board's frames echoed back) "
+      "cannot keep a motor running without a host.")
     a("* Direction is the sign of the speed setpoint (no separate reverse command).")
     a("")
     a("## Commands")
@@ -1007,7 +1079,7 @@ def render_markdown(table: Table | None = None) -> str:
     a("void    link_init(void);                  /* defaults, boot event; then link_eeprom_load() */")
     a("void    link_rx_byte(uint8_t b);          /* UART RX interrupt */")
     a("void    link_poll(void);                  /* main loop: dispatch, replies, events, telemetry */")
-    a("void    link_tick_ms(void);               /* 1 kHz: watchdog, frame gap, uptime */")
+    a("void    link_tick_ms(void);               /* 1 kHz: watchdog, uptime */")
     a("void    link_sample(void);                /* once per speed-loop sample: telemetry + capture */")
     a("void    link_event(uint8_t event, uint8_t code);   /* report BOOT cause / FAULT latched */")
     a("int16_t link_param_i16(uint8_t id);       /* raw value, saturated to int16 */")
@@ -1029,9 +1101,14 @@ def render_markdown(table: Table | None = None) -> str:
     a("```")
     a("")
     a("Contexts: `link_rx_byte`, `link_tick_ms` and `link_sample` may run in interrupts; `link_poll` runs in "
-      "the main loop.  They share only single-byte flags and ring indices.  `app_link_lost` is called from "
-      "`link_tick_ms`; `app_signal` from `link_sample` and `link_poll`.  Parameter-store writes happen in "
-      "`link_poll` inside `LINK_CRITICAL_BEGIN()`/`LINK_CRITICAL_END()`.")
+      "the main loop.  `link_rx_byte` only stores the byte in the ring (8-bit index, power-of-two size) or "
+      "counts an overflow in an 8-bit counter the main loop accumulates: it shares single bytes only, so any "
+      "interrupt priority may call it.  `link_tick_ms` and `link_sample` share 16/32-bit counters (uptime, "
+      "telemetry drops) that `link_poll` reads inside `LINK_CRITICAL_BEGIN()`/`LINK_CRITICAL_END()`, which "
+      "must mask their interrupt.  None of the three calls a compiler helper (no multiplication, division, "
+      "generic pointer or flash-table read), so no non-reentrant helper is shared with the main loop.  "
+      "`app_link_lost` is called from `link_tick_ms`; `app_signal` from `link_sample` and `link_poll`.  "
+      "Parameter-store writes happen in `link_poll` inside the same critical section.")
     a("")
     a("## Decisions (where the architecture leaves the choice open)")
     a("")
@@ -1044,7 +1121,8 @@ def render_markdown(table: Table | None = None) -> str:
         "command was corrupted resends at once instead of waiting for its timeout; garbage does not cause a "
         "NACK storm.",
         "Telemetry frames carry several samples (`samples_per_frame`, default 4 for the four default signals): "
-        "34 B of payload in a 40 B frame, 85 % payload efficiency, so 1 kHz of four signals fits 115200 baud.  "
+        f"34 B of payload in a {34 + FRAME_OVERHEAD} B frame, {34 / (34 + FRAME_OVERHEAD):.0%} payload efficiency, "
+        "so 1 kHz of four signals fits 115200 baud.  "
         "The frame's SEQ is the telemetry generation (incremented by each telem_config) so a host never decodes "
         "a frame with the wrong signal layout; the u16 counter of the first sample lets it count drops.",
         "The board double-buffers telemetry (one frame filling, one in the TX frame buffer) and streams a frame "
@@ -1054,8 +1132,9 @@ def render_markdown(table: Table | None = None) -> str:
         "(3.5 ms at 115200 baud).",
         "Direction is the sign of the speed setpoint; there is no reverse command.",
         "The watchdog is armed while app_signal(LINK_SIG_STATE) is RUN (not in BRAKE, IDLE or FAULT): it fires "
-        "once more than link_timeout ms have passed since the last valid frame (any frame that passes its CRC, "
-        "NACKed or not).  link_timeout has a floor of 20 ms, so it cannot be switched off.",
+        "once more than link_timeout ms have passed since the last valid host command (a frame that passes its "
+        "checks and carries a command TYPE, NACKed or not; not the board's own frame types).  link_timeout has "
+        "a floor of 20 ms, so it cannot be switched off.",
         "Capture triggers: immediate (pre_trigger must be 0), setpoint change (speed_setpoint written through "
         "the link or link_param_set), speed crossing a threshold upwards or downwards.  A record holds up to "
         "pre_trigger samples before the trigger (fewer if the trigger came before the history filled) and "
@@ -1064,8 +1143,11 @@ def render_markdown(table: Table | None = None) -> str:
         "about 4 ms per byte).  The image carries the table hash, so a board reflashed with another design "
         "ignores the old image (OTHER_BUILD) instead of loading numbers of other scales.",
         "Signals are 16-bit on the wire (int16 or uint16); position wraps at 16 bits.",
-        f"The host abandons a partial frame after {HOST_GAP_MS} ms without bytes (the board after {FRAME_GAP_MS} ms): "
-        "USB-serial adapters deliver bytes in bursts (an FTDI chip holds them up to its 16 ms latency timer).",
+        f"The host abandons a partial frame after {HOST_GAP_MS} ms without bytes: USB-serial adapters deliver "
+        "bytes in bursts (an FTDI chip holds them up to its 16 ms latency timer).  The board needs no timer.",
+        "The C module is table-driven for an 8-bit core: one flash row per table entry (the param_info reply "
+        "itself), store access by byte offset and size, commands dispatched through a table of handlers with "
+        "their argument lengths, no run-time multiplication or division.",
     ):
         a(f"* {item}")
     a("")
@@ -1079,7 +1161,9 @@ def render_markdown(table: Table | None = None) -> str:
       "`NackError` (command, code, reason), `HandshakeMismatch` (differences), `ParamError` (refused on the "
       "host).  Tests run it against the rendered C module with a fake application behind a local socket "
       "(`tests/linksupport/`); `bench/link.py` measures the telemetry rate and RAM, `bench/fuzz_link.py` "
-      "fuzzes the receiver under ASan/UBSan.")
+      "fuzzes the receiver under ASan/UBSan, `bench/link_pic18.py` measures flash, RAM and cycles of the C "
+      "module compiled by SDCC for the PIC18F4431 and run in gpsim (`--rev` for an older build, `--features` "
+      "for the flash the capture and EEPROM options cost).")
     a("")
     return "\n".join(L)
 

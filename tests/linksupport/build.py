@@ -6,6 +6,7 @@ session (or a bench run) compiles each variant once.
 from __future__ import annotations
 
 import hashlib
+import re
 import os
 import shutil
 import subprocess
@@ -119,3 +120,54 @@ def avr_ram_bytes(obj: Path) -> dict[str, int]:
         if len(parts) == 4 and parts[2] in "bBdDC":
             out[parts[3]] = int(parts[1], 16)
     return out
+
+
+SDCC_HOME = Path(os.environ.get("PICDRIVE_SDCC", Path.home() / ".cache/picdrive/toolchain/sdcc-4.2.0-pic16"))
+SDCC_FLAGS = ["-mpic16", "-p18f4431", "--std-c99", "--no-warn-non-free", "--obanksel=9", "--optimize-cmp",
+              "--optimize-df"]
+
+
+def sdcc_asm(files: dict[str, str], d: Path) -> str:
+    """Compile link_fw.c for the PIC18F4431 with SDCC's pic16 port (scripts/pic_toolchain.sh installs
+    it); returns the generated assembly."""
+    from picdrive.p18f4431 import render_sdcc_device
+    sdcc = SDCC_HOME / "bin" / "sdcc"
+    if not sdcc.exists():
+        raise RuntimeError(f"SDCC pic16 not found at {sdcc}: run scripts/pic_toolchain.sh")
+    for k, v in files.items():
+        (d / k).write_text(v)
+    xc_h, _ = render_sdcc_device()
+    (d / "xc.h").write_text(xc_h)
+    env = {**os.environ, "PATH": f"{SDCC_HOME / 'bin'}:{os.environ.get('PATH', '')}"}
+    r = subprocess.run([str(sdcc), *SDCC_FLAGS, "-I.", "-c", "link_fw.c"], cwd=d, capture_output=True, text=True,
+                       env=env)
+    if r.returncode != 0:
+        raise RuntimeError(f"sdcc failed:\n{r.stdout[-3000:]}{r.stderr[-3000:]}")
+    return (d / "link_fw.asm").read_text()
+
+
+def asm_call_graph(asm: str) -> dict[str, set[str]]:
+    """Function -> functions it calls (CALL/RCALL/GOTO to a symbol), from SDCC pic16 assembly."""
+    graph: dict[str, set[str]] = {}
+    cur = None
+    for line in asm.splitlines():
+        m = re.match(r"^(_\w+):", line)
+        if m and not re.match(r"^_\d+_DS_", line):
+            cur = m.group(1)
+            graph.setdefault(cur, set())
+            continue
+        m = re.match(r"^\s+(?:CALL|RCALL|GOTO)\s+(_\w+)", line)
+        if m and cur is not None and not re.match(r"_\d+_DS_", m.group(1)):
+            graph[cur].add(m.group(1))
+    return graph
+
+
+def reachable(graph: dict[str, set[str]], roots) -> set[str]:
+    seen, todo = set(), list(roots)
+    while todo:
+        f = todo.pop()
+        if f in seen:
+            continue
+        seen.add(f)
+        todo += graph.get(f, ())
+    return seen
