@@ -8,6 +8,8 @@ import pytest
 
 from picdrive.console_plot import LivePlot, PlotError, TextView, sparkline
 from picdrive.console_record import Recorder, RecordError, read_recording
+from picdrive.errors import PicdriveError
+from picdrive.console_files import written_by_picdrive
 from picdrive.console_step import StepError, StepRecord, analyse_step, parse_step_args, save_step_plot
 from picdrive.metrics import step_metrics
 
@@ -124,11 +126,35 @@ def test_save_step_plot(tmp_path):
     rec = StepRecord(0.0, 2400.0, 1.0, t, y, 1e-3, signals={"current_a": np.ones_like(t)},
                      units={"current_a": "A"}, firmware="fw", profile="duy2008")
     analyse_step(rec)
-    p = save_step_plot(rec, tmp_path / "out" / "step.png")
+    # a missing folder is refused, named, and not created (one rule for every console write)
+    with pytest.raises(PicdriveError, match=f"folder {tmp_path / 'out'} does not exist; create it first"):
+        save_step_plot(rec, tmp_path / "out" / "step.png")
+    assert not (tmp_path / "out").exists()
+    p = save_step_plot(rec, tmp_path / "step.png")
     data = p.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    assert written_by_picdrive(p)
+    p2 = save_step_plot(rec, tmp_path / "step.png")          # picdrive's own file: replaced
+    assert p2 == p and p.is_absolute()
+    foreign = tmp_path / "photo.png"
+    foreign.write_bytes(b"\x89PNG\r\n\x1a\nnot picdrive's")
+    with pytest.raises(PicdriveError, match="a file picdrive did not write is there"):
+        save_step_plot(rec, foreign)
+    assert foreign.read_bytes() == b"\x89PNG\r\n\x1a\nnot picdrive's"
     with pytest.raises(StepError, match="must end in .png"):
         save_step_plot(rec, tmp_path / "step.jpg")
+
+
+def test_faulted_step_plot_marks_the_fault_instead_of_metrics(tmp_path):
+    t, y = _second_order()
+    rec = StepRecord(0.0, 2400.0, 1.0, t, y, 1e-3, fault="stall", firmware="fw")
+    p = save_step_plot(rec, tmp_path / "fault.png")
+    fig_text = p.read_bytes()
+    assert fig_text[:4] == b"\x89PNG" and rec.metrics is None
+    # the same record analysed draws the metrics box; the faulted one draws the fault box (differs)
+    ok = StepRecord(0.0, 2400.0, 1.0, t, y, 1e-3, firmware="fw")
+    analyse_step(ok)
+    assert save_step_plot(ok, tmp_path / "ok.png").read_bytes() != fig_text
 
 
 # --------------------------------------------------------------------------- views

@@ -128,9 +128,10 @@ class Console:
 
     def __init__(self, url: str, *, profile=None, out_dir: str | Path = ".", opener=None,
                  write: Callable[[str], None] | None = None, interactive: bool = False,
-                 reconnect_interval_s: float = 0.5):
+                 reconnect_interval_s: float = 0.5, strict: bool = False):
         self.url = url
         self.profile = profile
+        self.strict = strict
         self.out_dir = Path(out_dir)
         self.interactive = interactive
         self.reconnect_interval_s = reconnect_interval_s
@@ -154,8 +155,12 @@ class Console:
         self._view = None
         self._collect: list | None = None
         self.last_step = None
+        self.interrupt_note = ""
         self._rec_dropped_seen = 0
         self._watcher: threading.Thread | None = None
+        # board events (faults, watchdog, reboot) not yet accounted for by an 'expect'
+        self._events_lock = threading.Lock()
+        self.unexpected: list[str] = []
 
     # -- output ---------------------------------------------------------------
 
@@ -193,10 +198,49 @@ class Console:
     def connect(self) -> None:
         """Open the link and show the handshake (raises LinkError if the board is not there)."""
         link = self._open()
+        if self.strict:
+            try:
+                self._check_identity(link)
+            except ConsoleError:
+                link.close()
+                raise
         self._attach(link)
         self.say(f"connected to {self.url}")
         for line in self.handshake_lines():
             self.say(line)
+        self.say(self.state_line())
+
+    def _check_identity(self, link) -> None:
+        """``--strict``: refuse a board built from another profile than ``--profile``."""
+        if self.profile is None:
+            return
+        mine = profile_hash32(self.profile)
+        if mine != link.info.profile_hash:
+            raise ConsoleError(f"--strict: the board was built from another profile (board hash "
+                               f"0x{link.info.profile_hash:08x}, local profile {self.profile.name} hash 0x{mine:08x}); "
+                               "flash the firmware of this profile, pass the right --profile, or drop --strict")
+
+    def state_line(self) -> str:
+        """The board's run state and latched fault, as shown on connect and on reconnection."""
+        from . import protocol as P
+        st = self.link.status()
+        if int(st.fault):
+            return (f"board state {_state_name(st.state)}: fault {_state_name(st.fault)} is latched "
+                    "(outputs off; 'clear' clears it)")
+        extra = ""
+        if st.state in (P.State.RUN, P.State.BRAKE):
+            extra = f", setpoint {self.link.get('speed_setpoint'):g} rpm: the motor is driven ('stop' stops it)"
+        return f"board state {_state_name(st.state)}, no fault latched{extra}"
+
+    def _note_event(self, what: str) -> None:
+        with self._events_lock:
+            self.unexpected.append(what)
+
+    def take_unexpected(self) -> list[str]:
+        """Board events (faults, watchdog, reboot) since the last call."""
+        with self._events_lock:
+            out, self.unexpected = self.unexpected, []
+        return out
 
     def _attach(self, link) -> None:
         self.link = link
@@ -232,6 +276,7 @@ class Console:
         from . import protocol as P
         name = event.name.lower() if hasattr(event, "name") else str(event)
         if event == P.Event.WATCHDOG:
+            self._note_event("fault link_lost (watchdog)")
             self.notify("board event: watchdog: no valid frame from the host within link_timeout while running; "
                         "motor stopped")
         elif event == P.Event.FAULT:
@@ -239,8 +284,10 @@ class Console:
                 what = P.Fault(code).name
             except ValueError:
                 what = str(code)
+            self._note_event(f"fault {what.lower()}")
             self.notify(f"board event: fault {what} latched, outputs off ('faults', then 'clear')")
         elif event == P.Event.BOOT:
+            self._note_event("boot (the board restarted)")
             self.notify(f"board event: boot (reset cause {code}): the board restarted")
             threading.Thread(target=self._after_reboot, name="picdrive-console-reboot", daemon=True).start()
         else:
@@ -316,8 +363,21 @@ class Console:
             if self._closing.is_set():
                 link.close()
                 return
+            if self.strict:
+                try:
+                    self._check_identity(link)
+                except ConsoleError as e:
+                    link.close()
+                    if str(e) != said:
+                        said = str(e)
+                        self.notify(f"cannot use the board on {self.url}: {e}; still trying")
+                    continue
             self._attach(link)
-            self.notify(f"link regained after {tries} tries: " + " / ".join(self.handshake_lines()))
+            try:
+                state = self.state_line()
+            except LinkError as e:
+                state = f"state unknown ({e})"
+            self.notify(f"link regained after {tries} tries: " + " / ".join(self.handshake_lines() + [state]))
             if self.tele_on:
                 try:
                     self._apply_telemetry()
@@ -445,7 +505,11 @@ class Console:
         link = self._require_link() if cmd.needs_link else self.link
         try:
             cmd.func(self, args)
-        except (NackError, ParamError) as e:
+        except KeyboardInterrupt:
+            raise ConsoleError(f"{name}: interrupted (Ctrl-C); {self.stop_after_interrupt()}") from None
+        except NackError as e:
+            raise ConsoleError(f"{name}: {self._nack_text(e)}") from None
+        except ParamError as e:
             raise ConsoleError(f"{name}: {e}") from None
         except HandshakeMismatch as e:
             raise ConsoleError(f"{name}: {e}") from None
@@ -457,6 +521,39 @@ class Console:
             raise
         except PicdriveError as e:          # design file, recording, step or plot errors
             raise ConsoleError(f"{name}: {e}") from None
+
+    def stop_after_interrupt(self) -> str:
+        """Ctrl-C in a command: outputs off if the motor is driven (the same in a script and at
+        the prompt); returns what was done, for the message."""
+        from . import protocol as P
+        from .link import LinkError
+        link = self.link
+        if link is None:
+            return f"the link is lost ({self._lost}): the board's watchdog stops a running motor"
+        for _ in range(3):                       # a second Ctrl-C must not leave the motor running
+            try:
+                if link.status().state in (P.State.RUN, P.State.BRAKE):
+                    link.stop()
+                    return "motor stopped (outputs off)"
+                return "the motor was not driven"
+            except KeyboardInterrupt:
+                continue
+            except LinkError as e:
+                return f"could not reach the board to stop the motor ({e}); its watchdog stops it"
+        return "motor stop not confirmed"
+
+    @staticmethod
+    def _nack_text(e) -> str:
+        """A board refusal in the console's words (its command names, not the protocol's)."""
+        from . import protocol as P
+        code = e.code.name.lower() if hasattr(e.code, "name") else str(e.code)
+        reason = e.reason
+        for board, mine in NACK_WORDS.items():
+            reason = reason.replace(board, mine)
+        if e.code == P.Nack.FAULT_ACTIVE:
+            reason = "a fault is latched; 'faults' shows it, 'clear' clears it"
+        detail = f" ({e.detail})" if e.detail else ""
+        return f"the board refused it{detail}: {code}: {reason}"
 
     def run_line(self, line: str) -> bool:
         """Run a line, print a one-line explanation on failure; True if it succeeded."""
@@ -476,18 +573,35 @@ class Console:
             lines = p.read_text(encoding="utf-8").splitlines()
         except OSError as e:
             raise ConsoleError(f"cannot read session file {p}: {e.strerror}") from None
-        for no, line in enumerate(lines, 1):
-            text = line.strip()
-            if not text or text.startswith("#"):
-                continue
-            self.say(PROMPT + text)
-            try:
-                self.execute(text)
-            except _Quit:
-                return 0
-            except PicdriveError as e:
-                raise ConsoleError(f"{p}:{no}: {text!r}: {e}") from None
+        prev = None
+        try:
+            for no, line in enumerate(lines, 1):
+                text = line.strip()
+                if not text or text.startswith("#"):
+                    continue
+                if not _expects_fault(text):
+                    self._fail_on_events(p, prev)
+                self.say(PROMPT + text)
+                try:
+                    self.execute(text)
+                except _Quit:
+                    self._fail_on_events(p, prev)
+                    return 0
+                except PicdriveError as e:
+                    raise ConsoleError(f"{p}:{no}: {text!r}: {e}") from None
+                prev = (no, text)
+            self._fail_on_events(p, prev)
+        except KeyboardInterrupt:
+            raise ConsoleError(f"{p}: interrupted (Ctrl-C); {self.stop_after_interrupt()}") from None
         return 0
+
+    def _fail_on_events(self, path, prev) -> None:
+        """A board fault, watchdog trip or restart not claimed by an 'expect' fails the script."""
+        ev = self.take_unexpected()
+        if ev:
+            where = f"{path}:{prev[0]}: {prev[1]!r}" if prev else f"{path}"
+            raise ConsoleError(f"{where}: board event {', '.join(ev)} during or after this line; the script "
+                               "fails (if it is intended, follow the line with 'expect fault == <name> within <s>')")
 
     def close(self) -> None:
         """Stop background work, save an open recording, close the plot and the link."""
@@ -597,6 +711,17 @@ class Console:
 # ---------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------
+
+NACK_WORDS = {"fault_clear": "'clear'", "eeprom_save": "'save'", "eeprom_load": "'restore'",
+              "set_speed": "'speed'", "select_controller": "'controller'"}
+"""Board command names as the console says them."""
+
+
+def _expects_fault(line: str) -> bool:
+    """An 'expect' on the fault or state: it claims the board events before it."""
+    w = line.split()
+    return len(w) >= 2 and w[0].lower() == "expect" and w[1].lower() in ("fault", "state")
+
 
 def profile_hash32(profile) -> int:
     """The 32-bit profile hash a firmware carries: first 4 bytes of the profile's SHA-256."""
@@ -1244,8 +1369,11 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
     with con._sinks_lock:
         con._collect = collect
     con._start_pump()
+    interrupted = ""
+    k0 = None
+    n_pre = int(round(STEP_PRE_S * hz))
+    n_hold = int(round(hold_s * hz))
     try:
-        n_pre = int(round(STEP_PRE_S * hz))
         spd_tol = max(band, 2.0 * link.param("speed").scale)
 
         def settled_at_from(d):
@@ -1277,12 +1405,18 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
             moved = np.nonzero((d["index"] >= t_cmd_index - 1) & (np.abs(d["setpoint"] - from_rpm) > sp_tol))[0]
             return int(d["index"][moved[0]]) if moved.size else None
 
-        n_hold = int(round(hold_s * hz))
-
         def done(d):
             k0 = step_index(d)
             return k0 is not None and int(d["index"][-1]) >= k0 + n_hold - 1
         data = _step_wait(con, collect, done, hold_s + 3.0, f"recording the step to {to_rpm:g} rpm")
+    except KeyboardInterrupt:
+        # Ctrl-C: outputs off at once, then keep what was recorded
+        interrupted = con.stop_after_interrupt()
+        data = _collected(collect)
+        if data is None or not len(data):
+            raise ConsoleError(f"step: interrupted (Ctrl-C) before any sample; {interrupted}") from None
+        if k0 is None:
+            k0 = step_index(data) if "step_index" in locals() else None
     finally:
         with con._sinks_lock:
             con._collect = None
@@ -1295,24 +1429,54 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
                 con.say(f"telemetry not restored: {e}")
         elif con.link is not None:
             con.link.stop_telemetry()
-    k0 = step_index(data)
+    if not interrupted:
+        k0 = step_index(data)
     idx = data["index"]
+    if k0 is None:                  # interrupted before the step: t = 0 at the last sample
+        k0 = int(idx[-1])
     sel = (idx >= k0 - n_pre) & (idx < k0 + n_hold)
     d = data[sel]
     t = (d["index"] - k0) / float(hz)
+    info = link.info
+    prof = con.profile.name if con.profile is not None else bundled_profile_by_hash(info.profile_hash) or "?"
+    gains = {e.name: float(link.get(e.name)) for e in link.table.params
+             if e.name.startswith("rule") or e.name in STEP_GAIN_PARAMS} if con.link is not None else {}
     rec = StepRecord(from_rpm, to_rpm, hold_s, t, d["speed"].astype(float), 1.0 / hz, source="telemetry",
                      signals={n: d[n].astype(float) for n in sigs if n != "speed"},
                      units={n: link.param(n).unit for n in sigs},
-                     firmware=f"build 0x{link.info.build_id:08x}",
-                     profile=(con.profile.name if con.profile is not None
-                              else bundled_profile_by_hash(link.info.profile_hash) or ""),
+                     firmware=(f"firmware build 0x{info.build_id:08x} table 0x{info.table_hash:08x} "
+                               f"protocol {info.proto_version[0]}.{info.proto_version[1]}"),
+                     profile=f"{prof} hash 0x{info.profile_hash:08x}",
                      controller=_fmt_value(link.param("controller"), link.get("controller")),
-                     dropped=int(np.sum(np.diff(d["index"]) - 1)))
-    pre = d["speed"][t < 0]
-    analyse_step(rec, pre_speed_rpm=pre if len(pre) else None)
+                     dropped=int(np.sum(np.diff(d["index"]) - 1)) if len(d) else 0, gains=gains)
     st = link.status()
     rec.fault = _state_name(st.fault) if int(st.fault) else ""
+    if interrupted:
+        rec.interrupted = True
+        con.interrupt_note = interrupted
+        return rec
+    if not rec.fault:
+        pre = d["speed"][t < 0]
+        analyse_step(rec, pre_speed_rpm=pre if len(pre) else None, profile=_board_profile(con))
     return rec
+
+
+STEP_GAIN_PARAMS = ("setpoint_weight", "premise_low", "premise_high", "u_min", "u_max", "current_limit",
+                    "accel_limit")
+
+
+def _board_profile(con):
+    """The profile the board was built from, if known here (--profile, or a bundled one with its hash)."""
+    if con.profile is not None:
+        return con.profile if profile_hash32(con.profile) == con.link.info.profile_hash else None
+    name = bundled_profile_by_hash(con.link.info.profile_hash)
+    if name is None:
+        return None
+    import warnings
+    from .profile import load_profile
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return load_profile(name)
 
 
 @command("step", "step <from> <to> [--hold <s>] [--png FILE]",
@@ -1322,32 +1486,43 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
 def _step(con, args):
     from .console_record import Recorder
     from .console_step import parse_step_args, save_step_plot
+    from .console_files import output_path
     f, t, hold, png = parse_step_args(args)
     if con.recorder is not None:
         raise ConsoleError(f"step: a recording to {con.recorder.path} is running; 'record stop' first "
                            "(the step saves its own CSV)")
-    con.say(f"step {f:g} -> {t:g} rpm, hold {hold:g} s ...")
-    rec = run_step(con, f, t, hold)
-    con.last_step = rec
     if png is None:
         stamp = time.strftime("%Y%m%d-%H%M%S")
         png = con.out_dir / f"step_{f:g}_{t:g}_{stamp}.png"
+    png = output_path(png, ".png", "step --png")        # checked before the motor moves
+    csv = output_path(png.with_suffix(".csv"), ".csv", "step data")
+    con.say(f"step {f:g} -> {t:g} rpm, hold {hold:g} s ...")
+    con.interrupt_note = ""
+    rec = run_step(con, f, t, hold)
+    con.last_step = rec
     png = save_step_plot(rec, png)
-    csv = png.with_suffix(".csv")
     names = ["speed"] + list(rec.signals)
     with Recorder(csv, [(n, rec.units.get(n, "")) for n in names], 1.0 / rec.sample_period_s,
                   firmware=rec.firmware, profile=rec.profile,
-                  protocol="{}.{}".format(*con.link.info.proto_version), relative_time=False) as w:
+                  protocol="{}.{}".format(*con.link.info.proto_version), relative_time=False,
+                  notes=[f"step: {rec.from_rpm:g} -> {rec.to_rpm:g} rpm, hold {rec.hold_s:g} s, t = 0 at the step"]
+                  + [x for x in rec.identity_lines()[2:]]
+                  + ([f"fault: {rec.fault}"] if rec.fault else [])
+                  + (["interrupted: Ctrl-C, partial data"] if rec.interrupted else []),
+                  what="step data") as w:
         cols = [rec.speed_rpm] + [rec.signals[n] for n in rec.signals]
         for k in range(len(rec.t_s)):
             w.write(float(rec.t_s[k]), [c[k] for c in cols])
+    if rec.interrupted:
+        raise ConsoleError(f"step: interrupted (Ctrl-C); {con.interrupt_note}; partial data kept "
+                           f"({len(rec.t_s)} samples): plot {png}, data {csv}")
     if rec.fault:
         raise ConsoleError(f"step: fault {rec.fault} latched during the step, outputs off; no metrics "
                            f"(plot {png}, data {csv}); 'faults', then 'clear'")
     con.say(rec.summary())
     if rec.dropped:
         con.say(f"warning: {rec.dropped} telemetry samples were dropped during the step")
-    con.say(f"plot {png}, data {csv}; motor left running at {t:g} rpm ('stop' stops it)")
+    con.say(f"plot {png}\ndata {csv}\nmotor left running at {t:g} rpm ('stop' stops it)")
 
 
 # ---------------------------------------------------------------------------

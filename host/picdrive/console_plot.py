@@ -140,8 +140,12 @@ def _plot_main(q, status, signals, window_s, png_path, backend, png_interval_s):
 def _save_png(fig, path: str) -> None:
     p = Path(path)
     tmp = p.with_name(f".{p.name}.tmp.png")
-    fig.savefig(tmp, dpi=90)
-    os.replace(tmp, p)
+    from .console_files import PNG_SOFTWARE
+    try:
+        fig.savefig(tmp, dpi=90, metadata={"Software": PNG_SOFTWARE})
+        os.replace(tmp, p)
+    except OSError:                  # the folder went away: keep plotting on screen, never a traceback
+        tmp.unlink(missing_ok=True)
 
 
 class LivePlot:
