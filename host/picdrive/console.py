@@ -156,6 +156,7 @@ class Console:
         self._collect: list | None = None
         self.last_step = None
         self.interrupt_note = ""
+        self.scope_armed = None                 # what 'scope arm' set up, until 'scope read'
         self._rec_dropped_seen = 0
         self._watcher: threading.Thread | None = None
         # board events (faults, watchdog, reboot) not yet accounted for by an 'expect'
@@ -808,13 +809,25 @@ def _state_name(v) -> str:
     return v.name.lower() if hasattr(v, "name") else str(v)
 
 
+BOARD_POLL_S = 0.01
+"""Host pause between two reads of the board's clock (a pace, not a timing: deadlines are the board's)."""
+
+
+def board_time_s(con) -> float:
+    """The board's clock (its uptime), s: the twin's simulated time, a real board's own time."""
+    return con._require_link().status().uptime_ms / 1000.0
+
+
 def _wait(con, seconds: float) -> None:
-    end = time.monotonic() + seconds
-    while True:
-        left = end - time.monotonic()
-        if left <= 0:
-            return
-        time.sleep(min(left, 0.05))
+    """Let ``seconds`` pass on the board's clock (the host's when no board is connected)."""
+    if con.link is None:
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            time.sleep(min(left, 0.05))
+        return
+    end = board_time_s(con) + seconds
+    while board_time_s(con) < end:
+        time.sleep(BOARD_POLL_S)
 
 
 # ---------------------------------------------------------------------------
@@ -1003,13 +1016,83 @@ def _info(con, args):
         con.say(line)
 
 
-@command("wait", "wait <seconds>", "pause (in scripts: let the motor settle)", needs_link=False)
+@command("wait", "wait <seconds>", "pause for seconds of the board's clock (in scripts: let the motor settle)",
+         needs_link=False)
 def _wait_cmd(con, args):
     _nargs("wait", args, 1)
     s = _number(args[0], "wait")
     if not 0 <= s <= 3600:
         raise ConsoleError(f"wait {s:g} s: expected 0..3600 s")
     _wait(con, s)
+
+
+EXPECT_OPS = {"==": lambda v, x, tol: abs(v - x) <= tol, "!=": lambda v, x, tol: abs(v - x) > tol,
+              "<": lambda v, x, tol: v < x + tol, "<=": lambda v, x, tol: v <= x + tol,
+              ">": lambda v, x, tol: v > x - tol, ">=": lambda v, x, tol: v >= x - tol}
+EXPECT_USAGE = "expect <signal|parameter|state|fault> <op> <value> [tol <t>] [within <s>]"
+
+
+def parse_expect(con, args):
+    """``expect`` arguments -> (entry, op, value (raw index for an enum), tol, within_s)."""
+    if len(args) < 3:
+        raise ConsoleError(f"usage: {EXPECT_USAGE}, e.g. 'expect speed == 2400 tol 24 within 0.5' or "
+                           "'expect fault == stall within 2'")
+    name, op, val = args[0], args[1], args[2]
+    e = con.link.param(name)
+    if op not in EXPECT_OPS:
+        raise ConsoleError(f"expect: operator {op!r}: expected one of {' '.join(EXPECT_OPS)}")
+    tol, within = 0.0, 0.0
+    rest = args[3:]
+    while rest:
+        if len(rest) < 2 or rest[0] not in ("tol", "within"):
+            raise ConsoleError(f"expect: {' '.join(rest)!r}: expected 'tol <t>' or 'within <s>'; usage: {EXPECT_USAGE}")
+        v = _number(rest[1], rest[0])
+        if v < 0:
+            raise ConsoleError(f"expect: {rest[0]} {v:g} must not be negative")
+        if rest[0] == "tol":
+            tol = v
+        else:
+            within = v
+        rest = rest[2:]
+    if e.values:
+        if op not in ("==", "!="):
+            raise ConsoleError(f"expect {name}: a named value ({'|'.join(e.values)}) takes == or != only")
+        if val.lower() not in e.values:
+            raise ConsoleError(f"expect {name}: {val!r} is not one of {'|'.join(e.values)}")
+        return e, op, e.values.index(val.lower()), 0.0, within
+    return e, op, _number(val, f"expect {name}"), tol, within
+
+
+@command("expect", EXPECT_USAGE,
+         "check a signal, parameter, the state or the latched fault, now or within <s> of the board's clock; "
+         "a failed check fails a script; 'expect fault == X' also accepts the board's fault event X in a script",
+         complete=lambda con, args, text: (_param_names(con) if not args else
+                                           list(EXPECT_OPS) if len(args) == 1 else
+                                           list(con.link.param(args[0]).values) if len(args) == 2 and con.link
+                                           and args[0] in con.link.table else ["tol", "within"]))
+def _expect(con, args):
+    e, op, x, tol, within = parse_expect(con, args)
+    link = con.link
+    check = EXPECT_OPS[op]
+    unit = _unit(e)
+    want = (f"{e.name} {op} {e.values[x]}" if e.values else
+            f"{e.name} {op} {x:g}{unit}" + (f" tol {tol:g}" if tol else ""))
+    t0 = board_time_s(con)
+    n = 0
+    while True:
+        v = link.get(e.name)
+        n += 1
+        now = board_time_s(con)
+        if check(float(v), float(x), tol):
+            break
+        if now - t0 >= within:
+            got = _fmt_value(e, v) + unit
+            span = f" within {within:g} s of the board's clock ({n} readings)" if within else ""
+            raise ConsoleError(f"expect {want}: failed{span}: {e.name} is {got}")
+        time.sleep(BOARD_POLL_S)
+    if e.name in ("state", "fault") and e.values and e.values[int(v)] not in ("none", "idle", "run", "brake"):
+        con.take_unexpected()                 # the fault this line expects is no script failure
+    con.say(f"expect {want}: ok, {e.name} = {_fmt_value(e, v)}{unit} after {now - t0:.3f} s (board clock)")
 
 
 @command("quit", "quit", "leave the console (stops the motor if it runs)", needs_link=False)
@@ -1539,9 +1622,21 @@ def register(subparsers) -> None:
     p.add_argument("--run", metavar="SESSION.TXT",
                    help="run the commands of a file, then exit (non-zero on the first error)")
     p.add_argument("--out", default=".", help="folder for step plots and live PNGs (default: current folder)")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse a board built from another profile than --profile (default: a warning)")
     p.add_argument("--history", help="history file (default: $PICDRIVE_HISTORY or "
                                      "$XDG_STATE_HOME/picdrive/console_history)")
     p.set_defaults(func=main)
+
+
+def _connect_hint(url: str, e) -> str:
+    """Why a connection failed, said accurately for a socket that answers but a board that does not."""
+    from .link import LinkTimeout
+    if isinstance(e, LinkTimeout) and url.startswith("socket://"):
+        return (f"the socket accepted the connection but no board answered the handshake: a picdrive twin "
+                f"serves one client at a time, so another console or program is probably connected to it; "
+                f"close that one (or start a second twin on another port) ({e})")
+    return str(e)
 
 
 def main(args) -> int:
@@ -1555,12 +1650,14 @@ def main(args) -> int:
         raise ConsoleError(f"--out {out}: no such folder; create it or choose another")
     if args.run and not Path(args.run).is_file():
         raise ConsoleError(f"--run {args.run}: no such file")
+    if args.strict and profile is None:
+        raise ConsoleError("--strict compares the board with your profile: give --profile P too")
     interactive = args.run is None
-    con = Console(args.url, profile=profile, out_dir=out, interactive=interactive)
+    con = Console(args.url, profile=profile, out_dir=out, interactive=interactive, strict=args.strict)
     try:
         con.connect()
     except LinkError as e:
-        raise ConsoleError(f"cannot connect to {args.url}: {e}") from None
+        raise ConsoleError(f"cannot connect to {args.url}: {_connect_hint(args.url, e)}") from None
     try:
         if args.run:
             return con.run_script(args.run)
@@ -1568,3 +1665,151 @@ def main(args) -> int:
         return con.repl(history)
     finally:
         con.close()
+
+
+# -- scope ----------------------------------------------------------------------
+
+def _scope_arm(con, st) -> dict:
+    """Arm the board's capture per ``st``; returns what was armed (for the read and the files)."""
+    link = con.link
+    if not st.signals:
+        st.signals = [n for n in ("speed", "setpoint") if n in link.table] or ["speed"]
+    sig = {e.name for e in link.table.signals}
+    bad = [n for n in st.signals if n not in sig]
+    if bad:
+        raise ConsoleError(f"scope: {', '.join(bad)} not a signal of this board; signals: "
+                           f"{', '.join(e.name for e in link.table.signals)}")
+    if len(set(st.signals)) != len(st.signals):
+        raise ConsoleError("scope: a signal is listed twice")
+    ordered = [e.name for e in link.table.signals_in_mask(link.table.signal_mask(st.signals))]
+    words = link.info.capture_words
+    most = words // len(ordered)
+    n = st.samples if st.samples is not None else most
+    if n > most:
+        raise ConsoleError(f"scope: --samples {n} x {len(ordered)} signals need {n * len(ordered)} words; the "
+                           f"board's capture buffer holds {words} words (at most {most} samples of "
+                           f"{len(ordered)} signals): fewer samples or signals")
+    pre = st.pre_samples(n)
+    if pre >= n:
+        raise ConsoleError(f"scope: --pre {pre} must be below the {n} samples")
+    from .console_scope import TRIGGERS
+    link.capture_arm(ordered, n, pre_trigger=pre, trigger=TRIGGERS[st.trigger], threshold=st.level_rpm,
+                     decimation=st.decimation)
+    hz = link.info.sample_hz
+    armed = dict(setup=st, signals=ordered, n=n, pre=pre, t_armed=board_time_s(con),
+                 rate=(hz / st.decimation) if hz else 0.0)
+    con.scope_armed = armed
+    return armed
+
+
+
+
+def _scope_describe(armed) -> str:
+    st = armed["setup"]
+    trig = st.trigger + (f" at {st.level_rpm:g} rpm" if st.level_rpm is not None else "")
+    rate = f"{armed['rate']:g} Hz" if armed["rate"] else f"decimation {st.decimation}"
+    return (f"{', '.join(armed['signals'])}: {armed['n']} samples at {rate} "
+            f"({armed['n'] / armed['rate'] * 1e3:.1f} ms), trigger {trig}, {armed['pre']} before it")
+
+
+def _scope_read(con, armed, png=None, csv=None, timeout_s=None, quiet=False):
+    """Wait (board clock) for the armed capture, read it, save PNG and CSV; returns (png, csv, data)."""
+    from . import protocol as P
+    from .console_files import output_path
+    from .console_record import Recorder
+    from .console_scope import save_scope_plot
+    link = con.link
+    st = armed["setup"]
+    timeout_s = st.timeout_s if timeout_s is None else timeout_s
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    png = output_path(png or st.png or con.out_dir / f"scope_{stamp}.png", ".png", "scope --png")
+    csv = output_path(csv or st.csv or png.with_suffix(".csv"), ".csv", "scope --csv")
+    t0 = board_time_s(con)
+    while True:
+        s = link.status()
+        if s.capture_state == P.CaptureState.DONE:
+            break
+        if s.capture_state == P.CaptureState.IDLE:
+            raise ConsoleError("scope: no capture is armed on the board (it restarted or another program "
+                               "read it); arm again")
+        if s.uptime_ms / 1000.0 - t0 > timeout_s:
+            what = "trigger not seen" if s.capture_state == P.CaptureState.ARMED else "still recording"
+            raise ConsoleError(f"scope: capture not done after {timeout_s:g} s of the board's clock ({what}; "
+                               f"trigger {st.trigger}); the capture stays armed ('scope read' waits again)")
+        time.sleep(BOARD_POLL_S)
+    cap = link.capture_read(timeout=5.0)
+    d = cap.data
+    info = link.info
+    units = {n: link.param(n).unit for n in armed["signals"]}
+    prof = con.profile.name if con.profile is not None else bundled_profile_by_hash(info.profile_hash) or "?"
+    ident = (f"firmware build 0x{info.build_id:08x} table 0x{info.table_hash:08x}, profile {prof} hash "
+             f"0x{info.profile_hash:08x}, controller {_fmt_value(link.param('controller'), link.get('controller'))}")
+    desc = _scope_describe(armed)
+    level = ("speed", st.level_rpm) if st.level_rpm is not None else None
+    save_scope_plot(png, d["t"], {n: d[n].astype(float) for n in armed["signals"]}, units,
+                    title=f"picdrive scope: {ident}", trigger_note=desc, level=level)
+    with Recorder(csv, [(n, units[n]) for n in armed["signals"]], armed["rate"] or 1.0,
+                  firmware=f"build 0x{info.build_id:08x} table 0x{info.table_hash:08x}",
+                  profile=f"{prof} hash 0x{info.profile_hash:08x}",
+                  protocol=f"{info.proto_version[0]}.{info.proto_version[1]}", relative_time=False,
+                  notes=[f"scope: {desc}; t = 0 at the trigger sample (index {cap.trigger_index})"],
+                  what="scope --csv") as w:
+        for k in range(len(d)):
+            w.write(float(d["t"][k]), [float(d[n][k]) for n in armed["signals"]])
+    con.scope_armed = None
+    if not quiet:
+        stats = "; ".join(f"{n} {float(d[n].min()):.4g}..{float(d[n].max()):.4g}{_unit(link.param(n))}"
+                          for n in armed["signals"])
+        short = (f"; {armed['pre'] - cap.trigger_index} fewer before the trigger than asked: it came "
+                 f"{cap.trigger_index / armed['rate'] * 1e3:.1f} ms after arming, before the pre-trigger history "
+                 "filled" if armed["rate"] and cap.trigger_index < armed["pre"] else "")
+        con.say(f"scope: captured {len(d)} samples ({stats}){short}")
+        con.say(f"plot {png}\ndata {csv}")
+    return png, csv, d
+
+
+@command("scope", "scope [single|normal|arm|read] [SIGNALS] [--trigger T] [--level RPM] [--pre N|P%] "
+         "[--samples N] [--decimation D] [--count N] [--png F] [--csv F]",
+         "the board's triggered capture (exact timing, in its own buffer): 'single' arms and waits, 'arm' "
+         "returns at once (then trigger it, e.g. 'speed 2400', and 'scope read'), 'normal' re-arms after each "
+         "capture (--count N, or until Ctrl-C); triggers immediate|setpoint|rising|falling (speed crossing "
+         "--level rpm); plot with units and the trigger marked, CSV with units; alone: the capture's state",
+         complete=lambda con, args, text: (["single", "normal", "arm", "read", "--trigger", "--level", "--pre",
+                                            "--samples", "--decimation", "--count", "--png", "--csv"]
+                                           + (["immediate", "setpoint", "rising", "falling"] if args and args[-1] == "--trigger" else [])
+                                           + _param_names(con, signals=True)))
+def _scope(con, args):
+    from .console_scope import parse_scope_args
+    link = con.link
+    if not args:
+        s = link.status()
+        armed = con.scope_armed
+        con.say(f"capture {_state_name(s.capture_state)}; buffer {link.info.capture_words} words"
+                + (f"; armed: {_scope_describe(armed)}" if armed else ""))
+        return
+    st = parse_scope_args(args)
+    if st.mode == "read":
+        armed = con.scope_armed
+        if armed is None:
+            raise ConsoleError("scope read: nothing armed by this console; 'scope arm ...' first")
+        _scope_read(con, armed, png=st.png, csv=st.csv, timeout_s=st.timeout_s if "--timeout" in args
+                    or any(a.startswith("--timeout=") for a in args) else None)
+        return
+    if st.mode == "arm":
+        armed = _scope_arm(con, st)
+        con.say(f"scope armed: {_scope_describe(armed)}; 'scope read' waits for it")
+        return
+    if st.mode == "single":
+        armed = _scope_arm(con, st)
+        con.say(f"scope armed: {_scope_describe(armed)}")
+        _scope_read(con, armed)
+        return
+    # normal: capture, save, re-arm
+    count = st.count if st.count is not None else (None if con.interactive else 1)
+    k = 0
+    while count is None or k < count:
+        armed = _scope_arm(con, st)
+        png, csv, d = _scope_read(con, armed, quiet=True)
+        k += 1
+        con.say(f"scope capture {k}: {len(d)} samples -> {png}")
+    con.say(f"scope normal: {k} captures; last plot {png}, data {csv}")
