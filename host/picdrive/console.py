@@ -1298,9 +1298,8 @@ def _plot(con, args):
     if args:
         if len(args) != 2 or args[0] != "--png":
             raise ConsoleError(f"usage: {COMMANDS['plot'].usage}")
-        png = args[1]
-        if not png.lower().endswith(".png"):
-            raise ConsoleError(f"plot --png {png!r}: the file must end in .png")
+        from .console_files import output_path
+        png = str(output_path(args[1], ".png", "plot --png"))
     if con.plot is not None and con.plot.alive:
         raise ConsoleError("a plot is already open ('plot off' closes it)")
     if not con.tele_on:
@@ -1311,11 +1310,11 @@ def _plot(con, args):
         try:
             plot = LivePlot(sigs)
         except PlotError as e:            # e.g. only non-interactive matplotlib backends installed
-            png = str(con.out_dir / "live.png")
+            png = str((con.out_dir / "live.png").absolute())
             con.say(f"no plot window ({e}): the live plot goes to {png}, redrawn every second; "
                     "'view' shows a text view")
     elif png is None:
-        png = str(con.out_dir / "live.png")
+        png = str((con.out_dir / "live.png").absolute())
         con.say(f"no display for a plot window (DISPLAY is not set): the live plot goes to {png}, "
                 "redrawn every second; 'view' shows a text view")
     if plot is None:
@@ -1405,6 +1404,7 @@ def _record(con, args):
 STEP_SIGNALS = ("speed", "setpoint", "voltage", "current")
 STEP_PRE_S = 0.2           # samples kept before the step (y0 and the plot)
 STEP_SETTLE_TIMEOUT_S = 5.0
+STEP_AFTER_STOP_S = 0.1   # an interrupted step keeps this much of the coast-down after the stop
 STEP_REST_TOL = 0.005      # "at rest" before a step from 0: |speed| within 0.5 % of the step
 
 
@@ -1495,6 +1495,13 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
     except KeyboardInterrupt:
         # Ctrl-C: outputs off at once, then keep what was recorded
         interrupted = con.stop_after_interrupt()
+        # the telemetry in flight up to the stop, and 0.1 s of the coast-down after it (board samples)
+        n_then = sum(len(c) for c in collect)
+        try:
+            _step_wait(con, collect, lambda d: len(d) >= n_then + int(STEP_AFTER_STOP_S * hz), 2.0,
+                       "collecting the samples up to the stop")
+        except (ConsoleError, KeyboardInterrupt):
+            pass                                  # keep what arrived
         data = _collected(collect)
         if data is None or not len(data):
             raise ConsoleError(f"step: interrupted (Ctrl-C) before any sample; {interrupted}") from None
