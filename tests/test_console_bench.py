@@ -291,3 +291,52 @@ def test_one_rule_for_the_consoles_files(twin, tmp_path):
     assert r.returncode == 2 and "a file picdrive did not write is there" in r.stderr
     assert foreign.read_text() == "my data\n"
     assert _board_state(srv.url)[0] == P.State.IDLE            # refused before the motor moved
+
+
+# --------------------------------------------------------------------------- parameters
+
+def test_parameters_explained_checked_and_kept(twin, tmp_path):
+    import json
+    tw, srv = twin
+    _idle(srv.url)
+    with Link.open(srv.url) as lk:
+        kc, plow, phigh = lk.get("rule1_kc"), lk.get("premise_low"), lk.get("premise_high")
+        acc, kcs = lk.param("accel_limit"), lk.param("rule1_kc").scale
+    f = tmp_path / "board.params.json"
+    s = tmp_path / "s.txt"
+    s.write_text(f"help rule1_kc\nparams save {f}\nsave\nset rule1_kc 10\nhelp rule1_kc\n"
+                 f"set accel_limit {acc.scale * 1.5:g}\nparams diff {f}\nparams load {f}\nparams diff {f}\n")
+    r = _cli(srv.url, "--run", str(s))
+    assert r.returncode == 0, r.stderr
+    out = r.stdout
+    assert "rule1_kc: parameter, rw, kept in EEPROM\n  Current-feedback gain of rule 1: subtracts kc x the measured" in out
+    assert f"  unit V/A; limits " in out and f"; 1 count = {kcs:.6g} V/A" in out
+    assert f"  now {kc:.6g} V/A; default of this build {kc:.6g} V/A; EEPROM " in out
+    # after 'save' and a change: the EEPROM still holds the saved value, RAM the new one
+    assert f"  now 10 V/A; default of this build {kc:.6g} V/A; EEPROM {kc:.6g} V/A" in out
+    # a 33 % rounding is reported, as 'load' does
+    assert f"(warning: rounded 33.33 % from {acc.scale * 1.5:g}: the board holds steps of {acc.scale:.6g} rpm/s)" in out
+    assert f"  rule1_kc: board 10 V/A, file {kc:.6g} V/A" in out and "2 differences between the board and" in out
+    assert f"loaded 18 parameters from {f} (2 changed)" in out and f"the board's 18 parameters equal {f}" in out
+    assert json.loads(f.read_text())["identity"]["profile"] == "duy2008"
+    # cross-checks: refused with the reason, nothing written
+    for cmd, msg in [("set current_limit 0", "current_limit 0 A allows no torque: the next start latches STALL"),
+                     (f"set premise_low {phigh + 100:g}", f"must be below premise_high {phigh:g} rpm"),
+                     ("help nosuch", "no command or parameter 'nosuch'")]:
+        s.write_text(cmd + "\n")
+        r = _cli(srv.url, "--run", str(s))
+        assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, (cmd, r.stderr)
+    # a file of another build is refused unless forced
+    d = json.loads(f.read_text())
+    d["identity"]["table_hash"] = "0x12345678"
+    d["params"]["rule1_kc"]["raw"] += 8
+    other = tmp_path / "other.params.json"
+    other.write_text(json.dumps(d))
+    s.write_text(f"params load {other}\n")
+    r = _cli(srv.url, "--run", str(s))
+    assert r.returncode == 2 and "was saved from another firmware (table_hash file 0x12345678 board 0x" in r.stderr
+    s.write_text(f"params load {other} --force\nget rule1_kc\nparams load {f}\n")
+    r = _cli(srv.url, "--run", str(s))
+    assert r.returncode == 0 and f"rule1_kc = {kc + 8 * kcs:.6g} V/A" in r.stdout, r.stdout + r.stderr
+    with Link.open(srv.url) as lk:
+        assert (lk.get("rule1_kc"), lk.get("premise_low"), lk.get("current_limit") > 0) == (kc, plow, True)

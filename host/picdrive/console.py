@@ -834,20 +834,71 @@ def _wait(con, seconds: float) -> None:
 # commands
 # ---------------------------------------------------------------------------
 
-@command("help", "help [command]", "list the commands, or explain one", needs_link=False,
-         complete=lambda con, args, text: list(COMMANDS) if not args else [])
+@command("help", "help [command | parameter]", "list the commands, or explain a command or a parameter "
+         "(description, unit, limits, default, EEPROM value)", needs_link=False,
+         complete=lambda con, args, text: list(COMMANDS) + _param_names(con) if not args else [])
 def _help(con: Console, args):
     _nargs("help", args, 0, 1)
     if args:
         name = ALIASES.get(args[0].lower(), args[0].lower())
         c = COMMANDS.get(name)
+        if c is None and con.link is not None and args[0] in con.link.table:
+            _help_param(con, args[0])
+            return
         if c is None:
-            raise ConsoleError(f"no command {args[0]!r}; 'help' lists the commands")
+            extra = "" if con.link is not None else " (parameters are explained when connected)"
+            raise ConsoleError(f"no command or parameter {args[0]!r}{extra}; 'help' lists the commands, "
+                               "'params' the parameters")
         con.say(f"{c.usage}\n  {c.help}")
         return
     width = max(len(c.usage) for c in COMMANDS.values())
     for c in COMMANDS.values():
         con.say(f"  {c.usage:<{width}}  {c.help}")
+
+
+def _help_param(con, name: str) -> None:
+    """``help <param>``: description, unit, limits, default, value now and in EEPROM."""
+    from .console_params import param_help
+    link = con.link
+    e = link.param(name)
+    kind = "signal (telemetry, read-only)" if e.signal else ("parameter, " + ("rw" if e.writable else "read-only")
+                                                             + (", kept in EEPROM" if e.persisted else ""))
+    con.say(f"{e.name}: {kind}")
+    con.say(f"  {param_help(e.name, e.doc)}")
+    unit = "" if e.unit in ("1",) else e.unit
+    con.say(f"  unit {unit or '(none)'}; limits {_limits(e)}" + ("" if e.values else f"; 1 count = {e.scale:.6g}"
+                                                                 f"{_unit(e)}"))
+    now = link.get(name)
+    line = f"  now {_fmt_value(e, now)}{_unit(e)}"
+    if not e.signal:
+        line += f"; default of this build {_fmt_value(e, link._eng(e, e.default_raw))}{_unit(e)}"
+    if e.persisted:
+        line += f"; EEPROM {_eeprom_value(con, e)}"
+    con.say(line)
+
+
+def _eeprom_value(con, e) -> str:
+    """The EEPROM's value of ``e``.  The protocol has no EEPROM read: with the motor stopped the
+    image is loaded and the RAM values written back at once (raw, exact); otherwise not shown."""
+    from . import protocol as P
+    from .link import NackError
+    link = con.link
+    if link.status().state != P.State.IDLE:
+        return "not read while the motor is driven (stop it first)"
+    names = [x.name for x in link.table.persisted if x.writable]
+    ram = link.get_raw(*names)
+    try:
+        link.load_eeprom()
+    except NackError as err:
+        if err.code == P.Nack.EEPROM_ERROR:
+            return "none (no valid image of this build: 'save' writes one)"
+        raise
+    try:
+        got = link.get(e.name)
+    finally:
+        for n in names:                    # the RAM values back, exactly
+            link.set_raw(n, ram[n])
+    return f"{_fmt_value(e, got)}{_unit(e)}"
 
 
 @command("speed", "speed <rpm>", "set the speed setpoint in rpm (mechanical; negative = reverse)")
@@ -889,9 +940,15 @@ def _reverse(con, args):
     con.say(f"speed setpoint {sp:g} -> {got:g} rpm")
 
 
-@command("params", "params [text]", "the parameter table: value, unit, limits, access (filtered by text)",
-         complete=lambda con, args, text: _param_names(con))
+@command("params", "params [text] | params save|load|diff FILE [--force]",
+         "the parameter table: value, unit, limits, access (filtered by text); save/load/diff the persisted "
+         "parameters to/from a JSON file with the firmware identity (load refuses another build unless --force)",
+         complete=lambda con, args, text: (["save", "load", "diff"] + _param_names(con)) if not args else
+         _files(".json")(con, args, text))
 def _params(con, args):
+    if args and args[0].lower() in ("save", "load", "diff"):
+        _params_file(con, args[0].lower(), args[1:])
+        return
     _nargs("params", args, 0, 1)
     link = con.link
     ents = [e for e in link.table.params if not args or args[0].lower() in e.name.lower()]
@@ -910,6 +967,75 @@ def _params(con, args):
                                                              for e in sigs))
 
 
+def _params_file(con, sub: str, args) -> None:
+    import json
+    from .console_files import output_path
+    from .console_params import cross_check, identity_differences, params_document, read_params_file
+    from .fileio import atomic_write_text
+    force = "--force" in args
+    rest = [a for a in args if a != "--force"]
+    if len(rest) != 1 or (force and sub != "load"):
+        raise ConsoleError(f"usage: params {sub} FILE.json" + (" [--force]" if sub == "load" else ""))
+    link = con.link
+    ents = [e for e in link.table.persisted if e.writable]
+    if sub == "save":
+        path = output_path(rest[0], ".json", "params save")
+        raws = link.get_raw(*[e.name for e in ents])
+        vals = {e.name: link._eng(e, raws[e.name]) for e in ents}
+        info = link.info
+        prof = con.profile.name if con.profile is not None else bundled_profile_by_hash(info.profile_hash) or "?"
+        doc = params_document(info, prof, ents, vals, raws)
+        atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
+        con.say(f"saved {len(ents)} parameters of firmware build 0x{info.build_id:08x} to {path}")
+        return
+    path = Path(rest[0]).expanduser().absolute()
+    d = read_params_file(path)
+    idiff = identity_differences(d["identity"], link.info)
+    board = link.get_raw(*[e.name for e in ents])
+    fileps = d["params"]
+    if sub == "diff":
+        if idiff:
+            con.say("identity differs: " + "; ".join(idiff))
+        n = 0
+        for e in ents:
+            if e.name not in fileps:
+                con.say(f"  {e.name}: board {_fmt_value(e, link._eng(e, board[e.name]))}{_unit(e)}, not in the file")
+                n += 1
+            elif fileps[e.name]["raw"] != board[e.name]:
+                con.say(f"  {e.name}: board {_fmt_value(e, link._eng(e, board[e.name]))}{_unit(e)}, file "
+                        f"{_fmt_value(e, link._eng(e, fileps[e.name]['raw']))}{_unit(e)}")
+                n += 1
+        extra = [k for k in fileps if k not in {e.name for e in ents}]
+        for k in extra:
+            con.say(f"  {k}: in the file, not a persisted parameter of this board")
+        con.say(f"{n + len(extra)} difference{'s' if n + len(extra) != 1 else ''} between the board and {path}"
+                if n + len(extra) else f"the board's {len(ents)} parameters equal {path}")
+        return
+    # load
+    if idiff and not force:
+        raise ConsoleError(f"params load: nothing written: {path} was saved from another firmware ("
+                           + "; ".join(idiff) + "); gains and scales may not fit this board: 'params diff' "
+                           "shows the values, --force loads the parameters this board has")
+    byname = {e.name: e for e in ents}
+    todo = {k: v["raw"] for k, v in fileps.items() if k in byname}
+    skipped = [k for k in fileps if k not in byname]
+    bad = [f"{k} raw {r} outside {byname[k].min_raw}..{byname[k].max_raw}" for k, r in todo.items()
+           if not byname[k].min_raw <= r <= byname[k].max_raw]
+    if bad:
+        raise ConsoleError("params load: nothing written: " + "; ".join(bad))
+    problems = cross_check(_with_related(con, {k: link._eng(byname[k], r) for k, r in todo.items()
+                                               if not byname[k].values}))
+    if problems:
+        raise ConsoleError("params load: nothing written: " + "; ".join(problems))
+    changed = 0
+    for k, r in todo.items():
+        if board[k] != r:
+            link.set_raw(k, r)
+            changed += 1
+    con.say(f"loaded {len(todo)} parameters from {path} ({changed} changed"
+            + (f"; not on this board: {', '.join(skipped)}" if skipped else "") + "); 'save' keeps them in EEPROM")
+
+
 @command("get", "get <name>", "read a parameter or signal, with its unit and limits",
          complete=lambda con, args, text: _param_names(con) if not args else [])
 def _get(con, args):
@@ -923,11 +1049,36 @@ def _get(con, args):
          complete=lambda con, args, text: _param_names(con, writable_only=True, signals=False) if not args else
          (list(con.link.param(args[0]).values) if con.link and len(args) == 1 and args[0] in con.link.table else []))
 def _set(con, args):
+    from .console_params import ROUNDING_WARN, cross_check
     _nargs("set", args, 2)
-    e = con.link.param(args[0])
+    link = con.link
+    e = link.param(args[0])
     value = args[1] if e.values and not args[1].lstrip("-").isdigit() else _number(args[1], args[0])
-    got = con.link.set(args[0], value)
-    con.say(f"{e.name} = {_fmt_value(e, got)}{_unit(e)}")
+    link.to_raw(e.name, value)                  # the board's range first (ParamError names it)
+    if not e.values:
+        problems = cross_check(_with_related(con, {e.name: float(value)}), involving=e.name)
+        if problems:
+            raise ConsoleError(f"set: nothing written: {'; '.join(problems)}")
+    got = link.set(args[0], value)
+    note = ""
+    if not e.values and value and abs(got - value) / abs(value) > ROUNDING_WARN:
+        note = (f"  (warning: rounded {abs(got - value) / abs(value) * 100:.2f} % from {value:g}: the board "
+                f"holds steps of {e.scale:.6g}{_unit(e)})")
+    con.say(f"{e.name} = {_fmt_value(e, got)}{_unit(e)}{note}")
+
+
+CROSS_CHECKED = ("current_limit", "premise_low", "premise_high", "u_min", "u_max")
+
+
+def _with_related(con, values: dict) -> dict:
+    """``values`` completed with the board's values of the parameters they are checked against."""
+    link = con.link
+    if not any(n in CROSS_CHECKED for n in values):
+        return dict(values)
+    others = [n for n in CROSS_CHECKED if n in link.table and n not in values]
+    out = link.get_many(*others) if others else {}
+    out.update(values)
+    return out
 
 
 @command("controller", "controller pid|fuzzy", "switch the control law: pid (rule 1) or fuzzy (rules blended)",
@@ -1151,6 +1302,10 @@ def _load(con, args):
                 problems.append(str(err))
     if problems:
         raise ConsoleError("load: nothing written, the board cannot hold these values: " + "; ".join(problems))
+    from .console_params import ROUNDING_WARN, cross_check
+    problems = cross_check(_with_related(con, values))
+    if problems:
+        raise ConsoleError("load: nothing written: " + "; ".join(problems))
     width = max(len(n) for n in values)
     worst = 0.0
     for name, v in values.items():
@@ -1158,7 +1313,7 @@ def _load(con, args):
         got = link.set(name, v)
         rel = abs(got - asked[name]) / abs(asked[name]) if asked[name] else abs(got - v)
         worst = max(worst, rel)
-        note = "" if rel < 1e-3 else f"  (rounded {rel * 100:.2f} %)"
+        note = "" if rel <= ROUNDING_WARN else f"  (rounded {rel * 100:.2f} %)"
         con.say(f"  {name:<{width}} {got:>12.6g}{_unit(e)}{note}")
     fixed = []
     if law.derivative_filter_hz:
