@@ -194,3 +194,46 @@ def test_live_plot_without_window_or_png_is_refused():
         LivePlot(SIGS, backend="Agg")
     with pytest.raises(PlotError, match="no telemetry signals"):
         LivePlot([], backend="Agg")
+
+
+# --------------------------------------------------------------------------- live plot
+
+def test_plot_buffer_segments_windows_and_envelopes():
+    from picdrive.console_plot import PlotBuffer, unit_axes
+    b = PlotBuffer(2, window_s=1.0)
+    for k in range(3000):                       # 3 s at 1 kHz: only the last second is kept
+        b.feed(k / 1000, [float(k), 0.0])
+    assert len(b.t) == 1001 and b.t[0] == pytest.approx(1.999) and b.segments == 1
+    # the telemetry reconfigured (a step, a new rate): time restarts; a new segment, no line back in time
+    b.feed(0.0, [1.0, 1.0])
+    assert list(b.t) == [0.0] and b.segments == 2 and b.total == 3001
+    # dense data: a min/max envelope with the mean, never wider than the samples
+    b = PlotBuffer(1, window_s=10.0)
+    for k in range(9000):
+        b.feed(k / 1000, [(-1.0) ** k])          # a +-1 square wave at the sample rate: a "solid band"
+    t, [(mean, lo, hi)] = b.traces(points=1000)
+    assert len(t) == 1000 and np.all(lo == -1.0) and np.all(hi == 1.0) and np.allclose(mean, 0.0, atol=0.2)
+    sparse = PlotBuffer(1, window_s=10.0)
+    for k in range(500):
+        sparse.feed(k / 1000, [float(k)])
+    t, [(y, lo, hi)] = sparse.traces(points=1000)
+    assert lo is None and hi is None and len(y) == 500       # few samples: the line itself
+    assert unit_axes([("speed", "rpm"), ("current", "A"), ("setpoint", "rpm")]) == ([0, 1, 0], ["rpm", "A"])
+
+
+def test_live_plot_png_follows_reconfiguration(tmp_path):
+    png = tmp_path / "live.png"
+    lp = LivePlot([("speed", "rpm"), ("setpoint", "rpm")], png_path=png, backend="Agg", png_interval_s=0.0)
+    try:
+        for k in range(3000):
+            lp.feed(k / 1000, [float(k % 50), 10.0])
+        lp.control("window", 2.0)
+        lp.control("pause", False)
+        lp.control("ylim", "rpm", -5.0, 60.0)
+        lp.control("signals", [("current", "A")])
+        for k in range(100):
+            lp.feed(k / 1000, [0.5])
+    finally:
+        lp.close()
+    assert lp.total_drawn == 100                # the reconfiguration started a new buffer
+    assert written_by_picdrive(png)

@@ -1408,6 +1408,9 @@ def _telemetry(con, args):
         con.tele_signals = names
         if con.tele_on:
             _telemetry_on(con)
+            if con.plot is not None and con.plot.alive:
+                with con._sinks_lock:
+                    con.plot.control("signals", con.signal_units(names))
         else:
             con.say(f"telemetry signals {', '.join(names)} (off; 'telemetry on', 'plot', 'view' or 'record' start it)"
                     + _bandwidth_note(con, len(names), con.tele_rate_hz))
@@ -1441,20 +1444,66 @@ def _telemetry(con, args):
         raise ConsoleError(f"telemetry {args[0]!r}: expected signals, rate, on or off")
 
 
-@command("plot", "plot [off | --png FILE]", "live plot of the telemetry (a PNG file updated each second without a display)",
-         complete=lambda con, args, text: ["off", "--png"] if not args else [])
+PLOT_USAGE = "plot [--png FILE] [--window S] | plot off | pause | resume | window S | ylim UNIT LO HI|auto"
+
+
+@command("plot", PLOT_USAGE,
+         "live plot of the telemetry (a PNG file updated each second without a display): signals of one unit "
+         "share an axis; the last --window seconds (default 5); a min/max envelope when samples outnumber "
+         "pixels; a new segment (no line back in time) when the telemetry is reconfigured; pause/resume "
+         "freeze the drawing; ylim fixes an axis",
+         complete=lambda con, args, text: ["off", "pause", "resume", "window", "ylim", "--png", "--window"]
+         if not args else [])
 def _plot(con, args):
     from .console_plot import LivePlot, PlotError, display_available
-    if args and args[0].lower() == "off":
-        _nargs("plot", args, 1)
-        con.say("plot closed" if con.close_plot() else "no plot open")
+    sub = args[0].lower() if args else ""
+    if sub in ("off", "pause", "resume", "window", "ylim"):
+        if sub == "off":
+            _nargs("plot", args, 1)
+            con.say("plot closed" if con.close_plot() else "no plot open")
+            return
+        if con.plot is None or not con.plot.alive:
+            raise ConsoleError(f"plot {sub}: no plot open ('plot' opens one)")
+        if sub in ("pause", "resume"):
+            _nargs("plot", args, 1)
+            con.plot.control("pause", sub == "pause")
+            con.say("plot paused (telemetry still recorded; 'plot resume')" if sub == "pause" else "plot resumed")
+        elif sub == "window":
+            _nargs("plot", args, 2)
+            w = _number(args[1], "plot window")
+            if not 0.01 <= w <= 600:
+                raise ConsoleError(f"plot window {w:g} s: expected 0.01..600 s")
+            con.plot.control("window", w)
+            con.say(f"plot window {w:g} s")
+        else:
+            units = sorted({u for _, u in con.plot.signals})
+            if len(args) not in (3, 4) or args[1] not in units:
+                raise ConsoleError(f"usage: plot ylim UNIT LO HI | plot ylim UNIT auto; units: {', '.join(units)}")
+            if len(args) == 3:
+                if args[2].lower() != "auto":
+                    raise ConsoleError("usage: plot ylim UNIT LO HI | plot ylim UNIT auto")
+                con.plot.control("ylim", args[1], None, None)
+                con.say(f"plot [{args[1]}] axis automatic")
+            else:
+                lo, hi = _number(args[2], "ylim"), _number(args[3], "ylim")
+                if not lo < hi:
+                    raise ConsoleError(f"plot ylim: {lo:g} must be below {hi:g}")
+                con.plot.control("ylim", args[1], lo, hi)
+                con.say(f"plot [{args[1]}] axis {lo:g} .. {hi:g}")
         return
-    png = None
-    if args:
-        if len(args) != 2 or args[0] != "--png":
-            raise ConsoleError(f"usage: {COMMANDS['plot'].usage}")
-        from .console_files import output_path
-        png = str(output_path(args[1], ".png", "plot --png"))
+    png, window = None, 5.0
+    it = iter(args)
+    for a in it:
+        v = next(it, None)
+        if a not in ("--png", "--window") or v is None:
+            raise ConsoleError(f"usage: {PLOT_USAGE}")
+        if a == "--png":
+            from .console_files import output_path
+            png = str(output_path(v, ".png", "plot --png"))
+        else:
+            window = _number(v, "--window")
+            if not 0.01 <= window <= 600:
+                raise ConsoleError(f"--window {window:g} s: expected 0.01..600 s")
     if con.plot is not None and con.plot.alive:
         raise ConsoleError("a plot is already open ('plot off' closes it)")
     if not con.tele_on:
@@ -1463,7 +1512,7 @@ def _plot(con, args):
     plot = None
     if png is None and display_available():
         try:
-            plot = LivePlot(sigs)
+            plot = LivePlot(sigs, window_s=window)
         except PlotError as e:            # e.g. only non-interactive matplotlib backends installed
             png = str((con.out_dir / "live.png").absolute())
             con.say(f"no plot window ({e}): the live plot goes to {png}, redrawn every second; "
@@ -1473,7 +1522,7 @@ def _plot(con, args):
         con.say(f"no display for a plot window (DISPLAY is not set): the live plot goes to {png}, "
                 "redrawn every second; 'view' shows a text view")
     if plot is None:
-        plot = LivePlot(sigs, png_path=png, backend="Agg")
+        plot = LivePlot(sigs, png_path=png, backend="Agg", window_s=window)
     with con._sinks_lock:
         con.plot = plot
     con.say(f"plot open ({plot.backend}): {', '.join(n for n, _ in sigs)}" + (f" -> {png}" if png else ""))
