@@ -146,14 +146,14 @@ def test_ctrl_c_in_a_script_does_the_same(twin, tmp_path):
 # --------------------------------------------------------------------------- scripts that assert
 
 STALL = """\
-set u_max 0.05
+set u_max 0
 speed 1500
 start
 wait 0.8
 {expect}
 status
 """
-"""0.05 V cannot turn the rotor: the board latches STALL after its stall_timeout (0.5 s)."""
+"""An output limited to 0 V cannot turn the rotor: the board latches STALL after its stall_timeout (0.5 s)."""
 
 
 def test_a_board_fault_fails_the_script_unless_expected(twin, tmp_path):
@@ -340,3 +340,34 @@ def test_parameters_explained_checked_and_kept(twin, tmp_path):
     assert r.returncode == 0 and f"rule1_kc = {kc + 8 * kcs:.6g} V/A" in r.stdout, r.stdout + r.stderr
     with Link.open(srv.url) as lk:
         assert (lk.get("rule1_kc"), lk.get("premise_low"), lk.get("current_limit") > 0) == (kc, plow, True)
+
+
+def test_view_keeps_a_typed_command_and_ctrl_c_stops_the_motor(twin, tmp_path):
+    pexpect = pytest.importorskip("pexpect")
+    tw, srv = twin
+    _idle(srv.url)
+    ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", srv.url, "--history", str(tmp_path / "h")],
+                       env=_env(), encoding="utf-8", timeout=20, dimensions=(40, 250))
+    try:
+        ch.expect("picdrive> ")
+        ch.send("speed 1000\r")
+        ch.expect("picdrive> ")
+        ch.send("start\r")
+        ch.expect("picdrive> ")
+        ch.send("view\r")
+        ch.expect(r"speed [-\d.]+ rpm \[")                 # the view is drawing
+        ch.send("status\r")                              # typed while viewing: ends the view, then runs
+        ch.expect(r"view: \d+ samples")
+        ch.expect("picdrive> status")
+        ch.expect("state run, fault none, setpoint 999.99 rpm")
+        ch.expect("picdrive> ")
+        ch.send("view\r")
+        ch.expect(r"speed [-\d.]+ rpm \[")
+        ch.sendintr()
+        ch.expect(r"error: view: interrupted \(Ctrl-C\); motor stopped \(outputs off\)")
+        ch.expect("picdrive> ")
+        ch.send("quit\r")
+        ch.expect(pexpect.EOF)
+    finally:
+        ch.close(force=True)
+    assert _board_state(srv.url) == (P.State.IDLE, P.Fault.NONE)

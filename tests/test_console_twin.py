@@ -223,6 +223,8 @@ def test_interactive_link_lost_while_running_and_regained(twin, tmp_path):
         time.sleep(1.0)                               # > link_timeout: the board's watchdog acts
         cable.plug()
         ch.expect("link regained after ", timeout=10)
+        # the reconnection shows the board's state: the watchdog's latched fault
+        ch.expect(r"board state fault: fault link_lost is latched \(outputs off; 'clear' clears it\)")
         ch.send("faults\r")
         ch.expect("fault link_lost latched, state fault")
         ch.expect("picdrive> ")

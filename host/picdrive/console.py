@@ -157,6 +157,8 @@ class Console:
         self.last_step = None
         self.interrupt_note = ""
         self.scope_armed = None                 # what 'scope arm' set up, until 'scope read'
+        self.pending_line: str | None = None    # a command typed during 'view', run next
+        self._heartbeat_s = 0.5
         self._rec_dropped_seen = 0
         self._watcher: threading.Thread | None = None
         # board events (faults, watchdog, reboot) not yet accounted for by an 'expect'
@@ -247,6 +249,7 @@ class Console:
         self.link = link
         self._lost = None
         link.on_event = self._on_event
+        self.retime_heartbeat()
         if self._watcher is None or not self._watcher.is_alive():
             self._watcher = threading.Thread(target=self._watch_link, name="picdrive-console-watch", daemon=True)
             self._watcher.start()
@@ -387,10 +390,23 @@ class Console:
                     self.notify(f"telemetry not restored: {e}")
             return
 
+    def retime_heartbeat(self) -> None:
+        """Heartbeat at a quarter of the board's link_timeout (at most 0.5 s), so a console
+        waiting at its prompt keeps a running motor's watchdog fed with margin."""
+        from .link import Link, LinkError
+        period = 0.5
+        link = self.link
+        if link is not None and "link_timeout" in link.table:
+            try:
+                period = min(0.5, Link._auto_keepalive_period(link.get("link_timeout")))
+            except LinkError:
+                pass
+        self._heartbeat_s = period
+
     def _watch_link(self) -> None:
-        """Notice a lost link while the console is idle (heartbeat when quiet)."""
+        """Notice a lost link while the console is idle; feed the board's watchdog."""
         from .link import LinkError, NackError
-        while not self._closing.wait(0.5):
+        while not self._closing.wait(self._heartbeat_s):
             link = self.link
             if link is None:
                 continue
@@ -684,7 +700,13 @@ class Console:
                 try:
                     with self._out_lock:
                         self._at_prompt = True
-                    line = input(PROMPT)
+                    if self.pending_line is not None:      # typed during 'view': run it now
+                        line, self.pending_line = self.pending_line, None
+                        self.say(PROMPT + line)
+                        if readline is not None:
+                            readline.add_history(line)
+                    else:
+                        line = input(PROMPT)
                 except EOFError:
                     self.say("")
                     break
@@ -699,7 +721,7 @@ class Console:
                 except _Quit:
                     break
                 except KeyboardInterrupt:
-                    self.say("interrupted")
+                    self.say(f"interrupted (Ctrl-C); {self.stop_after_interrupt()}")
         finally:
             if readline is not None and history is not None:
                 try:
@@ -1064,6 +1086,8 @@ def _set(con, args):
     if not e.values and value and abs(got - value) / abs(value) > ROUNDING_WARN:
         note = (f"  (warning: rounded {abs(got - value) / abs(value) * 100:.2f} % from {value:g}: the board "
                 f"holds steps of {e.scale:.6g}{_unit(e)})")
+    if e.name == "link_timeout":
+        con.retime_heartbeat()
     con.say(f"{e.name} = {_fmt_value(e, got)}{_unit(e)}{note}")
 
 
@@ -1528,7 +1552,8 @@ def _plot(con, args):
     con.say(f"plot open ({plot.backend}): {', '.join(n for n, _ in sigs)}" + (f" -> {png}" if png else ""))
 
 
-@command("view", "view [seconds]", "compact text view of the telemetry (Ctrl-C ends it; 2 s in scripts)")
+@command("view", "view [seconds]", "compact text view of the telemetry for seconds of the board's clock "
+         "(at the prompt: until Enter; a command typed meanwhile ends the view and runs; 2 s in scripts)")
 def _view(con, args):
     from .console_plot import TextView
     _nargs("view", args, 0, 1)
@@ -1541,11 +1566,21 @@ def _view(con, args):
     with con._sinks_lock:
         con._view = tv
     tty = con.interactive and sys.stdout.isatty()
-    end = time.monotonic() + seconds
+    typed = con.interactive and sys.stdin.isatty() and os.name == "posix"
+    end = board_time_s(con) + seconds
     period = 0.25 if tty else 0.5
     try:
-        while time.monotonic() < end:
-            time.sleep(min(period, max(0.0, end - time.monotonic())))
+        while board_time_s(con) < end:
+            if typed:
+                import select
+                ready, _, _ = select.select([sys.stdin], [], [], period)
+                if ready:                            # a line typed while viewing: it ends the view and runs
+                    line = sys.stdin.readline()
+                    if line.strip():
+                        con.pending_line = line.rstrip("\n")
+                    break
+            else:
+                time.sleep(period)
             line = tv.render()
             if tty:                                  # redraw in place: one terminal row
                 import shutil
@@ -1556,8 +1591,6 @@ def _view(con, args):
                 con.say(line)
             if con.link is None:
                 raise ConsoleError(f"view: link lost ({con._lost})")
-    except KeyboardInterrupt:
-        pass
     finally:
         with con._sinks_lock:
             con._view = None
