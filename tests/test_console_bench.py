@@ -371,3 +371,37 @@ def test_view_keeps_a_typed_command_and_ctrl_c_stops_the_motor(twin, tmp_path):
     finally:
         ch.close(force=True)
     assert _board_state(srv.url) == (P.State.IDLE, P.Fault.NONE)
+
+
+# --------------------------------------------------------------------------- the documented session
+
+def test_the_documented_bench_session_runs_and_fails_at_its_fault(twin, tmp_path):
+    """examples/bench-session.txt, shown in docs/bench-session.md (scripts/bench_session.py)."""
+    tw, srv = twin
+    _idle(srv.url, tw)
+    with Link.open(srv.url) as lk:
+        before = lk.get_many("u_max", "rule1_kp")
+    session = REPO / "examples" / "bench-session.txt"
+    try:
+        r = _cli(srv.url, "--strict", "--profile", "duy2008", "--run", str(session), cwd=tmp_path)
+        out = r.stdout
+        assert "expect speed == 1000 rpm tol 30: ok" in out
+        assert "scope armed: speed, setpoint: 32 samples at 500 Hz (64.0 ms), trigger setpoint, 8 before it" in out
+        assert "scope: captured 32 samples (" in out
+        assert "expect speed == 2400 rpm tol 48: ok" in out
+        assert f"1 difference between the board and {tmp_path / 'board.params.json'}" in out
+        assert f"the board's 18 parameters equal {tmp_path / 'board.params.json'}" in out
+        n = session.read_text().splitlines().index("wait 1") + 1
+        assert r.returncode == 2
+        assert r.stderr.strip() == (f"picdrive: error: {session}:{n}: 'wait 1': board event fault stall during or "
+                                    "after this line; the script fails (if it is intended, follow the line with "
+                                    "'expect fault == <name> within <s>')")
+        assert written_by_picdrive(tmp_path / "scope_setpoint_step.png")
+        rec = read_recording(tmp_path / "scope_setpoint_step.csv")
+        sp = rec.column("setpoint")
+        assert np.all(np.abs(sp[rec.column("t_s") < 0] - 1000) < 1) and np.all(np.abs(sp[8:] - 2400) < 1)
+    finally:
+        _idle(srv.url, tw)
+        s = tmp_path / "restore.txt"
+        s.write_text(f"set u_max {before['u_max']!r}\nset rule1_kp {before['rule1_kp']!r}\n")
+        assert _cli(srv.url, "--run", str(s)).returncode == 0
