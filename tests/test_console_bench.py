@@ -12,6 +12,7 @@
 Waits on the board are on its clock: the console's own ``wait``/``expect`` read the board's
 uptime, and the tests poll the twin's state with a generous failure bound only.
 """
+import contextlib
 import math
 import os
 import signal
@@ -24,6 +25,7 @@ import numpy as np
 import pytest
 
 from picdrive import protocol as P
+from picdrive.console import Console, ConsoleError
 from picdrive.console_files import written_by_picdrive
 from picdrive.console_record import read_recording
 from picdrive.link import Link
@@ -41,6 +43,10 @@ twin_mod = pytest.importorskip("picdrive_hil.twin")
 def twin():
     tw = twin_mod.Twin(PROFILE, FIRMWARE)
     srv = tw.serve(port=0, realtime=True)
+    # these tests are not about the watchdog: a host starved for half a second (a loaded CI machine)
+    # must not trip it under them (in RAM only; test_console_twin covers LINK_LOST)
+    with Link.open(srv.url) as lk:
+        lk.set("link_timeout", 5000)
     yield tw, srv
     srv.stop()
     tw.close()
@@ -83,6 +89,24 @@ def _idle(url, tw=None):
 
 def _rpm(tw):
     return tw.state()["speed_rad_s"] * RPM
+
+
+@contextlib.contextmanager
+def _console(url, tmp_path):
+    """An in-process console (cheaper than a subprocess for checks of refusals)."""
+    lines = []
+    con = Console(url, write=lines.append, out_dir=tmp_path)
+    con.connect()
+    try:
+        yield con, lines
+    finally:
+        con.close()
+
+
+def _refused(con, line, msg):
+    with pytest.raises(ConsoleError) as e:
+        con.execute(line)
+    assert msg in str(e.value), (line, str(e.value))
 
 
 # --------------------------------------------------------------------------- Ctrl-C
@@ -202,13 +226,12 @@ def test_expect_on_the_board_clock(twin, tmp_path):
     seen = float(line.split("speed is ")[1].split(" rpm")[0])
     assert abs(seen - 1500) < 100
     assert _board_state(srv.url)[0] == P.State.IDLE          # leaving the console stopped the motor
-    for bad, msg in [("expect speed", "usage: expect"), ("expect speed ~ 3", "operator '~'"),
-                     ("expect state == flying", "'flying' is not one of idle|run|brake|fault"),
-                     ("expect speed == 1 within -1", "within -1 must not be negative"),
-                     ("expect nosuch == 1", "nosuch")]:
-        s.write_text(bad + "\n")
-        r = _cli(srv.url, "--run", str(s))
-        assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, (bad, r.stderr)
+    with _console(srv.url, tmp_path) as (con, lines):
+        for bad, msg in [("expect speed", "usage: expect"), ("expect speed ~ 3", "operator '~'"),
+                         ("expect state == flying", "'flying' is not one of idle|run|brake|fault"),
+                         ("expect speed == 1 within -1", "within -1 must not be negative"),
+                         ("expect nosuch == 1", "nosuch")]:
+            _refused(con, bad, msg)
 
 
 def test_strict_refuses_a_board_of_another_profile(twin, tmp_path):
@@ -222,7 +245,6 @@ def test_strict_refuses_a_board_of_another_profile(twin, tmp_path):
     assert "--strict: the board was built from another profile (board hash 0x" in r.stderr
     r = _cli(srv.url, "--run", str(s), "--strict")
     assert r.returncode == 2 and "--strict compares the board with your profile: give --profile P too" in r.stderr
-    assert _cli(srv.url, "--run", str(s), "--profile", "duy2008", "--strict").returncode == 0
 
 
 def test_a_second_console_is_told_the_twin_is_busy(twin, tmp_path):
@@ -275,20 +297,17 @@ def test_one_rule_for_the_consoles_files(twin, tmp_path):
     _idle(srv.url)
     foreign = tmp_path / "mine.csv"
     foreign.write_text("my data\n")
-    s = tmp_path / "s.txt"
-    for cmd, what in [(f"step 0 1000 --png {tmp_path}/new/x.png", "step --png"),
-                      (f"plot --png {tmp_path}/new/x.png", "plot --png"),
-                      (f"record {tmp_path}/new/x.csv", "recording"),
-                      (f"scope single --png {tmp_path}/new/x.png", "scope --png")]:
-        s.write_text(cmd + "\n")
-        r = _cli(srv.url, "--run", str(s))
-        assert r.returncode == 2, cmd
-        assert (f"{what} {tmp_path}/new/x.{cmd.split('.')[-1]}: folder {tmp_path}/new does not exist; create it "
-                "first") in r.stderr, (cmd, r.stderr)
-        assert "Traceback" not in r.stderr + r.stdout and not (tmp_path / "new").exists()
-    s.write_text(f"record {foreign}\n")
-    r = _cli(srv.url, "--run", str(s))
-    assert r.returncode == 2 and "a file picdrive did not write is there" in r.stderr
+    with _console(srv.url, tmp_path) as (con, lines):
+        for cmd, what in [(f"step 0 1000 --png {tmp_path}/new/x.png", "step --png"),
+                          (f"plot --png {tmp_path}/new/x.png", "plot --png"),
+                          (f"record {tmp_path}/new/x.csv", "recording"),
+                          (f"scope single --png {tmp_path}/new/x.png", "scope --png"),
+                          (f"params save {tmp_path}/new/x.json", "params save")]:
+            _refused(con, cmd, f"{what} {tmp_path}/new/x.{cmd.split('.')[-1]}: folder {tmp_path}/new does not "
+                               "exist; create it first")
+            assert not (tmp_path / "new").exists()
+        _refused(con, f"record {foreign}", "a file picdrive did not write is there")
+        assert con.plot is None and con.recorder is None
     assert foreign.read_text() == "my data\n"
     assert _board_state(srv.url)[0] == P.State.IDLE            # refused before the motor moved
 
@@ -320,12 +339,11 @@ def test_parameters_explained_checked_and_kept(twin, tmp_path):
     assert f"loaded 18 parameters from {f} (2 changed)" in out and f"the board's 18 parameters equal {f}" in out
     assert json.loads(f.read_text())["identity"]["profile"] == "duy2008"
     # cross-checks: refused with the reason, nothing written
-    for cmd, msg in [("set current_limit 0", "current_limit 0 A allows no torque: the next start latches STALL"),
-                     (f"set premise_low {phigh + 100:g}", f"must be below premise_high {phigh:g} rpm"),
-                     ("help nosuch", "no command or parameter 'nosuch'")]:
-        s.write_text(cmd + "\n")
-        r = _cli(srv.url, "--run", str(s))
-        assert r.returncode == 2 and msg in r.stderr and "Traceback" not in r.stderr, (cmd, r.stderr)
+    with _console(srv.url, tmp_path) as (con, lines):
+        for cmd, msg in [("set current_limit 0", "current_limit 0 A allows no torque: the next start latches STALL"),
+                         (f"set premise_low {phigh + 100:g}", f"must be below premise_high {phigh:g} rpm"),
+                         ("help nosuch", "no command or parameter 'nosuch'")]:
+            _refused(con, cmd, msg)
     # a file of another build is refused unless forced
     d = json.loads(f.read_text())
     d["identity"]["table_hash"] = "0x12345678"
