@@ -236,6 +236,8 @@ class Console:
         return f"board state {_state_name(st.state)}, no fault latched{extra}"
 
     def _note_event(self, what: str) -> None:
+        if self.interactive:                    # only a script fails on a board event
+            return
         with self._events_lock:
             self.unexpected.append(what)
 
@@ -1691,6 +1693,7 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
     con._start_pump()
     interrupted = ""
     k0 = None
+    step_index = None                      # defined once the step is commanded
     n_pre = int(round(STEP_PRE_S * hz))
     n_hold = int(round(hold_s * hz))
     try:
@@ -1743,7 +1746,7 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
         if data is None or not len(data):
             raise ConsoleError(f"step: interrupted (Ctrl-C) before any sample; {interrupted}") from None
         if k0 is None:
-            k0 = step_index(data) if "step_index" in locals() else None
+            k0 = step_index(data) if step_index is not None else None
     finally:
         with con._sinks_lock:
             con._collect = None

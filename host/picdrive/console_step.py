@@ -225,9 +225,10 @@ def save_step_plot(rec: StepRecord, path: str | Path, *, band: float = 0.02) -> 
         a.grid(True, alpha=0.3)
     axes[-1].set_xlabel("time from step [ms]")
     title = f"step {rec.from_rpm:g} → {rec.to_rpm:g} rpm ({rec.source}; metrics on the {rec.speed_basis})"
-    ident = rec.identity_lines()
-    fig.suptitle("\n".join([title] + ident), fontsize=8)
-    fig.tight_layout()
+    import textwrap
+    ident = textwrap.wrap("; ".join(rec.identity_lines()), 130)
+    fig.suptitle("\n".join([title] + ident), fontsize=7.5)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.012 * len(ident)))
     from .console_files import PNG_SOFTWARE, output_path
     p = output_path(p, ".png", "step plot")
     tmp = p.with_name(f".{p.name}.tmp.png")
