@@ -423,3 +423,21 @@ def test_the_documented_bench_session_runs_and_fails_at_its_fault(twin, tmp_path
         s = tmp_path / "restore.txt"
         s.write_text(f"set u_max {before['u_max']!r}\nset rule1_kp {before['rule1_kp']!r}\n")
         assert _cli(srv.url, "--run", str(s)).returncode == 0
+
+
+def test_scope_refuses_what_the_firmware_cannot_capture(twin, tmp_path):
+    tw, srv = twin
+    with _console(srv.url, tmp_path) as (con, lines):
+        for cmd, msg in [("scope single --trigger rising", "--trigger rising needs --level <rpm>"),
+                         ("scope single --pre 10", "--pre needs a trigger"),
+                         ("scope single --trigger current", "--trigger 'current': expected one of immediate, "
+                                                            "setpoint, rising, falling (the firmware's triggers)"),
+                         ("scope single speed,current,voltage --samples 40",
+                          "need 120 words; the board's capture buffer holds 64 words (at most 21 samples of 3"),
+                         ("scope single speed,nosuch", "nosuch not a signal of this board"),
+                         ("scope read", "nothing armed by this console"),
+                         ("scope arm --count 3", "--count applies to 'scope normal'")]:
+            _refused(con, cmd, msg)
+        con.execute(f"scope normal speed --count 2 --png {tmp_path / 'n.png'}")
+        assert lines[-1] == f"scope normal: 2 captures; last plot {tmp_path / 'n.png'}, data {tmp_path / 'n.csv'}"
+        assert len(read_recording(tmp_path / "n.csv").column("speed")) == 64

@@ -216,8 +216,10 @@ def test_interactive_link_lost_while_running_and_regained(twin, tmp_path):
         ch.send("start\r")
         ch.expect("running")
         ch.expect("picdrive> ")
-        time.sleep(0.5)
-        assert tw.state()["speed_rad_s"] * RPM > 500
+        end = time.monotonic() + 20                   # the twin's time, polled (a bound, not a timing)
+        while tw.state()["speed_rad_s"] * RPM <= 500:
+            assert time.monotonic() < end, "the motor did not reach 500 rpm"
+            time.sleep(0.01)
         cable.unplug()                                # the adapter is pulled while the motor runs
         ch.expect("link lost: ", timeout=10)
         time.sleep(1.0)                               # > link_timeout: the board's watchdog acts
