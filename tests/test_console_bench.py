@@ -344,6 +344,9 @@ def test_parameters_explained_checked_and_kept(twin, tmp_path):
                          (f"set premise_low {phigh + 100:g}", f"must be below premise_high {phigh:g} rpm"),
                          ("help nosuch", "no command or parameter 'nosuch'")]:
             _refused(con, cmd, msg)
+        del lines[:]
+        con.execute("help speed")                # a command and a signal: both explained
+        assert lines[0].startswith("speed <rpm>") and lines[1] == "speed: signal (telemetry, read-only)"
     # a file of another build is refused unless forced
     d = json.loads(f.read_text())
     d["identity"]["table_hash"] = "0x12345678"

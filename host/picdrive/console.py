@@ -866,7 +866,9 @@ def _help(con: Console, args):
     if args:
         name = ALIASES.get(args[0].lower(), args[0].lower())
         c = COMMANDS.get(name)
-        if c is None and con.link is not None and args[0] in con.link.table:
+        if con.link is not None and args[0] in con.link.table:
+            if c is not None:                    # 'speed': a command and a signal
+                con.say(f"{c.usage}\n  {c.help}")
             _help_param(con, args[0])
             return
         if c is None:
