@@ -41,6 +41,17 @@ twin_mod = pytest.importorskip("picdrive_hil.twin")
 
 @pytest.fixture(scope="module")
 def twin():
+    # The twin's real-time pacing drops a lag above MAX_LAG_S with the wrong sign and then runs many
+    # times faster than real time for good (issue 11, the twin's owner fixes it): on a loaded machine
+    # that trips the board's watchdog under these tests, which are not about pacing.  Here the twin
+    # keeps its debt instead (it catches up, then runs in real time); restored after the module.
+    import picdrive_hil.endpoint as endpoint
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(endpoint, "MAX_LAG_S", float("inf"))
+        yield from _serve_twin()
+
+
+def _serve_twin():
     tw = twin_mod.Twin(PROFILE, FIRMWARE)
     srv = tw.serve(port=0, realtime=True)
     # these tests are not about the watchdog: a host starved for half a second (a loaded CI machine)
@@ -276,7 +287,7 @@ def test_scope_a_setpoint_step(twin, tmp_path):
     assert "scope armed: speed, setpoint: 32 samples at 500 Hz (64.0 ms), trigger setpoint, 8 before it" in r.stdout
     assert f"plot {png}" in r.stdout
     assert r.returncode == 2 and ("scope: capture not done after 2 s of the board's clock (trigger not seen; "
-                                  "trigger rising)") in r.stderr
+                                  "trigger rising)") in r.stderr, r.stderr[-400:]
     rec = read_recording(png.with_suffix(".csv"))
     assert rec.columns == ["t_s", "speed", "setpoint"] and rec.units == ["s", "rpm", "rpm"]
     assert rec.rate_hz == 500 and "trigger setpoint" in rec.meta["scope"]
