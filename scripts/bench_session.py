@@ -1,11 +1,18 @@
 #!/usr/bin/env python3
-"""Capture the bench session shown in README.md and docs/bench-session.md.
+"""Capture the bench sessions shown in README.md and docs/bench-session.md.
 
 Starts ``picdrive twin`` on the committed example firmware
 (``firmware_build/duy2008``), drives an interactive ``picdrive console``
 through a pseudo-terminal (pexpect), one command at a time as typed, and
 writes what the console printed, unedited, into ``docs/bench-session.md``
 (between the BEGIN/END markers) with the step plot in ``docs/img/``.
+
+Then, on a fresh twin, it runs the scripted session ``examples/bench-session.txt``
+(``--strict --run``: scope a setpoint step, expect the settled speed, save and
+diff the parameters, a fault that fails the script) in a scratch folder and
+writes its output and exit status between the BEGIN/END scripted markers, the
+scope plot in ``docs/img/scope_setpoint_step.png``.  The same file runs in CI
+(tests/test_console_bench.py).
 
     python3 scripts/bench_session.py            # rewrite the transcript
     python3 scripts/bench_session.py --print    # only print it
@@ -42,6 +49,8 @@ COMMANDS = [
     "quit",
 ]
 BEGIN, END = "<!-- BEGIN captured session -->", "<!-- END captured session -->"
+SBEGIN, SEND = "<!-- BEGIN scripted session -->", "<!-- END scripted session -->"
+SESSION = ROOT / "examples" / "bench-session.txt"
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 
 
@@ -71,6 +80,10 @@ def start_twin() -> tuple[subprocess.Popen, str]:
 
 
 def capture() -> str:
+    (ROOT / "out").mkdir(exist_ok=True)                  # the console creates no folders
+    old = ROOT / "docs" / "img" / "step_0_2400.png"      # this script's own output, written again
+    old.unlink(missing_ok=True)
+    old.with_suffix(".csv").unlink(missing_ok=True)
     twin, url = start_twin()
     try:
         con = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", url, "--profile", "duy2008"],
@@ -91,10 +104,39 @@ def capture() -> str:
             body = "\n".join(lines).rstrip()
             if body:
                 out.append(body)
-        return "\n".join(out).replace(url, url.rsplit(":", 1)[0] + ":5000")
+        return "\n".join(out).replace(url, url.rsplit(":", 1)[0] + ":5000").replace(str(ROOT) + "/", "")
     finally:
         twin.terminate()
         twin.wait(10)
+
+
+def scripted() -> tuple[str, bytes]:
+    """Run examples/bench-session.txt on a fresh twin: (transcript, scope PNG bytes)."""
+    import shutil
+    import tempfile
+    twin, url = start_twin()
+    tmp = Path(tempfile.mkdtemp(prefix="picdrive-bench-"))
+    try:
+        shutil.copy(SESSION, tmp / SESSION.name)
+        r = subprocess.run([sys.executable, "-m", "picdrive", "console", url, "--strict", "--profile", "duy2008",
+                            "--run", SESSION.name], cwd=tmp, capture_output=True, text=True, timeout=120)
+        png = (tmp / "scope_setpoint_step.png").read_bytes()
+    finally:
+        twin.terminate()
+        twin.wait(10)
+    short = url.rsplit(":", 1)[0] + ":5000"
+    text = (f"$ picdrive console {short} --strict --profile duy2008 --run {SESSION.name}\n"
+            + r.stdout + r.stderr + f"$ echo $?\n{r.returncode}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    return text.replace(url, short).replace(str(tmp) + "/", "").rstrip(), png
+
+
+def _between(s: str, begin: str, end: str, text: str, doc: Path) -> str:
+    if begin not in s or end not in s:
+        raise SystemExit(f"{doc} lacks the {begin} / {end} markers")
+    head, rest = s.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    return f"{head}{begin}\n```\n{text}\n```\n{end}{tail}"
 
 
 def main() -> int:
@@ -102,17 +144,17 @@ def main() -> int:
     ap.add_argument("--print", action="store_true", help="print the transcript, write nothing")
     a = ap.parse_args()
     text = capture()
+    stext, png = scripted()
     if a.print:
-        print(text)
+        print(text + "\n\n" + stext)
         return 0
     doc = ROOT / "docs" / "bench-session.md"
     s = doc.read_text(encoding="utf-8")
-    if BEGIN not in s or END not in s:
-        raise SystemExit(f"{doc} lacks the {BEGIN} / {END} markers")
-    head, rest = s.split(BEGIN, 1)
-    _, tail = rest.split(END, 1)
-    doc.write_text(f"{head}{BEGIN}\n```\n{text}\n```\n{END}{tail}", encoding="utf-8")
-    print(f"wrote {doc}")
+    s = _between(s, BEGIN, END, text, doc)
+    s = _between(s, SBEGIN, SEND, stext, doc)
+    doc.write_text(s, encoding="utf-8")
+    (ROOT / "docs" / "img" / "scope_setpoint_step.png").write_bytes(png)
+    print(f"wrote {doc} and docs/img/scope_setpoint_step.png")
     return 0
 
 

@@ -8,6 +8,8 @@ import pytest
 
 from picdrive.console_plot import LivePlot, PlotError, TextView, sparkline
 from picdrive.console_record import Recorder, RecordError, read_recording
+from picdrive.errors import PicdriveError
+from picdrive.console_files import written_by_picdrive
 from picdrive.console_step import StepError, StepRecord, analyse_step, parse_step_args, save_step_plot
 from picdrive.metrics import step_metrics
 
@@ -124,11 +126,35 @@ def test_save_step_plot(tmp_path):
     rec = StepRecord(0.0, 2400.0, 1.0, t, y, 1e-3, signals={"current_a": np.ones_like(t)},
                      units={"current_a": "A"}, firmware="fw", profile="duy2008")
     analyse_step(rec)
-    p = save_step_plot(rec, tmp_path / "out" / "step.png")
+    # a missing folder is refused, named, and not created (one rule for every console write)
+    with pytest.raises(PicdriveError, match=f"folder {tmp_path / 'out'} does not exist; create it first"):
+        save_step_plot(rec, tmp_path / "out" / "step.png")
+    assert not (tmp_path / "out").exists()
+    p = save_step_plot(rec, tmp_path / "step.png")
     data = p.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    assert written_by_picdrive(p)
+    p2 = save_step_plot(rec, tmp_path / "step.png")          # picdrive's own file: replaced
+    assert p2 == p and p.is_absolute()
+    foreign = tmp_path / "photo.png"
+    foreign.write_bytes(b"\x89PNG\r\n\x1a\nnot picdrive's")
+    with pytest.raises(PicdriveError, match="a file picdrive did not write is there"):
+        save_step_plot(rec, foreign)
+    assert foreign.read_bytes() == b"\x89PNG\r\n\x1a\nnot picdrive's"
     with pytest.raises(StepError, match="must end in .png"):
         save_step_plot(rec, tmp_path / "step.jpg")
+
+
+def test_faulted_step_plot_marks_the_fault_instead_of_metrics(tmp_path):
+    t, y = _second_order()
+    rec = StepRecord(0.0, 2400.0, 1.0, t, y, 1e-3, fault="stall", firmware="fw")
+    p = save_step_plot(rec, tmp_path / "fault.png")
+    fig_text = p.read_bytes()
+    assert fig_text[:4] == b"\x89PNG" and rec.metrics is None
+    # the same record analysed draws the metrics box; the faulted one draws the fault box (differs)
+    ok = StepRecord(0.0, 2400.0, 1.0, t, y, 1e-3, firmware="fw")
+    analyse_step(ok)
+    assert save_step_plot(ok, tmp_path / "ok.png").read_bytes() != fig_text
 
 
 # --------------------------------------------------------------------------- views
@@ -168,3 +194,46 @@ def test_live_plot_without_window_or_png_is_refused():
         LivePlot(SIGS, backend="Agg")
     with pytest.raises(PlotError, match="no telemetry signals"):
         LivePlot([], backend="Agg")
+
+
+# --------------------------------------------------------------------------- live plot
+
+def test_plot_buffer_segments_windows_and_envelopes():
+    from picdrive.console_plot import PlotBuffer, unit_axes
+    b = PlotBuffer(2, window_s=1.0)
+    for k in range(3000):                       # 3 s at 1 kHz: only the last second is kept
+        b.feed(k / 1000, [float(k), 0.0])
+    assert len(b.t) == 1001 and b.t[0] == pytest.approx(1.999) and b.segments == 1
+    # the telemetry reconfigured (a step, a new rate): time restarts; a new segment, no line back in time
+    b.feed(0.0, [1.0, 1.0])
+    assert list(b.t) == [0.0] and b.segments == 2 and b.total == 3001
+    # dense data: a min/max envelope with the mean, never wider than the samples
+    b = PlotBuffer(1, window_s=10.0)
+    for k in range(9000):
+        b.feed(k / 1000, [(-1.0) ** k])          # a +-1 square wave at the sample rate: a "solid band"
+    t, [(mean, lo, hi)] = b.traces(points=1000)
+    assert len(t) == 1000 and np.all(lo == -1.0) and np.all(hi == 1.0) and np.allclose(mean, 0.0, atol=0.2)
+    sparse = PlotBuffer(1, window_s=10.0)
+    for k in range(500):
+        sparse.feed(k / 1000, [float(k)])
+    t, [(y, lo, hi)] = sparse.traces(points=1000)
+    assert lo is None and hi is None and len(y) == 500       # few samples: the line itself
+    assert unit_axes([("speed", "rpm"), ("current", "A"), ("setpoint", "rpm")]) == ([0, 1, 0], ["rpm", "A"])
+
+
+def test_live_plot_png_follows_reconfiguration(tmp_path):
+    png = tmp_path / "live.png"
+    lp = LivePlot([("speed", "rpm"), ("setpoint", "rpm")], png_path=png, backend="Agg", png_interval_s=0.0)
+    try:
+        for k in range(3000):
+            lp.feed(k / 1000, [float(k % 50), 10.0])
+        lp.control("window", 2.0)
+        lp.control("pause", False)
+        lp.control("ylim", "rpm", -5.0, 60.0)
+        lp.control("signals", [("current", "A")])
+        for k in range(100):
+            lp.feed(k / 1000, [0.5])
+    finally:
+        lp.close()
+    assert lp.total_drawn == 100                # the reconfiguration started a new buffer
+    assert written_by_picdrive(png)

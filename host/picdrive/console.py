@@ -128,9 +128,10 @@ class Console:
 
     def __init__(self, url: str, *, profile=None, out_dir: str | Path = ".", opener=None,
                  write: Callable[[str], None] | None = None, interactive: bool = False,
-                 reconnect_interval_s: float = 0.5):
+                 reconnect_interval_s: float = 0.5, strict: bool = False):
         self.url = url
         self.profile = profile
+        self.strict = strict
         self.out_dir = Path(out_dir)
         self.interactive = interactive
         self.reconnect_interval_s = reconnect_interval_s
@@ -154,8 +155,15 @@ class Console:
         self._view = None
         self._collect: list | None = None
         self.last_step = None
+        self.interrupt_note = ""
+        self.scope_armed = None                 # what 'scope arm' set up, until 'scope read'
+        self.pending_line: str | None = None    # a command typed during 'view', run next
+        self._heartbeat_s = 0.5
         self._rec_dropped_seen = 0
         self._watcher: threading.Thread | None = None
+        # board events (faults, watchdog, reboot) not yet accounted for by an 'expect'
+        self._events_lock = threading.Lock()
+        self.unexpected: list[str] = []
 
     # -- output ---------------------------------------------------------------
 
@@ -193,15 +201,57 @@ class Console:
     def connect(self) -> None:
         """Open the link and show the handshake (raises LinkError if the board is not there)."""
         link = self._open()
+        if self.strict:
+            try:
+                self._check_identity(link)
+            except ConsoleError:
+                link.close()
+                raise
         self._attach(link)
         self.say(f"connected to {self.url}")
         for line in self.handshake_lines():
             self.say(line)
+        self.say(self.state_line())
+
+    def _check_identity(self, link) -> None:
+        """``--strict``: refuse a board built from another profile than ``--profile``."""
+        if self.profile is None:
+            return
+        mine = profile_hash32(self.profile)
+        if mine != link.info.profile_hash:
+            raise ConsoleError(f"--strict: the board was built from another profile (board hash "
+                               f"0x{link.info.profile_hash:08x}, local profile {self.profile.name} hash 0x{mine:08x}); "
+                               "flash the firmware of this profile, pass the right --profile, or drop --strict")
+
+    def state_line(self) -> str:
+        """The board's run state and latched fault, as shown on connect and on reconnection."""
+        from . import protocol as P
+        st = self.link.status()
+        if int(st.fault):
+            return (f"board state {_state_name(st.state)}: fault {_state_name(st.fault)} is latched "
+                    "(outputs off; 'clear' clears it)")
+        extra = ""
+        if st.state in (P.State.RUN, P.State.BRAKE):
+            extra = f", setpoint {self.link.get('speed_setpoint'):g} rpm: the motor is driven ('stop' stops it)"
+        return f"board state {_state_name(st.state)}, no fault latched{extra}"
+
+    def _note_event(self, what: str) -> None:
+        if self.interactive:                    # only a script fails on a board event
+            return
+        with self._events_lock:
+            self.unexpected.append(what)
+
+    def take_unexpected(self) -> list[str]:
+        """Board events (faults, watchdog, reboot) since the last call."""
+        with self._events_lock:
+            out, self.unexpected = self.unexpected, []
+        return out
 
     def _attach(self, link) -> None:
         self.link = link
         self._lost = None
         link.on_event = self._on_event
+        self.retime_heartbeat()
         if self._watcher is None or not self._watcher.is_alive():
             self._watcher = threading.Thread(target=self._watch_link, name="picdrive-console-watch", daemon=True)
             self._watcher.start()
@@ -232,6 +282,7 @@ class Console:
         from . import protocol as P
         name = event.name.lower() if hasattr(event, "name") else str(event)
         if event == P.Event.WATCHDOG:
+            self._note_event("fault link_lost (watchdog)")
             self.notify("board event: watchdog: no valid frame from the host within link_timeout while running; "
                         "motor stopped")
         elif event == P.Event.FAULT:
@@ -239,8 +290,10 @@ class Console:
                 what = P.Fault(code).name
             except ValueError:
                 what = str(code)
+            self._note_event(f"fault {what.lower()}")
             self.notify(f"board event: fault {what} latched, outputs off ('faults', then 'clear')")
         elif event == P.Event.BOOT:
+            self._note_event("boot (the board restarted)")
             self.notify(f"board event: boot (reset cause {code}): the board restarted")
             threading.Thread(target=self._after_reboot, name="picdrive-console-reboot", daemon=True).start()
         else:
@@ -316,8 +369,21 @@ class Console:
             if self._closing.is_set():
                 link.close()
                 return
+            if self.strict:
+                try:
+                    self._check_identity(link)
+                except ConsoleError as e:
+                    link.close()
+                    if str(e) != said:
+                        said = str(e)
+                        self.notify(f"cannot use the board on {self.url}: {e}; still trying")
+                    continue
             self._attach(link)
-            self.notify(f"link regained after {tries} tries: " + " / ".join(self.handshake_lines()))
+            try:
+                state = self.state_line()
+            except LinkError as e:
+                state = f"state unknown ({e})"
+            self.notify(f"link regained after {tries} tries: " + " / ".join(self.handshake_lines() + [state]))
             if self.tele_on:
                 try:
                     self._apply_telemetry()
@@ -326,10 +392,23 @@ class Console:
                     self.notify(f"telemetry not restored: {e}")
             return
 
+    def retime_heartbeat(self) -> None:
+        """Heartbeat at a quarter of the board's link_timeout (at most 0.5 s), so a console
+        waiting at its prompt keeps a running motor's watchdog fed with margin."""
+        from .link import Link, LinkError
+        period = 0.5
+        link = self.link
+        if link is not None and "link_timeout" in link.table:
+            try:
+                period = min(0.5, Link._auto_keepalive_period(link.get("link_timeout")))
+            except LinkError:
+                pass
+        self._heartbeat_s = period
+
     def _watch_link(self) -> None:
-        """Notice a lost link while the console is idle (heartbeat when quiet)."""
+        """Notice a lost link while the console is idle; feed the board's watchdog."""
         from .link import LinkError, NackError
-        while not self._closing.wait(0.5):
+        while not self._closing.wait(self._heartbeat_s):
             link = self.link
             if link is None:
                 continue
@@ -445,7 +524,11 @@ class Console:
         link = self._require_link() if cmd.needs_link else self.link
         try:
             cmd.func(self, args)
-        except (NackError, ParamError) as e:
+        except KeyboardInterrupt:
+            raise ConsoleError(f"{name}: interrupted (Ctrl-C); {self.stop_after_interrupt()}") from None
+        except NackError as e:
+            raise ConsoleError(f"{name}: {self._nack_text(e)}") from None
+        except ParamError as e:
             raise ConsoleError(f"{name}: {e}") from None
         except HandshakeMismatch as e:
             raise ConsoleError(f"{name}: {e}") from None
@@ -457,6 +540,39 @@ class Console:
             raise
         except PicdriveError as e:          # design file, recording, step or plot errors
             raise ConsoleError(f"{name}: {e}") from None
+
+    def stop_after_interrupt(self) -> str:
+        """Ctrl-C in a command: outputs off if the motor is driven (the same in a script and at
+        the prompt); returns what was done, for the message."""
+        from . import protocol as P
+        from .link import LinkError
+        link = self.link
+        if link is None:
+            return f"the link is lost ({self._lost}): the board's watchdog stops a running motor"
+        for _ in range(3):                       # a second Ctrl-C must not leave the motor running
+            try:
+                if link.status().state in (P.State.RUN, P.State.BRAKE):
+                    link.stop()
+                    return "motor stopped (outputs off)"
+                return "the motor was not driven"
+            except KeyboardInterrupt:
+                continue
+            except LinkError as e:
+                return f"could not reach the board to stop the motor ({e}); its watchdog stops it"
+        return "motor stop not confirmed"
+
+    @staticmethod
+    def _nack_text(e) -> str:
+        """A board refusal in the console's words (its command names, not the protocol's)."""
+        from . import protocol as P
+        code = e.code.name.lower() if hasattr(e.code, "name") else str(e.code)
+        reason = e.reason
+        for board, mine in NACK_WORDS.items():
+            reason = reason.replace(board, mine)
+        if e.code == P.Nack.FAULT_ACTIVE:
+            reason = "a fault is latched; 'faults' shows it, 'clear' clears it"
+        detail = f" ({e.detail})" if e.detail else ""
+        return f"the board refused it{detail}: {code}: {reason}"
 
     def run_line(self, line: str) -> bool:
         """Run a line, print a one-line explanation on failure; True if it succeeded."""
@@ -476,18 +592,35 @@ class Console:
             lines = p.read_text(encoding="utf-8").splitlines()
         except OSError as e:
             raise ConsoleError(f"cannot read session file {p}: {e.strerror}") from None
-        for no, line in enumerate(lines, 1):
-            text = line.strip()
-            if not text or text.startswith("#"):
-                continue
-            self.say(PROMPT + text)
-            try:
-                self.execute(text)
-            except _Quit:
-                return 0
-            except PicdriveError as e:
-                raise ConsoleError(f"{p}:{no}: {text!r}: {e}") from None
+        prev = None
+        try:
+            for no, line in enumerate(lines, 1):
+                text = line.strip()
+                if not text or text.startswith("#"):
+                    continue
+                if not _expects_fault(text):
+                    self._fail_on_events(p, prev)
+                self.say(PROMPT + text)
+                try:
+                    self.execute(text)
+                except _Quit:
+                    self._fail_on_events(p, prev)
+                    return 0
+                except PicdriveError as e:
+                    raise ConsoleError(f"{p}:{no}: {text!r}: {e}") from None
+                prev = (no, text)
+            self._fail_on_events(p, prev)
+        except KeyboardInterrupt:
+            raise ConsoleError(f"{p}: interrupted (Ctrl-C); {self.stop_after_interrupt()}") from None
         return 0
+
+    def _fail_on_events(self, path, prev) -> None:
+        """A board fault, watchdog trip or restart not claimed by an 'expect' fails the script."""
+        ev = self.take_unexpected()
+        if ev:
+            where = f"{path}:{prev[0]}: {prev[1]!r}" if prev else f"{path}"
+            raise ConsoleError(f"{where}: board event {', '.join(ev)} during or after this line; the script "
+                               "fails (if it is intended, follow the line with 'expect fault == <name> within <s>')")
 
     def close(self) -> None:
         """Stop background work, save an open recording, close the plot and the link."""
@@ -569,7 +702,13 @@ class Console:
                 try:
                     with self._out_lock:
                         self._at_prompt = True
-                    line = input(PROMPT)
+                    if self.pending_line is not None:      # typed during 'view': run it now
+                        line, self.pending_line = self.pending_line, None
+                        self.say(PROMPT + line)
+                        if readline is not None:
+                            readline.add_history(line)
+                    else:
+                        line = input(PROMPT)
                 except EOFError:
                     self.say("")
                     break
@@ -584,7 +723,7 @@ class Console:
                 except _Quit:
                     break
                 except KeyboardInterrupt:
-                    self.say("interrupted")
+                    self.say(f"interrupted (Ctrl-C); {self.stop_after_interrupt()}")
         finally:
             if readline is not None and history is not None:
                 try:
@@ -597,6 +736,17 @@ class Console:
 # ---------------------------------------------------------------------------
 # helpers
 # ---------------------------------------------------------------------------
+
+NACK_WORDS = {"fault_clear": "'clear'", "eeprom_save": "'save'", "eeprom_load": "'restore'",
+              "set_speed": "'speed'", "select_controller": "'controller'"}
+"""Board command names as the console says them."""
+
+
+def _expects_fault(line: str) -> bool:
+    """An 'expect' on the fault or state: it claims the board events before it."""
+    w = line.split()
+    return len(w) >= 2 and w[0].lower() == "expect" and w[1].lower() in ("fault", "state")
+
 
 def profile_hash32(profile) -> int:
     """The 32-bit profile hash a firmware carries: first 4 bytes of the profile's SHA-256."""
@@ -683,33 +833,98 @@ def _state_name(v) -> str:
     return v.name.lower() if hasattr(v, "name") else str(v)
 
 
+BOARD_POLL_S = 0.01
+"""Host pause between two reads of the board's clock (a pace, not a timing: deadlines are the board's)."""
+
+
+def board_time_s(con) -> float:
+    """The board's clock (its uptime), s: the twin's simulated time, a real board's own time."""
+    return con._require_link().status().uptime_ms / 1000.0
+
+
 def _wait(con, seconds: float) -> None:
-    end = time.monotonic() + seconds
-    while True:
-        left = end - time.monotonic()
-        if left <= 0:
-            return
-        time.sleep(min(left, 0.05))
+    """Let ``seconds`` pass on the board's clock (the host's when no board is connected)."""
+    if con.link is None:
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            time.sleep(min(left, 0.05))
+        return
+    end = board_time_s(con) + seconds
+    while board_time_s(con) < end:
+        time.sleep(BOARD_POLL_S)
 
 
 # ---------------------------------------------------------------------------
 # commands
 # ---------------------------------------------------------------------------
 
-@command("help", "help [command]", "list the commands, or explain one", needs_link=False,
-         complete=lambda con, args, text: list(COMMANDS) if not args else [])
+@command("help", "help [command | parameter]", "list the commands, or explain a command or a parameter "
+         "(description, unit, limits, default, EEPROM value)", needs_link=False,
+         complete=lambda con, args, text: list(COMMANDS) + _param_names(con) if not args else [])
 def _help(con: Console, args):
     _nargs("help", args, 0, 1)
     if args:
         name = ALIASES.get(args[0].lower(), args[0].lower())
         c = COMMANDS.get(name)
+        if con.link is not None and args[0] in con.link.table:
+            if c is not None:                    # 'speed': a command and a signal
+                con.say(f"{c.usage}\n  {c.help}")
+            _help_param(con, args[0])
+            return
         if c is None:
-            raise ConsoleError(f"no command {args[0]!r}; 'help' lists the commands")
+            extra = "" if con.link is not None else " (parameters are explained when connected)"
+            raise ConsoleError(f"no command or parameter {args[0]!r}{extra}; 'help' lists the commands, "
+                               "'params' the parameters")
         con.say(f"{c.usage}\n  {c.help}")
         return
     width = max(len(c.usage) for c in COMMANDS.values())
     for c in COMMANDS.values():
         con.say(f"  {c.usage:<{width}}  {c.help}")
+
+
+def _help_param(con, name: str) -> None:
+    """``help <param>``: description, unit, limits, default, value now and in EEPROM."""
+    from .console_params import param_help
+    link = con.link
+    e = link.param(name)
+    kind = "signal (telemetry, read-only)" if e.signal else ("parameter, " + ("rw" if e.writable else "read-only")
+                                                             + (", kept in EEPROM" if e.persisted else ""))
+    con.say(f"{e.name}: {kind}")
+    con.say(f"  {param_help(e.name, e.doc)}")
+    unit = "" if e.unit in ("1",) else e.unit
+    con.say(f"  unit {unit or '(none)'}; limits {_limits(e)}" + ("" if e.values else f"; 1 count = {e.scale:.6g}"
+                                                                 f"{_unit(e)}"))
+    now = link.get(name)
+    line = f"  now {_fmt_value(e, now)}{_unit(e)}"
+    if not e.signal:
+        line += f"; default of this build {_fmt_value(e, link._eng(e, e.default_raw))}{_unit(e)}"
+    if e.persisted:
+        line += f"; EEPROM {_eeprom_value(con, e)}"
+    con.say(line)
+
+
+def _eeprom_value(con, e) -> str:
+    """The EEPROM's value of ``e``.  The protocol has no EEPROM read: with the motor stopped the
+    image is loaded and the RAM values written back at once (raw, exact); otherwise not shown."""
+    from . import protocol as P
+    from .link import NackError
+    link = con.link
+    if link.status().state != P.State.IDLE:
+        return "not read while the motor is driven (stop it first)"
+    names = [x.name for x in link.table.persisted if x.writable]
+    ram = link.get_raw(*names)
+    try:
+        link.load_eeprom()
+    except NackError as err:
+        if err.code == P.Nack.EEPROM_ERROR:
+            return "none (no valid image of this build: 'save' writes one)"
+        raise
+    try:
+        got = link.get(e.name)
+    finally:
+        for n in names:                    # the RAM values back, exactly
+            link.set_raw(n, ram[n])
+    return f"{_fmt_value(e, got)}{_unit(e)}"
 
 
 @command("speed", "speed <rpm>", "set the speed setpoint in rpm (mechanical; negative = reverse)")
@@ -751,9 +966,15 @@ def _reverse(con, args):
     con.say(f"speed setpoint {sp:g} -> {got:g} rpm")
 
 
-@command("params", "params [text]", "the parameter table: value, unit, limits, access (filtered by text)",
-         complete=lambda con, args, text: _param_names(con))
+@command("params", "params [text] | params save|load|diff FILE [--force]",
+         "the parameter table: value, unit, limits, access (filtered by text); save/load/diff the persisted "
+         "parameters to/from a JSON file with the firmware identity (load refuses another build unless --force)",
+         complete=lambda con, args, text: (["save", "load", "diff"] + _param_names(con)) if not args else
+         _files(".json")(con, args, text))
 def _params(con, args):
+    if args and args[0].lower() in ("save", "load", "diff"):
+        _params_file(con, args[0].lower(), args[1:])
+        return
     _nargs("params", args, 0, 1)
     link = con.link
     ents = [e for e in link.table.params if not args or args[0].lower() in e.name.lower()]
@@ -772,6 +993,75 @@ def _params(con, args):
                                                              for e in sigs))
 
 
+def _params_file(con, sub: str, args) -> None:
+    import json
+    from .console_files import output_path
+    from .console_params import cross_check, identity_differences, params_document, read_params_file
+    from .fileio import atomic_write_text
+    force = "--force" in args
+    rest = [a for a in args if a != "--force"]
+    if len(rest) != 1 or (force and sub != "load"):
+        raise ConsoleError(f"usage: params {sub} FILE.json" + (" [--force]" if sub == "load" else ""))
+    link = con.link
+    ents = [e for e in link.table.persisted if e.writable]
+    if sub == "save":
+        path = output_path(rest[0], ".json", "params save")
+        raws = link.get_raw(*[e.name for e in ents])
+        vals = {e.name: link._eng(e, raws[e.name]) for e in ents}
+        info = link.info
+        prof = con.profile.name if con.profile is not None else bundled_profile_by_hash(info.profile_hash) or "?"
+        doc = params_document(info, prof, ents, vals, raws)
+        atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
+        con.say(f"saved {len(ents)} parameters of firmware build 0x{info.build_id:08x} to {path}")
+        return
+    path = Path(rest[0]).expanduser().absolute()
+    d = read_params_file(path)
+    idiff = identity_differences(d["identity"], link.info)
+    board = link.get_raw(*[e.name for e in ents])
+    fileps = d["params"]
+    if sub == "diff":
+        if idiff:
+            con.say("identity differs: " + "; ".join(idiff))
+        n = 0
+        for e in ents:
+            if e.name not in fileps:
+                con.say(f"  {e.name}: board {_fmt_value(e, link._eng(e, board[e.name]))}{_unit(e)}, not in the file")
+                n += 1
+            elif fileps[e.name]["raw"] != board[e.name]:
+                con.say(f"  {e.name}: board {_fmt_value(e, link._eng(e, board[e.name]))}{_unit(e)}, file "
+                        f"{_fmt_value(e, link._eng(e, fileps[e.name]['raw']))}{_unit(e)}")
+                n += 1
+        extra = [k for k in fileps if k not in {e.name for e in ents}]
+        for k in extra:
+            con.say(f"  {k}: in the file, not a persisted parameter of this board")
+        con.say(f"{n + len(extra)} difference{'s' if n + len(extra) != 1 else ''} between the board and {path}"
+                if n + len(extra) else f"the board's {len(ents)} parameters equal {path}")
+        return
+    # load
+    if idiff and not force:
+        raise ConsoleError(f"params load: nothing written: {path} was saved from another firmware ("
+                           + "; ".join(idiff) + "); gains and scales may not fit this board: 'params diff' "
+                           "shows the values, --force loads the parameters this board has")
+    byname = {e.name: e for e in ents}
+    todo = {k: v["raw"] for k, v in fileps.items() if k in byname}
+    skipped = [k for k in fileps if k not in byname]
+    bad = [f"{k} raw {r} outside {byname[k].min_raw}..{byname[k].max_raw}" for k, r in todo.items()
+           if not byname[k].min_raw <= r <= byname[k].max_raw]
+    if bad:
+        raise ConsoleError("params load: nothing written: " + "; ".join(bad))
+    problems = cross_check(_with_related(con, {k: link._eng(byname[k], r) for k, r in todo.items()
+                                               if not byname[k].values}))
+    if problems:
+        raise ConsoleError("params load: nothing written: " + "; ".join(problems))
+    changed = 0
+    for k, r in todo.items():
+        if board[k] != r:
+            link.set_raw(k, r)
+            changed += 1
+    con.say(f"loaded {len(todo)} parameters from {path} ({changed} changed"
+            + (f"; not on this board: {', '.join(skipped)}" if skipped else "") + "); 'save' keeps them in EEPROM")
+
+
 @command("get", "get <name>", "read a parameter or signal, with its unit and limits",
          complete=lambda con, args, text: _param_names(con) if not args else [])
 def _get(con, args):
@@ -785,11 +1075,38 @@ def _get(con, args):
          complete=lambda con, args, text: _param_names(con, writable_only=True, signals=False) if not args else
          (list(con.link.param(args[0]).values) if con.link and len(args) == 1 and args[0] in con.link.table else []))
 def _set(con, args):
+    from .console_params import ROUNDING_WARN, cross_check
     _nargs("set", args, 2)
-    e = con.link.param(args[0])
+    link = con.link
+    e = link.param(args[0])
     value = args[1] if e.values and not args[1].lstrip("-").isdigit() else _number(args[1], args[0])
-    got = con.link.set(args[0], value)
-    con.say(f"{e.name} = {_fmt_value(e, got)}{_unit(e)}")
+    link.to_raw(e.name, value)                  # the board's range first (ParamError names it)
+    if not e.values:
+        problems = cross_check(_with_related(con, {e.name: float(value)}), involving=e.name)
+        if problems:
+            raise ConsoleError(f"set: nothing written: {'; '.join(problems)}")
+    got = link.set(args[0], value)
+    note = ""
+    if not e.values and value and abs(got - value) / abs(value) > ROUNDING_WARN:
+        note = (f"  (warning: rounded {abs(got - value) / abs(value) * 100:.2f} % from {value:g}: the board "
+                f"holds steps of {e.scale:.6g}{_unit(e)})")
+    if e.name == "link_timeout":
+        con.retime_heartbeat()
+    con.say(f"{e.name} = {_fmt_value(e, got)}{_unit(e)}{note}")
+
+
+CROSS_CHECKED = ("current_limit", "premise_low", "premise_high", "u_min", "u_max")
+
+
+def _with_related(con, values: dict) -> dict:
+    """``values`` completed with the board's values of the parameters they are checked against."""
+    link = con.link
+    if not any(n in CROSS_CHECKED for n in values):
+        return dict(values)
+    others = [n for n in CROSS_CHECKED if n in link.table and n not in values]
+    out = link.get_many(*others) if others else {}
+    out.update(values)
+    return out
 
 
 @command("controller", "controller pid|fuzzy", "switch the control law: pid (rule 1) or fuzzy (rules blended)",
@@ -878,13 +1195,83 @@ def _info(con, args):
         con.say(line)
 
 
-@command("wait", "wait <seconds>", "pause (in scripts: let the motor settle)", needs_link=False)
+@command("wait", "wait <seconds>", "pause for seconds of the board's clock (in scripts: let the motor settle)",
+         needs_link=False)
 def _wait_cmd(con, args):
     _nargs("wait", args, 1)
     s = _number(args[0], "wait")
     if not 0 <= s <= 3600:
         raise ConsoleError(f"wait {s:g} s: expected 0..3600 s")
     _wait(con, s)
+
+
+EXPECT_OPS = {"==": lambda v, x, tol: abs(v - x) <= tol, "!=": lambda v, x, tol: abs(v - x) > tol,
+              "<": lambda v, x, tol: v < x + tol, "<=": lambda v, x, tol: v <= x + tol,
+              ">": lambda v, x, tol: v > x - tol, ">=": lambda v, x, tol: v >= x - tol}
+EXPECT_USAGE = "expect <signal|parameter|state|fault> <op> <value> [tol <t>] [within <s>]"
+
+
+def parse_expect(con, args):
+    """``expect`` arguments -> (entry, op, value (raw index for an enum), tol, within_s)."""
+    if len(args) < 3:
+        raise ConsoleError(f"usage: {EXPECT_USAGE}, e.g. 'expect speed == 2400 tol 24 within 0.5' or "
+                           "'expect fault == stall within 2'")
+    name, op, val = args[0], args[1], args[2]
+    e = con.link.param(name)
+    if op not in EXPECT_OPS:
+        raise ConsoleError(f"expect: operator {op!r}: expected one of {' '.join(EXPECT_OPS)}")
+    tol, within = 0.0, 0.0
+    rest = args[3:]
+    while rest:
+        if len(rest) < 2 or rest[0] not in ("tol", "within"):
+            raise ConsoleError(f"expect: {' '.join(rest)!r}: expected 'tol <t>' or 'within <s>'; usage: {EXPECT_USAGE}")
+        v = _number(rest[1], rest[0])
+        if v < 0:
+            raise ConsoleError(f"expect: {rest[0]} {v:g} must not be negative")
+        if rest[0] == "tol":
+            tol = v
+        else:
+            within = v
+        rest = rest[2:]
+    if e.values:
+        if op not in ("==", "!="):
+            raise ConsoleError(f"expect {name}: a named value ({'|'.join(e.values)}) takes == or != only")
+        if val.lower() not in e.values:
+            raise ConsoleError(f"expect {name}: {val!r} is not one of {'|'.join(e.values)}")
+        return e, op, e.values.index(val.lower()), 0.0, within
+    return e, op, _number(val, f"expect {name}"), tol, within
+
+
+@command("expect", EXPECT_USAGE,
+         "check a signal, parameter, the state or the latched fault, now or within <s> of the board's clock; "
+         "a failed check fails a script; 'expect fault == X' also accepts the board's fault event X in a script",
+         complete=lambda con, args, text: (_param_names(con) if not args else
+                                           list(EXPECT_OPS) if len(args) == 1 else
+                                           list(con.link.param(args[0]).values) if len(args) == 2 and con.link
+                                           and args[0] in con.link.table else ["tol", "within"]))
+def _expect(con, args):
+    e, op, x, tol, within = parse_expect(con, args)
+    link = con.link
+    check = EXPECT_OPS[op]
+    unit = _unit(e)
+    want = (f"{e.name} {op} {e.values[x]}" if e.values else
+            f"{e.name} {op} {x:g}{unit}" + (f" tol {tol:g}" if tol else ""))
+    t0 = board_time_s(con)
+    n = 0
+    while True:
+        v = link.get(e.name)
+        n += 1
+        now = board_time_s(con)
+        if check(float(v), float(x), tol):
+            break
+        if now - t0 >= within:
+            got = _fmt_value(e, v) + unit
+            span = f" within {within:g} s of the board's clock ({n} readings)" if within else ""
+            raise ConsoleError(f"expect {want}: failed{span}: {e.name} is {got}")
+        time.sleep(BOARD_POLL_S)
+    if e.name in ("state", "fault") and e.values and e.values[int(v)] not in ("none", "idle", "run", "brake"):
+        con.take_unexpected()                 # the fault this line expects is no script failure
+    con.say(f"expect {want}: ok, {e.name} = {_fmt_value(e, v)}{unit} after {now - t0:.3f} s (board clock)")
 
 
 @command("quit", "quit", "leave the console (stops the motor if it runs)", needs_link=False)
@@ -943,6 +1330,10 @@ def _load(con, args):
                 problems.append(str(err))
     if problems:
         raise ConsoleError("load: nothing written, the board cannot hold these values: " + "; ".join(problems))
+    from .console_params import ROUNDING_WARN, cross_check
+    problems = cross_check(_with_related(con, values))
+    if problems:
+        raise ConsoleError("load: nothing written: " + "; ".join(problems))
     width = max(len(n) for n in values)
     worst = 0.0
     for name, v in values.items():
@@ -950,7 +1341,7 @@ def _load(con, args):
         got = link.set(name, v)
         rel = abs(got - asked[name]) / abs(asked[name]) if asked[name] else abs(got - v)
         worst = max(worst, rel)
-        note = "" if rel < 1e-3 else f"  (rounded {rel * 100:.2f} %)"
+        note = "" if rel <= ROUNDING_WARN else f"  (rounded {rel * 100:.2f} %)"
         con.say(f"  {name:<{width}} {got:>12.6g}{_unit(e)}{note}")
     fixed = []
     if law.derivative_filter_hz:
@@ -1045,6 +1436,9 @@ def _telemetry(con, args):
         con.tele_signals = names
         if con.tele_on:
             _telemetry_on(con)
+            if con.plot is not None and con.plot.alive:
+                with con._sinks_lock:
+                    con.plot.control("signals", con.signal_units(names))
         else:
             con.say(f"telemetry signals {', '.join(names)} (off; 'telemetry on', 'plot', 'view' or 'record' start it)"
                     + _bandwidth_note(con, len(names), con.tele_rate_hz))
@@ -1078,21 +1472,66 @@ def _telemetry(con, args):
         raise ConsoleError(f"telemetry {args[0]!r}: expected signals, rate, on or off")
 
 
-@command("plot", "plot [off | --png FILE]", "live plot of the telemetry (a PNG file updated each second without a display)",
-         complete=lambda con, args, text: ["off", "--png"] if not args else [])
+PLOT_USAGE = "plot [--png FILE] [--window S] | plot off | pause | resume | window S | ylim UNIT LO HI|auto"
+
+
+@command("plot", PLOT_USAGE,
+         "live plot of the telemetry (a PNG file updated each second without a display): signals of one unit "
+         "share an axis; the last --window seconds (default 5); a min/max envelope when samples outnumber "
+         "pixels; a new segment (no line back in time) when the telemetry is reconfigured; pause/resume "
+         "freeze the drawing; ylim fixes an axis",
+         complete=lambda con, args, text: ["off", "pause", "resume", "window", "ylim", "--png", "--window"]
+         if not args else [])
 def _plot(con, args):
     from .console_plot import LivePlot, PlotError, display_available
-    if args and args[0].lower() == "off":
-        _nargs("plot", args, 1)
-        con.say("plot closed" if con.close_plot() else "no plot open")
+    sub = args[0].lower() if args else ""
+    if sub in ("off", "pause", "resume", "window", "ylim"):
+        if sub == "off":
+            _nargs("plot", args, 1)
+            con.say("plot closed" if con.close_plot() else "no plot open")
+            return
+        if con.plot is None or not con.plot.alive:
+            raise ConsoleError(f"plot {sub}: no plot open ('plot' opens one)")
+        if sub in ("pause", "resume"):
+            _nargs("plot", args, 1)
+            con.plot.control("pause", sub == "pause")
+            con.say("plot paused (telemetry still recorded; 'plot resume')" if sub == "pause" else "plot resumed")
+        elif sub == "window":
+            _nargs("plot", args, 2)
+            w = _number(args[1], "plot window")
+            if not 0.01 <= w <= 600:
+                raise ConsoleError(f"plot window {w:g} s: expected 0.01..600 s")
+            con.plot.control("window", w)
+            con.say(f"plot window {w:g} s")
+        else:
+            units = sorted({u for _, u in con.plot.signals})
+            if len(args) not in (3, 4) or args[1] not in units:
+                raise ConsoleError(f"usage: plot ylim UNIT LO HI | plot ylim UNIT auto; units: {', '.join(units)}")
+            if len(args) == 3:
+                if args[2].lower() != "auto":
+                    raise ConsoleError("usage: plot ylim UNIT LO HI | plot ylim UNIT auto")
+                con.plot.control("ylim", args[1], None, None)
+                con.say(f"plot [{args[1]}] axis automatic")
+            else:
+                lo, hi = _number(args[2], "ylim"), _number(args[3], "ylim")
+                if not lo < hi:
+                    raise ConsoleError(f"plot ylim: {lo:g} must be below {hi:g}")
+                con.plot.control("ylim", args[1], lo, hi)
+                con.say(f"plot [{args[1]}] axis {lo:g} .. {hi:g}")
         return
-    png = None
-    if args:
-        if len(args) != 2 or args[0] != "--png":
-            raise ConsoleError(f"usage: {COMMANDS['plot'].usage}")
-        png = args[1]
-        if not png.lower().endswith(".png"):
-            raise ConsoleError(f"plot --png {png!r}: the file must end in .png")
+    png, window = None, 5.0
+    it = iter(args)
+    for a in it:
+        v = next(it, None)
+        if a not in ("--png", "--window") or v is None:
+            raise ConsoleError(f"usage: {PLOT_USAGE}")
+        if a == "--png":
+            from .console_files import output_path
+            png = str(output_path(v, ".png", "plot --png"))
+        else:
+            window = _number(v, "--window")
+            if not 0.01 <= window <= 600:
+                raise ConsoleError(f"--window {window:g} s: expected 0.01..600 s")
     if con.plot is not None and con.plot.alive:
         raise ConsoleError("a plot is already open ('plot off' closes it)")
     if not con.tele_on:
@@ -1101,23 +1540,24 @@ def _plot(con, args):
     plot = None
     if png is None and display_available():
         try:
-            plot = LivePlot(sigs)
+            plot = LivePlot(sigs, window_s=window)
         except PlotError as e:            # e.g. only non-interactive matplotlib backends installed
-            png = str(con.out_dir / "live.png")
+            png = str((con.out_dir / "live.png").absolute())
             con.say(f"no plot window ({e}): the live plot goes to {png}, redrawn every second; "
                     "'view' shows a text view")
     elif png is None:
-        png = str(con.out_dir / "live.png")
+        png = str((con.out_dir / "live.png").absolute())
         con.say(f"no display for a plot window (DISPLAY is not set): the live plot goes to {png}, "
                 "redrawn every second; 'view' shows a text view")
     if plot is None:
-        plot = LivePlot(sigs, png_path=png, backend="Agg")
+        plot = LivePlot(sigs, png_path=png, backend="Agg", window_s=window)
     with con._sinks_lock:
         con.plot = plot
     con.say(f"plot open ({plot.backend}): {', '.join(n for n, _ in sigs)}" + (f" -> {png}" if png else ""))
 
 
-@command("view", "view [seconds]", "compact text view of the telemetry (Ctrl-C ends it; 2 s in scripts)")
+@command("view", "view [seconds]", "compact text view of the telemetry for seconds of the board's clock "
+         "(at the prompt: until Enter; a command typed meanwhile ends the view and runs; 2 s in scripts)")
 def _view(con, args):
     from .console_plot import TextView
     _nargs("view", args, 0, 1)
@@ -1130,11 +1570,21 @@ def _view(con, args):
     with con._sinks_lock:
         con._view = tv
     tty = con.interactive and sys.stdout.isatty()
-    end = time.monotonic() + seconds
+    typed = con.interactive and sys.stdin.isatty() and os.name == "posix"
+    end = board_time_s(con) + seconds
     period = 0.25 if tty else 0.5
     try:
-        while time.monotonic() < end:
-            time.sleep(min(period, max(0.0, end - time.monotonic())))
+        while board_time_s(con) < end:
+            if typed:
+                import select
+                ready, _, _ = select.select([sys.stdin], [], [], period)
+                if ready:                            # a line typed while viewing: it ends the view and runs
+                    line = sys.stdin.readline()
+                    if line.strip():
+                        con.pending_line = line.rstrip("\n")
+                    break
+            else:
+                time.sleep(period)
             line = tv.render()
             if tty:                                  # redraw in place: one terminal row
                 import shutil
@@ -1145,8 +1595,6 @@ def _view(con, args):
                 con.say(line)
             if con.link is None:
                 raise ConsoleError(f"view: link lost ({con._lost})")
-    except KeyboardInterrupt:
-        pass
     finally:
         with con._sinks_lock:
             con._view = None
@@ -1197,6 +1645,7 @@ def _record(con, args):
 STEP_SIGNALS = ("speed", "setpoint", "voltage", "current")
 STEP_PRE_S = 0.2           # samples kept before the step (y0 and the plot)
 STEP_SETTLE_TIMEOUT_S = 5.0
+STEP_AFTER_STOP_S = 0.1   # an interrupted step keeps this much of the coast-down after the stop
 STEP_REST_TOL = 0.005      # "at rest" before a step from 0: |speed| within 0.5 % of the step
 
 
@@ -1244,8 +1693,12 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
     with con._sinks_lock:
         con._collect = collect
     con._start_pump()
+    interrupted = ""
+    k0 = None
+    step_index = None                      # defined once the step is commanded
+    n_pre = int(round(STEP_PRE_S * hz))
+    n_hold = int(round(hold_s * hz))
     try:
-        n_pre = int(round(STEP_PRE_S * hz))
         spd_tol = max(band, 2.0 * link.param("speed").scale)
 
         def settled_at_from(d):
@@ -1277,12 +1730,25 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
             moved = np.nonzero((d["index"] >= t_cmd_index - 1) & (np.abs(d["setpoint"] - from_rpm) > sp_tol))[0]
             return int(d["index"][moved[0]]) if moved.size else None
 
-        n_hold = int(round(hold_s * hz))
-
         def done(d):
             k0 = step_index(d)
             return k0 is not None and int(d["index"][-1]) >= k0 + n_hold - 1
         data = _step_wait(con, collect, done, hold_s + 3.0, f"recording the step to {to_rpm:g} rpm")
+    except KeyboardInterrupt:
+        # Ctrl-C: outputs off at once, then keep what was recorded
+        interrupted = con.stop_after_interrupt()
+        # the telemetry in flight up to the stop, and 0.1 s of the coast-down after it (board samples)
+        n_then = sum(len(c) for c in collect)
+        try:
+            _step_wait(con, collect, lambda d: len(d) >= n_then + int(STEP_AFTER_STOP_S * hz), 2.0,
+                       "collecting the samples up to the stop")
+        except (ConsoleError, KeyboardInterrupt):
+            pass                                  # keep what arrived
+        data = _collected(collect)
+        if data is None or not len(data):
+            raise ConsoleError(f"step: interrupted (Ctrl-C) before any sample; {interrupted}") from None
+        if k0 is None:
+            k0 = step_index(data) if step_index is not None else None
     finally:
         with con._sinks_lock:
             con._collect = None
@@ -1295,24 +1761,54 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
                 con.say(f"telemetry not restored: {e}")
         elif con.link is not None:
             con.link.stop_telemetry()
-    k0 = step_index(data)
+    if not interrupted:
+        k0 = step_index(data)
     idx = data["index"]
+    if k0 is None:                  # interrupted before the step: t = 0 at the last sample
+        k0 = int(idx[-1])
     sel = (idx >= k0 - n_pre) & (idx < k0 + n_hold)
     d = data[sel]
     t = (d["index"] - k0) / float(hz)
+    info = link.info
+    prof = con.profile.name if con.profile is not None else bundled_profile_by_hash(info.profile_hash) or "?"
+    gains = {e.name: float(link.get(e.name)) for e in link.table.params
+             if e.name.startswith("rule") or e.name in STEP_GAIN_PARAMS} if con.link is not None else {}
     rec = StepRecord(from_rpm, to_rpm, hold_s, t, d["speed"].astype(float), 1.0 / hz, source="telemetry",
                      signals={n: d[n].astype(float) for n in sigs if n != "speed"},
                      units={n: link.param(n).unit for n in sigs},
-                     firmware=f"build 0x{link.info.build_id:08x}",
-                     profile=(con.profile.name if con.profile is not None
-                              else bundled_profile_by_hash(link.info.profile_hash) or ""),
+                     firmware=(f"firmware build 0x{info.build_id:08x} table 0x{info.table_hash:08x} "
+                               f"protocol {info.proto_version[0]}.{info.proto_version[1]}"),
+                     profile=f"{prof} hash 0x{info.profile_hash:08x}",
                      controller=_fmt_value(link.param("controller"), link.get("controller")),
-                     dropped=int(np.sum(np.diff(d["index"]) - 1)))
-    pre = d["speed"][t < 0]
-    analyse_step(rec, pre_speed_rpm=pre if len(pre) else None)
+                     dropped=int(np.sum(np.diff(d["index"]) - 1)) if len(d) else 0, gains=gains)
     st = link.status()
     rec.fault = _state_name(st.fault) if int(st.fault) else ""
+    if interrupted:
+        rec.interrupted = True
+        con.interrupt_note = interrupted
+        return rec
+    if not rec.fault:
+        pre = d["speed"][t < 0]
+        analyse_step(rec, pre_speed_rpm=pre if len(pre) else None, profile=_board_profile(con))
     return rec
+
+
+STEP_GAIN_PARAMS = ("setpoint_weight", "premise_low", "premise_high", "u_min", "u_max", "current_limit",
+                    "accel_limit")
+
+
+def _board_profile(con):
+    """The profile the board was built from, if known here (--profile, or a bundled one with its hash)."""
+    if con.profile is not None:
+        return con.profile if profile_hash32(con.profile) == con.link.info.profile_hash else None
+    name = bundled_profile_by_hash(con.link.info.profile_hash)
+    if name is None:
+        return None
+    import warnings
+    from .profile import load_profile
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return load_profile(name)
 
 
 @command("step", "step <from> <to> [--hold <s>] [--png FILE]",
@@ -1322,32 +1818,43 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
 def _step(con, args):
     from .console_record import Recorder
     from .console_step import parse_step_args, save_step_plot
+    from .console_files import output_path
     f, t, hold, png = parse_step_args(args)
     if con.recorder is not None:
         raise ConsoleError(f"step: a recording to {con.recorder.path} is running; 'record stop' first "
                            "(the step saves its own CSV)")
-    con.say(f"step {f:g} -> {t:g} rpm, hold {hold:g} s ...")
-    rec = run_step(con, f, t, hold)
-    con.last_step = rec
     if png is None:
         stamp = time.strftime("%Y%m%d-%H%M%S")
         png = con.out_dir / f"step_{f:g}_{t:g}_{stamp}.png"
+    png = output_path(png, ".png", "step --png")        # checked before the motor moves
+    csv = output_path(png.with_suffix(".csv"), ".csv", "step data")
+    con.say(f"step {f:g} -> {t:g} rpm, hold {hold:g} s ...")
+    con.interrupt_note = ""
+    rec = run_step(con, f, t, hold)
+    con.last_step = rec
     png = save_step_plot(rec, png)
-    csv = png.with_suffix(".csv")
     names = ["speed"] + list(rec.signals)
     with Recorder(csv, [(n, rec.units.get(n, "")) for n in names], 1.0 / rec.sample_period_s,
                   firmware=rec.firmware, profile=rec.profile,
-                  protocol="{}.{}".format(*con.link.info.proto_version), relative_time=False) as w:
+                  protocol="{}.{}".format(*con.link.info.proto_version), relative_time=False,
+                  notes=[f"step: {rec.from_rpm:g} -> {rec.to_rpm:g} rpm, hold {rec.hold_s:g} s, t = 0 at the step"]
+                  + [x for x in rec.identity_lines()[2:]]
+                  + ([f"fault: {rec.fault}"] if rec.fault else [])
+                  + (["interrupted: Ctrl-C, partial data"] if rec.interrupted else []),
+                  what="step data") as w:
         cols = [rec.speed_rpm] + [rec.signals[n] for n in rec.signals]
         for k in range(len(rec.t_s)):
             w.write(float(rec.t_s[k]), [c[k] for c in cols])
+    if rec.interrupted:
+        raise ConsoleError(f"step: interrupted (Ctrl-C); {con.interrupt_note}; partial data kept "
+                           f"({len(rec.t_s)} samples): plot {png}, data {csv}")
     if rec.fault:
         raise ConsoleError(f"step: fault {rec.fault} latched during the step, outputs off; no metrics "
                            f"(plot {png}, data {csv}); 'faults', then 'clear'")
     con.say(rec.summary())
     if rec.dropped:
         con.say(f"warning: {rec.dropped} telemetry samples were dropped during the step")
-    con.say(f"plot {png}, data {csv}; motor left running at {t:g} rpm ('stop' stops it)")
+    con.say(f"plot {png}\ndata {csv}\nmotor left running at {t:g} rpm ('stop' stops it)")
 
 
 # ---------------------------------------------------------------------------
@@ -1364,9 +1871,21 @@ def register(subparsers) -> None:
     p.add_argument("--run", metavar="SESSION.TXT",
                    help="run the commands of a file, then exit (non-zero on the first error)")
     p.add_argument("--out", default=".", help="folder for step plots and live PNGs (default: current folder)")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse a board built from another profile than --profile (default: a warning)")
     p.add_argument("--history", help="history file (default: $PICDRIVE_HISTORY or "
                                      "$XDG_STATE_HOME/picdrive/console_history)")
     p.set_defaults(func=main)
+
+
+def _connect_hint(url: str, e) -> str:
+    """Why a connection failed, said accurately for a socket that answers but a board that does not."""
+    from .link import LinkTimeout
+    if isinstance(e, LinkTimeout) and url.startswith("socket://"):
+        return (f"the socket accepted the connection but no board answered the handshake: a picdrive twin "
+                f"serves one client at a time, so another console or program is probably connected to it; "
+                f"close that one (or start a second twin on another port) ({e})")
+    return str(e)
 
 
 def main(args) -> int:
@@ -1380,12 +1899,14 @@ def main(args) -> int:
         raise ConsoleError(f"--out {out}: no such folder; create it or choose another")
     if args.run and not Path(args.run).is_file():
         raise ConsoleError(f"--run {args.run}: no such file")
+    if args.strict and profile is None:
+        raise ConsoleError("--strict compares the board with your profile: give --profile P too")
     interactive = args.run is None
-    con = Console(args.url, profile=profile, out_dir=out, interactive=interactive)
+    con = Console(args.url, profile=profile, out_dir=out, interactive=interactive, strict=args.strict)
     try:
         con.connect()
     except LinkError as e:
-        raise ConsoleError(f"cannot connect to {args.url}: {e}") from None
+        raise ConsoleError(f"cannot connect to {args.url}: {_connect_hint(args.url, e)}") from None
     try:
         if args.run:
             return con.run_script(args.run)
@@ -1393,3 +1914,151 @@ def main(args) -> int:
         return con.repl(history)
     finally:
         con.close()
+
+
+# -- scope ----------------------------------------------------------------------
+
+def _scope_arm(con, st) -> dict:
+    """Arm the board's capture per ``st``; returns what was armed (for the read and the files)."""
+    link = con.link
+    if not st.signals:
+        st.signals = [n for n in ("speed", "setpoint") if n in link.table] or ["speed"]
+    sig = {e.name for e in link.table.signals}
+    bad = [n for n in st.signals if n not in sig]
+    if bad:
+        raise ConsoleError(f"scope: {', '.join(bad)} not a signal of this board; signals: "
+                           f"{', '.join(e.name for e in link.table.signals)}")
+    if len(set(st.signals)) != len(st.signals):
+        raise ConsoleError("scope: a signal is listed twice")
+    ordered = [e.name for e in link.table.signals_in_mask(link.table.signal_mask(st.signals))]
+    words = link.info.capture_words
+    most = words // len(ordered)
+    n = st.samples if st.samples is not None else most
+    if n > most:
+        raise ConsoleError(f"scope: --samples {n} x {len(ordered)} signals need {n * len(ordered)} words; the "
+                           f"board's capture buffer holds {words} words (at most {most} samples of "
+                           f"{len(ordered)} signals): fewer samples or signals")
+    pre = st.pre_samples(n)
+    if pre >= n:
+        raise ConsoleError(f"scope: --pre {pre} must be below the {n} samples")
+    from .console_scope import TRIGGERS
+    link.capture_arm(ordered, n, pre_trigger=pre, trigger=TRIGGERS[st.trigger], threshold=st.level_rpm,
+                     decimation=st.decimation)
+    hz = link.info.sample_hz
+    armed = dict(setup=st, signals=ordered, n=n, pre=pre, t_armed=board_time_s(con),
+                 rate=(hz / st.decimation) if hz else 0.0)
+    con.scope_armed = armed
+    return armed
+
+
+
+
+def _scope_describe(armed) -> str:
+    st = armed["setup"]
+    trig = st.trigger + (f" at {st.level_rpm:g} rpm" if st.level_rpm is not None else "")
+    rate = f"{armed['rate']:g} Hz" if armed["rate"] else f"decimation {st.decimation}"
+    return (f"{', '.join(armed['signals'])}: {armed['n']} samples at {rate} "
+            f"({armed['n'] / armed['rate'] * 1e3:.1f} ms), trigger {trig}, {armed['pre']} before it")
+
+
+def _scope_read(con, armed, png=None, csv=None, timeout_s=None, quiet=False):
+    """Wait (board clock) for the armed capture, read it, save PNG and CSV; returns (png, csv, data)."""
+    from . import protocol as P
+    from .console_files import output_path
+    from .console_record import Recorder
+    from .console_scope import save_scope_plot
+    link = con.link
+    st = armed["setup"]
+    timeout_s = st.timeout_s if timeout_s is None else timeout_s
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    png = output_path(png or st.png or con.out_dir / f"scope_{stamp}.png", ".png", "scope --png")
+    csv = output_path(csv or st.csv or png.with_suffix(".csv"), ".csv", "scope --csv")
+    t0 = board_time_s(con)
+    while True:
+        s = link.status()
+        if s.capture_state == P.CaptureState.DONE:
+            break
+        if s.capture_state == P.CaptureState.IDLE:
+            raise ConsoleError("scope: no capture is armed on the board (it restarted or another program "
+                               "read it); arm again")
+        if s.uptime_ms / 1000.0 - t0 > timeout_s:
+            what = "trigger not seen" if s.capture_state == P.CaptureState.ARMED else "still recording"
+            raise ConsoleError(f"scope: capture not done after {timeout_s:g} s of the board's clock ({what}; "
+                               f"trigger {st.trigger}); the capture stays armed ('scope read' waits again)")
+        time.sleep(BOARD_POLL_S)
+    cap = link.capture_read(timeout=5.0)
+    d = cap.data
+    info = link.info
+    units = {n: link.param(n).unit for n in armed["signals"]}
+    prof = con.profile.name if con.profile is not None else bundled_profile_by_hash(info.profile_hash) or "?"
+    ident = (f"firmware build 0x{info.build_id:08x} table 0x{info.table_hash:08x}, profile {prof} hash "
+             f"0x{info.profile_hash:08x}, controller {_fmt_value(link.param('controller'), link.get('controller'))}")
+    desc = _scope_describe(armed)
+    level = ("speed", st.level_rpm) if st.level_rpm is not None else None
+    save_scope_plot(png, d["t"], {n: d[n].astype(float) for n in armed["signals"]}, units,
+                    title=f"picdrive scope: {ident}", trigger_note=desc, level=level)
+    with Recorder(csv, [(n, units[n]) for n in armed["signals"]], armed["rate"] or 1.0,
+                  firmware=f"build 0x{info.build_id:08x} table 0x{info.table_hash:08x}",
+                  profile=f"{prof} hash 0x{info.profile_hash:08x}",
+                  protocol=f"{info.proto_version[0]}.{info.proto_version[1]}", relative_time=False,
+                  notes=[f"scope: {desc}; t = 0 at the trigger sample (index {cap.trigger_index})"],
+                  what="scope --csv") as w:
+        for k in range(len(d)):
+            w.write(float(d["t"][k]), [float(d[n][k]) for n in armed["signals"]])
+    con.scope_armed = None
+    if not quiet:
+        stats = "; ".join(f"{n} {float(d[n].min()):.4g}..{float(d[n].max()):.4g}{_unit(link.param(n))}"
+                          for n in armed["signals"])
+        short = (f"; {armed['pre'] - cap.trigger_index} fewer before the trigger than asked: it came "
+                 f"{cap.trigger_index / armed['rate'] * 1e3:.1f} ms after arming, before the pre-trigger history "
+                 "filled" if armed["rate"] and cap.trigger_index < armed["pre"] else "")
+        con.say(f"scope: captured {len(d)} samples ({stats}){short}")
+        con.say(f"plot {png}\ndata {csv}")
+    return png, csv, d
+
+
+@command("scope", "scope [single|normal|arm|read] [SIGNALS] [--trigger T] [--level RPM] [--pre N|P%] "
+         "[--samples N] [--decimation D] [--count N] [--png F] [--csv F]",
+         "the board's triggered capture (exact timing, in its own buffer): 'single' arms and waits, 'arm' "
+         "returns at once (then trigger it, e.g. 'speed 2400', and 'scope read'), 'normal' re-arms after each "
+         "capture (--count N, or until Ctrl-C); triggers immediate|setpoint|rising|falling (speed crossing "
+         "--level rpm); plot with units and the trigger marked, CSV with units; alone: the capture's state",
+         complete=lambda con, args, text: (["single", "normal", "arm", "read", "--trigger", "--level", "--pre",
+                                            "--samples", "--decimation", "--count", "--png", "--csv"]
+                                           + (["immediate", "setpoint", "rising", "falling"] if args and args[-1] == "--trigger" else [])
+                                           + _param_names(con, signals=True)))
+def _scope(con, args):
+    from .console_scope import parse_scope_args
+    link = con.link
+    if not args:
+        s = link.status()
+        armed = con.scope_armed
+        con.say(f"capture {_state_name(s.capture_state)}; buffer {link.info.capture_words} words"
+                + (f"; armed: {_scope_describe(armed)}" if armed else ""))
+        return
+    st = parse_scope_args(args)
+    if st.mode == "read":
+        armed = con.scope_armed
+        if armed is None:
+            raise ConsoleError("scope read: nothing armed by this console; 'scope arm ...' first")
+        _scope_read(con, armed, png=st.png, csv=st.csv, timeout_s=st.timeout_s if "--timeout" in args
+                    or any(a.startswith("--timeout=") for a in args) else None)
+        return
+    if st.mode == "arm":
+        armed = _scope_arm(con, st)
+        con.say(f"scope armed: {_scope_describe(armed)}; 'scope read' waits for it")
+        return
+    if st.mode == "single":
+        armed = _scope_arm(con, st)
+        con.say(f"scope armed: {_scope_describe(armed)}")
+        _scope_read(con, armed)
+        return
+    # normal: capture, save, re-arm
+    count = st.count if st.count is not None else (None if con.interactive else 1)
+    k = 0
+    while count is None or k < count:
+        armed = _scope_arm(con, st)
+        png, csv, d = _scope_read(con, armed, quiet=True)
+        k += 1
+        con.say(f"scope capture {k}: {len(d)} samples -> {png}")
+    con.say(f"scope normal: {k} captures; last plot {png}, data {csv}")

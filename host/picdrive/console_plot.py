@@ -33,7 +33,7 @@ from typing import Sequence
 
 from .errors import PicdriveError
 
-__all__ = ["PlotError", "LivePlot", "TextView", "display_available", "sparkline"]
+__all__ = ["PlotError", "LivePlot", "PlotBuffer", "TextView", "display_available", "sparkline", "unit_axes"]
 
 _NON_INTERACTIVE = {"agg", "pdf", "ps", "svg", "pgf", "cairo", "template", "module://matplotlib_inline.backend_inline"}
 
@@ -53,8 +53,76 @@ def display_available() -> bool:
 # plot process
 # ---------------------------------------------------------------------------
 
+ENVELOPE_POINTS = 1500
+"""Above this many samples in the window a trace is drawn as a min/max envelope per pixel column
+(and its mean), not as a line zig-zagging into a solid band."""
+
+
+class PlotBuffer:
+    """The samples a live plot shows: ``window_s`` seconds, one segment.
+
+    A sample earlier than the last one (the telemetry was reconfigured: the board's sample
+    counter or the rate changed) starts a new segment: the history is cleared, so the plot
+    never draws a line back in time; :attr:`segments` counts them.  Samples older than the
+    window are dropped as they leave it (no fixed cap)."""
+
+    def __init__(self, n_signals: int, window_s: float):
+        self.n = n_signals
+        self.window_s = float(window_s)
+        self.segments = 1
+        self.total = 0
+        self.clear()
+
+    def clear(self) -> None:
+        self.t: deque = deque()
+        self.y = [deque() for _ in range(self.n)]
+
+    def feed(self, t: float, vals) -> None:
+        if self.t and t < self.t[-1]:
+            self.clear()
+            self.segments += 1
+        self.t.append(t)
+        for d, v in zip(self.y, vals):
+            d.append(v)
+        self.total += 1
+        while self.t and self.t[0] < t - self.window_s:
+            self.t.popleft()
+            for d in self.y:
+                d.popleft()
+
+    def traces(self, points: int = ENVELOPE_POINTS):
+        """(t, [(mean, lo, hi) or (y, None, None) per signal]): the envelope when dense."""
+        import numpy as np
+        t = np.fromiter(self.t, float, len(self.t))
+        ys = [np.fromiter(d, float, len(d)) for d in self.y]
+        if t.size <= points:
+            return t, [(y, None, None) for y in ys]
+        k = t.size // points
+        m = (t.size // k) * k
+        tb = t[t.size - m:].reshape(-1, k).mean(axis=1)
+        out = []
+        for y in ys:
+            yb = y[y.size - m:].reshape(-1, k)
+            out.append((np.nanmean(yb, axis=1), np.nanmin(yb, axis=1), np.nanmax(yb, axis=1)))
+        return tb, out
+
+
+def unit_axes(signals):
+    """Axis index of each signal: signals of one unit share an axis (first-seen order)."""
+    units: list[str] = []
+    out = []
+    for _, u in signals:
+        if u not in units:
+            units.append(u)
+        out.append(units.index(u))
+    return out, units
+
+
 def _plot_main(q, status, signals, window_s, png_path, backend, png_interval_s):
-    """Body of the plot process: drain the queue, redraw, until None or window closed."""
+    """Body of the plot process: drain the queue, redraw, until None or window closed.
+
+    Queue items: a list of (t, values) samples, or a control tuple: ("signals", [(name, unit)]),
+    ("window", s), ("pause", bool), ("ylim", unit, lo, hi) (lo = hi = None: automatic)."""
     try:
         import matplotlib
         if backend:
@@ -66,18 +134,26 @@ def _plot_main(q, status, signals, window_s, png_path, backend, png_interval_s):
         if not interactive and not png_path:
             status.put(("error", f"matplotlib backend {be!r} cannot open a window and no PNG file was given"))
             return
-        n = len(signals)
-        fig, axes = plt.subplots(n, 1, sharex=True, squeeze=False, figsize=(8, 1.8 + 1.6 * n))
-        axes = axes[:, 0]
-        lines = []
-        for ax, (name, unit) in zip(axes, signals):
-            (ln,) = ax.plot([], [], lw=1.0)
-            ax.set_ylabel(f"{name}\n[{unit or '1'}]")
-            ax.grid(True, alpha=0.3)
-            lines.append(ln)
-        axes[-1].set_xlabel("t [s]")
-        fig.suptitle("picdrive telemetry (live)")
-        fig.tight_layout()
+        fig = plt.figure(figsize=(8, 5))
+        state = {"paused": False, "ylim": {}}
+
+        def build(sigs):
+            fig.clf()
+            ax_of, units = unit_axes(sigs)
+            axes = fig.subplots(len(units), 1, sharex=True, squeeze=False)[:, 0]
+            lines = []
+            for (name, unit), k in zip(sigs, ax_of):
+                (ln,) = axes[k].plot([], [], lw=1.0, label=name)
+                lines.append((ln, axes[k], None))
+            for ax, unit in zip(axes, units):
+                ax.set_ylabel(f"[{unit or '1'}]")
+                ax.grid(True, alpha=0.3)
+                ax.legend(loc="upper left", fontsize=7)
+            axes[-1].set_xlabel("board time t [s]")
+            return axes, lines, units, ax_of
+
+        axes, lines, units, ax_of = build(signals)
+        buf = PlotBuffer(len(signals), window_s)
         if interactive:
             plt.show(block=False)
         status.put(("ready", be))
@@ -85,10 +161,6 @@ def _plot_main(q, status, signals, window_s, png_path, backend, png_interval_s):
         status.put(("error", f"{type(e).__name__}: {e}"))
         return
 
-    cap = 200_000
-    ts: deque = deque(maxlen=cap)
-    ys = [deque(maxlen=cap) for _ in signals]
-    total = 0
     last_png = 0.0
     dirty = False
     running = True
@@ -100,48 +172,78 @@ def _plot_main(q, status, signals, window_s, png_path, backend, png_interval_s):
         except queue.Empty:
             item = ()
         while item is not None:
-            for t, vals in item:
-                ts.append(t)
-                for d, v in zip(ys, vals):
-                    d.append(v)
-                total += 1
+            if isinstance(item, tuple) and item:
+                kind = item[0]
+                if kind == "signals":
+                    signals = item[1]
+                    axes, lines, units, ax_of = build(signals)
+                    buf = PlotBuffer(len(signals), buf.window_s)
+                elif kind == "window":
+                    buf.window_s = float(item[1])
+                elif kind == "pause":
+                    state["paused"] = bool(item[1])
+                elif kind == "ylim":
+                    state["ylim"][item[1]] = (item[2], item[3])
                 dirty = True
+            else:
+                for t, vals in item:
+                    buf.feed(t, vals)
+                    dirty = True
             try:
                 item = q.get_nowait()
             except queue.Empty:
                 break
         if item is None:
             running = False
-        if dirty and ts:
-            t_end = ts[-1]
-            t = np.fromiter(ts, float)
-            sel = t >= t_end - window_s
-            for ax, ln, d in zip(axes, lines, ys):
-                y = np.fromiter(d, float)[sel]
-                ln.set_data(t[sel], y)
+        if dirty and buf.t and not state["paused"]:
+            t, tr = buf.traces()
+            for (ln, ax, fill), (y, lo, hi) in zip(lines, tr):
+                ln.set_data(t, y)
+            for i, (ln, ax, fill) in enumerate(lines):
+                if fill is not None:
+                    fill.remove()
+                y, lo, hi = tr[i]
+                fill = ax.fill_between(t, lo, hi, alpha=0.3, color=ln.get_color(), lw=0) if lo is not None else None
+                lines[i] = (ln, ax, fill)
+            for k, ax in enumerate(axes):
+                fixed = state["ylim"].get(units[k])
+                if fixed and fixed[0] is not None:
+                    ax.set_ylim(*fixed)
+                    continue
+                ys = [np.concatenate([a for a in tr[i] if a is not None]) for i in range(len(lines)) if ax_of[i] == k]
+                y = np.concatenate(ys) if ys else np.empty(0)
+                y = y[np.isfinite(y)]
                 if y.size:
-                    lo, hi = float(np.nanmin(y)), float(np.nanmax(y))
+                    lo, hi = float(y.min()), float(y.max())
                     pad = 0.05 * (hi - lo) if hi > lo else max(1.0, abs(hi) * 0.05)
                     ax.set_ylim(lo - pad, hi + pad)
-            axes[-1].set_xlim(max(t_end - window_s, float(t[0])), t_end if t_end > t[0] else t[0] + window_s)
+            t_end = buf.t[-1]
+            axes[-1].set_xlim(t_end - buf.window_s, t_end)
+            dense = " (min/max envelope)" if tr and tr[0][1] is not None else ""
+            fig.suptitle(f"picdrive telemetry (live): last {buf.window_s:g} s{dense}"
+                         + (f", segment {buf.segments}" if buf.segments > 1 else ""), fontsize=9)
             dirty = False
             if interactive:
                 fig.canvas.draw_idle()
         if interactive:
             plt.pause(0.01)
         now = time.monotonic()
-        if png_path and (now - last_png >= png_interval_s or not running) and ts:
+        if png_path and (now - last_png >= png_interval_s or not running) and buf.t:
             _save_png(fig, png_path)
             last_png = now
-    status.put(("done", total))
+    status.put(("done", buf.total))
     plt.close(fig)
 
 
 def _save_png(fig, path: str) -> None:
     p = Path(path)
     tmp = p.with_name(f".{p.name}.tmp.png")
-    fig.savefig(tmp, dpi=90)
-    os.replace(tmp, p)
+    from .console_files import PNG_SOFTWARE
+    try:
+        fig.savefig(tmp, dpi=90, metadata={"Software": PNG_SOFTWARE})
+        os.replace(tmp, p)
+    except OSError:                  # the folder went away: keep plotting on screen, never a traceback
+        tmp.unlink(missing_ok=True)
 
 
 class LivePlot:
@@ -201,6 +303,17 @@ class LivePlot:
         now = time.monotonic()
         if now - self._batch_t >= self.batch_s:
             self.flush()
+
+    def control(self, *msg) -> None:
+        """Send a control message (see :func:`_plot_main`): ("signals", sigs), ("window", s),
+        ("pause", bool), ("ylim", unit, lo, hi)."""
+        self.flush()
+        if msg[0] == "signals":
+            self.signals = [(str(n), str(u)) for n, u in msg[1]]
+        try:
+            self._q.put(tuple(msg), timeout=1.0)
+        except queue.Full:
+            raise PlotError("the plot process does not keep up; 'plot off' and 'plot' again") from None
 
     def flush(self) -> None:
         if not self._batch:

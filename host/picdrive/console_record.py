@@ -4,24 +4,26 @@ A recording is a plain CSV file preceded by ``#`` comment lines that say
 what was recorded, so a file found on a disk months later still tells which
 board, firmware and profile produced it and at what rate::
 
-    # picdrive telemetry recording (picdrive.telemetry/1)
-    # firmware: duy2008-3f2a91c0
-    # profile: duy2008 hash 5a1b2c3d
-    # protocol: 1
+    # picdrive telemetry recording (picdrive.telemetry/2)
+    # firmware: build 0x8cf0e6ac table 0x02670afb
+    # profile: duy2008 hash 0x4b0e5fba
+    # protocol: 1.0
     # rate_hz: 1000
-    # signals: speed_rpm [rpm], current_a [A], duty [1]
+    # signals: speed [rpm], current [A], duty [counts]
     # started: 2025-01-01T12:00:00+00:00
-    t_s,speed_rpm,current_a,duty
+    t [s],speed [rpm],current [A],duty [counts]
     0.000000,0,0,0
     ...
     # stopped: 2025-01-01T12:00:03+00:00 samples 3000 dropped 0
 
-``t_s`` is the board's sample time (sample counter / sample rate) in seconds
+Each column name carries its unit in brackets (``[1]``: a plain number).
+``t`` is the board's sample time (sample counter / sample rate) in seconds
 from the first recorded sample (a step test's CSV keeps 0 at the step:
 ``relative_time=False``), so gaps from dropped telemetry frames show as
 missing time stamps, and the closing line counts them.
 
-The file is written whole or not at all: samples go to a hidden temporary
+Where it may be written is :func:`picdrive.console_files.output_path`'s rule
+(no folder created, no foreign file replaced).  The file is written whole or not at all: samples go to a hidden temporary
 file in the destination folder, renamed to the requested name on
 :meth:`Recorder.close` (``record stop``).  An aborted recording (lost link
 without reconnection, console killed) leaves no half-written CSV under the
@@ -42,7 +44,8 @@ import numpy as np
 from .errors import PicdriveError
 from .fileio import current_umask
 
-FORMAT_ID = "picdrive.telemetry/1"
+FORMAT_ID = "picdrive.telemetry/2"
+FORMAT_FAMILY = "picdrive.telemetry/"
 
 __all__ = ["RecordError", "Recorder", "Recording", "read_recording", "FORMAT_ID"]
 
@@ -74,19 +77,18 @@ class Recorder:
     """
 
     def __init__(self, path: str | Path, signals: Sequence[tuple[str, str]], rate_hz: float, *,
-                 firmware: str = "", profile: str = "", protocol: str = "", relative_time: bool = True):
-        self.path = Path(path)
-        if self.path.suffix.lower() != ".csv":
-            raise RecordError(f"recording file {str(self.path)!r} must end in .csv, e.g. 'record run1.csv'")
+                 firmware: str = "", profile: str = "", protocol: str = "", relative_time: bool = True,
+                 notes: Sequence[str] = (), what: str = "recording"):
+        from .console_files import FileRuleError, output_path
+        try:
+            self.path = output_path(path, ".csv", what)
+        except FileRuleError as e:
+            raise RecordError(str(e)) from None
         if not signals:
             raise RecordError("no telemetry signals selected; choose some with 'telemetry signals NAME,...'")
         if not (rate_hz > 0 and math.isfinite(rate_hz)):
             raise RecordError(f"telemetry rate {rate_hz!r} Hz is not a positive number")
-        if self.path.is_dir():
-            raise RecordError(f"{self.path} is a folder; give a file name ending in .csv")
         folder = self.path.parent
-        if not folder.is_dir():
-            raise RecordError(f"folder {str(folder)!r} does not exist; create it or record elsewhere")
         self.signals = [(str(n), str(u)) for n, u in signals]
         self.rate_hz = float(rate_hz)
         self.samples = 0
@@ -102,8 +104,9 @@ class Recorder:
         sig = ", ".join(f"{n} [{u or '1'}]" for n, u in self.signals)
         head = [f"# picdrive telemetry recording ({FORMAT_ID})",
                 f"# firmware: {firmware}", f"# profile: {profile}", f"# protocol: {protocol}",
-                f"# rate_hz: {_fmt(self.rate_hz)}", f"# signals: {sig}", f"# started: {_now()}",
-                ",".join(["t_s"] + [n for n, _ in self.signals])]
+                f"# rate_hz: {_fmt(self.rate_hz)}", f"# signals: {sig}"]
+        head += [f"# {n}" for n in notes]
+        head += [f"# started: {_now()}", ",".join(["t [s]"] + [f"{n} [{u or '1'}]" for n, u in self.signals])]
         self._f.write("\n".join(head) + "\n")
 
     @property
@@ -164,7 +167,7 @@ class Recording:
     meta: dict[str, str]
     columns: list[str]
     units: list[str]
-    data: np.ndarray = field(repr=False)          # shape (samples, 1 + signals); column 0 is t_s
+    data: np.ndarray = field(repr=False)          # shape (samples, 1 + signals); column 0 is t (s)
     samples: int = 0
     dropped: int = 0
 
@@ -186,7 +189,7 @@ def read_recording(path: str | Path) -> Recording:
         lines = p.read_text(encoding="utf-8").splitlines()
     except OSError as e:
         raise RecordError(f"cannot read recording {p}: {e.strerror}") from None
-    if not lines or FORMAT_ID not in lines[0]:
+    if not lines or FORMAT_FAMILY not in lines[0]:
         raise RecordError(f"{p} is not a picdrive telemetry recording (first line should name {FORMAT_ID})")
     meta: dict[str, str] = {}
     rows: list[list[float]] = []
@@ -200,12 +203,14 @@ def read_recording(path: str | Path) -> Recording:
                 parts = val.split()
                 samples, dropped = int(parts[parts.index("samples") + 1]), int(parts[parts.index("dropped") + 1])
         elif columns is None:
-            columns = ln.split(",")
+            columns = [c.split(" [", 1)[0] for c in ln.split(",")]   # names without their units
         elif ln:
             rows.append([float(x) for x in ln.split(",")])
     if columns is None or "signals" not in meta or "rate_hz" not in meta:
         raise RecordError(f"{p}: header incomplete (needs 'signals', 'rate_hz' and a column row)")
     units = ["s"] + [s.rsplit("[", 1)[1].rstrip("]") for s in meta["signals"].split(", ")]
+    if columns and columns[0] == "t":
+        columns[0] = "t_s"                      # one name for the time column in both versions
     data = np.array(rows, dtype=float).reshape(len(rows), len(columns))
     return Recording(meta, columns, units, data, samples if samples is not None else len(rows),
                      dropped or 0)

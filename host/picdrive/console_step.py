@@ -63,6 +63,9 @@ class StepRecord:
     controller: str = ""
     dropped: int = 0
     fault: str = ""                      # fault latched during the step ("" = none)
+    interrupted: bool = False            # Ctrl-C ended the step: partial data, no metrics
+    gains: dict[str, float] = field(default_factory=dict)   # the board's gains during the step
+    speed_basis: str = "raw speed"       # what the metrics were judged on
 
     def summary(self) -> str:
         m = self.metrics
@@ -73,7 +76,16 @@ class StepRecord:
         return (f"step {self.from_rpm:g} -> {self.to_rpm:g} rpm ({self.source}, "
                 f"{len(self.t_s)} samples at {1.0 / self.sample_period_s:g} Hz): "
                 f"rise {rise}, settling {settle}, overshoot {m.overshoot_pct:.2f} %, "
-                f"steady-state error {m.steady_state_error:+.2f} rpm ({m.steady_state_error_pct:.3f} %)")
+                f"steady-state error {m.steady_state_error:+.2f} rpm ({m.steady_state_error_pct:.3f} %); "
+                f"judged on the {self.speed_basis}")
+
+    def identity_lines(self) -> list[str]:
+        """What produced the record: firmware, profile, controller and gains (CSV header, PNG)."""
+        out = [x for x in (self.firmware, self.profile and f"profile {self.profile}",
+                           self.controller and f"controller {self.controller}") if x]
+        if self.gains:
+            out.append("gains " + ", ".join(f"{k} {v:.6g}" for k, v in self.gains.items()))
+        return out
 
 
 def parse_step_args(args: list[str]) -> tuple[float, float, float, str | None]:
@@ -128,10 +140,14 @@ def _number(s: str, what: str) -> float:
 
 
 def analyse_step(rec: StepRecord, *, pre_t_s: np.ndarray | None = None,
-                 pre_speed_rpm: np.ndarray | None = None) -> StepMetrics:
+                 pre_speed_rpm: np.ndarray | None = None, profile=None) -> StepMetrics:
     """Compute the step metrics of ``rec`` (stored in ``rec.metrics`` and returned).
 
-    ``pre_*``: samples before the step (t < 0) used for ``y0``.
+    ``pre_*``: samples before the step (t < 0) used for ``y0``.  With the board's
+    ``profile`` the metrics are judged on the speed averaged over one hall sector at
+    the target (:func:`picdrive.verify.sector_mean`, as the verifier and the HIL suite
+    do: the commutation ripple is no regulation error), over the samples after the
+    step only (the mean never looks across the step); ``rec.speed_basis`` says which.
     """
     t = np.asarray(rec.t_s, float)
     y = np.asarray(rec.speed_rpm, float)
@@ -145,7 +161,15 @@ def analyse_step(rec: StepRecord, *, pre_t_s: np.ndarray | None = None,
         y0 = float(rec.from_rpm)
     if y0 == rec.to_rpm:
         y0 = float(rec.from_rpm)
-    rec.metrics = step_metrics(t[sel], y[sel], float(rec.to_rpm), y0=y0, t_step=0.0)
+    ya = y[sel]
+    rec.speed_basis = "raw speed"
+    if profile is not None:
+        from .verify import sector_mean, sector_period_s
+        ya = sector_mean(profile, ya, rec.sample_period_s, float(rec.to_rpm))
+        n = max(1, int(round(sector_period_s(profile, float(rec.to_rpm)) / rec.sample_period_s)))
+        if n > 1:
+            rec.speed_basis = f"sector-mean speed ({n} samples = one hall sector at {rec.to_rpm:g} rpm)"
+    rec.metrics = step_metrics(t[sel], ya, float(rec.to_rpm), y0=y0, t_step=0.0)
     return rec.metrics
 
 
@@ -178,7 +202,12 @@ def save_step_plot(rec: StepRecord, path: str | Path, *, band: float = 0.02) -> 
     ax.axhspan(rec.to_rpm - band * abs(step), rec.to_rpm + band * abs(step), color="g", alpha=0.12,
                label=f"±{band * 100:g} % band")
     m = rec.metrics
-    if m is not None:
+    if rec.fault or rec.interrupted:
+        why = (f"FAULT {rec.fault.upper()} latched during the step: outputs off, no metrics" if rec.fault
+               else "INTERRUPTED (Ctrl-C): motor stopped, partial data, no metrics")
+        ax.text(0.5, 0.5, why, transform=ax.transAxes, ha="center", va="center", fontsize=11, color="r",
+                bbox=dict(boxstyle="round", fc="w", ec="r", alpha=0.9))
+    elif m is not None:
         if math.isfinite(m.settling_time_s):
             ax.axvline(m.settling_time_s * 1e3, color="g", lw=0.8, ls=":")
         txt = ("rise " + ("—" if not math.isfinite(m.rise_time_s) else f"{m.rise_time_s * 1e3:.1f} ms")
@@ -195,14 +224,16 @@ def save_step_plot(rec: StepRecord, path: str | Path, *, band: float = 0.02) -> 
         a.set_ylabel(f"{k}\n[{rec.units.get(k, '') or '1'}]")
         a.grid(True, alpha=0.3)
     axes[-1].set_xlabel("time from step [ms]")
-    title = f"step {rec.from_rpm:g} → {rec.to_rpm:g} rpm"
-    extra = ", ".join(x for x in (rec.firmware, rec.profile, rec.controller, rec.source) if x)
-    fig.suptitle(f"{title}  ({extra})" if extra else title, fontsize=10)
-    fig.tight_layout()
-    p.parent.mkdir(parents=True, exist_ok=True)
+    title = f"step {rec.from_rpm:g} → {rec.to_rpm:g} rpm ({rec.source}; metrics on the {rec.speed_basis})"
+    import textwrap
+    ident = textwrap.wrap("; ".join(rec.identity_lines()), 130)
+    fig.suptitle("\n".join([title] + ident), fontsize=7.5)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.012 * len(ident)))
+    from .console_files import PNG_SOFTWARE, output_path
+    p = output_path(p, ".png", "step plot")
     tmp = p.with_name(f".{p.name}.tmp.png")
     try:
-        fig.savefig(tmp, dpi=110)
+        fig.savefig(tmp, dpi=110, metadata={"Software": PNG_SOFTWARE})
         os.replace(tmp, p)
     except OSError as e:
         tmp.unlink(missing_ok=True)
