@@ -1,0 +1,146 @@
+"""Drive firmware on the PIC18 core: flash of drive.c / drive_core.c and worst-case
+cycles of core_control, core_speed_encoder and the hall-edge path, compiled with
+SDCC's pic16 port and timed in gpsim (18F4520 core, same instruction timing).
+
+    PYTHONPATH=$PWD/host python3 bench/drive_cycles.py [firmware folder ...]
+
+Default folder: firmware_build/duy2008.  For each folder it prints the code
+bytes of drive.c and drive_core.c (gplink map) and, for a corpus of samples
+(rest, a step into the current limit, reversal, saturation, int16 extremes),
+the worst cycles of each measured call.  The harness calls the functions from
+main(); the figures are the function's own cycles (call to return).
+"""
+import os
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from picdrive.p18f4431 import render_sdcc_device
+
+TC = Path(os.environ.get("PICDRIVE_SDCC", Path.home() / ".cache/picdrive/toolchain/sdcc-4.2.0-pic16"))
+LIB = TC / "share/sdcc/lib/pic16"
+LKR = "/usr/share/gputils/lkr/18f4431_g.lkr"
+
+# (target, adc, speed state) samples: rest, step into the current limit, reversal,
+# saturation, int16 extremes
+CORPUS = [(0, 0, 0), (6400, 300, 0), (6400, 700, 1000), (-6400, 100, 6000), (32767, 1023, -32768),
+          (-32768, 0, 32767), (100, 650, 17000), (-17000, 20, -200), (17425, 512, 8700), (5, 5, 5)]
+
+HARNESS = r"""
+#include <stdint.h>
+#include "drive_core.h"
+static core_params_t cp;
+static core_state_t cs;
+volatile int16_t sink;
+static const int16_t vec[][3] = { %(vec)s };
+void mark(void) { }
+/* the generic-pointer helpers reference the EEPROM accessors (a device library
+   this toolchain does not build); no pointer here points into EEPROM */
+void __eeprom_gptrget1(void) { }
+void __eeprom_gptrget2(void) { }
+void __eeprom_gptrget4(void) { }
+void __eeprom_gptrput1(void) { }
+void __eeprom_gptrput2(void) { }
+void __eeprom_gptrput4(void) { }
+void main(void)
+{
+    uint8_t k, j;
+    for (j = 0u; j < CORE_N_RULES; j++) {
+        cp.kp[j] = (int16_t)(FW_RULE1_KP + 97 * j); cp.kits[j] = FW_RULE1_KITS; cp.kdts[j] = 3000;
+        cp.kc[j] = FW_RULE1_KC;
+    }
+    cp.premise_lo = FW_PREMISE_LO; cp.premise_hi = FW_PREMISE_HI;
+    cp.mu_k = core_premise_k(cp.premise_lo, cp.premise_hi);
+    cp.b_q14 = FW_SETPOINT_WEIGHT; cp.u_min = FW_U_MIN; cp.u_max = FW_U_MAX;
+    cp.controller = %(controller)du; cp.ilim = 500; cp.accel_step = 0u;
+    core_reset(&cs);
+    for (k = 0u; k < %(n)du; k++) {
+        int16_t t = vec[k][0], s = vec[k][2];
+        uint16_t a = (uint16_t)vec[k][1];
+        cs.speed = s;
+        cs.law.integ = (int32_t)s * 3000;
+        mark();
+        sink = core_control(&cs, &cp, t, a);
+        mark();
+        sink = core_speed_encoder(&cs, (uint16_t)(cs.pos_prev + (uint16_t)(s >> 6)), (uint16_t)(a * 7u), 0u);
+        mark();
+    }
+    for (;;) {
+        mark();
+    }
+}
+"""
+
+
+def sdcc(args, cwd):
+    r = subprocess.run([str(TC / "bin/sdcc"), "-mpic16", "-p18f4431", "--std-c99", "--no-warn-non-free",
+                        "-I.", *args], cwd=cwd, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise SystemExit(f"sdcc {' '.join(args)} failed:\n{r.stderr[-2000:]}")
+
+
+def code_bytes(obj: Path) -> int:
+    """Bytes of the code and const (initialised program-memory) sections of an object (gpvo)."""
+    out = subprocess.run(["gpvo", str(obj)], capture_output=True, text=True).stdout
+    total = 0
+    for blk in out.split("Section Header")[1:]:
+        size = re.search(r"Size of Section\s+(\d+)", blk)
+        if size and ("Executable code" in blk or "ROM data" in blk or "Program memory" in blk):
+            total += int(size.group(1))
+    return total
+
+
+def measure(folder: Path, controller: int = 1) -> dict:
+    with tempfile.TemporaryDirectory(prefix="drivecyc-") as td:
+        t = Path(td)
+        h, s = render_sdcc_device()
+        (t / "xc.h").write_text(h)
+        (t / "xc_sfr.c").write_text(s)
+        for f in folder.iterdir():
+            if f.suffix in (".c", ".h"):
+                (t / f.name).write_text(f.read_text())
+        vec = ", ".join("{%d, %d, %d}" % v for v in CORPUS)
+        (t / "harness.c").write_text(HARNESS % {"vec": vec, "n": len(CORPUS), "controller": controller})
+        sizes = {}
+        for src in ("drive_core.c", "drive.c", "harness.c", "xc_sfr.c"):
+            if (t / src).exists():
+                sdcc(["-c", src], t)
+                sizes[src] = code_bytes(t / src.replace(".c", ".o"))
+        objs = [str(LIB / "crt0i.o"), "harness.o", "drive_core.o", "xc_sfr.o", str(LIB / "libsdcc.lib")]
+        r = subprocess.run(["gplink", "-m", "-w", "-s", LKR, "-o", "h.hex", *objs], cwd=t,
+                           capture_output=True, text=True)
+        if r.returncode != 0:
+            raise SystemExit(f"gplink failed:\n{r.stdout}{r.stderr}")
+        n_marks = 3 * len(CORPUS) + 1
+        stc = ["processor p18f4520", "load s h.cod", "break e _mark"]
+        for _ in range(n_marks):
+            stc += ["run", "cycles"]
+        stc.append("quit")
+        (t / "s.stc").write_text("\n".join(stc) + "\n")
+        with open(t / "out.txt", "wb") as fo:
+            subprocess.run(["gpsim", "-i", "-S", "disable", "-c", "s.stc"], cwd=t, stdout=fo,
+                           stderr=subprocess.STDOUT, timeout=300)
+        txt = (t / "out.txt").read_bytes().decode("latin-1")
+        cyc = [int(x) for x in re.findall(r"(\d+) = 0x[0-9A-F]+\s", txt)]
+        if len(cyc) < n_marks:
+            raise SystemExit(f"gpsim gave {len(cyc)} of {n_marks} cycle counts")
+        law = [cyc[3 * k + 1] - cyc[3 * k] for k in range(len(CORPUS))]
+        enc = [cyc[3 * k + 2] - cyc[3 * k + 1] for k in range(len(CORPUS))]
+        return {"sizes": sizes, "core_control": law, "core_speed_encoder": enc}
+
+
+def main(argv):
+    folders = [Path(a) for a in argv] or [Path("firmware_build/duy2008")]
+    for f in folders:
+        for ctl in (1, 0):
+            m = measure(f, ctl)
+            print(f"{f}  controller={ctl}")
+            print(f"  flash bytes: drive_core.c {m['sizes']['drive_core.c']}, drive.c {m['sizes'].get('drive.c')}")
+            for k in ("core_control", "core_speed_encoder"):
+                print(f"  {k:20s} worst {max(m[k]):6d} cycles  best {min(m[k]):6d}  ({m[k]})")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
