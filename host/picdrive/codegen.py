@@ -268,13 +268,13 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
     ]})
     # the core
     def shift_macro(name, s):
-        return (f"core_asr32((x), {s}u)" if s >= 0 else f"core_shl32((x), {-s}u)")
+        return (f"CORE_ASR((x), {s})" if s >= 0 else f"CORE_SHL_SAT((x), {-s})")
     S.append({"title": "fixed-point formats (fixedpoint.plan_fixed_point)", "defines": [
         _d("CORE_N_RULES", f"{plan.n_rules}u", "rules of the design"),
         _d("CORE_QS", str(plan.qs), f"speed Q{plan.qs}: {2 ** -plan.qs:.6g} rad/s per LSB"),
         _d("CORE_QU", str(plan.qu), f"voltage Q{plan.qu}: {2 ** -plan.qu:.6g} V per LSB"),
         _d("CORE_QI", str(plan.qi), "integrator Q (voltage + 16 where +-I_lim fits 32 bits)"),
-        _d("CORE_TO_QI(x)", (f"core_shl32((x), {plan.qi - plan.qu}u)" if plan.qi > plan.qu else "(x)"),
+        _d("CORE_TO_QI(x)", (f"CORE_SHL_SAT((x), {plan.qi - plan.qu})" if plan.qi > plan.qu else "(x)"),
            "voltage Q -> integrator Q, saturated"),
         _d("CORE_I_LIM", f"INT32_C({plan.i_lim})", f"integrator range +-I_lim in Q{plan.qi}"),
         _d("CORE_Q_KP", str(plan.q_kp), "kp format"), _d("CORE_Q_KITS", str(plan.q_kits), "ki x Ts format"),
