@@ -47,6 +47,8 @@ TEMPLATES = ("drive_params.h", "drive_core.h", "drive_core.c", "drive.h", "drive
              "main_xc8.c", "config_xc8.c")
 HOST_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-Wconversion")
 FOSC_HZ = 40_000_000
+#: the overspeed trip, x control.speed_max_rpm (the profile has no field for it)
+OVERSPEED_FACTOR = 1.2
 CAPTURE_BYTES = 128
 
 
@@ -254,6 +256,16 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
            f"{bus['counts_per_v']:.2f} counts/V (divider {bus['bus_sense_v_per_v']:.5f} V/V, assumed)"),
         _d("FW_BUS_OV", f"{bus['ov']}u", f"overvoltage above {bus['ov_v']:.1f} V"),
         _d("FW_BUS_DEBOUNCE", "10u", "consecutive samples"),
+    ]})
+    # overspeed trip: OVERSPEED_FACTOR x speed_max_rpm in the speed format (saturated to int16)
+    w_trip = OVERSPEED_FACTOR * co.speed_max_rpm * math.pi / 30.0
+    trip_raw = min(plan.to_speed_raw(w_trip), 32767)
+    S.append({"title": "overspeed trip", "defines": [
+        _d("FW_OVERSPEED", f"{trip_raw}", f"{OVERSPEED_FACTOR:g} x control.speed_max_rpm = "
+           f"{OVERSPEED_FACTOR * co.speed_max_rpm:.0f} rpm = {w_trip:.2f} rad/s x 2^{plan.qs}"
+           + (" (saturated: the speed format's limit)" if trip_raw == 32767 else "")
+           + "; |speed| above it for FW_OVERSPEED_SAMPLES samples latches LINK_FAULT_OVERSPEED"),
+        _d("FW_OVERSPEED_SAMPLES", "2u", "consecutive speed-loop samples"),
     ]})
     S.append({"title": "EUSART and interrupts", "defines": [
         _d("FW_SPBRG", f"{brg}u", f"uart.baud = {profile.uart.baud} -> Fosc / (4 (n + 1)) = {baud:.0f} baud "
