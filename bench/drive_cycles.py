@@ -22,6 +22,8 @@ from picdrive.p18f4431 import render_sdcc_device
 TC = Path(os.environ.get("PICDRIVE_SDCC", Path.home() / ".cache/picdrive/toolchain/sdcc-4.2.0-pic16"))
 LIB = TC / "share/sdcc/lib/pic16"
 LKR = "/usr/share/gputils/lkr/18f4431_g.lkr"
+#: extra SDCC options (PICDRIVE_SDCC_OPTS, space-separated), to compare optimisation flags
+EXTRA = os.environ.get("PICDRIVE_SDCC_OPTS", "").split()
 
 # (target, adc, speed state) samples: rest, step into the current limit, reversal,
 # saturation, int16 extremes
@@ -76,7 +78,7 @@ void main(void)
 
 def sdcc(args, cwd):
     r = subprocess.run([str(TC / "bin/sdcc"), "-mpic16", "-p18f4431", "--std-c99", "--no-warn-non-free",
-                        "-I.", *args], cwd=cwd, capture_output=True, text=True)
+                        "-I.", *EXTRA, *args], cwd=cwd, capture_output=True, text=True)
     if r.returncode != 0:
         raise SystemExit(f"sdcc {' '.join(args)} failed:\n{r.stderr[-2000:]}")
 
