@@ -33,6 +33,7 @@ CORPUS = [(0, 0, 0), (6400, 300, 0), (6400, 700, 1000), (-6400, 100, 6000), (327
 HARNESS = r"""
 #include <stdint.h>
 #include "drive_core.h"
+#pragma config WDTEN = OFF
 static core_params_t cp;
 static core_state_t cs;
 volatile int16_t sink;
@@ -133,9 +134,83 @@ def measure(folder: Path, controller: int = 1) -> dict:
         return {"sizes": sizes, "core_control": law, "core_speed_encoder": enc}
 
 
+PRODUCTS = r"""
+#include <stdint.h>
+#include "drive_core.h"
+#pragma config WDTEN = OFF
+void ok(void) { }
+void bad(void) { }
+%(stubs)s
+void main(void)
+{
+    uint16_t x = 12345u, y = 54321u, k;
+    uint32_t ss = 0u, su = 0u;
+    for (k = 0u; k < %(n)du; k++) {
+        x = (uint16_t)(x * 25173u + 13849u);
+        y = (uint16_t)(y * 16807u + 12345u);
+        if (k == 0u) { x = 0x8000u; y = 0x8000u; }
+        if (k == 1u) { x = 0xFFFFu; y = 0x8000u; }
+        if (k == 2u) { x = 0xFFFFu; y = 0xFFFFu; }
+        ss = ss * 31u + (uint32_t)CORE_MULS((int16_t)x, (int16_t)y);
+        su = su * 31u + CORE_MULU(x, y);
+    }
+    if (ss == %(ss)sUL && su == %(su)sUL) { ok(); } else { bad(); }
+    for (;;) { }
+}
+"""
+
+
+def expected_products(n):
+    """The host's checksums of the same product sequence (Python integers)."""
+    x, y, ss, su = 12345, 54321, 0, 0
+    for k in range(n):
+        x = (x * 25173 + 13849) & 0xFFFF
+        y = (y * 16807 + 12345) & 0xFFFF
+        x, y = {0: (0x8000, 0x8000), 1: (0xFFFF, 0x8000), 2: (0xFFFF, 0xFFFF)}.get(k, (x, y))
+        sx, sy = x - (x >> 15 << 16), y - (y >> 15 << 16)
+        ss = (ss * 31 + (sx * sy)) & 0xFFFFFFFF
+        su = (su * 31 + x * y) & 0xFFFFFFFF
+    return ss, su
+
+
+def check_products(folder: Path, n: int = 3000) -> bool:
+    """CORE_MULS / CORE_MULU on the PIC18 core (gpsim) against exact products: True if equal."""
+    ss, su = expected_products(n)
+    stubs = "\n".join(f"void __eeprom_gptr{k}(void) {{ }}" for k in
+                      ("get1", "get2", "get4", "put1", "put2", "put4"))
+    with tempfile.TemporaryDirectory(prefix="drivemul-") as td:
+        t = Path(td)
+        h, s = render_sdcc_device()
+        (t / "xc.h").write_text(h)
+        (t / "xc_sfr.c").write_text(s)
+        for f in ("drive_core.c", "drive_core.h", "drive_params.h"):
+            (t / f).write_text((folder / f).read_text())
+        (t / "mc.c").write_text(PRODUCTS % {"n": n, "ss": f"0x{ss:08X}", "su": f"0x{su:08X}", "stubs": stubs})
+        for src in ("mc.c", "drive_core.c", "xc_sfr.c"):
+            sdcc(["-c", src], t)
+        subprocess.run(["gplink", "-m", "-w", "-s", LKR, "-o", "mc.hex", str(LIB / "crt0i.o"), "mc.o",
+                        "drive_core.o", "xc_sfr.o", str(LIB / "libsdcc.lib")], cwd=t, check=True,
+                       capture_output=True)
+        (t / "s.stc").write_text("processor p18f4520\nload s mc.cod\nbreak e _ok\nbreak e _bad\n"
+                                 "break c 20000000\nrun\nquit\n")
+        with open(t / "out.txt", "wb") as fo:
+            subprocess.run(["gpsim", "-i", "-S", "disable", "-c", "s.stc"], cwd=t, stdout=fo,
+                           stderr=subprocess.STDOUT, timeout=300)
+        txt = (t / "out.txt").read_bytes().decode("latin-1")
+        m = {}
+        for line in (t / "mc.map").read_text().splitlines():
+            p = line.split()
+            if len(p) >= 3 and p[0] in ("_ok", "_bad"):
+                m[p[0]] = int(p[1], 16)
+        hit = re.findall(r"Execution at [^(]*\((0x[0-9a-f]+)\)", txt)
+        return bool(hit) and int(hit[0], 16) == m["_ok"]
+
+
 def main(argv):
     folders = [Path(a) for a in argv] or [Path("firmware_build/duy2008")]
     for f in folders:
+        print(f"{f}  CORE_MULS/CORE_MULU on the PIC18 core, 3000 pairs incl. -32768 and 0xFFFF: "
+              + ("equal to the exact products" if check_products(f) else "MISMATCH"))
         for ctl in (1, 0):
             m = measure(f, ctl)
             print(f"{f}  controller={ctl}")
