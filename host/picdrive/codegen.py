@@ -47,6 +47,8 @@ TEMPLATES = ("drive_params.h", "drive_core.h", "drive_core.c", "drive.h", "drive
              "main_xc8.c", "config_xc8.c")
 HOST_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-Wconversion")
 FOSC_HZ = 40_000_000
+#: the overspeed trip, x control.speed_max_rpm (the profile has no field for it)
+OVERSPEED_FACTOR = 1.2
 CAPTURE_BYTES = 128
 
 
@@ -255,6 +257,16 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
         _d("FW_BUS_OV", f"{bus['ov']}u", f"overvoltage above {bus['ov_v']:.1f} V"),
         _d("FW_BUS_DEBOUNCE", "10u", "consecutive samples"),
     ]})
+    # overspeed trip: OVERSPEED_FACTOR x speed_max_rpm in the speed format (saturated to int16)
+    w_trip = OVERSPEED_FACTOR * co.speed_max_rpm * math.pi / 30.0
+    trip_raw = min(plan.to_speed_raw(w_trip), 32767)
+    S.append({"title": "overspeed trip", "defines": [
+        _d("FW_OVERSPEED", f"{trip_raw}", f"{OVERSPEED_FACTOR:g} x control.speed_max_rpm = "
+           f"{OVERSPEED_FACTOR * co.speed_max_rpm:.0f} rpm = {w_trip:.2f} rad/s x 2^{plan.qs}"
+           + (" (saturated: the speed format's limit)" if trip_raw == 32767 else "")
+           + "; |speed| above it for FW_OVERSPEED_SAMPLES samples latches LINK_FAULT_OVERSPEED"),
+        _d("FW_OVERSPEED_SAMPLES", "2u", "consecutive speed-loop samples"),
+    ]})
     S.append({"title": "EUSART and interrupts", "defines": [
         _d("FW_SPBRG", f"{brg}u", f"uart.baud = {profile.uart.baud} -> Fosc / (4 (n + 1)) = {baud:.0f} baud "
            f"({100 * (baud - profile.uart.baud) / profile.uart.baud:+.2f} %)"),
@@ -268,13 +280,13 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
     ]})
     # the core
     def shift_macro(name, s):
-        return (f"core_asr32((x), {s}u)" if s >= 0 else f"core_shl32((x), {-s}u)")
+        return (f"CORE_ASR((x), {s})" if s >= 0 else f"CORE_SHL_SAT((x), {-s})")
     S.append({"title": "fixed-point formats (fixedpoint.plan_fixed_point)", "defines": [
         _d("CORE_N_RULES", f"{plan.n_rules}u", "rules of the design"),
         _d("CORE_QS", str(plan.qs), f"speed Q{plan.qs}: {2 ** -plan.qs:.6g} rad/s per LSB"),
         _d("CORE_QU", str(plan.qu), f"voltage Q{plan.qu}: {2 ** -plan.qu:.6g} V per LSB"),
         _d("CORE_QI", str(plan.qi), "integrator Q (voltage + 16 where +-I_lim fits 32 bits)"),
-        _d("CORE_TO_QI(x)", (f"core_shl32((x), {plan.qi - plan.qu}u)" if plan.qi > plan.qu else "(x)"),
+        _d("CORE_TO_QI(x)", (f"CORE_SHL_SAT((x), {plan.qi - plan.qu})" if plan.qi > plan.qu else "(x)"),
            "voltage Q -> integrator Q, saturated"),
         _d("CORE_I_LIM", f"INT32_C({plan.i_lim})", f"integrator range +-I_lim in Q{plan.qi}"),
         _d("CORE_Q_KP", str(plan.q_kp), "kp format"), _d("CORE_Q_KITS", str(plan.q_kits), "ki x Ts format"),

@@ -436,7 +436,7 @@ _PRAGMA = re.compile(r"^\s*#\s*(pragma|include|error|warning)[^\n]*", re.M)
 def names_used(c_sources: list[str], path=None) -> tuple[set[str], set[tuple[str, str]], set[str]]:
     """SFR names, ``(register, bit)`` pairs, and other upper-case identifiers used by C sources.
 
-    Comments, strings, ``#pragma``/``#include`` lines are ignored.  Returns
+    Comments, strings, ``#pragma``/``#include`` lines and ``__asm``...``__endasm`` blocks are ignored.  Returns
     ``(sfrs, bit_uses, unknown)`` where ``unknown`` are upper-case
     identifiers that are neither SFRs of the ``.inc`` nor ``#define``'d in the
     sources themselves nor standard C macros: a test asserts it is empty.
@@ -445,6 +445,7 @@ def names_used(c_sources: list[str], path=None) -> tuple[set[str], set[tuple[str
     text = "\n".join(c_sources)
     text = _COMMENT.sub(" ", text)
     text = _STRING.sub(" ", text)
+    text = re.sub(r"\b__asm\b.*?\b__endasm\b", " ", text, flags=re.S)   # inline assembly: mnemonics
     defined = set(_DEFINE.findall(text))
     text = _PRAGMA.sub(" ", text)
     bit_uses = {(r, b) for r, b in _BITS_USE.findall(text)}

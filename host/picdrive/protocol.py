@@ -212,6 +212,7 @@ class Fault(enum.IntEnum):
     UNDERVOLTAGE = 5       # bus under-voltage
     OVERVOLTAGE = 6        # bus over-voltage
     EEPROM_CRC = 7         # EEPROM image corrupt at boot
+    OVERSPEED = 8          # |speed| above the profile-derived trip (1.2 x speed_max_rpm)
 
 
 class State(enum.IntEnum):

@@ -1,0 +1,223 @@
+"""Drive firmware on the PIC18 core: flash of drive.c / drive_core.c and worst-case
+cycles of core_control, core_speed_encoder and the hall-edge path, compiled with
+SDCC's pic16 port and timed in gpsim (18F4520 core, same instruction timing).
+
+    PYTHONPATH=$PWD/host python3 bench/drive_cycles.py [firmware folder ...]
+
+Default folder: firmware_build/duy2008.  For each folder it prints the code
+bytes of drive.c and drive_core.c (gplink map) and, for a corpus of samples
+(rest, a step into the current limit, reversal, saturation, int16 extremes),
+the worst cycles of each measured call.  The harness calls the functions from
+main(); the figures are the function's own cycles (call to return).
+"""
+import os
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from picdrive.p18f4431 import render_sdcc_device
+
+TC = Path(os.environ.get("PICDRIVE_SDCC", Path.home() / ".cache/picdrive/toolchain/sdcc-4.2.0-pic16"))
+LIB = TC / "share/sdcc/lib/pic16"
+LKR = "/usr/share/gputils/lkr/18f4431_g.lkr"
+#: extra SDCC options (PICDRIVE_SDCC_OPTS, space-separated), to compare optimisation flags
+EXTRA = os.environ.get("PICDRIVE_SDCC_OPTS", "").split()
+
+# (target, adc, speed state) samples: rest, step into the current limit, reversal,
+# saturation, int16 extremes
+CORPUS = [(0, 0, 0), (6400, 300, 0), (6400, 700, 1000), (-6400, 100, 6000), (32767, 1023, -32768),
+          (-32768, 0, 32767), (100, 650, 17000), (-17000, 20, -200), (17425, 512, 8700), (5, 5, 5)]
+
+HARNESS = r"""
+#include <stdint.h>
+#include "drive_core.h"
+#pragma config WDTEN = OFF
+static core_params_t cp;
+static core_state_t cs;
+volatile int16_t sink;
+static const int16_t vec[][3] = { %(vec)s };
+void mark(void) { }
+/* the generic-pointer helpers reference the EEPROM accessors (a device library
+   this toolchain does not build); no pointer here points into EEPROM */
+void __eeprom_gptrget1(void) { }
+void __eeprom_gptrget2(void) { }
+void __eeprom_gptrget4(void) { }
+void __eeprom_gptrput1(void) { }
+void __eeprom_gptrput2(void) { }
+void __eeprom_gptrput4(void) { }
+void main(void)
+{
+    uint8_t k, j;
+    for (j = 0u; j < CORE_N_RULES; j++) {
+        cp.kp[j] = (int16_t)(FW_RULE1_KP + 97 * j); cp.kits[j] = FW_RULE1_KITS; cp.kdts[j] = 3000;
+        cp.kc[j] = FW_RULE1_KC;
+    }
+    cp.premise_lo = FW_PREMISE_LO; cp.premise_hi = FW_PREMISE_HI;
+    cp.mu_k = core_premise_k(cp.premise_lo, cp.premise_hi);
+    cp.b_q14 = FW_SETPOINT_WEIGHT; cp.u_min = FW_U_MIN; cp.u_max = FW_U_MAX;
+    cp.controller = %(controller)du; cp.ilim = 500; cp.accel_step = 0u;
+    core_reset(&cs);
+    for (k = 0u; k < %(n)du; k++) {
+        int16_t t = vec[k][0], s = vec[k][2];
+        uint16_t a = (uint16_t)vec[k][1];
+        cs.speed = s;
+        cs.law.integ = (int32_t)s * 3000;
+        mark();
+        sink = core_control(&cs, &cp, t, a);
+        mark();
+        sink = core_speed_encoder(&cs, (uint16_t)(cs.pos_prev + (uint16_t)(s >> 6)), (uint16_t)(a * 7u), 0u);
+        mark();
+    }
+    for (;;) {
+        mark();
+    }
+}
+"""
+
+
+def sdcc(args, cwd):
+    r = subprocess.run([str(TC / "bin/sdcc"), "-mpic16", "-p18f4431", "--std-c99", "--no-warn-non-free",
+                        "-I.", *EXTRA, *args], cwd=cwd, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise SystemExit(f"sdcc {' '.join(args)} failed:\n{r.stderr[-2000:]}")
+
+
+def code_bytes(obj: Path) -> int:
+    """Bytes of the code and const (initialised program-memory) sections of an object (gpvo)."""
+    out = subprocess.run(["gpvo", str(obj)], capture_output=True, text=True).stdout
+    total = 0
+    for blk in out.split("Section Header")[1:]:
+        size = re.search(r"Size of Section\s+(\d+)", blk)
+        if size and ("Executable code" in blk or "ROM data" in blk or "Program memory" in blk):
+            total += int(size.group(1))
+    return total
+
+
+def measure(folder: Path, controller: int = 1) -> dict:
+    with tempfile.TemporaryDirectory(prefix="drivecyc-") as td:
+        t = Path(td)
+        h, s = render_sdcc_device()
+        (t / "xc.h").write_text(h)
+        (t / "xc_sfr.c").write_text(s)
+        for f in folder.iterdir():
+            if f.suffix in (".c", ".h"):
+                (t / f.name).write_text(f.read_text())
+        vec = ", ".join("{%d, %d, %d}" % v for v in CORPUS)
+        (t / "harness.c").write_text(HARNESS % {"vec": vec, "n": len(CORPUS), "controller": controller})
+        sizes = {}
+        for src in ("drive_core.c", "drive.c", "harness.c", "xc_sfr.c"):
+            if (t / src).exists():
+                sdcc(["-c", src], t)
+                sizes[src] = code_bytes(t / src.replace(".c", ".o"))
+        objs = [str(LIB / "crt0i.o"), "harness.o", "drive_core.o", "xc_sfr.o", str(LIB / "libsdcc.lib")]
+        r = subprocess.run(["gplink", "-m", "-w", "-s", LKR, "-o", "h.hex", *objs], cwd=t,
+                           capture_output=True, text=True)
+        if r.returncode != 0:
+            raise SystemExit(f"gplink failed:\n{r.stdout}{r.stderr}")
+        n_marks = 3 * len(CORPUS) + 1
+        stc = ["processor p18f4520", "load s h.cod", "break e _mark"]
+        for _ in range(n_marks):
+            stc += ["run", "cycles"]
+        stc.append("quit")
+        (t / "s.stc").write_text("\n".join(stc) + "\n")
+        with open(t / "out.txt", "wb") as fo:
+            subprocess.run(["gpsim", "-i", "-S", "disable", "-c", "s.stc"], cwd=t, stdout=fo,
+                           stderr=subprocess.STDOUT, timeout=300)
+        txt = (t / "out.txt").read_bytes().decode("latin-1")
+        cyc = [int(x) for x in re.findall(r"(\d+) = 0x[0-9A-F]+\s", txt)]
+        if len(cyc) < n_marks:
+            raise SystemExit(f"gpsim gave {len(cyc)} of {n_marks} cycle counts")
+        law = [cyc[3 * k + 1] - cyc[3 * k] for k in range(len(CORPUS))]
+        enc = [cyc[3 * k + 2] - cyc[3 * k + 1] for k in range(len(CORPUS))]
+        return {"sizes": sizes, "core_control": law, "core_speed_encoder": enc}
+
+
+PRODUCTS = r"""
+#include <stdint.h>
+#include "drive_core.h"
+#pragma config WDTEN = OFF
+void ok(void) { }
+void bad(void) { }
+%(stubs)s
+void main(void)
+{
+    uint16_t x = 12345u, y = 54321u, k;
+    uint32_t ss = 0u, su = 0u;
+    for (k = 0u; k < %(n)du; k++) {
+        x = (uint16_t)(x * 25173u + 13849u);
+        y = (uint16_t)(y * 16807u + 12345u);
+        if (k == 0u) { x = 0x8000u; y = 0x8000u; }
+        if (k == 1u) { x = 0xFFFFu; y = 0x8000u; }
+        if (k == 2u) { x = 0xFFFFu; y = 0xFFFFu; }
+        ss = ss * 31u + (uint32_t)CORE_MULS((int16_t)x, (int16_t)y);
+        su = su * 31u + CORE_MULU(x, y);
+    }
+    if (ss == %(ss)sUL && su == %(su)sUL) { ok(); } else { bad(); }
+    for (;;) { }
+}
+"""
+
+
+def expected_products(n):
+    """The host's checksums of the same product sequence (Python integers)."""
+    x, y, ss, su = 12345, 54321, 0, 0
+    for k in range(n):
+        x = (x * 25173 + 13849) & 0xFFFF
+        y = (y * 16807 + 12345) & 0xFFFF
+        x, y = {0: (0x8000, 0x8000), 1: (0xFFFF, 0x8000), 2: (0xFFFF, 0xFFFF)}.get(k, (x, y))
+        sx, sy = x - (x >> 15 << 16), y - (y >> 15 << 16)
+        ss = (ss * 31 + (sx * sy)) & 0xFFFFFFFF
+        su = (su * 31 + x * y) & 0xFFFFFFFF
+    return ss, su
+
+
+def check_products(folder: Path, n: int = 3000) -> bool:
+    """CORE_MULS / CORE_MULU on the PIC18 core (gpsim) against exact products: True if equal."""
+    ss, su = expected_products(n)
+    stubs = "\n".join(f"void __eeprom_gptr{k}(void) {{ }}" for k in
+                      ("get1", "get2", "get4", "put1", "put2", "put4"))
+    with tempfile.TemporaryDirectory(prefix="drivemul-") as td:
+        t = Path(td)
+        h, s = render_sdcc_device()
+        (t / "xc.h").write_text(h)
+        (t / "xc_sfr.c").write_text(s)
+        for f in ("drive_core.c", "drive_core.h", "drive_params.h"):
+            (t / f).write_text((folder / f).read_text())
+        (t / "mc.c").write_text(PRODUCTS % {"n": n, "ss": f"0x{ss:08X}", "su": f"0x{su:08X}", "stubs": stubs})
+        for src in ("mc.c", "drive_core.c", "xc_sfr.c"):
+            sdcc(["-c", src], t)
+        subprocess.run(["gplink", "-m", "-w", "-s", LKR, "-o", "mc.hex", str(LIB / "crt0i.o"), "mc.o",
+                        "drive_core.o", "xc_sfr.o", str(LIB / "libsdcc.lib")], cwd=t, check=True,
+                       capture_output=True)
+        (t / "s.stc").write_text("processor p18f4520\nload s mc.cod\nbreak e _ok\nbreak e _bad\n"
+                                 "break c 20000000\nrun\nquit\n")
+        with open(t / "out.txt", "wb") as fo:
+            subprocess.run(["gpsim", "-i", "-S", "disable", "-c", "s.stc"], cwd=t, stdout=fo,
+                           stderr=subprocess.STDOUT, timeout=300)
+        txt = (t / "out.txt").read_bytes().decode("latin-1")
+        m = {}
+        for line in (t / "mc.map").read_text().splitlines():
+            p = line.split()
+            if len(p) >= 3 and p[0] in ("_ok", "_bad"):
+                m[p[0]] = int(p[1], 16)
+        hit = re.findall(r"Execution at [^(]*\((0x[0-9a-f]+)\)", txt)
+        return bool(hit) and int(hit[0], 16) == m["_ok"]
+
+
+def main(argv):
+    folders = [Path(a) for a in argv] or [Path("firmware_build/duy2008")]
+    for f in folders:
+        print(f"{f}  CORE_MULS/CORE_MULU on the PIC18 core, 3000 pairs incl. -32768 and 0xFFFF: "
+              + ("equal to the exact products" if check_products(f) else "MISMATCH"))
+        for ctl in (1, 0):
+            m = measure(f, ctl)
+            print(f"{f}  controller={ctl}")
+            print(f"  flash bytes: drive_core.c {m['sizes']['drive_core.c']}, drive.c {m['sizes'].get('drive.c')}")
+            for k in ("core_control", "core_speed_encoder"):
+                print(f"  {k:20s} worst {max(m[k]):6d} cycles  best {min(m[k]):6d}  ({m[k]})")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
