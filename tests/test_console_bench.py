@@ -30,29 +30,20 @@ from picdrive.console_files import written_by_picdrive
 from picdrive.console_record import read_recording
 from picdrive.link import Link
 from picdrive.profile import load_profile
+from picdrive_hil.twin import Twin
 
 REPO = Path(__file__).resolve().parents[1]
 FIRMWARE = REPO / "firmware_build" / "duy2008"
 PROFILE = load_profile(REPO / "examples" / "duy2008.toml")
 RPM = 60.0 / (2.0 * math.pi)
 
-twin_mod = pytest.importorskip("picdrive_hil.twin")
-
-
 @pytest.fixture(scope="module")
 def twin():
-    # The twin's real-time pacing drops a lag above MAX_LAG_S with the wrong sign and then runs many
-    # times faster than real time for good (issue 11, the twin's owner fixes it): on a loaded machine
-    # that trips the board's watchdog under these tests, which are not about pacing.  Here the twin
-    # keeps its debt instead (it catches up, then runs in real time); restored after the module.
-    import picdrive_hil.endpoint as endpoint
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(endpoint, "MAX_LAG_S", float("inf"))
-        yield from _serve_twin()
+    yield from _serve_twin()
 
 
 def _serve_twin():
-    tw = twin_mod.Twin(PROFILE, FIRMWARE)
+    tw = Twin(PROFILE, FIRMWARE)
     srv = tw.serve(port=0, realtime=True)
     # these tests are not about the watchdog: a host starved for half a second (a loaded CI machine)
     # must not trip it under them (in RAM only; test_console_twin covers LINK_LOST)
