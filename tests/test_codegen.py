@@ -186,8 +186,19 @@ def test_an_existing_folder_survives_a_refusal_and_a_failed_build_check(tmp_path
     assert (out / "keep.txt").read_text() == "old" and not (out / "drive.c").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
     monkeypatch.undo()
+    # a folder picdrive did not write is never replaced (docs/outputs.md) ...
+    assert run_cli(monkeypatch, "--profile", "duy2008", "--design", good, "-o", out) == 2
+    assert "not written by picdrive" in capsys.readouterr().err and (out / "keep.txt").read_text() == "old"
+    # ... a firmware folder picdrive wrote is, whole, as long as its files are picdrive's
+    (out / "keep.txt").unlink()
     assert run_cli(monkeypatch, "--profile", "duy2008", "--design", good, "-o", out) == 0
-    assert (out / "drive.c").is_file() and not (out / "keep.txt").exists()
+    assert (out / "drive.c").is_file() and (out / ".picdrive-output").is_file()
+    assert run_cli(monkeypatch, "--profile", "duy2008", "--design", good, "-o", out) == 0
+    capsys.readouterr()
+    (out / "drive.c").write_text("edited by hand")
+    assert run_cli(monkeypatch, "--profile", "duy2008", "--design", good, "-o", out) == 2
+    assert "drive.c (changed since picdrive wrote it)" in capsys.readouterr().err
+    assert (out / "drive.c").read_text() == "edited by hand"
 
 
 def test_host_build_of_a_non_firmware_folder(tmp_path):

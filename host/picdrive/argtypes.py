@@ -19,6 +19,11 @@ def _number(text: str, kind):
     return v
 
 
+def finite_float(text: str) -> float:
+    """Any finite number."""
+    return _number(text, float)
+
+
 def positive_float(text: str) -> float:
     """A finite number > 0."""
     v = _number(text, float)

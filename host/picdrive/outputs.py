@@ -43,8 +43,8 @@ from typing import Callable, Iterable
 from . import fileio
 from .errors import PicdriveError
 
-__all__ = ["MARKER", "OutputError", "file_output", "dir_output", "write_text", "new_temp_dir", "publish_dir",
-           "manifest_text"]
+__all__ = ["MARKER", "OutputError", "file_output", "dir_output", "write_text", "write_bytes", "new_temp_dir",
+           "publish_dir", "manifest_text"]
 
 #: the marker file picdrive writes into every folder it writes whole
 MARKER = ".picdrive-output"
@@ -222,6 +222,23 @@ def write_text(path: Path, text: str, *, what: str = "output file") -> Path:
         return fileio.atomic_write_text(path, text)
     except OSError as e:
         raise OutputError(f"cannot write {what} {path}: {e.strerror or e}; choose a folder you can write to") from None
+
+
+def write_bytes(path: Path, data: bytes, *, what: str = "output file") -> Path:
+    """Write a binary file checked by :func:`file_output`, atomically (temp file + rename)."""
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.chmod(tmp, 0o666 & ~fileio.current_umask())
+        os.replace(tmp, path)
+    except OSError as e:
+        if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)
+        raise OutputError(f"cannot write {what} {path}: {e.strerror or e}; choose a folder you can write to") from None
+    return path
 
 
 def new_temp_dir(out: Path, *, what: str = "output folder") -> Path:
