@@ -76,10 +76,14 @@ def _cmd(args: argparse.Namespace) -> int:
                 eeprom = ee_path.read_bytes()
             except OSError as e:
                 raise PicdriveError(f"--eeprom {ee_path}: cannot read it ({e.strerror})") from None
+    load = None
+    if args.load_file:
+        from .twin import read_load_file
+        load = read_load_file(args.load_file)      # a bad file is refused before the twin is built
     tw = Twin(profile, args.firmware, perturb=perturb, seed=args.seed, load_mode=args.load_mode,
               speed_noise_rpm=args.noise_rpm, eeprom=eeprom)
-    if args.load_file:
-        tw.load_profile_file(args.load_file, relative=True)
+    if load is not None:
+        tw.set_load_profile(*load, relative=True)
     elif args.load_torque is not None:
         tw.set_load_torque(args.load_torque)
     srv = tw.serve(port=args.port, host=args.host, realtime=True, pty=args.pty)
