@@ -341,7 +341,8 @@ def run_demo(profile_ref: str = "duy2008", out_dir: str | Path = "out/demo", *, 
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    outputs.publish_dir(tmp, out, "demo", what="demo folder")
+    outputs.publish_dir(tmp, out, "demo", what="demo folder",
+                        regenerable=[f"firmware/{m}/{r}" for m in methods for r in codegen.REGENERABLE])
     return out / "report.md"
 
 
