@@ -174,20 +174,36 @@ def test_an_existing_folder_survives_a_refusal_and_a_failed_build_check(tmp_path
     out.mkdir()
     (out / "keep.txt").write_text("old")
     bad = fixture_design(tmp_path, prof, name="bad", status="failed", reasons=["x"])
+    good = fixture_design(tmp_path, prof)
     assert run_cli(monkeypatch, "--profile", "duy2008", "--design", bad, "-o", out) == 2
     assert (out / "keep.txt").read_text() == "old"
+    # a folder picdrive did not write is never replaced (docs/outputs.md)
+    assert run_cli(monkeypatch, "--profile", "duy2008", "--design", good, "-o", out) == 2
+    assert "not written by picdrive" in capsys.readouterr().err and (out / "keep.txt").read_text() == "old"
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+
+    # a firmware folder picdrive wrote is replaced whole, or left as it was when the build check fails
+    own = tmp_path / "own"
+    assert run_cli(monkeypatch, "--profile", "duy2008", "--design", good, "-o", own) == 0
+    assert (own / "drive.c").is_file() and (own / ".picdrive-output").is_file()
+    before = {p.name: p.read_bytes() for p in own.iterdir() if p.is_file()}
 
     def broken(folder):
         raise codegen.CodegenError("does not compile (simulated)")
     monkeypatch.setattr(codegen, "build_check", broken)
-    good = fixture_design(tmp_path, prof)
-    assert run_cli(monkeypatch, "--profile", "duy2008", "--design", good, "-o", out) == 2
+    capsys.readouterr()
+    assert run_cli(monkeypatch, "--profile", "duy2008", "--design", good, "-o", own) == 2
     assert "does not compile" in capsys.readouterr().err
-    assert (out / "keep.txt").read_text() == "old" and not (out / "drive.c").exists()
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
+    assert {p.name: p.read_bytes() for p in own.iterdir() if p.is_file()} == before
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith((".out.", ".own."))]
     monkeypatch.undo()
-    assert run_cli(monkeypatch, "--profile", "duy2008", "--design", good, "-o", out) == 0
-    assert (out / "drive.c").is_file() and not (out / "keep.txt").exists()
+    assert run_cli(monkeypatch, "--profile", "duy2008", "--design", good, "-o", own) == 0
+    # ... as long as its files are picdrive's: one edited by hand stops it
+    (own / "drive.c").write_text("edited by hand")
+    capsys.readouterr()
+    assert run_cli(monkeypatch, "--profile", "duy2008", "--design", good, "-o", own) == 2
+    assert "drive.c (changed since picdrive wrote it)" in capsys.readouterr().err
+    assert (own / "drive.c").read_text() == "edited by hand"
 
 
 def test_host_build_of_a_non_firmware_folder(tmp_path):

@@ -299,16 +299,21 @@ def test_one_rule_for_the_consoles_files(twin, tmp_path):
     _idle(srv.url)
     foreign = tmp_path / "mine.csv"
     foreign.write_text("my data\n")
+    (tmp_path / "afile").write_text("x")
     with _console(srv.url, tmp_path) as (con, lines):
-        for cmd, what in [(f"step 0 1000 --png {tmp_path}/new/x.png", "step --png"),
-                          (f"plot --png {tmp_path}/new/x.png", "plot --png"),
-                          (f"record {tmp_path}/new/x.csv", "recording"),
-                          (f"scope single --png {tmp_path}/new/x.png", "scope --png"),
-                          (f"params save {tmp_path}/new/x.json", "params save")]:
-            _refused(con, cmd, f"{what} {tmp_path}/new/x.{cmd.split('.')[-1]}: folder {tmp_path}/new does not "
-                               "exist; create it first")
-            assert not (tmp_path / "new").exists()
-        _refused(con, f"record {foreign}", "a file picdrive did not write is there")
+        # picdrive's one output rule (docs/outputs.md): a parent that is a file is refused by every write ...
+        for cmd, what in [(f"step 0 1000 --png {tmp_path}/afile/x.png", "step --png"),
+                          (f"plot --png {tmp_path}/afile/x.png", "plot --png"),
+                          (f"record {tmp_path}/afile/x.csv", "recording"),
+                          (f"scope single --png {tmp_path}/afile/x.png", "scope --png"),
+                          (f"params save {tmp_path}/afile/x.json", "params save")]:
+            _refused(con, cmd, f"{what} {tmp_path}/afile/x.{cmd.split('.')[-1]}: {tmp_path}/afile is a file, "
+                               "not a folder")
+        assert (tmp_path / "afile").read_text() == "x"
+        _refused(con, f"record {foreign}", "is not a file picdrive wrote")
+        # ... and a missing folder is created, as by every other command
+        con.execute(f"params save {tmp_path}/new/x.json")
+        assert (tmp_path / "new" / "x.json").is_file()
         assert con.plot is None and con.recorder is None
     assert foreign.read_text() == "my data\n"
     assert _board_state(srv.url)[0] == P.State.IDLE            # refused before the motor moved

@@ -126,10 +126,12 @@ def test_save_step_plot(tmp_path):
     rec = StepRecord(0.0, 2400.0, 1.0, t, y, 1e-3, signals={"current_a": np.ones_like(t)},
                      units={"current_a": "A"}, firmware="fw", profile="duy2008")
     analyse_step(rec)
-    # a missing folder is refused, named, and not created (one rule for every console write)
-    with pytest.raises(PicdriveError, match=f"folder {tmp_path / 'out'} does not exist; create it first"):
-        save_step_plot(rec, tmp_path / "out" / "step.png")
-    assert not (tmp_path / "out").exists()
+    # picdrive's one output rule (docs/outputs.md): a missing folder is created, a parent that is a file refused
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(PicdriveError, match=f"{tmp_path / 'afile'} is a file, not a folder"):
+        save_step_plot(rec, tmp_path / "afile" / "step.png")
+    assert (tmp_path / "afile").read_text() == "x"
+    assert save_step_plot(rec, tmp_path / "out" / "step.png").is_file()
     p = save_step_plot(rec, tmp_path / "step.png")
     data = p.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
@@ -138,7 +140,7 @@ def test_save_step_plot(tmp_path):
     assert p2 == p and p.is_absolute()
     foreign = tmp_path / "photo.png"
     foreign.write_bytes(b"\x89PNG\r\n\x1a\nnot picdrive's")
-    with pytest.raises(PicdriveError, match="a file picdrive did not write is there"):
+    with pytest.raises(PicdriveError, match="is not a file picdrive wrote"):
         save_step_plot(rec, foreign)
     assert foreign.read_bytes() == b"\x89PNG\r\n\x1a\nnot picdrive's"
     with pytest.raises(StepError, match="must end in .png"):

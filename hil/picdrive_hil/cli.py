@@ -15,30 +15,31 @@ from picdrive.errors import PicdriveError
 
 
 def register(sub) -> None:
+    from picdrive.argtypes import finite_float, nonneg_float, port, positive_float, seed
     p = sub.add_parser(
         "twin", help="start the motor twin (virtual board) on a local serial endpoint",
         description="Run the generated firmware against a PIC18F4431 peripheral model and a BLDC plant, "
                     "in real time, behind socket://127.0.0.1:<port> (and a pty with --pty).")
     p.add_argument("--profile", required=True, help="profile .toml, or a bundled profile name")
     p.add_argument("--firmware", required=True, help="generated firmware folder (picdrive firmware -o ...)")
-    p.add_argument("--port", type=int, default=0, help="TCP port to listen on (default: any free port)")
+    p.add_argument("--port", type=port, default=0, help="TCP port to listen on (default: any free port)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     p.add_argument("--pty", action="store_true", help="also offer a pseudo-terminal path")
     p.add_argument("--perturb", action="append", default=[], metavar="KEY=FACTOR",
                    help="plant perturbation (repeatable): resistance, inductance, flux, inertia, friction, "
                         "bus_voltage; e.g. --perturb resistance=1.1 for R + 10 %%, or resistance=+u / -u for "
                         "the profile's design.resistance_uncertainty")
-    p.add_argument("--load-torque", type=float, default=None,
+    p.add_argument("--load-torque", type=finite_float, default=None,
                    help="constant load torque, N m (default: none; the profile's control.load_torque_n_m "
                         "is the test step, applied by tests and demos)")
     p.add_argument("--load-file", help="load torque profile: CSV rows t_s,torque_n_m (times from start)")
     p.add_argument("--load-mode", choices=("passive", "active"), default="passive",
                    help="passive: load opposes motion and holds a standing rotor (default); "
                         "active: signed torque (2016 eq 5)")
-    p.add_argument("--noise-rpm", type=float, default=None,
+    p.add_argument("--noise-rpm", type=nonneg_float, default=None,
                    help="speed-measurement noise, rpm std (default: profile sensors.speed_noise_rpm)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed")
-    p.add_argument("--speed", type=float, default=1.0,
+    p.add_argument("--seed", type=seed, default=0, help="noise seed")
+    p.add_argument("--speed", type=positive_float, default=1.0,
                    help="simulated seconds per wall second (default 1: real time)")
     p.add_argument("--eeprom", help="EEPROM image file (256 bytes) to start from; saved back on exit")
     p.set_defaults(func=_cmd)
@@ -60,15 +61,29 @@ def _cmd(args: argparse.Namespace) -> int:
     profile = load_profile(args.profile)
     perturb = parse_perturb(args.perturb, profile)
     eeprom = None
-    ee_path = Path(args.eeprom) if args.eeprom else None
-    if ee_path is not None and ee_path.exists():
-        eeprom = ee_path.read_bytes()
-        if len(eeprom) != 256:
-            raise PicdriveError(f"--eeprom {ee_path}: expected a 256-byte image, found {len(eeprom)} bytes")
+    ee_path = None
+    if args.eeprom:
+        from picdrive.outputs import file_output
+        p = Path(args.eeprom)
+        if p.is_file() and not p.is_symlink() and p.stat().st_size != 256:
+            raise PicdriveError(f"--eeprom {p}: expected a 256-byte EEPROM image, found {p.stat().st_size} bytes; "
+                                "give an image the twin saved, or a new file name")
+        # the image is saved back on exit: checked now, under the output rule (docs/outputs.md)
+        ee_path = file_output(args.eeprom, Path("eeprom.bin"), what="EEPROM image",
+                              same_kind=lambda q: q.stat().st_size == 256)
+        if ee_path.is_file():
+            try:
+                eeprom = ee_path.read_bytes()
+            except OSError as e:
+                raise PicdriveError(f"--eeprom {ee_path}: cannot read it ({e.strerror})") from None
+    load = None
+    if args.load_file:
+        from .twin import read_load_file
+        load = read_load_file(args.load_file)      # a bad file is refused before the twin is built
     tw = Twin(profile, args.firmware, perturb=perturb, seed=args.seed, load_mode=args.load_mode,
               speed_noise_rpm=args.noise_rpm, eeprom=eeprom)
-    if args.load_file:
-        tw.load_profile_file(args.load_file, relative=True)
+    if load is not None:
+        tw.set_load_profile(*load, relative=True)
     elif args.load_torque is not None:
         tw.set_load_torque(args.load_torque)
     srv = tw.serve(port=args.port, host=args.host, realtime=True, pty=args.pty)
@@ -96,8 +111,7 @@ def _cmd(args: argparse.Namespace) -> int:
     finally:
         srv.stop()
         if ee_path is not None:
-            tmp = ee_path.with_name(ee_path.name + ".tmp")
-            tmp.write_bytes(tw.eeprom())
-            tmp.replace(ee_path)
+            from picdrive.outputs import write_bytes
+            write_bytes(ee_path, tw.eeprom(), what="EEPROM image")
         tw.close()
     return 0

@@ -367,16 +367,9 @@ class Twin:
         self._load = (t, v)
 
     def load_profile_file(self, path: str | Path, *, relative: bool = True) -> None:
-        """Load torque from a CSV file of ``t_s,torque_n_m`` rows (header optional)."""
-        try:
-            data = np.genfromtxt(path, delimiter=",", comments="#", dtype=float)
-        except OSError as e:
-            raise TwinError(f"cannot read load profile {path}: {e}") from None
-        data = np.atleast_2d(data)
-        data = data[~np.isnan(data).any(axis=1)]
-        if data.ndim != 2 or data.shape[1] != 2 or data.shape[0] == 0:
-            raise TwinError(f"load profile {path}: expected rows of 't_s,torque_n_m'")
-        self.set_load_profile(data[:, 0], data[:, 1], relative=relative)
+        """Load torque from a CSV file of ``t_s,torque_n_m`` rows (:func:`read_load_file`)."""
+        t, v = read_load_file(path)
+        self.set_load_profile(t, v, relative=relative)
 
     # -- faults ---------------------------------------------------------------
     def inject(self, kind: str, **kw) -> None:
@@ -483,3 +476,36 @@ class Twin:
         srv = TwinServer(self, port=port, host=host, realtime=realtime, pty=pty)
         srv.start()
         return srv
+
+
+def read_load_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """The (t_s, torque_n_m) points of a load-torque CSV file (UTF-8 text; a header line and
+    ``#`` comments allowed).  Any other row is refused, naming its line."""
+    try:
+        text = Path(path).read_bytes().decode("utf-8")
+    except OSError as e:
+        raise TwinError(f"cannot read load profile {path}: {e.strerror or e}") from None
+    except UnicodeDecodeError as e:
+        raise TwinError(f"load profile {path}: byte {e.start} is not UTF-8; expected a CSV text file of "
+                        "'t_s,torque_n_m' rows") from None
+    rows, first = [], True
+    for n, line in enumerate(text.splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        cells = [c.strip() for c in line.split(",")]
+        try:
+            if len(cells) != 2:
+                raise ValueError
+            rows.append((float(cells[0]), float(cells[1])))
+            first = False
+        except ValueError:
+            if first:
+                first = False
+                continue                                  # the header line
+            raise TwinError(f"load profile {path}: line {n} {line[:40]!r} is not a row 't_s,torque_n_m' "
+                            "of two numbers") from None
+    if not rows:
+        raise TwinError(f"load profile {path}: expected rows of 't_s,torque_n_m'")
+    data = np.array(rows, dtype=float)
+    return data[:, 0], data[:, 1]

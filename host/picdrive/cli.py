@@ -27,8 +27,16 @@ COMMAND_MODULES = [
 ]
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with picdrive's error format: one line on stderr (no usage block), exit status 2."""
+
+    def error(self, message: str):
+        sys.stderr.write(f"picdrive: error: {message}; see '{self.prog} --help'\n")
+        raise SystemExit(2)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
+    ap = Parser(
         prog="picdrive",
         description="BLDC speed drives on the PIC18F4431: design, firmware, serial link, motor twin.")
     ap.add_argument("--version", action="version", version=f"picdrive {__version__}")

@@ -50,6 +50,7 @@ FOSC_HZ = 40_000_000
 #: the overspeed trip, x control.speed_max_rpm (the profile has no field for it)
 OVERSPEED_FACTOR = 1.2
 CAPTURE_BYTES = 128
+REGENERABLE = ("build",)    # the Makefile's output folder: picdrive may replace it with the firmware
 
 
 class CodegenError(PicdriveError):
@@ -353,7 +354,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     """Plan and render the firmware (nothing is written)."""
     import jinja2
 
-    from . import fixedpoint, p18f4431, pcpwm, pinmap, protocol
+    from . import fixedpoint, outputs, p18f4431, pcpwm, pinmap, protocol
     from .paths import templates_dir
     from .result import load_design
 
@@ -404,6 +405,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                                      sort_keys=True) + "\n"
     files["Makefile"] = _makefile(name)
     files["README.md"] = _readme(name, summary)
+    files[outputs.MARKER] = outputs.manifest_text("firmware", files, regenerable=REGENERABLE)
     return Firmware(name=name, files=files, build_id=build_id, summary=summary, plan=plan, pwm=pwm, pinmap=pm,
                     table=table)
 
@@ -510,10 +512,13 @@ def build_check(folder) -> list[str]:
 
 
 def write_firmware(fw: Firmware, out_dir, *, check: bool = True) -> Path:
-    """Write the files into ``out_dir`` whole or not at all (temp folder, build check, rename)."""
-    from .fileio import new_temp_dir, publish_dir
-    out = Path(out_dir)
-    tmp = new_temp_dir(out)
+    """Write the files into ``out_dir`` whole or not at all (temp folder, build check, rename).
+
+    ``out_dir`` follows the output rule of :mod:`picdrive.outputs`: it is
+    created, or replaced only when it is a firmware folder picdrive wrote."""
+    from . import outputs
+    out = outputs.dir_output(out_dir, what="firmware folder")
+    tmp = outputs.new_temp_dir(out, what="firmware folder")
     try:
         for rel, text in sorted(fw.files.items()):
             p = tmp / rel
@@ -522,21 +527,25 @@ def write_firmware(fw: Firmware, out_dir, *, check: bool = True) -> Path:
                 f.write(text)
         if check:
             build_check(tmp)
-        publish_dir(tmp, out)
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise outputs.OutputError(f"cannot write firmware folder {out}: {e.strerror or e}") from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return out
+    return outputs.publish_dir(tmp, out, "firmware", regenerable=REGENERABLE, what="firmware folder")
 
 
 # ---------------------------------------------------------------------------
 # CLI
 # ---------------------------------------------------------------------------
 def _cmd(args) -> int:
+    from .outputs import dir_output
     from .profile import load_profile
     profile = load_profile(args.profile)
+    out = dir_output(args.output if args.output else Path("firmware_build") / profile.name,
+                     what="firmware folder")
     fw = generate(profile, args.design, hall_input=args.hall_input, fault_pin=args.fault_pin)
-    out = Path(args.output) if args.output else Path("firmware_build") / profile.name
     for line in fw.summary:
         print(line)
     write_firmware(fw, out)

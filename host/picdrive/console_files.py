@@ -1,11 +1,11 @@
-"""Where the console may write: one rule for every file it writes.
+"""Where the console may write: picdrive's one output rule (:mod:`picdrive.outputs`, docs/outputs.md).
 
 ``step --png``, ``plot --png``, ``record``, ``scope --png/--csv`` and
 ``params save`` all pass their path through :func:`output_path` first:
 
 * the path is made absolute (messages print absolute paths);
-* a missing parent folder is refused with a message naming it -- the console
-  never creates folders (a typo must not grow a directory tree);
+* missing folders are created, as by every other picdrive command; a parent
+  that is a file, or a folder that cannot be written, is refused;
 * an existing file is replaced only if picdrive wrote it (:func:`written_by_picdrive`:
   a CSV whose first line names picdrive, a PNG whose ``Software`` text chunk is
   picdrive's, a JSON whose ``format`` is picdrive's); anything else is refused.
@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .errors import PicdriveError
+from .outputs import OutputError, file_output
 
 __all__ = ["FileRuleError", "output_path", "written_by_picdrive", "PNG_SOFTWARE"]
 
@@ -26,7 +26,7 @@ PNG_SOFTWARE = "picdrive"
 """Value of the PNG ``Software`` text chunk in every PNG the console writes."""
 
 
-class FileRuleError(PicdriveError):
+class FileRuleError(OutputError):
     """An output path the console will not write."""
 
 
@@ -62,12 +62,11 @@ def output_path(path: str | Path, ext: str, what: str) -> Path:
         raise FileRuleError(f"{what} {str(path)!r}: the file name must end in {ext}")
     if p.is_dir():
         raise FileRuleError(f"{what} {p}: is a folder; give a file name ending in {ext}")
-    folder = p.parent
-    if not folder.is_dir():
-        what_is = "is a file, not a folder" if folder.exists() else "does not exist"
-        raise FileRuleError(f"{what} {p}: folder {folder} {what_is}; create it first (the console does not "
-                            "create folders) or choose another path")
-    if p.exists() and not written_by_picdrive(p):
-        raise FileRuleError(f"{what} {p}: a file picdrive did not write is there; choose another name "
-                            "(picdrive never overwrites files it did not write)")
+    try:
+        p = file_output(p, p, what=what, same_kind=written_by_picdrive)
+        p.parent.mkdir(parents=True, exist_ok=True)
+    except OutputError as e:
+        raise FileRuleError(str(e)) from None
+    except OSError as e:
+        raise FileRuleError(f"{what} {p}: cannot create folder {p.parent} ({e.strerror}); choose another path") from None
     return p

@@ -273,8 +273,7 @@ def write_report(out: Path, profile, designs: dict, committed: dict, firmwares: 
 
 def run_demo(profile_ref: str = "duy2008", out_dir: str | Path = "out/demo", *, methods=METHODS,
              step_s: float = 1.0, load_s: float = 1.0, progress: bool = True) -> Path:
-    from . import codegen
-    from .fileio import new_temp_dir, publish_dir
+    from . import codegen, outputs
     from .profile import ProfileWarning, load_profile
     from .result import save_design
 
@@ -283,8 +282,11 @@ def run_demo(profile_ref: str = "duy2008", out_dir: str | Path = "out/demo", *, 
         profile = load_profile(profile_ref)
     for w in caught:
         _say(f"picdrive: warning: {w.message}")
-    out = Path(out_dir)
-    tmp = new_temp_dir(out)
+    out = outputs.dir_output(out_dir, what="demo folder")
+    for t in (step_s, load_s):
+        if not (math.isfinite(t) and 0.05 <= t <= 60.0):
+            raise PicdriveError(f"--step-s/--load-s {t!r}: expected seconds in [0.05, 60]")
+    tmp = outputs.new_temp_dir(out, what="demo folder")
     try:
         (tmp / "designs").mkdir()
         (tmp / "twin").mkdir()
@@ -336,14 +338,17 @@ def run_demo(profile_ref: str = "duy2008", out_dir: str | Path = "out/demo", *, 
              "designs": {k: {"status": v.status, "reasons": v.reasons} for k, v in designs.items()},
              "timings_s": timings}, indent=1, sort_keys=True, default=float) + "\n")
         write_report(tmp, profile, designs, committed, firmwares, runs, timings, failed)
-        publish_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    outputs.publish_dir(tmp, out, "demo", what="demo folder",
+                        regenerable=[f"firmware/{m}/{r}" for m in methods for r in codegen.REGENERABLE])
     return out / "report.md"
 
 
 def _cmd(args) -> int:
+    from .outputs import dir_output
+    dir_output(args.output, what="demo folder")      # refused before the work, not after
     methods = tuple(args.method) if args.method else METHODS
     report = run_demo(args.profile, args.output, methods=methods, step_s=args.step_s, load_s=args.load_s,
                       progress=not args.no_progress)

@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import importlib
 import json
+import math
+import os
 from pathlib import Path
 from typing import Any
 
 from .errors import PicdriveError
-from .result import METHODS, DesignResult, default_design_path, save_design
+from .result import METHODS, SCHEMA_ID, DesignResult, default_design_path, save_design
 
 # method name -> module implementing design(profile, **options)
 METHOD_MODULES = {
@@ -34,33 +36,51 @@ def run_design(profile, method: str, *, progress: bool = True, **options: Any) -
     """Design and verify; returns the result (does not write anything)."""
     if method not in METHOD_MODULES:
         raise PicdriveError(f"unknown design method {method!r}; choose one of {', '.join(METHOD_MODULES)}")
+    from .fixedpoint import check_profile_arithmetic
+    check_profile_arithmetic(profile)      # a profile the firmware cannot hold: refused before the work
     mod = importlib.import_module(METHOD_MODULES[method])
     return mod.design(profile, progress=progress, **options)
 
 
+def _is_design_file(path: Path) -> bool:
+    """A design file picdrive wrote (a design may replace it; anything else is the user's)."""
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(d, dict) and d.get("schema") == SCHEMA_ID
+
+
 def output_path(profile, method: str, out: str | None, ok: bool) -> Path:
-    if out:
-        p = Path(out)
-        if p.is_dir():
-            p = p / f"{profile.name}.{method}.design.json"
-    elif profile.path is not None:
-        p = default_design_path(profile.path, method)
+    """Where the design goes (checked by :func:`picdrive.outputs.file_output`): ``-o`` (a file, or a
+    folder: an existing one or a path ending in '/'), else next to the profile."""
+    from .outputs import file_output
+    if profile.path is not None:
+        default = default_design_path(profile.path, method)
     else:
-        p = Path(f"{profile.name}.{method}.design.json")
+        default = Path(f"{profile.name}.{method}.design.json")
     if not ok:
-        p = p.with_name(p.name.replace(".design.json", "") + ".design.failed.json")
-    return p
+        default = default.with_name(default.name.replace(".design.json", "") + ".design.failed.json")
+    if out and not ok and not (out.endswith(("/", os.sep)) or Path(out).is_dir()):
+        p = Path(out)
+        out = str(p.with_name(p.name.replace(".design.json", "") + ".design.failed.json"))
+    return file_output(out, default, what="design file", same_kind=_is_design_file)
 
 
 def _parse_option(text: str) -> tuple[str, Any]:
     if "=" not in text:
         raise PicdriveError(f"--option {text!r}: expected KEY=VALUE (for example --option gamma=0.5)")
     k, v = text.split("=", 1)
+    k = k.strip().replace("-", "_")
+    if not k:
+        raise PicdriveError(f"--option {text!r}: the KEY is empty; expected KEY=VALUE (for example --option rules=3)")
     try:
         val = json.loads(v)
     except json.JSONDecodeError:
         val = v
-    return k.strip().replace("-", "_"), val
+    if isinstance(val, float) and not math.isfinite(val):
+        raise PicdriveError(f"--option {text!r}: {k} must be a finite number")
+    return k, val
 
 
 def summary_lines(r: DesignResult) -> list[str]:
@@ -94,6 +114,9 @@ def _cmd(args) -> int:
         v = getattr(args, name)
         if v is not None:
             opts[name] = v
+    # both destinations are checked before the work, so a refusal costs nothing
+    output_path(profile, args.method, args.output, True)
+    output_path(profile, args.method, args.output, False)
     r = run_design(profile, args.method, progress=not args.no_progress, **opts)
     for line in summary_lines(r):
         print(line)
@@ -107,14 +130,16 @@ def _cmd(args) -> int:
 
 
 def register(sub) -> None:
+    from .argtypes import positive_float, seed
     p = sub.add_parser("design", help="design a speed controller from a drive profile",
                        description="Design, verify and save a speed controller.")
     p.add_argument("--profile", required=True, help="profile .toml, or a bundled profile name (duy2008, assawinchaichote2016)")
     p.add_argument("--method", required=True, choices=list(METHOD_MODULES))
-    p.add_argument("-o", "--output", help="output file or folder (default: next to the profile)")
+    p.add_argument("-o", "--output", help="output file, or folder (existing, or ending in '/': created) "
+                   "(default: next to the profile); an existing file is replaced only if it is a design file")
     p.add_argument("--variant", help="method variant (fuzzy-hinf: six-step | tracking | paper)")
-    p.add_argument("--gamma", type=float, help="fuzzy-hinf: prescribed H-inf level (default: minimise)")
-    p.add_argument("--seed", type=int, help="mixed-pid: GA seed (default: profile design.ga_seed)")
+    p.add_argument("--gamma", type=positive_float, help="fuzzy-hinf: prescribed H-inf level (default: minimise)")
+    p.add_argument("--seed", type=seed, help="mixed-pid: GA seed (default: profile design.ga_seed)")
     p.add_argument("--optimizer", help="mixed-pid: ga | de (scipy differential evolution)")
     p.add_argument("--preset", help="zn: paper2016 for the 2016 paper's Kp=0.43, Ki=2.30, Kd=0.28")
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",

@@ -55,6 +55,7 @@ ADC_VREF_V = 5.0
 MU_ONE = 4096              # Q12 membership
 REL_ERR_LIMIT = 0.01       # largest accepted quantisation error of a coefficient
 GAIN_HEADROOM = 2.0
+MT_K_MIN = 65538           # smallest M/T speed constant whose CORE_MT_DMAX = (2^32 - 1) // K is <= 65534
 
 
 class FixedPointError(PicdriveError, ValueError):
@@ -287,6 +288,58 @@ def _timer2(loop_hz: float) -> tuple[int, int, int, int, int, float]:
     return pre, post, pr, div, ticks, achieved
 
 
+def speed_q(w_max_rad_s: float) -> int:
+    """Q format of the speed: the largest q (at most 14) that holds 1.25 x the top speed in 16 bits."""
+    return min(_q_for(w_max_rad_s, 1.25), 14)
+
+
+def profile_top_speed_rad_s(profile, premise_hi_rad_s: float | None = None) -> float:
+    """The top speed the firmware's speed format must hold, rad/s: the speed range, the reference and the
+    fuzzy premise's upper end (a design's, or the profile's ``design.premise_rpm`` with > 1 rule)."""
+    co, rpm = profile.control, 2 * math.pi / 60
+    if premise_hi_rad_s is None and int(profile.design.get("rules", 1)) > 1:
+        premise_hi_rad_s = float(profile.design["premise_rpm"][1]) * rpm
+    return max(co.speed_max_rpm * rpm, co.reference_rpm * rpm, premise_hi_rad_s or 0.0)
+
+
+def encoder_speed_constant(encoder_lines: int, ts: float, qs: int, w_max_rad_s: float) -> tuple[int, int]:
+    """Timer5 prescaler and the M/T speed constant K (speed Q qs = K x counts / ticks) of an encoder.
+
+    The firmware saturates a count step above CORE_MT_DMAX = (2^32 - 1) // K, held in 16-bit
+    arithmetic: K must be at least 65538 (CORE_MT_DMAX <= 65534), so a fine encoder on a fast
+    motor (x4 counts per revolution, 2^qs LSB per rad/s) is refused here, naming the limit."""
+    cpr = 4 * encoder_lines
+    ps5 = next((c for c in (1, 2, 4, 8) if 65536 * c >= 2 * ts * FCY_HZ), 0)
+    if not ps5:
+        raise FixedPointError(f"speed loop period {ts * 1e3:g} ms is longer than half a Timer5 overflow at 1:8 "
+                              f"({65536 * 8 / FCY_HZ * 1e3 / 2:.1f} ms); raise control.speed_loop_hz")
+    k_speed = round(2 * math.pi * FCY_HZ / (ps5 * cpr) * 2 ** qs)
+    if k_speed < MT_K_MIN:
+        lines_max = math.floor(2 * math.pi * FCY_HZ * 2 ** qs / (ps5 * MT_K_MIN) / 4)
+        rpm_max = 0.0
+        for q in range(qs + 1, 15):       # the top speed whose finer speed format makes K large enough
+            if round(2 * math.pi * FCY_HZ / (ps5 * cpr) * 2 ** q) >= MT_K_MIN:
+                rpm_max = INT16_MAX / (1.25 * 2 ** q) * 60 / (2 * math.pi)
+                break
+        alt = (f", or keep it and bring the top speed (control.speed_max_rpm, reference_rpm, design.premise_rpm) "
+               f"down to {math.floor(rpm_max)} rpm") if rpm_max > 0 else ""
+        raise FixedPointError(
+            f"sensors.encoder_lines = {encoder_lines} at a top speed of {w_max_rad_s * 60 / (2 * math.pi):.0f} rpm "
+            f"is beyond the firmware's 16-bit M/T speed arithmetic (speed constant K = {k_speed} < {MT_K_MIN}, "
+            f"CORE_MT_DMAX = {0xFFFFFFFF // max(k_speed, 1)} > 65534): use an encoder of at most {lines_max} "
+            f"lines{alt}")
+    return ps5, k_speed
+
+
+def check_profile_arithmetic(profile) -> None:
+    """Refuse, before any design work, a profile the firmware's fixed-point plan cannot hold
+    (the encoder's speed arithmetic); :func:`plan_fixed_point` checks the same with the design's law."""
+    se = profile.sensors
+    if se.speed_source == "encoder":
+        w_max = profile_top_speed_rad_s(profile)
+        encoder_speed_constant(se.encoder_lines, 1.0 / profile.control.speed_loop_hz, speed_q(w_max), w_max)
+
+
 def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
     """Choose the formats, quantise the law, plan speed measurement, duty and timing.
 
@@ -301,10 +354,8 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
         raise FixedPointError(f"the design samples at {1 / ts:g} Hz but control.speed_loop_hz = {loop_hz:g} Hz: "
                               "re-run 'picdrive design' on this profile")
     notes: list[str] = []
-    rpm = 2 * math.pi / 60
-    w_max = max(co.speed_max_rpm * rpm, law.premise_rad_s[1] if law.n_rules > 1 else 0.0,
-                co.reference_rpm * rpm)
-    qs = min(_q_for(w_max, 1.25), 14)
+    w_max = profile_top_speed_rad_s(profile, law.premise_rad_s[1] if law.n_rules > 1 else 0.0)
+    qs = speed_q(w_max)
     u_bridge = inv.bus_voltage_v * pwm_plan.max_duty
     u_abs = max(abs(law.u_min_v), abs(law.u_max_v), u_bridge)
     qu = _q_for(u_abs, 2.0)
@@ -399,11 +450,7 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
         # every count, so TMR5 read at a sample is the time since the last edge.
         cpr = 4 * se.encoder_lines
         pdec = 1
-        ps5 = next((c for c in (1, 2, 4, 8) if 65536 * c >= 2 * ts * FCY_HZ), 0)
-        if not ps5:
-            raise FixedPointError(f"speed loop period {ts * 1e3:g} ms is longer than half a Timer5 overflow at 1:8 "
-                                  f"({65536 * 8 / FCY_HZ * 1e3 / 2:.1f} ms); raise control.speed_loop_hz")
-        k_speed = round(2 * math.pi * FCY_HZ / (ps5 * cpr) * 2 ** qs)
+        ps5, k_speed = encoder_speed_constant(se.encoder_lines, ts, qs, w_max)
         ts_ticks = round(ts * FCY_HZ / ps5)
         period_max = ts_ticks
         speed_min_rpm = FCY_HZ / (ps5 * 65536) * 60 / cpr

@@ -548,6 +548,48 @@ def _sampled_radius(profile, law) -> float:
     return float(_sampled_check(profile, law)["value"])
 
 
+# option -> (kind, low, high) of its value; the profile's [design] bounds where the profile has the field
+_OPTION_KINDS: dict[str, tuple] = {
+    "pole_disk_rad_s": (float, 1e-6, 1e9),
+    "integral_weight_rad_s": (float, 0.0, 1e9),
+    "max_spectral_radius": (float, 1e-6, 1.0),
+    "emf_polytope": (bool, None, None),
+    "simulate": (bool, None, None),
+    "plant_model": (str, None, None),
+    "solver": (str, None, None),
+    "setpoint_weight": (float, 0.0, 1.999),
+    "zero_gain_states": (list, None, None),
+}
+
+
+def _check_options(options: dict, gamma) -> None:
+    """Refuse an option value of the wrong type or range (None: the default), naming option and range."""
+    from .profile import SCHEMA
+    for name, v in [("gamma", gamma), *options.items()]:
+        if v is None:
+            continue
+        if name in _OPTION_KINDS:
+            kind, lo, hi = _OPTION_KINDS[name]
+        else:
+            k, _default, lo, hi, _doc = SCHEMA["design"][name]
+            kind = int if k == "int" else float
+        if kind is list:
+            if not (isinstance(v, list) and all(isinstance(z, int) and not isinstance(z, bool) and 0 <= z <= 3
+                                                for z in v)):
+                raise FuzzyHinfError(f"option {name}={v!r}: expected a list of state indices 0..3, e.g. [1]")
+            continue
+        if kind is bool or kind is str:
+            if not isinstance(v, kind):
+                raise FuzzyHinfError(f"option {name}={v!r}: expected {'true or false' if kind is bool else 'a name'}")
+            continue
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and lo <= v <= hi
+        if kind is int and ok:
+            ok = float(v).is_integer()
+        if not ok:
+            raise FuzzyHinfError(f"option {name}={v!r}: expected {'an integer' if kind is int else 'a number'} "
+                                 f"in [{lo:g}, {hi:g}] ({OPTIONS.get(name, 'prescribed H-inf level')})")
+
+
 def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: float | None = None, **options):
     """Design, verify and return a :class:`picdrive.result.DesignResult`.
 
@@ -573,6 +615,7 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
     if unknown:
         raise FuzzyHinfError(f"unknown fuzzy-hinf option(s) {', '.join(map(repr, unknown))}; known options: "
                              f"{', '.join(OPTIONS)}")
+    _check_options(options, gamma)
     d = profile.design
     alpha = float(options.get("alpha", d.get("alpha", 2.0)))
     rho = float(options.get("rho", d.get("rho", 1.0)))

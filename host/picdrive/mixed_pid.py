@@ -439,6 +439,8 @@ def design(profile, *, progress: bool = True, optimizer: str = "ga", seed: int |
         raise MixedPidError(f"optimizer {optimizer!r} is unknown; choose 'ga' (genetic algorithm) or 'de' "
                             "(scipy differential evolution)")
     de = profile.design
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= 2**31 - 1):
+        raise MixedPidError(f"seed {seed!r}: expected an integer in [0, 2147483647] (the GA's random seed)")
     seed = de["ga_seed"] if seed is None else int(seed)
     t0 = time.perf_counter()
     pb = make_problem(profile, variant, **options)

@@ -135,6 +135,35 @@ SCHEMA: dict[str, dict[str, tuple]] = {
     },
 }
 
+#: Kt / Kb may differ by this fraction (datasheet rounding, measurement); beyond it the two
+#: numbers cannot both be SI values of the same DC-equivalent motor
+KT_KB_TOLERANCE = 0.10
+
+# (ratio Kt/Kb the slip produces, what the user most likely typed), checked against the ratio found
+_KT_KB_SLIPS = (
+    (1000.0, "Kt looks like mN m/A (divide it by 1000 for N m/A)"),
+    (1e-3, "Kb looks like mV s/rad (divide it by 1000 for V s/rad)"),
+    (100.0, "Kt looks like N cm/A (divide it by 100 for N m/A)"),
+    (1 / 0.0980665, "Kt looks like kg cm/A (multiply it by 0.0981 for N m/A)"),
+    (1 / 0.00706155, "Kt looks like oz in/A (multiply it by 0.00706 for N m/A)"),
+    (1 / 0.112985, "Kt looks like lb in/A (multiply it by 0.113 for N m/A)"),
+    (60 / (2 * math.pi * 1000), "Kb looks like V/krpm (multiply it by 60 / (2 pi 1000) = 0.00955 for V s/rad)"),
+    (60 / (2 * math.pi), "Kb looks like V/rpm (multiply it by 60 / (2 pi) = 9.55 for V s/rad)"),
+    (2.0, "Kb looks like a phase value: the six-step Kb is line-to-line, twice a trapezoidal motor's phase value"),
+    (math.sqrt(3.0), "Kb looks like a phase value of a sinusoidal motor (line-to-line is sqrt 3 times it)"),
+    (math.sqrt(2.0), "one constant looks like an RMS value and the other a peak value (factor sqrt 2)"),
+    (1 / math.sqrt(2.0), "one constant looks like an RMS value and the other a peak value (factor sqrt 2)"),
+)
+
+
+def _kt_kb_slip(ratio: float) -> str:
+    """The unit slip whose factor is nearest (in log) to the ratio Kt/Kb found."""
+    d, text = min((abs(math.log(ratio / f)), t) for f, t in _KT_KB_SLIPS)
+    if d > math.log(1.15):
+        return "no common unit slip gives this ratio: check both constants against the datasheet"
+    return text
+
+
 _NAME_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,47}$")
 
 
@@ -194,7 +223,15 @@ class Motor:
 
     @property
     def kb_v_s_per_rad(self) -> float:
-        """Six-step DC-equivalent back-EMF constant, V per mechanical rad/s."""
+        """Six-step DC-equivalent back-EMF constant, V per mechanical rad/s.
+
+        The one DC-equivalent constant every model uses: in SI units Kt = Kb
+        (the same flux makes the EMF and the torque), so the design's Kt, the
+        verification's Kb and the twin's flux linkage all come from it.  From
+        the profile's ``back_emf_constant_v_s`` when given (the load checked
+        that ``torque_constant_n_m_per_a`` agrees within
+        :data:`KT_KB_TOLERANCE`), else the torque constant, else the flux
+        linkage."""
         if self.back_emf_constant_v_s is not None:
             return self.back_emf_constant_v_s
         if self.torque_constant_n_m_per_a is not None:
@@ -203,9 +240,8 @@ class Motor:
 
     @property
     def kt_n_m_per_a(self) -> float:
-        """Six-step DC-equivalent torque constant, N m per A of line current."""
-        if self.torque_constant_n_m_per_a is not None:
-            return self.torque_constant_n_m_per_a
+        """Six-step DC-equivalent torque constant, N m per A of line current: the same
+        constant as :attr:`kb_v_s_per_rad` (SI), so design and twin model one motor."""
         return self.kb_v_s_per_rad
 
     @property
@@ -454,6 +490,13 @@ def _build(raw: dict[str, Any], path: Path | None, sha: str) -> Profile:
         raise ProfileError("profile fields 'motor.flux_linkage_v_s' and 'motor.torque_constant_n_m_per_a'/'back_emf_constant_v_s' "
                            "are exclusive: give one form of the EMF constant")
 
+    kt, kb = mo["torque_constant_n_m_per_a"], mo["back_emf_constant_v_s"]
+    if kt is not None and kb is not None and abs(kt / kb - 1.0) > KT_KB_TOLERANCE:
+        raise ProfileError(
+            f"profile fields 'motor.torque_constant_n_m_per_a' = {kt:g} and 'motor.back_emf_constant_v_s' = {kb:g} "
+            f"differ by a factor {kt / kb:.4g}: in SI units they are the same constant (within "
+            f"{100 * KT_KB_TOLERANCE:g} %); {_kt_kb_slip(kt / kb)}")
+
     inv, se, co, de = vals["inverter"], vals["sensors"], vals["control"], vals["design"]
     if se["hall_spacing_deg"] not in (60, 120):
         raise _fail("sensors.hall_spacing_deg", se["hall_spacing_deg"], "expected 60 or 120")
@@ -510,9 +553,16 @@ def load_profile(path: str | Path) -> Profile:
     """Load and validate a profile file (a path, or the name of a bundled profile)."""
     p = resolve_profile_path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        data = p.read_bytes()
     except OSError as e:
         raise ProfileError(f"cannot read profile {p}: {e.strerror}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = data[:e.start].count(b"\n") + 1
+        raise ProfileError(f"{p}: line {line}: byte 0x{data[e.start]:02X} is not UTF-8; a profile is a UTF-8 TOML "
+                           "text file: save it as UTF-8 (a non-ASCII character such as 'µ' in another encoding, "
+                           "or not a text file at all)") from None
     try:
         return loads_profile(text, p)
     except ProfileError as e:
@@ -548,6 +598,9 @@ def schema_markdown() -> str:
         "",
         "Exactly one inductance form (`inductance_h`, or both `ld_h` and `lq_h`) and one EMF form",
         "(`flux_linkage_v_s`, or `torque_constant_n_m_per_a` and `back_emf_constant_v_s`) must be given.",
+        "In SI units the six-step Kt and Kb are one constant: a profile whose Kt / Kb is off 1 by more than",
+        f"{100 * KT_KB_TOLERANCE:g} % is refused, naming the likely unit slip (Kt in mN m/A, Kb in V/krpm, a phase",
+        "value...).  Within it, every model (design, verification, firmware, twin) uses Kb for both.",
         "",
     ]
     for sec, spec in SCHEMA.items():

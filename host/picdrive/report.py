@@ -1,13 +1,13 @@
 """``picdrive report``: the papers' claims beside what picdrive computes, and the three designs compared.
 
 Writes ``report.md`` and PNG figures (matplotlib, Agg) into ``out/report/`` or ``-o DIR``, whole or not at
-all (built in a temporary folder, then renamed into place).
+all (built in a temporary folder, then renamed into place), following the output rule of
+:mod:`picdrive.outputs` (an existing folder is replaced only when it is a report picdrive wrote).
 """
 from __future__ import annotations
 
 import importlib
 import shutil
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -76,11 +76,10 @@ def compare_designs(profile, outdir: Path, *, progress: bool = True) -> str:
 def write_report(outdir="out/report", *, profiles=("assawinchaichote2016", "duy2008"), quick: bool = False,
                  progress: bool = True) -> Path:
     """Build the whole report into ``outdir`` (replaced atomically)."""
-    from . import repro2016
+    from . import outputs, repro2016
     from .profile import load_profile
-    outdir = Path(outdir)
-    outdir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{outdir.name}.", dir=outdir.parent))
+    outdir = outputs.dir_output(outdir, what="report folder")
+    tmp = outputs.new_temp_dir(outdir, what="report folder")
     try:
         parts = ["# picdrive reproduction report", ""]
         parts.append(repro2016.section(tmp, quick=quick))
@@ -97,21 +96,16 @@ def write_report(outdir="out/report", *, profiles=("assawinchaichote2016", "duy2
                 prof = load_profile(name)
             parts.append(compare_designs(prof, tmp, progress=progress))
         (tmp / "report.md").write_text("\n".join(parts) + "\n", encoding="utf-8")
-        if outdir.exists():
-            old = outdir.with_name(outdir.name + ".old")
-            shutil.rmtree(old, ignore_errors=True)
-            outdir.rename(old)
-            tmp.rename(outdir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(outdir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    outputs.publish_dir(tmp, outdir, "report", what="report folder")
     return outdir / "report.md"
 
 
 def _cmd(args) -> int:
+    from .outputs import dir_output
+    dir_output(args.output, what="report folder")      # refused before the work, not after
     path = write_report(args.output, quick=args.quick, progress=not args.no_progress)
     print(f"wrote {path}")
     return 0
