@@ -390,6 +390,7 @@ void pic18_init(pic18_t *c)
     c->devid[0] = 0x00; c->devid[1] = 0x05;   /* DEVID1/DEVID2 of the 18F4431: 0x05 0x0xx */
     c->irq_builtin = 1;
     c->irq_vector_cycles = 2;
+    c->table_cycles = 2;
     decode_all(c);
     pic18_power_on(c);
 }
@@ -546,6 +547,17 @@ static inline uint8_t flags_add(unsigned a, unsigned b, unsigned cin, unsigned r
     if (r & 0x80) s |= S_N;
     return s;
 }
+/* byte-oriented ALU ops with their STATUS bits.  GPSIM_OV(src): under PIC18_GPSIM_COMPAT
+ * (the build the differential test compares with gpsim 0.31 only), OV as gpsim computes it
+ * for ADDWF/ADDLW: set when the result's sign differs from the old value of the destination
+ * (W or f); ADDWFC and INCF to f: from f's; INCF to W: the result's sign (measured over all
+ * operands against gpsim).  Not the
+ * datasheet's signed overflow, which the normal build computes; SUB*, DECF, NEGF agree. */
+#ifdef PIC18_GPSIM_COMPAT
+#define GPSIM_OV(s, src, r) ((s) = (uint8_t)(((s) & ~S_OV) | ((((src) ^ (r)) & 0x80) ? S_OV : 0)))
+#else
+#define GPSIM_OV(s, src, r) ((void)0)
+#endif
 #define ZN(r) ((uint8_t)(((r) ? 0 : S_Z) | ((r) & 0x80 ? S_N : 0)))
 
 int pic18_run(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, uint32_t break_pc)
@@ -679,24 +691,27 @@ L_CLRWDT:
 L_PUSH: CYC(1); push(c, pc); NEXT;
 L_POP: CYC(1); pop(c); NEXT;
 L_DAW: {
-    unsigned w = ram[A_WREG], s = ram[A_STATUS], cy = s & S_C;
+    /* DS39616: low nibble +6 if > 9 or DC; high nibble +6 if > 9 or C, and then C = 1.  A carry out
+     * of the low adjust (W = 0xFA-0xFF) sets C and leaves the high nibble as carried (W<7:4> is
+     * then 0: no high adjust unless C was set) -- the data sheet's two steps read on the 8-bit W */
+    unsigned w = ram[A_WREG], s = ram[A_STATUS], cin = s & S_C, cy = cin;
     CYC(1);
     if ((w & 0xF) > 9 || (s & S_DC)) w += 6;
-    if (((w >> 4) & 0x1F) > 9 || cy) { w += 0x60; cy = S_C; }
-    if (w > 0xFF) cy = S_C;
+    if (w > 0xFF) { cy = S_C; w &= 0xFF; }
+    if ((w >> 4) > 9 || cin) { w += 0x60; cy = S_C; }
     ram[A_WREG] = (uint8_t)w;
     SETF(S_C, cy);
     NEXT;
 }
 L_TBLRD:
-    CYC(2);
+    CYC(c->table_cycles);
     if (o->f == 3) c->tblptr = (c->tblptr + 1) & 0x3FFFFF;
     ram[A_TABLAT] = table_byte(c, c->tblptr);
     if (o->f == 1) c->tblptr = (c->tblptr + 1) & 0x3FFFFF;
     else if (o->f == 2) c->tblptr = (c->tblptr - 1) & 0x3FFFFF;
     NEXT;
 L_TBLWT:
-    CYC(2);
+    CYC(c->table_cycles);
     if (o->f == 3) c->tblptr = (c->tblptr + 1) & 0x3FFFFF;
     if (c->tblptr < PIC18_FLASH_BYTES) c->holding[c->tblptr & 7] = ram[A_TABLAT];
     if (o->f == 1) c->tblptr = (c->tblptr + 1) & 0x3FFFFF;
@@ -765,8 +780,10 @@ L_MOVLW: CYC(1); ram[A_WREG] = (uint8_t)o->f; NEXT;
 L_ADDLW: {
     unsigned w = ram[A_WREG], k = o->f, r = w + k;
     CYC(1);
+    uint8_t st_ = flags_add(w, k, 0, r);
+    GPSIM_OV(st_, w, r);
     ram[A_WREG] = (uint8_t)r;
-    SETF(0x1F, flags_add(w, k, 0, r));
+    SETF(0x1F, st_);
     NEXT;
 }
 L_MULWF: {
@@ -778,18 +795,20 @@ L_MULWF: {
     NEXT;
 }
 
-/* byte-oriented ALU ops with their STATUS bits */
-#define ARITH(label, expr_a, expr_b, cin) \
-label: { unsigned a = EA(), f, r, x, y, ci; CYC(1); RESOLVE(a); f = RD(a); (void)f; \
+#define ARITH(label, expr_a, expr_b, cin, gsrc) \
+label: { unsigned a = EA(), f, r, x, y, ci, w0 = ram[A_WREG]; uint8_t st_; CYC(1); RESOLVE(a); f = RD(a); \
+    (void)w0; \
     x = (expr_a); y = (expr_b); ci = (cin); r = x + y + ci; \
-    DEST_ALU(a, r); SETF(0x1F, flags_add(x, y, ci, r)); NEXT; }
-ARITH(L_ADDWF, ram[A_WREG], f, 0)
-ARITH(L_ADDWFC, ram[A_WREG], f, ram[A_STATUS] & S_C)
-ARITH(L_INCF, f, 1, 0)
-ARITH(L_DECF, f, 0xFF, 0)
-ARITH(L_SUBWF, f, ~ram[A_WREG] & 0xFF, 1)
-ARITH(L_SUBWFB, f, ~ram[A_WREG] & 0xFF, ram[A_STATUS] & S_C)
-ARITH(L_SUBFWB, ram[A_WREG], ~f & 0xFF, ram[A_STATUS] & S_C)
+    DEST_ALU(a, r); st_ = flags_add(x, y, ci, r); \
+    if ((gsrc) >= 0) { GPSIM_OV(st_, (unsigned)(gsrc), r); } SETF(0x1F, st_); NEXT; }
+#define GDST ((o->flags & F_DEST) ? (int)f : (int)w0)   /* the destination's old value */
+ARITH(L_ADDWF, ram[A_WREG], f, 0, GDST)
+ARITH(L_ADDWFC, ram[A_WREG], f, ram[A_STATUS] & S_C, (int)f)
+ARITH(L_INCF, f, 1, 0, ((o->flags & F_DEST) ? (int)f : 0))
+ARITH(L_DECF, f, 0xFF, 0, -1)
+ARITH(L_SUBWF, f, ~ram[A_WREG] & 0xFF, 1, -1)
+ARITH(L_SUBWFB, f, ~ram[A_WREG] & 0xFF, ram[A_STATUS] & S_C, -1)
+ARITH(L_SUBFWB, ram[A_WREG], ~f & 0xFF, ram[A_STATUS] & S_C, -1)
 
 #define LOGIC(label, expr) \
 label: { unsigned a = EA(), f; uint8_t r; CYC(1); RESOLVE(a); f = RD(a); r = (uint8_t)(expr); \
@@ -900,7 +919,11 @@ void pic18_info(const pic18_t *c, uint64_t out[10])
 }
 uint32_t pic18_stack_entry(const pic18_t *c, unsigned level) { return level < 32 ? c->stack[level] : 0; }
 void pic18_set_pc(pic18_t *c, uint32_t pc) { c->pc = pc & 0x1FFFFE; }
-void pic18_set_irq_vector_cycles(pic18_t *c, unsigned n) { c->irq_vector_cycles = (uint8_t)n; }
+void pic18_set_timing(pic18_t *c, unsigned irq_vector_cycles, unsigned table_cycles)
+{
+    c->irq_vector_cycles = (uint8_t)irq_vector_cycles;
+    c->table_cycles = (uint8_t)table_cycles;
+}
 void pic18_set_eeprom(pic18_t *c, const uint8_t *data) { memcpy(c->eeprom, data, PIC18_EEPROM_N); }
 void pic18_set_idloc(pic18_t *c, const uint8_t *data) { memcpy(c->idloc, data, 8); }
 void pic18_shadow(const pic18_t *c, uint8_t out[3]) { out[0] = c->shadow_w; out[1] = c->shadow_status; out[2] = c->shadow_bsr; }

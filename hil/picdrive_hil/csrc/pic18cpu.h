@@ -94,6 +94,7 @@ typedef struct pic18 {
     uint8_t irq_vector_cycles; /* cycles from the interrupted boundary to the vector's first
                                   instruction: 2 (DS39616 Fig. 10-1 / DS39500 8.x: the
                                   instruction fetched is discarded, then the vector is fetched) */
+    uint8_t table_cycles;      /* TBLRD/TBLWT: 2 (Table 25-2) */
     uint8_t event;             /* something outside the straight-line path needs a look */
     uint32_t pcl_target;       /* a write to PCL: where the PC goes */
     uint32_t insn_pc;          /* byte address of the instruction being executed */
@@ -145,7 +146,7 @@ PIC18_API unsigned pic18_sizeof(void);
 PIC18_API void pic18_info(const pic18_t *c, uint64_t out[10]);
 PIC18_API uint32_t pic18_stack_entry(const pic18_t *c, unsigned level);
 PIC18_API void pic18_set_pc(pic18_t *c, uint32_t pc);
-PIC18_API void pic18_set_irq_vector_cycles(pic18_t *c, unsigned n);
+PIC18_API void pic18_set_timing(pic18_t *c, unsigned irq_vector_cycles, unsigned table_cycles);
 PIC18_API void pic18_set_eeprom(pic18_t *c, const uint8_t *data);
 PIC18_API void pic18_set_idloc(pic18_t *c, const uint8_t *data);
 PIC18_API void pic18_shadow(const pic18_t *c, uint8_t out[3]);
