@@ -45,6 +45,14 @@ REGS = {"WREG": 0xFE8, "STATUS": 0xFD8, "BSR": 0xFE0, "FSR0L": 0xFE9, "FSR0H": 0
         "STKPTR": 0xFFC, "TOSL": 0xFFD, "TOSH": 0xFFE, "TOSU": 0xFFF, "PCLATH": 0xFFA,
         "PCLATU": 0xFFB}
 RAM_END = 0x300
+# gpsim 0.31 departures that the compat build cannot model and the corpus therefore avoids:
+# BSF/BCF/BTG (and bit tests) through POSTINCn/POSTDECn/PREINCn/PLUSWn read the operand
+# register's own latch, not the target (BSF PREINC0,2 over 0xAA writes 0x04); INDFn is right.
+GPSIM_BIT_INDIRECT = "bit instructions through POSTINC/POSTDEC/PREINC/PLUSW"
+# TBLRD of configuration space reads 0xFF in gpsim (the chip reads the programmed CONFIG
+# bytes); TBLPTR+1 from 0x3FFFFF gives 0x400000 in gpsim (22 bits on the chip: 0x000000).
+# Both are covered by tests/test_pic18_iss.py against the data sheet instead.
+GPSIM_TABLE = "config-space table reads, the 22-bit TBLPTR wrap"
 
 
 class ToolMissing(RuntimeError):
@@ -384,6 +392,8 @@ def prog_indirect(n: int) -> Program:
         for form in forms:
             x = form.format(n=n)
             for op in ops:
+                if form != "INDF{n}" and op.split()[0] in ("bsf", "bcf", "btg", "btfss", "btfsc"):
+                    continue   # gpsim 0.31: see GPSIM_BIT_INDIRECT
                 for fsr, w in ((0x150, 0x05), (0x1FF, 0xFB), (0x100, 0x80), (0x0FF, 0x7F)):
                     s.append(f"    movlw 0x{fsr & 0xFF:02X}\n    movwf FSR{n}L, A\n    movlw 0x{fsr >> 8:02X}\n"
                              f"    movwf FSR{n}H, A\n    movlw 0x{w:02X}\n    movwf 0x31, A\n"
@@ -420,13 +430,7 @@ def prog_table_stack() -> Program:
     s.append("    movlw 0x10\n    movwf TBLPTRH, A\n    movlw 0xFD\n    movwf TBLPTRL, A\n")
     for _ in range(6):
         s.append("    tblrd*+\n    call check\n")
-    s.append("    movlw 0xFF\n    movwf TBLPTRL, A\n    movlw 0xFF\n    movwf TBLPTRH, A\n    movlw 0x3F\n"
-             "    movwf TBLPTRU, A\n    tblrd+*\n    call check\n")   # 22-bit wrap to 0x000000
-    # configuration bytes the HEX programs (0x300005/6, 0x300008-D)
-    s.append("    movlw 0x30\n    movwf TBLPTRU, A\n    clrf TBLPTRH, A\n    movlw 0x05\n    movwf TBLPTRL, A\n"
-             "    tblrd*+\n    call check\n    tblrd*+\n    call check\n    incf TBLPTRL, F, A\n")
-    for _ in range(6):
-        s.append("    tblrd*+\n    call check\n")
+    # not compared (gpsim departs, see GPSIM_TABLE): the 22-bit TBLPTR wrap, config-space reads
     s.append("    clrf TBLPTRU, A\n    movlw 0x55\n    movwf TABLAT, A\n    tblwt*+\n    tblwt*-\n    tblwt+*\n"
              "    tblwt*\n    call check\n")
     # PCL reads load PCLATH/PCLATU; computed goto through PCL
@@ -452,18 +456,18 @@ def prog_table_stack() -> Program:
             "    org 0x10F8\n    db 0x10, 0x11, 0x12, 0x13, 0x14, 0x15, 0x16, 0x17, 0x18, 0x19, 0x1A, 0x1B\n")
     # the computed goto above returns through 'return' in jtx: enter it with an rcall
     body = "".join(s).replace("    movwf PCL, A\n    nop\n", "    rcall pcl_go\n    nop\n")
-    tail += "pcl_go:\n    movwf PCL, A\n"
+    tail = "pcl_go:\n    movwf PCL, A\n" + tail
     return Program("table_stack", body, tail=tail)
 
 
 def prog_stack_limits(stvren: bool) -> Program:
     """The 31-level stack filled to overflow and underflowed (STVREN on: resets; off: flags)."""
     body = ("    btfsc 0x50, 0, A\n    bra second\n    bsf 0x50, 0, A\n"
-            "    movlw 0x28\n    movwf 0x51, A\n    rcall fill\n"
+            "    movlw 0x28\n    movwf 0x51, A\n    rcall stfill\n"
             "second:\n    call check\n    movf STKPTR, W, A\n    movwf 0x52, A\n    clrf STKPTR, A\n"
             "    call check\n    btfsc 0x50, 1, A\n    bra third\n    bsf 0x50, 1, A\n    return\n"
             "third:\n    call check\n    nop\n")
-    tail = "fill:\n    incf 0x53, F, A\n    decfsz 0x51, F, A\n    rcall fill\n    bra second\n"
+    tail = "stfill:\n    incf 0x53, F, A\n    decfsz 0x51, F, A\n    rcall stfill\n    bra second\n"
     return Program(f"stack_limits_{'on' if stvren else 'off'}", body, stvren=stvren, tail=tail)
 
 
@@ -740,6 +744,8 @@ def prog_random(seed: int, blocks: int = 60, length: int = 40, repeat: int = 6) 
             elif r < 0.62:
                 out.append(f"    {rng.choice(LIT)} 0x{rng.randrange(256):02X}\n")
             elif r < 0.72:
+                if "INC" in f or "DEC" in f or "PLUSW" in f:
+                    f = f"0x{rng.randrange(0x60):02X}"      # GPSIM_BIT_INDIRECT
                 out.append(f"    {rng.choice(('bsf', 'bcf', 'btg', 'btfsc', 'btfss'))} {f}, {rng.randrange(8)}, {a}\n")
             elif r < 0.80:
                 if rng.random() < 0.5:

@@ -203,6 +203,19 @@ static unsigned resolve(pic18_t *c, unsigned a)
     return is_indf(ea) ? A_NULL : ea;
 }
 
+/* the INDFn / PLUSWn address of an indirect operand without its FSR side effect */
+static unsigned resolve_nofx(pic18_t *c, unsigned a)
+{
+    unsigned n, k, ea;
+    if (a >= 0xFEB && a <= 0xFEF) { n = 0; k = 0xFEF - a; }
+    else if (a >= 0xFE3 && a <= 0xFE7) { n = 1; k = 0xFE7 - a; }
+    else if (a >= 0xFDB && a <= 0xFDF) { n = 2; k = 0xFDF - a; }
+    else return a;
+    ea = fsr_get(c, n);
+    if (k == 4) ea = (ea + (unsigned)(int8_t)c->ram[A_WREG]) & 0xFFF;
+    return is_indf(ea) ? A_NULL : ea;
+}
+
 static void stack_fault(pic18_t *c, int st);
 static void irq_recheck(pic18_t *c) { c->event |= EV_IRQ; }
 static int irq_related(unsigned a)
@@ -269,7 +282,14 @@ static void sfr_wr(pic18_t *c, unsigned a, uint8_t v, int alu)
     case A_TBLPTRH: c->tblptr = (c->tblptr & 0x3F00FF) | ((uint32_t)v << 8); return;
     case A_TBLPTRL: c->tblptr = (c->tblptr & 0x3FFF00) | v; return;
     case A_FSR0H: case A_FSR1H: case A_FSR2H: case A_BSR: c->ram[a] = v & 0x0F; return;
+#ifdef PIC18_GPSIM_COMPAT
+    /* gpsim 0.31 keeps STATUS bits 7-5 (unimplemented on the chip: read 0) and writes an
+     * instruction's result to STATUS before setting the flags it affects (the chip keeps
+     * all five flag bits from the result: DS39616 section 5.x) */
+    case A_STATUS: (void)alu; c->ram[a] = v; return;
+#else
     case A_STATUS: if (!alu) c->ram[a] = v & 0x1F; return;
+#endif
     case A_PCLATH: case A_TABLAT: case A_PRODH: case A_PRODL: case A_FSR0L: case A_WREG:
     case A_FSR1L: case A_FSR2L:
         c->ram[a] = v; return;
@@ -602,6 +622,13 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 
 /* EA: the operand's data address (banked through BSR); RESOLVE applies an INDF form once */
 #define EA() ((o->flags & F_BANKED) ? ((unsigned)(ram[A_BSR] << 8) | o->f) : o->f)
+#ifdef PIC18_GPSIM_COMPAT
+/* gpsim 0.31: ADDWF POSTINCn/POSTDECn/PREINCn, W reads INDFn and leaves the FSR */
+#define GPSIM_ADDWF_W_NOFX (!(o->flags & F_DEST))
+#else
+#define GPSIM_ADDWF_W_NOFX 0
+#endif
+#define RESOLVE_NOFX(a) do { if ((a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve_nofx(c, (a)); } while (0)
 #define RESOLVE(a) do { if ((a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve(c, (a)); } while (0)
 #define RD(a) ((a) < PIC18_RAM_END ? ram[a] : (c->pc = pc, sfr_rd(c, (a))))
 #define WR(a, v) do { if ((a) < PIC18_RAM_END) ram[a] = (uint8_t)(v); \
@@ -795,20 +822,21 @@ L_MULWF: {
     NEXT;
 }
 
-#define ARITH(label, expr_a, expr_b, cin, gsrc) \
-label: { unsigned a = EA(), f, r, x, y, ci, w0 = ram[A_WREG]; uint8_t st_; CYC(1); RESOLVE(a); f = RD(a); \
+#define ARITH(label, expr_a, expr_b, cin, gsrc, nofx) \
+label: { unsigned a = EA(), f, r, x, y, ci, w0 = ram[A_WREG]; uint8_t st_; CYC(1); \
+    if (nofx) { RESOLVE_NOFX(a); } else { RESOLVE(a); } f = RD(a); \
     (void)w0; \
     x = (expr_a); y = (expr_b); ci = (cin); r = x + y + ci; \
     DEST_ALU(a, r); st_ = flags_add(x, y, ci, r); \
     if ((gsrc) >= 0) { GPSIM_OV(st_, (unsigned)(gsrc), r); } SETF(0x1F, st_); NEXT; }
 #define GDST ((o->flags & F_DEST) ? (int)f : (int)w0)   /* the destination's old value */
-ARITH(L_ADDWF, ram[A_WREG], f, 0, GDST)
-ARITH(L_ADDWFC, ram[A_WREG], f, ram[A_STATUS] & S_C, (int)f)
-ARITH(L_INCF, f, 1, 0, ((o->flags & F_DEST) ? (int)f : 0))
-ARITH(L_DECF, f, 0xFF, 0, -1)
-ARITH(L_SUBWF, f, ~ram[A_WREG] & 0xFF, 1, -1)
-ARITH(L_SUBWFB, f, ~ram[A_WREG] & 0xFF, ram[A_STATUS] & S_C, -1)
-ARITH(L_SUBFWB, ram[A_WREG], ~f & 0xFF, ram[A_STATUS] & S_C, -1)
+ARITH(L_ADDWF, ram[A_WREG], f, 0, GDST, GPSIM_ADDWF_W_NOFX)
+ARITH(L_ADDWFC, ram[A_WREG], f, ram[A_STATUS] & S_C, (int)f, 0)
+ARITH(L_INCF, f, 1, 0, ((o->flags & F_DEST) ? (int)f : 0), 0)
+ARITH(L_DECF, f, 0xFF, 0, -1, 0)
+ARITH(L_SUBWF, f, ~ram[A_WREG] & 0xFF, 1, -1, 0)
+ARITH(L_SUBWFB, f, ~ram[A_WREG] & 0xFF, ram[A_STATUS] & S_C, -1, 0)
+ARITH(L_SUBFWB, ram[A_WREG], ~f & 0xFF, ram[A_STATUS] & S_C, -1, 0)
 
 #define LOGIC(label, expr) \
 label: { unsigned a = EA(), f; uint8_t r; CYC(1); RESOLVE(a); f = RD(a); r = (uint8_t)(expr); \
@@ -876,7 +904,12 @@ L_BTFSC: { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); if (!(f & (1u <<
 L_MOVFF: {
     unsigned s = o->f, d = o->x, v;
     RESOLVE(s);
-    v = RD(s);                 /* read in the first cycle */
+    {   /* read in the first cycle, while the PC addresses the second word (a PCL read) */
+        uint32_t pc2 = pc;
+        pc = c->insn_pc + 2;
+        v = RD(s);
+        pc = pc2;
+    }
     CYC(1);
     RESOLVE(d);
     WR(d, v);                  /* written in the second */
