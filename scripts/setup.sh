@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # Installs everything picdrive needs on a fresh Debian machine with Python 3.11:
-#   apt: gputils (Microchip's p18f4431.inc), gcc-avr + avr-libc (a 16-bit-int C
+#   apt: gputils (Microchip's p18f4431.inc; gpasm), gpsim (the PIC18 simulator test), gcc-avr + avr-libc (a 16-bit-int C
 #        compiler that catches XC8 integer-promotion bugs on the host), gcc
 #   pip: picdrive itself (editable) with its test dependencies
 # Safe to run again; it skips what is already there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-APT_PKGS="gputils gcc-avr avr-libc gcc make"
+APT_PKGS="gputils gpsim gcc-avr avr-libc gcc make"
 missing=""
 for p in $APT_PKGS; do dpkg -s "$p" >/dev/null 2>&1 || missing="$missing $p"; done
 if [ -n "$missing" ]; then

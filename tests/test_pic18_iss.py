@@ -25,7 +25,7 @@ from support import pic18diff as D
 def diff_results(tmp_path_factory):
     D.tools()   # gpasm and gpsim must be installed (scripts/setup.sh): a missing tool fails
     wd = tmp_path_factory.mktemp("pic18diff")
-    return [D.differential(p, wd) for p in D.corpus()]
+    return D.differential_many(D.corpus(), wd)
 
 
 def test_gpsim_agrees_at_every_checkpoint(diff_results):

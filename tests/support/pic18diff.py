@@ -246,14 +246,28 @@ def compare(iss: list[Checkpoint], gps: list[Checkpoint], limit: int = 20) -> li
 
 def differential(prog: Program, workdir: Path | None = None, *, lib=None) -> Result:
     """Assemble, run in both, compare."""
+    return differential_many([prog], workdir, lib=lib)[0]
+
+
+def differential_many(progs: list[Program], workdir: Path | None = None, *, lib=None,
+                      jobs: int = 2) -> list[Result]:
+    """`differential` for several programs; the gpsim runs go `jobs` at a time (the
+    simulator's side takes a fraction of a second per program)."""
+    from concurrent.futures import ThreadPoolExecutor
     own = workdir is None
     wd = Path(tempfile.mkdtemp(prefix="pic18diff-")) if own else Path(workdir)
     try:
-        hexp, cod = assemble(prog, wd)
-        iss, insns = run_iss(hexp, lib=lib)
-        limit = (iss[-1].cycles or 0) + 10_000 if iss else 10_000
-        gps = run_gpsim(cod, len(iss), limit)
-        return Result(prog.name, iss, gps, insns, compare(iss, gps))
+        runs = []
+        for prog in progs:
+            hexp, cod = assemble(prog, wd)
+            iss, insns = run_iss(hexp, lib=lib)
+            limit = (iss[-1].cycles or 0) + 10_000 if iss else 10_000
+            runs.append((prog, iss, insns, cod, limit))
+        with ThreadPoolExecutor(max_workers=jobs) as ex:
+            futs = [ex.submit(run_gpsim, cod, len(iss), limit) for _, iss, _, cod, limit in runs]
+            gps = [f.result() for f in futs]
+        return [Result(prog.name, iss, g, insns, compare(iss, g))
+                for (prog, iss, insns, _, _), g in zip(runs, gps)]
     finally:
         if own:
             shutil.rmtree(wd, ignore_errors=True)

@@ -614,6 +614,10 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
     uint32_t pc;
     uint64_t cyc_end = (max_cycles > UINT64_MAX - c->cycles) ? UINT64_MAX : c->cycles + max_cycles;
     uint64_t ins_end = (max_insns > UINT64_MAX - c->insns) ? UINT64_MAX : c->insns + max_insns;
+    /* the hot counters live in locals; SYNC() publishes them before anything that may read
+     * them (a peripheral hook, the stack, the interrupt logic) */
+    uint64_t cyc = c->cycles, ins = c->insns;
+    uint32_t ipc = c->insn_pc;
     int first = 1;
 
     if (PIC18_FATAL(c->status)) return c->status;
@@ -630,15 +634,16 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 #endif
 #define RESOLVE_NOFX(a) do { if ((a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve_nofx(c, (a)); } while (0)
 #define RESOLVE(a) do { if ((a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve(c, (a)); } while (0)
-#define RD(a) ((a) < PIC18_RAM_END ? ram[a] : (c->pc = pc, sfr_rd(c, (a))))
+#define SYNC() (c->pc = pc, c->cycles = cyc, c->insn_pc = ipc)
+#define RD(a) ((a) < PIC18_RAM_END ? ram[a] : (SYNC(), sfr_rd(c, (a))))
 #define WR(a, v) do { if ((a) < PIC18_RAM_END) ram[a] = (uint8_t)(v); \
-                      else { c->pc = pc; sfr_wr(c, (a), (uint8_t)(v), 0); } } while (0)
+                      else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 0); } } while (0)
 #define WR_ALU(a, v) do { if ((a) < PIC18_RAM_END) ram[a] = (uint8_t)(v); \
-                      else { c->pc = pc; sfr_wr(c, (a), (uint8_t)(v), 1); } } while (0)
+                      else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 1); } } while (0)
 #define DEST_ALU(a, v) do { if (o->flags & F_DEST) WR_ALU(a, v); else ram[A_WREG] = (uint8_t)(v); } while (0)
 #define DEST(a, v) do { if (o->flags & F_DEST) WR(a, v); else ram[A_WREG] = (uint8_t)(v); } while (0)
 #define SETF(mask, s) (ram[A_STATUS] = (uint8_t)((ram[A_STATUS] & ~(mask)) | (s)))
-#define CYC(n) (c->cycles += (n))
+#define CYC(n) (cyc += (n))
 #define JUMP(t) do { pc = (t) & 0x1FFFFE; if (pc >= PIC18_FLASH_BYTES) goto pc_fault_jump; } while (0)
 #define SKIP() do { unsigned n2 = (c->op[pc >> 1].flags & F_2WORD) ? 4 : 2; pc += n2; CYC(n2 / 2); } while (0)
 #define NEXT goto next
@@ -646,7 +651,8 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
     pc = c->pc;
 next:
     if (c->event) {
-        c->pc = pc;
+        SYNC();
+        c->insns = ins;
         if (c->event & EV_PCL) {              /* an instruction wrote PCL: 2 cycles, PC from PCLATU:PCLATH:PCL */
             c->event &= (uint8_t)~EV_PCL;
             CYC(1);
@@ -667,33 +673,35 @@ next:
             c->event &= (uint8_t)~EV_IRQ;
             if (irq_check(c)) {
                 pc = c->pc;
+                cyc = c->cycles;
+                ipc = c->insn_pc;
                 goto next;
             }
             if (c->sleeping) { c->status = PIC18_SLEEP; c->event |= EV_IRQ; goto out; }
         }
     }
-    if (c->cycles >= cyc_end || c->insns >= ins_end) goto out;
-    if (!first) {
+    if (cyc >= cyc_end || ins >= ins_end) goto out;
+    if (nbp && !first) {
         for (int k = 0; k < nbp; k++)
             if (pc == bps[k]) { c->status = PIC18_BREAK; goto out; }
     }
     first = 0;
     o = &c->op[pc >> 1];
-    c->insn_pc = pc;
+    ipc = pc;
     pc += (o->flags & F_2WORD) ? 4 : 2;
-    c->insns++;
+    ins++;
     goto *disp[o->code];
 
 L_ILL:
-    pc = c->insn_pc;
+    pc = ipc;
     c->status = PIC18_FAULT_ILLEGAL;
     c->fault_pc = pc;
     c->fault_word = flash_word(c, pc >> 1);
-    c->insns--;
+    ins--;
     goto out;
 L_PCFAULT:
-    pc = c->insn_pc;
-    c->insns--;
+    pc = ipc;
+    ins--;
     c->status = PIC18_FAULT_PC;
     c->fault_pc = pc;
     c->fault_word = 0xFFFF;
@@ -715,8 +723,8 @@ L_CLRWDT:
     CYC(1);
     if (!c->owned[A_RCON & 0xFF]) ram[A_RCON] |= 0x0C;
     NEXT;
-L_PUSH: CYC(1); push(c, pc); NEXT;
-L_POP: CYC(1); pop(c); NEXT;
+L_PUSH: CYC(1); SYNC(); push(c, pc); NEXT;
+L_POP: CYC(1); SYNC(); pop(c); NEXT;
 L_DAW: {
     /* DS39616: low nibble +6 if > 9 or DC; high nibble +6 if > 9 or C, and then C = 1.  A carry out
      * of the low adjust (W = 0xFA-0xFF) sets C and leaves the high nibble as carried (W<7:4> is
@@ -747,6 +755,7 @@ L_TBLWT:
 L_RETFIE: {
     uint32_t t;
     CYC(2);
+    SYNC();
     t = pop(c);
     if (o->f) { ram[A_WREG] = c->shadow_w; ram[A_STATUS] = c->shadow_status; ram[A_BSR] = c->shadow_bsr; }
     {
@@ -764,6 +773,7 @@ L_RETFIE: {
 L_RETURN: {
     uint32_t t;
     CYC(2);
+    SYNC();
     t = pop(c);
     if (o->f) { ram[A_WREG] = c->shadow_w; ram[A_STATUS] = c->shadow_status; ram[A_BSR] = c->shadow_bsr; }
     JUMP(t);
@@ -771,10 +781,11 @@ L_RETURN: {
 }
 L_RESET:
     CYC(1);
+    SYNC();
     do_reset(c, 0);
     if (!c->owned[A_RCON & 0xFF]) ram[A_RCON] &= (uint8_t)~0x10;   /* RI = 0 */
     c->status = PIC18_RESET_INSN;
-    c->fault_pc = c->insn_pc;
+    c->fault_pc = ipc;
     c->fault_word = 0x00FF;
     pc = 0;
     goto out;
@@ -793,6 +804,7 @@ L_RETLW: {
     uint32_t t;
     CYC(2);
     ram[A_WREG] = (uint8_t)o->f;
+    SYNC();
     t = pop(c);
     JUMP(t);
     NEXT;
@@ -906,7 +918,7 @@ L_MOVFF: {
     RESOLVE(s);
     {   /* read in the first cycle, while the PC addresses the second word (a PCL read) */
         uint32_t pc2 = pc;
-        pc = c->insn_pc + 2;
+        pc = ipc + 2;
         v = RD(s);
         pc = pc2;
     }
@@ -920,6 +932,7 @@ L_BRA: CYC(2); JUMP(pc + 2 * o->x); NEXT;
 L_RCALL: {
     uint32_t ret = pc;
     CYC(2);
+    SYNC();
     push(c, ret);
     JUMP(ret + 2 * o->x);
     NEXT;
@@ -931,6 +944,7 @@ L_BCOND:
 L_CALL:
     CYC(2);
     if (o->f) { c->shadow_w = ram[A_WREG]; c->shadow_status = ram[A_STATUS]; c->shadow_bsr = ram[A_BSR]; }
+    SYNC();
     push(c, pc);
     JUMP(o->x);
     NEXT;
@@ -939,6 +953,9 @@ L_GOTO: CYC(2); JUMP(o->x); NEXT;
 
 out:
     c->pc = pc;
+    c->cycles = cyc;
+    c->insns = ins;
+    c->insn_pc = ipc;
     return c->status;
 }
 
