@@ -57,7 +57,7 @@ def _cpu(words, config=None):
 
 def test_flag_mutation_is_caught(tmp_path):
     """The differential test sees a wrong flag: a core built with DC of additions inverted
-    disagrees with gpsim on the ALU corpus."""
+    disagrees with gpsim on the compiled-arithmetic program."""
     from picdrive_hil import build
     src = (build.CSRC / "pic18cpu.c").read_text()
     bad = src.replace("if (((a & 0xF) + (b & 0xF) + cin) & 0x10) s |= S_DC;",
@@ -71,7 +71,7 @@ def test_flag_mutation_is_caught(tmp_path):
                                            build.twin_cflags() + ("-DPIC18_GPSIM_COMPAT",),
                                            (mdir / "pic18cpu.h",))], name="libpic18mut")
     (tmp_path / "w").mkdir()
-    res = D.differential(D.prog_literal(), tmp_path / "w", lib=lib)
+    res = D.differential(D.prog_arith(iterations=20), tmp_path / "w", lib=lib)
     assert res.diffs, "a broken DC computation went unnoticed"
 
 
