@@ -75,6 +75,13 @@ def test_flag_mutation_is_caught(tmp_path):
     assert res.diffs, "a broken DC computation went unnoticed"
 
 
+def test_run_limits():
+    c = _cpu([0x0000] * 8 + [0xD7F7])                # 8 nops ; bra 0 (2 cycles)
+    assert c.run_to_cycle(5) == "ok" and c.cycles == 5 and c.pc == 10
+    assert c.run(until=0x10) == "break" and c.pc == 0x10 and c.cycles == 8
+    assert c.step(2) == "ok" and c.pc == 0x02 and c.insns == 10
+
+
 def test_default_timing_is_the_datasheets():
     # TBLRD*+ is 2 cycles (Table 25-2), MOVFF 2, a skip over a 2-word instruction 3
     c = _cpu([0x0009, 0x0000])                       # tblrd*+ ; nop

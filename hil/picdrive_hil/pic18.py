@@ -189,6 +189,11 @@ class Pic18:
     def step(self, n: int = 1) -> str:
         return self.run(insns=n)
 
+    def run_to_cycle(self, cycle: int, until: int | Iterable[int] | None = None) -> str:
+        """Run until the cycle counter reaches `cycle` (absolute; the instruction that crosses
+        it completes), PC in `until`, or a stop."""
+        return self.run(cycles=max(0, cycle - self.cycles), until=until)
+
     def set_irq(self, high: bool = False, low: bool = False) -> None:
         """The interrupt-request lines a peripheral model drives (switches off the built-in
         INTCON/PIR evaluation, which only the model-less core uses)."""

@@ -216,7 +216,7 @@ static unsigned resolve_nofx(pic18_t *c, unsigned a)
     return is_indf(ea) ? A_NULL : ea;
 }
 
-static void stack_fault(pic18_t *c, int st);
+static void stack_fault(pic18_t *c, int st, uint32_t ipc);
 static void irq_recheck(pic18_t *c) { c->event |= EV_IRQ; }
 static int irq_related(unsigned a)
 {
@@ -308,12 +308,12 @@ static void do_reset(pic18_t *c, int por);
 
 /* A stack fault stops the core after the instruction (EV_STOP) and, with STVREN,
  * resets it there (EV_RESET); the instruction itself completes as the datasheet says. */
-static void push(pic18_t *c, uint32_t v)
+static inline void push(pic18_t *c, uint32_t v, uint32_t ipc)
 {
     unsigned sp = sp_of(c);
     if (sp >= PIC18_STACK_LEVELS) {          /* full: further pushes are lost */
         c->stkptr |= STKFUL;
-        stack_fault(c, PIC18_STACK_OVERFLOW);
+        stack_fault(c, PIC18_STACK_OVERFLOW, ipc);
         return;
     }
     sp++;
@@ -322,16 +322,16 @@ static void push(pic18_t *c, uint32_t v)
     if (sp > c->stack_high) c->stack_high = (uint8_t)sp;
     if (sp == PIC18_STACK_LEVELS) {          /* the 31st push sets STKFUL (section 5.1.2.4) */
         c->stkptr |= STKFUL;
-        stack_fault(c, PIC18_STACK_OVERFLOW);
+        stack_fault(c, PIC18_STACK_OVERFLOW, ipc);
     }
 }
 
-static uint32_t pop(pic18_t *c)
+static inline uint32_t pop(pic18_t *c, uint32_t ipc)
 {
     unsigned sp = sp_of(c);
     if (sp == 0) {                           /* underflow: 0 to the PC, STKUNF */
         c->stkptr |= STKUNF;
-        stack_fault(c, PIC18_STACK_UNDERFLOW);
+        stack_fault(c, PIC18_STACK_UNDERFLOW, ipc);
         return 0;
     }
     uint32_t v = c->stack[sp];
@@ -341,8 +341,9 @@ static uint32_t pop(pic18_t *c)
 
 static int stvren(const pic18_t *c) { return c->config[6] & 1; }   /* CONFIG4L bit 0 */
 
-static void stack_fault(pic18_t *c, int st)
+static void stack_fault(pic18_t *c, int st, uint32_t ipc)
 {
+    c->insn_pc = ipc;
     c->status = st;
     c->fault_pc = c->insn_pc;
     c->fault_word = (uint16_t)(c->insn_pc < PIC18_FLASH_BYTES ? flash_word(c, c->insn_pc >> 1) : 0xFFFF);
@@ -537,7 +538,7 @@ static int irq_check(pic18_t *c)
     c->shadow_status = c->ram[A_STATUS];
     c->shadow_bsr = c->ram[A_BSR];
     c->insn_pc = c->pc;
-    push(c, c->pc);
+    push(c, c->pc, c->pc);
     c->pc = vec;
     c->cycles += c->irq_vector_cycles;
     return 1;
@@ -723,8 +724,8 @@ L_CLRWDT:
     CYC(1);
     if (!c->owned[A_RCON & 0xFF]) ram[A_RCON] |= 0x0C;
     NEXT;
-L_PUSH: CYC(1); SYNC(); push(c, pc); NEXT;
-L_POP: CYC(1); SYNC(); pop(c); NEXT;
+L_PUSH: CYC(1); push(c, pc, ipc); NEXT;
+L_POP: CYC(1); pop(c, ipc); NEXT;
 L_DAW: {
     /* DS39616: low nibble +6 if > 9 or DC; high nibble +6 if > 9 or C, and then C = 1.  A carry out
      * of the low adjust (W = 0xFA-0xFF) sets C and leaves the high nibble as carried (W<7:4> is
@@ -756,7 +757,7 @@ L_RETFIE: {
     uint32_t t;
     CYC(2);
     SYNC();
-    t = pop(c);
+    t = pop(c, ipc);
     if (o->f) { ram[A_WREG] = c->shadow_w; ram[A_STATUS] = c->shadow_status; ram[A_BSR] = c->shadow_bsr; }
     {
         /* sets GIEH, or GIEL when GIEH is already set (a low-priority return) */
@@ -773,8 +774,7 @@ L_RETFIE: {
 L_RETURN: {
     uint32_t t;
     CYC(2);
-    SYNC();
-    t = pop(c);
+    t = pop(c, ipc);
     if (o->f) { ram[A_WREG] = c->shadow_w; ram[A_STATUS] = c->shadow_status; ram[A_BSR] = c->shadow_bsr; }
     JUMP(t);
     NEXT;
@@ -804,8 +804,7 @@ L_RETLW: {
     uint32_t t;
     CYC(2);
     ram[A_WREG] = (uint8_t)o->f;
-    SYNC();
-    t = pop(c);
+    t = pop(c, ipc);
     JUMP(t);
     NEXT;
 }
@@ -932,8 +931,7 @@ L_BRA: CYC(2); JUMP(pc + 2 * o->x); NEXT;
 L_RCALL: {
     uint32_t ret = pc;
     CYC(2);
-    SYNC();
-    push(c, ret);
+    push(c, ret, ipc);
     JUMP(ret + 2 * o->x);
     NEXT;
 }
@@ -944,8 +942,7 @@ L_BCOND:
 L_CALL:
     CYC(2);
     if (o->f) { c->shadow_w = ram[A_WREG]; c->shadow_status = ram[A_STATUS]; c->shadow_bsr = ram[A_BSR]; }
-    SYNC();
-    push(c, pc);
+    push(c, pc, ipc);
     JUMP(o->x);
     NEXT;
 L_LFSR: CYC(2); fsr_set(c, o->f, o->x); NEXT;
