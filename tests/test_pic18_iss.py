@@ -82,6 +82,39 @@ def test_run_limits():
     assert c.step(2) == "ok" and c.pc == 0x02 and c.insns == 10
 
 
+def test_peripheral_hooks_and_irq_lines():
+    """The API the twin's peripheral model will use: SFR reads/writes at their cycle, the
+    core's registers stay the core's, request lines gated by GIEH."""
+    # 0x00 goto 0x20 | 0x08: incf 0x10 ; retfie | 0x20: movlw 0x5A ; movwf PORTB ; movf PORTA,W ;
+    # movwf 0x11 ; bsf INTCON,GIEH ; movff PORTB, 0x12 ; nop ; nop
+    words = ([0xEF10, 0xF000, 0xFFFF, 0xFFFF, 0x2A10, 0x0010] + [0x0000] * 10 +
+             [0x0E5A, 0x6E81, 0x5080, 0x6E11, 0x8EF2, 0xCF81, 0xF012, 0x0000, 0x0000])
+    c = _cpu(words)
+    log = []
+    intcon = {"v": 0x33}
+
+    def rd(a):
+        log.append(("r", a, c.cycles))
+        return 0xA7 if a == 0xF80 else intcon["v"] if a == 0xFF2 else 0x33
+
+    c.attach(rd, lambda a, v: log.append(("w", a, v, c.cycles)), owned={0xF80, 0xF81, 0xFF2})
+    c.run(insns=7)
+    # a hook sees the cycle count at the end of the cycle of the access: goto 0-1, movlw 2,
+    # movwf PORTB 3 (-> 4), movf PORTA 4 (-> 5), movwf 5, bsf INTCON 6 (-> 7), movff 7-8
+    assert ("w", 0xF81, 0x5A, 4) in log
+    assert ("r", 0xF80, 5) in log and c.read(0x11) == 0xA7
+    assert ("r", 0xFF2, 7) in log and ("w", 0xFF2, 0xB3, 7) in log   # BSF: read-modify-write
+    assert ("r", 0xF81, 8) in log and c.read(0x12) == 0x33   # MOVFF reads in its first cycle
+    c.set_irq(high=True)          # the model's INTCON still reads GIEH = 0: no entry
+    c.run(insns=1)
+    assert c.read(0x10) == 0 and c.pc == 0x30 and c.cycles == 10
+    intcon["v"] = 0x80            # GIEH set in the model
+    c.set_irq(high=True)
+    c.run(insns=1)                # vectoring (2 cycles), then incf 0x10 at 0x0008
+    assert c.read(0x10) == 1 and c.pc == 0x0A and c.cycles == 13
+    assert ("w", 0xFF2, 0x00, 10) in log and c.stack() == [0x30]   # GIEH cleared through the model
+
+
 def test_default_timing_is_the_datasheets():
     # TBLRD*+ is 2 cycles (Table 25-2), MOVFF 2, a skip over a 2-word instruction 3
     c = _cpu([0x0009, 0x0000])                       # tblrd*+ ; nop

@@ -81,6 +81,10 @@ def library(gpsim_compat: bool = False) -> Path:
     return build.build_library([g], name="libpic18gpsim" if gpsim_compat else "libpic18")
 
 
+SFR_READ_FN = C.CFUNCTYPE(C.c_uint8, C.c_void_p, C.c_uint16)
+SFR_WRITE_FN = C.CFUNCTYPE(None, C.c_void_p, C.c_uint16, C.c_uint8)
+
+
 def _bind(lib: C.CDLL) -> C.CDLL:
     P, u8p = C.c_void_p, C.POINTER(C.c_uint8)
     sig = {
@@ -104,6 +108,7 @@ def _bind(lib: C.CDLL) -> C.CDLL:
         "pic18_snapshot": (None, [P, u8p]),
         "pic18_flash_erase_row": (None, [P, C.c_uint32]),
         "pic18_flash_write_block": (None, [P, C.c_uint32]),
+        "pic18_attach": (None, [P, P, SFR_READ_FN, SFR_WRITE_FN, u8p]),
     }
     for name, (res, args) in sig.items():
         f = getattr(lib, name)
@@ -193,6 +198,20 @@ class Pic18:
         """Run until the cycle counter reaches `cycle` (absolute; the instruction that crosses
         it completes), PC in `until`, or a stop."""
         return self.run(cycles=max(0, cycle - self.cycles), until=until)
+
+    def attach(self, read, write, owned: Iterable[int]) -> None:
+        """A peripheral model in Python (tests; the twin's model attaches in C): `read(addr)`
+        -> byte and `write(addr, value)` are called for the SFRs in `owned` (0xF60-0xFFF) at
+        the cycle of the access (`self.cycles` inside the call); interrupts then come only
+        from set_irq()."""
+        mask = bytearray(256)
+        for a in owned:
+            if not 0xF60 <= a <= 0xFFF:
+                raise ValueError(f"SFR address 0x{a:03X} outside 0xF60-0xFFF")
+            mask[a & 0xFF] = 1
+        self._cb = (SFR_READ_FN(lambda ctx, a: read(a) & 0xFF),
+                    SFR_WRITE_FN(lambda ctx, a, v: write(a, v)))   # kept alive with the core
+        self._lib.pic18_attach(self._p, None, self._cb[0], self._cb[1], _u8(mask))
 
     def set_irq(self, high: bool = False, low: bool = False) -> None:
         """The interrupt-request lines a peripheral model drives (switches off the built-in

@@ -915,6 +915,7 @@ L_BTFSC: { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); if (!(f & (1u <<
 L_MOVFF: {
     unsigned s = o->f, d = o->x, v;
     RESOLVE(s);
+    CYC(1);
     {   /* read in the first cycle, while the PC addresses the second word (a PCL read) */
         uint32_t pc2 = pc;
         pc = ipc + 2;
@@ -924,7 +925,6 @@ L_MOVFF: {
     CYC(1);
     RESOLVE(d);
     WR(d, v);                  /* written in the second */
-    CYC(1);
     NEXT;
 }
 L_BRA: CYC(2); JUMP(pc + 2 * o->x); NEXT;

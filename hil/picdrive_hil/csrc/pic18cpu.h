@@ -14,7 +14,9 @@
  * register array (no peripheral model attached: the differential tests) or
  * belongs to a peripheral model (pic18_attach): the core then calls the
  * model's read/write hook at the instruction cycle the access happens
- * (pic18_t.cycles = that cycle when the hook runs) and takes interrupt
+ * (pic18_t.cycles = the count at the end of that cycle when the hook runs: an
+ * instruction starting at cycle n accesses in cycle n, the hook sees n + 1; MOVFF
+ * reads in its first cycle, n + 1, and writes in its second, n + 2) and takes interrupt
  * requests from the lines the model drives (pic18_set_irq).
  *
  * Time: pic18_t.cycles counts instruction cycles (Tcy = 4 Tosc) since power-on;
