@@ -647,7 +647,12 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 #define CYC(n) (cyc += (n))
 #define JUMP(t) do { pc = (t) & 0x1FFFFE; if (pc >= PIC18_FLASH_BYTES) goto pc_fault_jump; } while (0)
 #define SKIP() do { unsigned n2 = (c->op[pc >> 1].flags & F_2WORD) ? 4 : 2; pc += n2; CYC(n2 / 2); } while (0)
-#define NEXT goto next
+/* threaded dispatch: each handler ends with its own indirect jump (better predicted than one
+ * shared jump); anything unusual (an event, a limit, breakpoints) goes through `next` */
+#define NEXT do { \
+        if (__builtin_expect(c->event != 0, 0) || cyc >= cyc_end || ins >= ins_end || nbp) goto next; \
+        o = &c->op[pc >> 1]; ipc = pc; pc += (o->flags & F_2WORD) ? 4 : 2; ins++; \
+        goto *disp[o->code]; } while (0)
 
     pc = c->pc;
 next:
