@@ -89,7 +89,8 @@ def test_handshake_names_build_protocol_and_profile(board, tmp_path):
     c.connect()
     try:
         text = "\n".join(c.lines)
-        assert f"firmware build 0x{c.link.info.build_id:08x}, protocol 1.0" in text
+        major, minor = P.PROTOCOL_VERSION
+        assert f"firmware build 0x{c.link.info.build_id:08x}, protocol {major}.{minor}" in text
         assert f"profile hash 0x{profile_hash32(PROFILE):08x}" in text
         assert "profile: duy2008 (bundled profile with this hash)" in text
     finally:
