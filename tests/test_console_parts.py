@@ -56,9 +56,10 @@ def test_recorder_abort_leaves_nothing(tmp_path):
     ("run.txt", SIGS, 100.0, "must end in .csv"),
     ("run.csv", [], 100.0, "no telemetry signals"),
     ("run.csv", SIGS, 0.0, "not a positive number"),
-    ("nofolder/run.csv", SIGS, 100.0, "does not exist"),
+    ("afile/run.csv", SIGS, 100.0, "is a file, not a folder"),
 ])
 def test_recorder_rejects_bad_requests(tmp_path, path, sigs, rate, msg):
+    (tmp_path / "afile").write_text("x")
     with pytest.raises(RecordError, match=msg):
         Recorder(tmp_path / path, sigs, rate)
 
