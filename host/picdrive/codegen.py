@@ -43,8 +43,9 @@ __all__ = ["CodegenError", "Firmware", "generate", "write_firmware", "build_chec
 
 HOST_SOURCES = ("drive.c", "drive_core.c", "link_fw.c")
 XC8_ONLY_SOURCES = ("main_xc8.c", "config_xc8.c")
+SDCC_ONLY_SOURCES = ("main_sdcc.c",)
 TEMPLATES = ("drive_params.h", "drive_core.h", "drive_core.c", "drive.h", "drive.c", "fw_port.h",
-             "main_xc8.c", "config_xc8.c")
+             "main_xc8.c", "config_xc8.c", "main_sdcc.c")
 HOST_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-Wconversion")
 FOSC_HZ = 40_000_000
 CAPTURE_BYTES = 128
