@@ -388,7 +388,9 @@ def _run(cmd, cwd, what):
     r = subprocess.run([str(c) for c in cmd], cwd=cwd, capture_output=True, text=True)
     if r.returncode != 0:
         err = "\n".join(l for l in (r.stdout + r.stderr).splitlines() if "1301" not in l and l.strip())
-        raise TargetError(f"{what} failed:\n{err.strip()}")
+        lines = err.strip().splitlines()
+        more = f"\n... ({len(lines) - 20} more lines)" if len(lines) > 20 else ""
+        raise TargetError(f"{what} failed:\n" + "\n".join(lines[:20]) + more)
     return r
 
 
@@ -428,13 +430,14 @@ def _vector_target(mem, addr, addr_name) -> str | None:
 
 
 def build_hex(folder, out_dir, *, name: str = "firmware", linker_script=None, sources=TARGET_SOURCES,
-              extra_c: dict | None = None) -> Build:
+              extra_c: dict | None = None, device: tuple[str, str] | None = None) -> Build:
     """Compile and link a generated firmware folder for the PIC18F4431; returns the ``Build``.
 
     ``out_dir`` receives the objects, ``<name>.hex``, ``.map`` and ``.cod``.
     ``linker_script`` replaces gputils' 18f4431_g.lkr (measurement builds
     only: a bigger memory for a firmware that does not fit, or a timing build).
-    ``extra_c`` adds C files ({file name: text}) to the build (a harness).
+    ``extra_c`` adds C files ({file name: text}) to the build (a harness);
+    ``device`` replaces the rendered (xc.h, xc_sfr.c) (picdrive.gpsim's timing build).
     """
     from .p18f4431 import render_sdcc_device
     tc = toolchain()
@@ -450,7 +453,7 @@ def build_hex(folder, out_dir, *, name: str = "firmware", linker_script=None, so
     for p in folder.iterdir():
         if p.is_file() and p.suffix in (".c", ".h"):
             shutil.copyfile(p, work / p.name)
-    hdr, sfr = render_sdcc_device()
+    hdr, sfr = device or render_sdcc_device()
     (work / "xc.h").write_text(hdr)
     (work / "xc_sfr.c").write_text(sfr)
     for fn, text in (extra_c or {}).items():
