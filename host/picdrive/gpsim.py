@@ -48,6 +48,7 @@ HARNESS_INPUTS = ("INTCON", "INTCON2", "INTCON3", "PIR1", "PIR2", "PIR3", "PIE1"
 INPUT_BASE = 0x040           # access RAM the inputs move to (0x040-0x05F)
 RESULT_ADDR = 0xB00          # uint16 results, up to 0xEFF
 MAX_RESULTS = 512
+TX_BYTES_PER_MS = 11         # 115200 baud, 10 bits a byte
 
 
 class GpsimError(PicdriveError):
@@ -134,7 +135,7 @@ class Cycles:
     """Worst-case cycles (interrupt entry included) and every sample, by what was measured."""
 
     worst: dict          # key -> cycles
-    samples: dict        # key -> list of cycles
+    samples: dict        # key -> how many calls were measured
 
     def fraction(self, key: str, period_cycles: int) -> float:
         return self.worst[key] / period_cycles
@@ -163,70 +164,139 @@ def _frames(table=None) -> dict[str, list[bytes]]:
     }
 
 
-def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: int) -> tuple[str, list[str]]:
-    """The timing harness's main(): returns (C text, result slot keys in order)."""
+OP_END, OP_RX, OP_POLL, OP_TX, OP_ADC, OP_SPEED, OP_HALL, OP_NOP = range(8)
+
+
+def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: int) -> tuple[str, list[str], dict]:
+    """The timing harness: a step table and the main() that runs it.
+
+    Returns (C text, result slot keys in order, {key: calls measured}).  The
+    steps are data (a const table walked by a small loop): SDCC takes minutes
+    on one long straight-line function.  Each measured step is
+    ``TMR1 = 0; CALL handler; read TMR1`` and the chip keeps each key's worst.
+    """
     keys: list[str] = []
-    body: list[str] = []
+    counts: dict[str, int] = {}
+    steps: list[int] = []
 
-    def slot(key):
-        keys.append(key)
+    def key(k):
+        if k not in keys:
+            keys.append(k)
         if len(keys) > MAX_RESULTS:
-            raise GpsimError("timing corpus too long")
-        return len(keys) - 1
+            raise GpsimError("timing corpus has too many keys")
+        counts[k] = counts.get(k, 0) + 1
+        return keys.index(k)
 
-    def measure(key, stmt):
-        body.append(f"    TMR1H = 0; TMR1L = 0; {stmt} lo = TMR1L; hi = TMR1H; "
-                    f"res[{slot(key)}] = ((uint16_t)hi << 8) | lo;")
+    def drain(n):
+        # the UART sends a byte every ~870 cycles at 115200 baud: n transmit interrupts
+        steps.extend([OP_TX, n, key("uart_tx_byte")])
+        counts["uart_tx_byte"] += n - 1
 
-    measure("overhead", "")
-    body.append("    fw_init();")
+    steps.extend([OP_NOP, 0, key("overhead")])
     for what, arg in cases:
         if what == "frame":
-            name, arg = arg
-            for b in arg:
-                body.append(f"    RCREG = 0x{b:02X}; PIR1 |= 0x20u;")
-                measure("uart_rx_byte", "CALL_ISR_HIGH();")
-            body.append("    PIR1 &= (uint8_t)~0x20u;")
-            measure("link_poll_frame:" + name, "fw_poll();")
-            measure("link_poll", "fw_poll();")
+            name, data = arg
+            for b in data:
+                steps.extend([OP_RX, b, key("uart_rx_byte")])
+            drain(TX_BYTES_PER_MS * 4)
+            steps.extend([OP_POLL, 0, key("link_poll_frame:" + name), OP_POLL, 0, key("link_poll")])
         elif what == "speed":
             label, adc, n = arg
-            body.append(f"    ADRESH = 0x{adc >> 8:02X}; ADRESL = 0x{adc & 0xFF:02X};")
+            steps.extend([OP_ADC, adc >> 8, adc & 0xFF])
             for _ in range(n):
-                body.append("    PIR1 |= 0x02u;")
-                measure("speed_loop_isr:" + label, "CALL_ISR_LOW();")
-                body.append("    PIR1 |= 0x10u; TXSTA |= 0x02u;")
-                measure("link_poll", "fw_poll();")
+                steps.extend([OP_SPEED, 0, key("speed_loop_isr:" + label), OP_POLL, 0, key("link_poll")])
+                drain(TX_BYTES_PER_MS)
         elif what == "hall":
             for c in hall_codes:
-                body.append(f"    PORTC = 0x{(c << hall_shift) & 0xFF:02X}; INTCON |= 0x02u; INTCON3 |= 0x03u; "
-                            " PIR3 = 0x0E; "
-                            "TMR5L = (uint8_t)(TMR5L + 0x37); TMR5H = (uint8_t)(TMR5H + 0x13);")
-                measure("hall_isr", "CALL_ISR_HIGH();")
-    body = [ln.replace("CALL_ISR_HIGH();", "\n    __asm\n    CALL _isr_high\n    __endasm;\n   ")
-            .replace("CALL_ISR_LOW();", "\n    __asm\n    CALL _isr_low\n    __endasm;\n   ") for ln in body]
-    text = "\n".join([
-        "/* timing harness (picdrive.gpsim): GENERATED, measurement build only */",
-        "#include <stdint.h>",
-        "/* the registers by symbol (xc_sfr.c places them): no xc.h, whose __at declarations SDCC would",
-        " * re-emit as absolute sections in a module with main() */",
-        *[f"extern volatile uint8_t {r};" for r in ("TMR1L", "TMR1H", "T1CON", "PIR1", "PIR3", "TXSTA", "RCREG",
-                                                     "INTCON", "INTCON3", "PORTC", "ADRESH", "ADRESL",
-                                                     "TMR5L", "TMR5H")],
-        '#include "drive.h"',
-        f"__at(0x{RESULT_ADDR:03X}) volatile uint16_t res[{MAX_RESULTS}];",
-        "static volatile uint8_t lo, hi;",
-        "void harness_done(void) { for (;;) { } }",
-        "void main(void)",
-        "{",
-        "    __asm\n    extern _isr_high\n    extern _isr_low\n    __endasm;",
-        "    T1CON = 0x81;   /* RD16, internal Fosc/4, 1:1, on */",
-        "    TXSTA |= 0x02u; PIR1 |= 0x10u;",
-        *body,
-        "    harness_done();",
-        "}",
-        ""])
-    return text, keys
+                steps.extend([OP_HALL, (c << hall_shift) & 0xFF, key("hall_isr")])
+    steps.extend([OP_END, 0, 0])
+    if len(keys) > 255:
+        raise GpsimError("timing corpus has too many keys")
+    table = ",\n".join("    " + ", ".join(f"{v}" for v in steps[i:i + 24]) for i in range(0, len(steps), 24))
+    regs = ("TMR1L", "TMR1H", "T1CON", "PIR1", "PIR3", "TXSTA", "RCREG", "INTCON", "INTCON3", "PORTC",
+            "ADRESH", "ADRESL", "TMR5L", "TMR5H")
+    text = f"""/* timing harness (picdrive.gpsim): GENERATED, measurement build only */
+#include <stdint.h>
+#include "drive.h"
+/* the registers by symbol (xc_sfr.c places them): no xc.h, whose __at declarations SDCC
+ * re-emits as absolute sections in a module with main() */
+{chr(10).join(f"extern volatile uint8_t {r};" for r in regs)}
+__at(0x{RESULT_ADDR:03X}) volatile uint16_t res[{MAX_RESULTS}];
+static const uint8_t steps[] = {{
+{table}
+}};
+static volatile uint8_t lo, hi;
+static uint16_t t, i;
+static uint8_t op, a, k, n;
+
+void harness_done(void) {{ for (;;) {{ }} }}
+
+static void keep(void)
+{{
+    t = ((uint16_t)hi << 8) | lo;
+    if (t > res[k]) res[k] = t;
+}}
+
+void main(void)
+{{
+    __asm
+    extern _isr_high
+    extern _isr_low
+    __endasm;
+    T1CON = 0x81;   /* RD16, internal Fosc/4, 1:1, on */
+    TXSTA |= 0x02u; PIR1 |= 0x10u;
+    fw_init();
+    for (i = 0u; ; i += 3u) {{
+        op = steps[i]; a = steps[i + 1u]; k = steps[i + 2u];
+        if (op == {OP_END}u) break;
+        if (op == {OP_NOP}u) {{
+            TMR1H = 0; TMR1L = 0;
+            lo = TMR1L; hi = TMR1H; keep();
+        }} else if (op == {OP_RX}u) {{
+            RCREG = a; PIR1 |= 0x20u;
+            TMR1H = 0; TMR1L = 0;
+            __asm
+            CALL _isr_high
+            __endasm;
+            lo = TMR1L; hi = TMR1H; keep();
+            PIR1 &= (uint8_t)~0x20u;
+        }} else if (op == {OP_POLL}u) {{
+            PIR1 |= 0x10u; TXSTA |= 0x02u;
+            TMR1H = 0; TMR1L = 0;
+            fw_poll();
+            lo = TMR1L; hi = TMR1H; keep();
+        }} else if (op == {OP_TX}u) {{
+            for (n = a; n != 0u; n--) {{
+                PIR1 = (uint8_t)((PIR1 | 0x10u) & ~0x02u); TXSTA |= 0x02u;
+                TMR1H = 0; TMR1L = 0;
+                __asm
+                CALL _isr_low
+                __endasm;
+                lo = TMR1L; hi = TMR1H; keep();
+            }}
+        }} else if (op == {OP_ADC}u) {{
+            ADRESH = a; ADRESL = k;
+        }} else if (op == {OP_SPEED}u) {{
+            PIR1 |= 0x12u; TXSTA |= 0x02u;
+            TMR1H = 0; TMR1L = 0;
+            __asm
+            CALL _isr_low
+            __endasm;
+            lo = TMR1L; hi = TMR1H; keep();
+        }} else if (op == {OP_HALL}u) {{
+            PORTC = a; INTCON |= 0x02u; INTCON3 |= 0x03u; PIR3 = 0x0Eu;
+            TMR5L = (uint8_t)(TMR5L + 0x37u); TMR5H = (uint8_t)(TMR5H + 0x13u);
+            TMR1H = 0; TMR1L = 0;
+            __asm
+            CALL _isr_high
+            __endasm;
+            lo = TMR1L; hi = TMR1H; keep();
+        }}
+    }}
+    harness_done();
+}}
+"""
+    return text, keys, counts
 
 
 def default_corpus(telemetry: str) -> list[tuple[str, list]]:
@@ -278,7 +348,7 @@ def measure(folder, out_dir, telemetry: str = "4+capture", *, cases=None, hall_s
     out.mkdir(parents=True, exist_ok=True)
     cases = default_corpus(telemetry) if cases is None else cases
     hall_codes = [1, 3, 2, 6, 4, 5, 1, 5, 4, 6, 2, 3, 0, 7]
-    harness, keys = harness_c(cases, hall_codes, hall_shift)
+    harness, keys, counts = harness_c(cases, hall_codes, hall_shift)
     hdr, sfr = timing_device()
     (out / "timing.lkr").write_text(timing_lkr())
     b = build_hex(folder, out, name="timing", linker_script=out / "timing.lkr",
@@ -299,20 +369,20 @@ def measure(folder, out_dir, telemetry: str = "4+capture", *, cases=None, hall_s
         if a not in mem or a + 1 not in mem:
             raise GpsimError(f"gpsim's register dump has no result at 0x{a:03X} (see {out / 'timing.out'})")
         vals.append(mem[a] | (mem[a + 1] << 8))
-    if all(v == 0 for v in vals[1:]):
+    if all(v == 0 for v in vals):
         raise GpsimError(f"the timing harness did not run to its end in gpsim (see {out / 'timing.out'})")
     over = vals[0]
-    samples: dict[str, list[int]] = {}
+    worst: dict[str, int] = {}
     for k, v in zip(keys[1:], vals[1:]):
         if v == 0:
             raise GpsimError(f"the timing harness stopped before measuring {k} (see {out / 'timing.out'})")
-        c = v - over + (ENTRY_CYCLES if k.startswith(("speed_loop_isr", "uart_rx", "hall")) else 0)
-        samples.setdefault(k, []).append(c)
-        if k.startswith("speed_loop_isr:"):
-            samples.setdefault("speed_loop_isr", []).append(c)
-        if k in ("link_poll_frame:max_frame", "link_poll_frame:max_reply"):
-            samples.setdefault("link_poll_max_frame", []).append(c)
-    return Cycles({k: max(v) for k, v in samples.items()}, samples)
+        c = v - over + (ENTRY_CYCLES if k.startswith(("speed_loop_isr", "uart_", "hall")) else 0)
+        worst[k] = c
+        for group, members in (("speed_loop_isr", ("speed_loop_isr:",)),
+                               ("link_poll_max_frame", ("link_poll_frame:max_frame", "link_poll_frame:max_reply"))):
+            if k.startswith(members):
+                worst[group] = max(worst.get(group, 0), c)
+    return Cycles(worst, counts)
 
 
 def _main_without_main(path: Path) -> str:
