@@ -3,7 +3,7 @@
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
  *
  * protocol 1.0, 30 table entries (2 rules),
- * table hash 0x02670AFBUL, build id 0x8CF0E6ACUL, profile hash 0x4B0E5FBAUL
+ * table hash 0x02670AFBUL, build id 0x8506F29FUL, profile hash 0x4B0E5FBAUL
  *
  * Frame: SOF 0xA5, LEN (0..40), TYPE, SEQ, payload, CRC-16/CCITT-FALSE over
  * LEN..payload, high byte first.  A bad CRC or an impossible LEN drops only the SOF byte and the
@@ -32,7 +32,7 @@
 
 #define LINK_PROTO_MAJOR        1u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0x8CF0E6ACUL
+#define LINK_BUILD_ID           0x8506F29FUL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
 #define LINK_TABLE_HASH         0x02670AFBUL
 #define LINK_SAMPLE_HZ          1000u

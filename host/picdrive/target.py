@@ -40,7 +40,7 @@ from .errors import PicdriveError
 
 __all__ = ["TargetError", "Toolchain", "Budgets", "BUDGETS", "FCY_HZ", "RAM_BYTES", "FLASH_BYTES",
            "TARGET_SOURCES", "toolchain", "build_hex", "Build", "Function", "call_graph",
-           "budget_lines", "over_budget", "shared_static_helpers", "unsaved_table_pointer"]
+           "budget_lines", "over_budget", "build_measured", "enlarged_lkr", "shared_static_helpers", "unsaved_table_pointer"]
 
 FCY_HZ = 10_000_000          # instruction cycles per second (40 MHz HSPLL / 4)
 FLASH_BYTES = 16_384         # PIC18F4431 program memory
@@ -365,6 +365,7 @@ class Build:
     roots: dict                    # 'main', 'isr_low', 'isr_high' -> entry function name
     stack_by_root: dict            # root -> (software bytes, hardware levels)
     notes: list = field(default_factory=list)   # what could not be determined, and why
+    on_chip: bool = True           # linked into the 18F4431's memory (False: an enlarged measurement script)
 
     @property
     def ram_stack_bytes(self) -> int | None:
@@ -518,7 +519,40 @@ def build_hex(folder, out_dir, *, name: str = "firmware", linker_script=None, so
     ram = sum(s.size for s in sections if s.location == "data" and s.address < 0xF00
               and s.name != "stack_section")
     sizes = {n: f.size for n, f in funcs.items()}
-    return Build(out / f"{name}.hex", flash, ram, stack, hw, funcs, sizes, roots, stack_by_root, notes)
+    return Build(out / f"{name}.hex", flash, ram, stack, hw, funcs, sizes, roots, stack_by_root, notes,
+                 on_chip=linker_script is None)
+
+
+def enlarged_lkr() -> str:
+    """18f4431_g.lkr with 128 KB of flash and 1.5 KB of RAM: measures a firmware that does not fit.
+
+    A HEX linked with it is for measurement only (it cannot be flashed).
+    """
+    return "\n".join([
+        "LIBPATH .",
+        "CODEPAGE   NAME=page       START=0x0               END=0x1FFFF",
+        "CODEPAGE   NAME=idlocs     START=0x200000          END=0x200007       PROTECTED",
+        "CODEPAGE   NAME=config     START=0x300000          END=0x30000D       PROTECTED",
+        "CODEPAGE   NAME=devid      START=0x3FFFFE          END=0x3FFFFF       PROTECTED",
+        "CODEPAGE   NAME=eedata     START=0xF00000          END=0xF000FF       PROTECTED",
+        "ACCESSBANK NAME=accessram  START=0x0               END=0x5F",
+        "ACCESSBANK NAME=accesssfr  START=0xF60             END=0xFFF          PROTECTED",
+        "DATABANK   NAME=gpr0       START=0x60              END=0xFF",
+        *[f"DATABANK   NAME=gpr{b}       START=0x{b:X}00           END=0x{b:X}FF" for b in range(1, 6)],
+        ""])
+
+
+def build_measured(folder, out_dir, name: str = "firmware") -> Build:
+    """``build_hex`` into the 18F4431; if it does not fit, again with ``enlarged_lkr`` (``on_chip`` False)."""
+    try:
+        return build_hex(folder, out_dir, name=name)
+    except TargetError as e:
+        if "No target memory available" not in str(e):
+            raise
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "enlarged.lkr").write_text(enlarged_lkr())
+    return build_hex(folder, out_dir, name=name, linker_script=out / "enlarged.lkr")
 
 
 # ---------------------------------------------------------------------------
@@ -527,6 +561,8 @@ def build_hex(folder, out_dir, *, name: str = "firmware", linker_script=None, so
 def over_budget(build: Build, cycles: dict | None = None, budgets: Budgets = BUDGETS) -> list[str]:
     """What exceeds its budget (empty: the firmware fits); ``cycles`` from picdrive.gpsim."""
     bad = []
+    if not build.on_chip:
+        bad.append("does not link into the 18F4431's memory")
     if build.flash_bytes > budgets.flash_bytes:
         bad.append(f"flash {build.flash_bytes} B > {budgets.flash_bytes} B")
     if build.ram_stack_bytes is None:
@@ -547,7 +583,8 @@ def budget_lines(build: Build, cycles: dict | None = None, budgets: Budgets = BU
     """The figures of a build against their budgets, one per line."""
     st = "not bounded" if build.stack_bytes is None else f"{build.stack_bytes} B"
     rs = "?" if build.ram_stack_bytes is None else f"{build.ram_stack_bytes} B"
-    lines = [f"flash            {build.flash_bytes:6d} B   (budget {budgets.flash_bytes} B of {FLASH_BYTES})",
+    lines = [f"flash            {build.flash_bytes:6d} B   (budget {budgets.flash_bytes} B of {FLASH_BYTES})"
+             + ("" if build.on_chip else "  -- does NOT fit: measured with an enlarged linker script"),
              f"RAM + stack      {rs:>8s}   (static {build.ram_bytes} B + stack {st}; budget "
              f"{budgets.ram_stack_bytes} B of {RAM_BYTES})",
              f"return stack     {build.hw_stack_levels if build.hw_stack_levels is not None else '?':>6} levels "
