@@ -38,7 +38,7 @@ from pathlib import Path
 
 from .errors import PicdriveError
 
-__all__ = ["GpsimError", "measure", "Cycles", "ENTRY_CYCLES", "TIMING_PROCESSOR", "HARNESS_INPUTS"]
+__all__ = ["GpsimError", "measure", "measure_modes", "TELEMETRY_MODES", "Cycles", "ENTRY_CYCLES", "TIMING_PROCESSOR", "HARNESS_INPUTS"]
 
 TIMING_PROCESSOR = "p18f4620"
 ENTRY_CYCLES = 4             # interrupt latency to the vector (3-4 Tcy) + GOTO (2) - the harness's CALL (2)
@@ -153,6 +153,8 @@ def _frames(table=None) -> dict[str, list[bytes]]:
         "set_speed_min": [codec.encode_command("set_speed", 2, {"value": -32768})],
         "set_speed_big": [codec.encode_command("set_speed", 3, {"value": big})],
         "start": [codec.encode_command("start", 4)],
+        "stop": [codec.encode_command("stop", 9)],
+        "telem_off": [codec.encode_command("telem_config", 10, {"mask": 0, "decimation": 0, "samples_per_frame": 0})],
         "telem4": [codec.encode_command("telem_config", 5, {"mask": mask, "decimation": 1,
                                                             "samples_per_frame": P.DEFAULT_SAMPLES_PER_FRAME})],
         "capture": [codec.encode_command("capture_arm", 6, {"mask": mask, "n_samples": 16,
@@ -179,7 +181,11 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
     counts: dict[str, int] = {}
     steps: list[int] = []
 
+    mode = [""]
+
     def key(k):
+        if k != "overhead":
+            k = mode[0] + k
         if k not in keys:
             keys.append(k)
         if len(keys) > MAX_RESULTS:
@@ -190,11 +196,13 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
     def drain(n):
         # the UART sends a byte every ~870 cycles at 115200 baud: n transmit interrupts
         steps.extend([OP_TX, n, key("uart_tx_byte")])
-        counts["uart_tx_byte"] += n - 1
+        counts[mode[0] + "uart_tx_byte"] += n - 1
 
     steps.extend([OP_NOP, 0, key("overhead")])
     for what, arg in cases:
-        if what == "frame":
+        if what == "mode":
+            mode[0] = arg + "|"
+        elif what == "frame":
             name, data = arg
             for b in data:
                 steps.extend([OP_RX, b, key("uart_rx_byte")])
@@ -299,24 +307,35 @@ void main(void)
     return text, keys, counts
 
 
-def default_corpus(telemetry: str) -> list[tuple[str, list]]:
-    """The firmware states measured: rest, run at +/- extremes (step, reversal, saturation), ADC extremes.
+TELEMETRY_MODES = ("off", "4", "4+capture")
 
-    ``telemetry``: 'off', '4' (four signals streaming) or '4+capture' (and a capture armed).
+
+def default_corpus(modes=TELEMETRY_MODES) -> list[tuple[str, list]]:
+    """The firmware states measured, once per telemetry mode.
+
+    States: rest, a step into the current limit (full reference, ADC at full
+    scale), reversal, saturation (an out-of-range reference), int16 extremes,
+    the largest reply and a MAX_PAYLOAD frame.  ``modes``: 'off', '4' (four
+    signals streaming) and/or '4+capture' (and a capture armed).
     """
     f = _frames()
-    cases = [("speed", ("rest", 0x000, 4)), ("hall", None)]
-    if telemetry in ("4", "4+capture"):
-        cases.append(("frame", ("telem4", f["telem4"][0])))
-    if telemetry == "4+capture":
-        cases.append(("frame", ("capture", f["capture"][0])))
-    cases += [("frame", ("set_speed_max", f["set_speed_max"][0])), ("frame", ("start", f["start"][0])),
-              ("speed", ("step", 0x3FF, 6)), ("hall", None),
-              ("speed", ("current_limit", 0x3FF, 4)),
-              ("frame", ("set_speed_min", f["set_speed_min"][0])), ("speed", ("reversal", 0x000, 6)), ("hall", None),
-              ("frame", ("set_speed_big", f["set_speed_big"][0])), ("speed", ("saturation", 0x3FF, 4)),
-              ("speed", ("int16_extremes", 0x200, 4)),
-              ("frame", ("max_reply", f["max_reply"][0])), ("frame", ("max_frame", f["max_frame"][0]))]
+    cases = []
+    for m in modes:
+        if m not in TELEMETRY_MODES:
+            raise GpsimError(f"unknown telemetry mode {m!r} (one of {', '.join(TELEMETRY_MODES)})")
+        cases += [("mode", m), ("frame", ("stop", f["stop"][0])),
+                  ("frame", ("telem_off" if m == "off" else "telem4", f["telem_off" if m == "off" else "telem4"][0]))]
+        if m == "4+capture":
+            cases.append(("frame", ("capture", f["capture"][0])))
+        cases += [("speed", ("rest", 0x000, 4)), ("hall", None),
+                  ("frame", ("set_speed_max", f["set_speed_max"][0])), ("frame", ("start", f["start"][0])),
+                  ("speed", ("step", 0x3FF, 6)), ("hall", None),
+                  ("speed", ("current_limit", 0x3FF, 4)),
+                  ("frame", ("set_speed_min", f["set_speed_min"][0])), ("speed", ("reversal", 0x000, 6)),
+                  ("hall", None),
+                  ("frame", ("set_speed_big", f["set_speed_big"][0])), ("speed", ("saturation", 0x3FF, 4)),
+                  ("speed", ("int16_extremes", 0x200, 4)),
+                  ("frame", ("max_reply", f["max_reply"][0])), ("frame", ("max_frame", f["max_frame"][0]))]
     return cases
 
 
@@ -340,13 +359,24 @@ def _dump(text: str) -> dict[int, int]:
     return mem
 
 
-def measure(folder, out_dir, telemetry: str = "4+capture", *, cases=None, hall_shift: int = 3,
-            max_cycles: int = 20_000_000) -> Cycles:
-    """Build the timing harness around a firmware folder and run it in gpsim (one run)."""
+def measure(folder, out_dir, telemetry: str = "4+capture", **kw) -> Cycles:
+    """Worst-case cycles of a firmware folder with one telemetry mode (see ``measure_modes``)."""
+    return measure_modes(folder, out_dir, (telemetry,), **kw)[telemetry]
+
+
+def measure_modes(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3,
+                  max_cycles: int = 20_000_000) -> dict[str, Cycles]:
+    """Build the timing harness around a firmware folder and run it in gpsim (one run for all modes).
+
+    Returns {mode: Cycles}; keys of ``Cycles.worst``: ``speed_loop_isr`` (and
+    ``speed_loop_isr:<state>``), ``hall_isr``, ``uart_rx_byte``, ``uart_tx_byte``,
+    ``link_poll`` (idle pass), ``link_poll_max_frame`` and ``link_poll_frame:<frame>``.
+    Interrupt figures include ``ENTRY_CYCLES``.
+    """
     from .target import build_hex
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    cases = default_corpus(telemetry) if cases is None else cases
+    cases = default_corpus(modes)
     hall_codes = [1, 3, 2, 6, 4, 5, 1, 5, 4, 6, 2, 3, 0, 7]
     harness, keys, counts = harness_c(cases, hall_codes, hall_shift)
     hdr, sfr = timing_device()
@@ -372,17 +402,20 @@ def measure(folder, out_dir, telemetry: str = "4+capture", *, cases=None, hall_s
     if all(v == 0 for v in vals):
         raise GpsimError(f"the timing harness did not run to its end in gpsim (see {out / 'timing.out'})")
     over = vals[0]
-    worst: dict[str, int] = {}
-    for k, v in zip(keys[1:], vals[1:]):
+    result: dict[str, Cycles] = {}
+    for pk, v in zip(keys[1:], vals[1:]):
         if v == 0:
-            raise GpsimError(f"the timing harness stopped before measuring {k} (see {out / 'timing.out'})")
+            raise GpsimError(f"the timing harness stopped before measuring {pk} (see {out / 'timing.out'})")
+        m, k = pk.split("|", 1)
+        cy = result.setdefault(m, Cycles({}, {}))
         c = v - over + (ENTRY_CYCLES if k.startswith(("speed_loop_isr", "uart_", "hall")) else 0)
-        worst[k] = c
+        cy.worst[k] = c
+        cy.samples[k] = counts[pk]
         for group, members in (("speed_loop_isr", ("speed_loop_isr:",)),
                                ("link_poll_max_frame", ("link_poll_frame:max_frame", "link_poll_frame:max_reply"))):
             if k.startswith(members):
-                worst[group] = max(worst.get(group, 0), c)
-    return Cycles(worst, counts)
+                cy.worst[group] = max(cy.worst.get(group, 0), c)
+    return result
 
 
 def _main_without_main(path: Path) -> str:
