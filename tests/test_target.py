@@ -23,7 +23,7 @@ DESIGNS = sorted(EXAMPLES.glob("*.design.json"))
 
 
 def _generate(design: Path, out: Path) -> tuple[Path, str]:
-    profile = load_profile(json.loads(design.read_text())["profile_name"])
+    profile = load_profile(json.loads(design.read_text())["profile"]["name"])
     fw = codegen.generate(profile, design)
     codegen.write_firmware(fw, out)
     return out, fw.name
