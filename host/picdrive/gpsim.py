@@ -166,7 +166,7 @@ def _frames(table=None) -> dict[str, list[bytes]]:
     }
 
 
-OP_END, OP_RX, OP_POLL, OP_TX, OP_ADC, OP_SPEED, OP_HALL, OP_NOP = range(8)
+OP_END, OP_RX, OP_POLL, OP_TX, OP_ADC, OP_SPEED, OP_HALL, OP_NOP, OP_PORT = range(9)
 
 
 def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: int) -> tuple[str, list[str], dict]:
@@ -215,8 +215,11 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
                 steps.extend([OP_SPEED, 0, key("speed_loop_isr:" + label), OP_POLL, 0, key("link_poll")])
                 drain(TX_BYTES_PER_MS)
         elif what == "hall":
+            prev = hall_codes[-1]
             for c in hall_codes:
-                steps.extend([OP_HALL, (c << hall_shift) & 0xFF, key("hall_isr")])
+                # one edge: the flag of each hall line that changed (INTn, or ICn in the IC wiring)
+                steps.extend([OP_PORT, (c << hall_shift) & 0xFF, 0, OP_HALL, (c ^ prev) & 7, key("hall_isr")])
+                prev = c
     steps.extend([OP_END, 0, 0])
     if len(keys) > 255:
         raise GpsimError("timing corpus has too many keys")
@@ -254,6 +257,7 @@ void main(void)
     T1CON = 0x81;   /* RD16, internal Fosc/4, 1:1, on */
     TXSTA |= 0x02u; PIR1 |= 0x10u;
     fw_init();
+    T1CON = 0x81;   /* again: fw_init may have configured Timer1 */
     for (i = 0u; ; i += 3u) {{
         op = steps[i]; a = steps[i + 1u]; k = steps[i + 2u];
         if (op == {OP_END}u) break;
@@ -291,8 +295,12 @@ void main(void)
             CALL _isr_low
             __endasm;
             lo = TMR1L; hi = TMR1H; keep();
+        }} else if (op == {OP_PORT}u) {{
+            PORTC = a;
         }} else if (op == {OP_HALL}u) {{
-            PORTC = a; INTCON |= 0x02u; INTCON3 |= 0x03u; PIR3 = 0x0Eu;
+            if ((a & 1u) != 0u) INTCON |= 0x02u;
+            INTCON3 |= (uint8_t)((a >> 1) & 3u);
+            PIR3 |= (uint8_t)((a & 7u) << 1);
             TMR5L = (uint8_t)(TMR5L + 0x37u); TMR5H = (uint8_t)(TMR5H + 0x13u);
             TMR1H = 0; TMR1L = 0;
             __asm

@@ -202,6 +202,7 @@ class Function:
     table_read: bool = False       # executes TBLRD
     saves: set = field(default_factory=set)        # table registers pushed (MOVFF reg, POSTDEC1)
     static_data: bool = False      # a runtime-library helper keeping its operands in static RAM (not reentrant)
+    indirect: int | None = None    # software-stack depth at its deepest indirect call (PUSH ... MOVWF PCL)
 
 
 def _file_reg(word: int) -> int:
@@ -240,6 +241,8 @@ def _decode(mem: dict[int, int], start: int, end: int):
             continue
         if 0x0008 <= w <= 0x000B:
             yield pc, "tblrd", None
+        elif w == 0x0005:
+            yield pc, "push", None
         elif hi == 0x0E:
             yield pc, "movlw", w & 0xFF
         elif (w & 0xFE00) == 0x6E00:
@@ -342,6 +345,8 @@ def call_graph(mem: dict[int, int], sections: list[Section], symbols: list[Symbo
                 depth += -w if kind == "addwf" else w
             elif kind == "tblrd":
                 f.table_read = True
+            elif kind == "push":     # SDCC's indirect call pushes its return address, then writes PCL
+                f.indirect = max(f.indirect or 0, depth)
             if kind != "movlw":
                 w = None
             f.frame = max(f.frame, depth)
@@ -489,15 +494,23 @@ def build_hex(folder, out_dir, *, name: str = "firmware", linker_script=None, so
     notes = []
     taken = sorted(n for n in funcs if re.search(rf"\b(LOW|HIGH|UPPER)\s*\(\s*{re.escape(n)}\s*\)", asm_text)
                    and n not in tables)
+    # an indirect call may reach any function whose address the C takes (SDCC's .asm: LOW/HIGH/UPPER(_f))
+    callers = [f for f in funcs.values() if f.indirect is not None]
+    for f in callers:
+        for n in taken:
+            f.calls.add(n)
+            f.call_depths[n] = max(f.call_depths.get(n, 0), f.indirect)
+    if callers and taken:
+        notes.append(f"stack: {len(callers)} function(s) call through pointers; counted as calling each of the "
+                     f"{len(taken)} functions whose address is taken")
     stack_by_root, stack, hw = {}, None, None
     try:
         memo = {}
         for r, fn in roots.items():
             stack_by_root[r] = _worst(funcs, fn, memo)
         unknown = sorted(c for f in funcs.values() for c in f.calls if c.startswith("?"))
-        if taken:
-            notes.append("stack: function addresses are taken (" + ", ".join(taken) + "): an indirect call may "
-                         "reach them; the call graph cannot bound the stack")
+        if callers and not taken:
+            notes.append("stack: indirect calls, but no function address found in the .asm: not bounded")
         elif unknown:
             notes.append("stack: calls to addresses outside any function: " + ", ".join(unknown))
         else:
