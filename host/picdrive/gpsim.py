@@ -48,6 +48,7 @@ HARNESS_INPUTS = ("INTCON", "INTCON2", "INTCON3", "PIR1", "PIR2", "PIR3", "PIE1"
 INPUT_BASE = 0x040           # access RAM the inputs move to (0x040-0x05F)
 RESULT_ADDR = 0xB00          # uint16 results, up to 0xEFF
 MAX_RESULTS = 512
+HALL_INVALID = (7, 0, 1)    # both invalid codes, then back to a valid one
 TX_BYTES_PER_MS = 11         # 115200 baud, 10 bits a byte
 
 
@@ -154,6 +155,7 @@ def _frames(table=None) -> dict[str, list[bytes]]:
         "set_speed_big": [codec.encode_command("set_speed", 3, {"value": big})],
         "start": [codec.encode_command("start", 4)],
         "stop": [codec.encode_command("stop", 9)],
+        "fault_clear": [codec.encode_command("fault_clear", 11)],
         "telem_off": [codec.encode_command("telem_config", 10, {"mask": 0, "decimation": 0, "samples_per_frame": 0})],
         "telem4": [codec.encode_command("telem_config", 5, {"mask": mask, "decimation": 1,
                                                             "samples_per_frame": P.DEFAULT_SAMPLES_PER_FRAME})],
@@ -214,9 +216,10 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
             for _ in range(n):
                 steps.extend([OP_SPEED, 0, key("speed_loop_isr:" + label), OP_POLL, 0, key("link_poll")])
                 drain(TX_BYTES_PER_MS)
-        elif what == "hall":
+        elif what in ("hall", "hall_invalid"):
+            codes = hall_codes if what == "hall" else HALL_INVALID
             prev = hall_codes[-1]
-            for c in hall_codes:
+            for c in codes:
                 # one edge: the flag of each hall line that changed (INTn, or ICn in the IC wiring)
                 steps.extend([OP_PORT, (c << hall_shift) & 0xFF, 0, OP_HALL, (c ^ prev) & 7, key("hall_isr")])
                 prev = c
@@ -331,7 +334,7 @@ def default_corpus(modes=TELEMETRY_MODES) -> list[tuple[str, list]]:
     for m in modes:
         if m not in TELEMETRY_MODES:
             raise GpsimError(f"unknown telemetry mode {m!r} (one of {', '.join(TELEMETRY_MODES)})")
-        cases += [("mode", m), ("frame", ("stop", f["stop"][0])),
+        cases += [("mode", m), ("frame", ("stop", f["stop"][0])), ("frame", ("fault_clear", f["fault_clear"][0])),
                   ("frame", ("telem_off" if m == "off" else "telem4", f["telem_off" if m == "off" else "telem4"][0]))]
         if m == "4+capture":
             cases.append(("frame", ("capture", f["capture"][0])))
@@ -343,7 +346,9 @@ def default_corpus(modes=TELEMETRY_MODES) -> list[tuple[str, list]]:
                   ("hall", None),
                   ("frame", ("set_speed_big", f["set_speed_big"][0])), ("speed", ("saturation", 0x3FF, 4)),
                   ("speed", ("int16_extremes", 0x200, 4)),
-                  ("frame", ("max_reply", f["max_reply"][0])), ("frame", ("max_frame", f["max_frame"][0]))]
+                  ("frame", ("max_reply", f["max_reply"][0])), ("frame", ("max_frame", f["max_frame"][0])),
+                  # invalid codes last: they may latch a hall fault (cleared at the next mode's start)
+                  ("hall_invalid", None), ("speed", ("hall_fault", 0x000, 3))]
     return cases
 
 
@@ -385,7 +390,7 @@ def measure_modes(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cases = default_corpus(modes)
-    hall_codes = [1, 3, 2, 6, 4, 5, 1, 5, 4, 6, 2, 3, 0, 7]
+    hall_codes = [1, 3, 2, 6, 4, 5, 1, 5, 4, 6, 2, 3, 1]    # forward, then reverse; HALL_INVALID apart
     harness, keys, counts = harness_c(cases, hall_codes, hall_shift)
     hdr, sfr = timing_device()
     (out / "timing.lkr").write_text(timing_lkr())
