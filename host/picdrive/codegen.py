@@ -43,8 +43,9 @@ __all__ = ["CodegenError", "Firmware", "generate", "write_firmware", "build_chec
 
 HOST_SOURCES = ("drive.c", "drive_core.c", "link_fw.c")
 XC8_ONLY_SOURCES = ("main_xc8.c", "config_xc8.c")
+SDCC_ONLY_SOURCES = ("main_sdcc.c",)
 TEMPLATES = ("drive_params.h", "drive_core.h", "drive_core.c", "drive.h", "drive.c", "fw_port.h",
-             "main_xc8.c", "config_xc8.c")
+             "main_xc8.c", "config_xc8.c", "main_sdcc.c")
 HOST_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-Wconversion")
 FOSC_HZ = 40_000_000
 #: the overspeed trip, x control.speed_max_rpm (the profile has no field for it)
@@ -511,11 +512,46 @@ def build_check(folder) -> list[str]:
     return done
 
 
-def write_firmware(fw: Firmware, out_dir, *, check: bool = True) -> Path:
+def target_build(folder, name: str, *, allow_over_budget: bool = False, report: list | None = None):
+    """Build ``<folder>/<name>.hex`` for the PIC18F4431 and measure it against the budgets.
+
+    Compiles and links with picdrive.target (SDCC + gplink), times the
+    interrupts in gpsim (picdrive.gpsim: the worst over telemetry off, 4
+    signals, and 4 signals with a capture armed), appends the figures to ``report`` and raises CodegenError with
+    them when a budget is exceeded (unless ``allow_over_budget``).
+    Returns ``(Build, Cycles)``.
+    """
+    import tempfile
+    from . import gpsim, target
+    folder = Path(folder)
+    with tempfile.TemporaryDirectory(prefix="picdrive-target-") as t:
+        b = target.build_measured(folder, Path(t) / "hex", name=name)
+        modes = gpsim.measure_modes(folder, Path(t) / "timing")
+        # budgets hold in every telemetry mode: the worst over off / 4 signals / 4 signals + capture
+        cyc = gpsim.Cycles({k: max(c.worst.get(k, 0) for c in modes.values())
+                            for k in modes["4+capture"].worst}, modes["4+capture"].samples)
+        if b.on_chip:          # a HEX linked beyond the chip's memory is not written
+            shutil.copyfile(b.hex_path, folder / f"{name}.hex")
+    lines = target.budget_lines(b, cyc.worst)
+    if report is not None:
+        report += lines
+    bad = target.over_budget(b, cyc.worst)
+    if bad and not allow_over_budget:
+        raise CodegenError("the firmware does not fit the PIC18F4431's budgets (" + "; ".join(bad) + "); nothing "
+                           "written.  Figures:\n  " + "\n  ".join(lines) + "\n(--allow-over-budget writes it anyway, "
+                           "for measurement)")
+    return b, cyc
+
+
+def write_firmware(fw: Firmware, out_dir, *, check: bool = True, hex_build: bool = False,
+                   allow_over_budget: bool = False, report: list | None = None) -> Path:
     """Write the files into ``out_dir`` whole or not at all (temp folder, build check, rename).
 
     ``out_dir`` follows the output rule of :mod:`picdrive.outputs`: it is
-    created, or replaced only when it is a firmware folder picdrive wrote."""
+    created, or replaced only when it is a firmware folder picdrive wrote.
+    ``hex_build``: also build ``<name>.hex`` with the PIC18 toolchain and refuse a
+    firmware over its budgets (``target_build``).
+    """
     from . import outputs
     out = outputs.dir_output(out_dir, what="firmware folder")
     tmp = outputs.new_temp_dir(out, what="firmware folder")
@@ -527,6 +563,8 @@ def write_firmware(fw: Firmware, out_dir, *, check: bool = True) -> Path:
                 f.write(text)
         if check:
             build_check(tmp)
+        if hex_build:
+            target_build(tmp, fw.name, allow_over_budget=allow_over_budget, report=report)
     except OSError as e:
         shutil.rmtree(tmp, ignore_errors=True)
         raise outputs.OutputError(f"cannot write firmware folder {out}: {e.strerror or e}") from None
@@ -548,8 +586,13 @@ def _cmd(args) -> int:
     fw = generate(profile, args.design, hall_input=args.hall_input, fault_pin=args.fault_pin)
     for line in fw.summary:
         print(line)
-    write_firmware(fw, out)
-    print(f"wrote {out}/ ({len(fw.files)} files)")
+    report: list[str] = []
+    write_firmware(fw, out, hex_build=not args.no_hex, allow_over_budget=args.allow_over_budget, report=report)
+    for line in report:
+        print(line)
+    if report and args.allow_over_budget:
+        print("built with --allow-over-budget: for measurement, not for a motor")
+    print(f"wrote {out}/ ({len(fw.files) + (0 if args.no_hex else 1)} files)")
     return 0
 
 
@@ -564,4 +607,9 @@ def register(sub) -> None:
                    help="hall inputs: INT0..INT2 on RC3..RC5 (int, the default) or IC1..IC3 on RA2..RA4 "
                         "(ic, only without an encoder)")
     p.add_argument("--fault-pin", default="RC1", choices=["RC1", "RD4"], help="FLTA pin (FLTAMX)")
+    p.add_argument("--allow-over-budget", action="store_true",
+                   help="MEASUREMENT ONLY: write the firmware and its HEX even when flash, RAM + stack or an "
+                        "interrupt's cycles exceed the PIC18F4431 budgets (the figures are printed)")
+    p.add_argument("--no-hex", action="store_true",
+                   help="generate the C only: skip the PIC18 HEX build (SDCC, gputils) and the budget check")
     p.set_defaults(func=_cmd)

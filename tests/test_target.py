@@ -1,0 +1,149 @@
+"""The firmware on the PIC18F4431: every bundled design builds, links and keeps its budgets.
+
+Built with SDCC's pic16 port and gputils (picdrive.target), timed on the PIC18
+core in gpsim (picdrive.gpsim).  Budgets: picdrive.target.BUDGETS (issue 9).
+Also inspects the compiled output for hazards the host twin cannot show:
+the interrupt prologue must save the table pointer when an interrupt reads
+tables, and no runtime-library helper with static operands may be shared by
+an interrupt and the main loop.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from picdrive import codegen, gpsim, target
+from picdrive.paths import firmware_build_dir, repo_root
+from picdrive.profile import load_profile
+
+EXAMPLES = repo_root() / "examples"
+DESIGNS = sorted(EXAMPLES.glob("*.design.json"))
+
+
+def _generate(design: Path, out: Path) -> tuple[Path, str]:
+    profile = load_profile(json.loads(design.read_text())["profile"]["name"])
+    fw = codegen.generate(profile, design)
+    codegen.write_firmware(fw, out)
+    return out, fw.name
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """{design file name: (Build, {mode: Cycles})} for every bundled design."""
+    out = {}
+    for d in DESIGNS:
+        t = tmp_path_factory.mktemp(d.name.replace(".", "_"))
+        folder, name = _generate(d, t / "fw")
+        b = target.build_measured(folder, t / "hex", name=name)
+        out[d.name] = (b, gpsim.measure_modes(folder, t / "timing"))
+    return out
+
+
+def test_six_bundled_designs():
+    assert len(DESIGNS) == 6, [d.name for d in DESIGNS]
+
+
+@pytest.mark.parametrize("design", [d.name for d in DESIGNS])
+def test_design_fits_the_pic18f4431_budgets(built, design):
+    b, modes = built[design]
+    worst = {k: max(c.worst[k] for c in modes.values()) for k in ("speed_loop_isr", "hall_isr", "uart_rx_byte")}
+    figures = "\n".join(target.budget_lines(b, worst))
+    assert b.on_chip, f"{design} does not link into the 18F4431:\n{figures}"
+    assert target.over_budget(b, worst) == [], f"{design} over budget:\n{figures}"
+
+
+@pytest.mark.parametrize("design", [d.name for d in DESIGNS])
+def test_interrupts_save_the_table_pointer_when_they_read_tables(built, design):
+    b, _ = built[design]
+    assert target.unsaved_table_pointer(b) == {}
+
+
+@pytest.mark.parametrize("design", [d.name for d in DESIGNS])
+def test_no_static_operand_helper_is_shared_by_an_interrupt_and_the_main_loop(built, design):
+    b, _ = built[design]
+    assert target.shared_static_helpers(b) == {}
+    # and the speed loop calls none at all
+    low = b.reachable("isr_low")
+    assert not sorted(n for n in low if b.functions[n].static_data)
+
+
+def test_committed_hex_is_what_the_toolchain_builds(tmp_path):
+    """firmware_build/duy2008/duy2008.hex is a fresh, deterministic build of the committed sources."""
+    committed = firmware_build_dir() / "duy2008"
+    assert (committed / "duy2008.hex").is_file(), "firmware_build/duy2008/duy2008.hex is not committed"
+    b = target.build_hex(committed, tmp_path, name="duy2008")
+    assert (committed / "duy2008.hex").read_bytes() == b.hex_path.read_bytes()
+
+
+# ---------------------------------------------------------------------------
+# The checks themselves: each finds the hazard it is for
+# ---------------------------------------------------------------------------
+PLAIN_MAIN = """#include <xc.h>
+#include "drive.h"
+void isr_high(void) __interrupt(1) { fw_isr_high(); }
+void isr_low(void) __interrupt(2) { fw_isr_low(); }
+"""
+
+TABLE_ISR = """#include <stdint.h>
+static const uint8_t tab[4] = {1, 2, 3, 4};
+volatile uint8_t idx, out;
+int32_t a32, b32;
+int16_t x16, y16;
+void fw_init(void) { }
+void fw_poll(void) { a32 = (int32_t)x16 * y16; }
+void fw_isr_high(void) { out = tab[idx & 3u]; }
+void fw_isr_low(void) { b32 = (int32_t)y16 * x16; }
+"""
+
+
+def _mini(tmp_path, main_text):
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "drive.h").write_text("void fw_init(void);\nvoid fw_poll(void);\nvoid fw_isr_high(void);\n"
+                                 "void fw_isr_low(void);\n")
+    (src / "drive.c").write_text(TABLE_ISR)
+    tpl = (repo_root() / "firmware_templates" / "main_sdcc.c.j2").read_text()
+    (src / "main_sdcc.c").write_text(main_text(tpl))
+    return target.build_hex(src, tmp_path / "out", name="mini", sources=("drive.c", "main_sdcc.c"))
+
+
+def _rendered_main(tpl: str) -> str:
+    import jinja2
+    return jinja2.Environment(trim_blocks=True, lstrip_blocks=True).from_string(tpl).render(
+        gen_note="test", config=[("WDTEN", "OFF", "no watchdog")])
+
+
+def test_table_pointer_check_finds_an_unsaved_table_read(tmp_path):
+    # vectors as a new user writes them for SDCC: the compiler's own prologue only
+    b = _mini(tmp_path, lambda tpl: PLAIN_MAIN + _eeprom_stubs(tpl)
+              + "void main(void) { fw_init(); for (;;) fw_poll(); }\n")
+    assert "isr_high" in target.unsaved_table_pointer(b)
+    assert any(b.functions[n].table_read for n in b.reachable("isr_high"))
+
+
+def test_main_sdcc_template_saves_the_table_pointer(tmp_path):
+    b = _mini(tmp_path, _rendered_main)
+    assert target.unsaved_table_pointer(b) == {}
+    assert set(target.TABLE_SAVE) <= b.functions[b.roots["isr_high"]].saves
+
+
+def test_shared_helper_check_finds_a_multiply_in_both(tmp_path):
+    b = _mini(tmp_path, _rendered_main)
+    shared = target.shared_static_helpers(b)
+    assert "__mullong" in shared and shared["__mullong"] >= {"main", "isr_low"}
+
+
+def _eeprom_stubs(tpl: str) -> str:
+    body = _rendered_main(tpl)
+    i = body.index("void eeprom_gptr_unused")
+    return body[i:body.index("void main")]
+
+
+def test_stack_figure_counts_pushes_along_the_deepest_path(tmp_path):
+    b = _mini(tmp_path, _rendered_main)
+    # every root has a bounded figure, and the total is the three nested
+    assert b.stack_bytes == sum(v[0] for v in b.stack_by_root.values())
+    assert b.stack_by_root["isr_low"][0] >= b.functions[b.roots["isr_low"]].frame > 10
+    assert b.hw_stack_levels >= 3
