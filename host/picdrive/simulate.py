@@ -28,7 +28,7 @@ from .dqmodel import DqParams, derivatives, dq_params
 
 __all__ = ["SimResult", "simulate_law", "simulate_state_feedback", "disturbances_2016", "step_load",
            "SixStepPlant", "SixStepResult", "six_step_plant", "simulate_six_step",
-           "W_WINDOW_S"]
+           "W_WINDOW_S", "HallSpeedMeter", "hall_speed_meter"]
 
 W_WINDOW_S = 0.2       # the 2016 disturbances act on [0, 0.2] s (Fig. 7: the energy ratio is constant after 0.2 s)
 
@@ -263,6 +263,44 @@ def six_step_plant(profile, *, r_factor: float = 1.0, commutated: bool = False) 
                         emf_table=tab)
 
 
+@dataclass(frozen=True)
+class HallSpeedMeter:
+    """The firmware's speed measurement from hall edges (``sensors.speed_source = "hall"``).
+
+    drive.c.j2 ``hall_edge()`` latches Timer5 at every hall edge (``h_period`` = ticks between
+    the last two edges, ``h_fwd`` = the edge followed the forward sequence); each speed-loop
+    sample ``measure()`` / ``core_speed_hall()`` reads ``w = K / max(h_period, elapsed)``
+    (``elapsed`` = ticks since the last edge: a slowing rotor reads no faster than the time it has
+    been silent), negative for a backward edge, and 0 until two edges were seen or once
+    ``age_max`` samples passed without an edge.  So the law sees the mean speed over the last
+    hall sector (60 electrical degrees), which lags the true speed by about half a sector, and
+    nothing below ``k / 65536`` ticks; the resolution is one Timer5 tick in the period."""
+
+    edges_per_rev: int           # 6 x pole pairs
+    tick_s: float                # Timer5 tick, s (prescaler / Fcy)
+    k_raw: int                   # CORE_K_SPEED: speed (Q qs) x period (ticks)
+    qs: int                      # speed Q format
+    age_max: int                 # FW_HALL_AGE_MAX, samples
+    offset_deg: float            # sensors.hall_offset_deg (edges at offset + m x 60 electrical degrees)
+    pole_pairs: int
+
+    @property
+    def lowest_rad_s(self) -> float:
+        """Slowest speed with a period inside the 16-bit timer, rad/s."""
+        return 2 * math.pi / self.edges_per_rev / (65535 * self.tick_s)
+
+
+def hall_speed_meter(profile, plan) -> HallSpeedMeter:
+    """The hall speed measurement of the firmware a fixed-point ``plan``
+    (:func:`picdrive.fixedpoint.plan_fixed_point`) builds for ``profile``."""
+    from .fixedpoint import FCY_HZ
+    # FW_HALL_AGE_MAX as codegen renders it (tests/test_verify_hall.py checks the two agree)
+    age_max = max(2, min(255, math.floor(65536 * plan.ps5 / 1e7 * plan.loop_hz) - 1))
+    return HallSpeedMeter(edges_per_rev=6 * profile.motor.pole_pairs, tick_s=plan.ps5 / FCY_HZ, k_raw=plan.k_speed,
+                          qs=plan.qs, age_max=age_max, offset_deg=profile.sensors.hall_offset_deg,
+                          pole_pairs=profile.motor.pole_pairs)
+
+
 @dataclass
 class SixStepResult:
     """Samples of :func:`simulate_six_step` (at the law's sample instants unless named ``_fine``)."""
@@ -303,7 +341,8 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
                       load: float | Callable[[float], float] = 0.0, r_factor: float = 1.0,
                       measurement: str = "firmware", commutated: bool = False,
                       torque_disturbance: Callable[[float], float] | None = None,
-                      plant: SixStepPlant | None = None, x0=(0.0, 0.0), integrator0_v: float = 0.0) -> SixStepResult:
+                      plant: SixStepPlant | None = None, x0=(0.0, 0.0), integrator0_v: float = 0.0,
+                      hall: HallSpeedMeter | None = None) -> SixStepResult:
     """The six-step drive under the firmware's law, averaged over each PWM period.
 
     Plant (DC equivalent, 2008 eq 1, the profile's ``r_line_ohm``, ``l_line_h``,
@@ -335,7 +374,9 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     (:func:`picdrive.control_law.law_step`, with its back-EMF current window)
     sees the speed by the M/T method with half a sample of extrapolation
     (``measurement="firmware"``: ``w_avg + (w_avg - w_avg_prev)/2``, ``w_avg``
-    the exact mean over the last sample; ``"instant"``: the true speed) and
+    the exact mean over the last sample; ``"instant"``: the true speed;
+    ``"hall"``: the hall-edge period of :class:`HallSpeedMeter` ``hall``, edges
+    located inside each PWM period, timed in Timer5 ticks) and
     the bus current as one ADC sample of the current in the applied direction
     (0 while all switches are off; 10-bit quantised); its output is applied
     from the next PWM period on; a change of sign switches all outputs off
@@ -344,8 +385,10 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     (exponential, speed held at its start), a current zero inside the period
     located on that exponential, then the speed by the trapezoidal rule.
     """
-    if measurement not in ("firmware", "instant"):
-        raise ValueError(f"measurement {measurement!r}: 'firmware' or 'instant'")
+    if measurement not in ("firmware", "instant", "hall"):
+        raise ValueError(f"measurement {measurement!r}: 'firmware', 'instant' or 'hall'")
+    if measurement == "hall" and hall is None:
+        raise ValueError("measurement 'hall' needs the firmware's HallSpeedMeter (hall=)")
     pl = plant if plant is not None else six_step_plant(profile, r_factor=r_factor, commutated=commutated)
     ts = law.sample_time_s
     n_sub = max(1, int(round(ts / pl.pwm_period_s)))
@@ -379,10 +422,26 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     cap_step = pl.u_bridge_v * ts / 0.010
     i_lim_counts = math.floor(pl.current_limit_a * pl.adc_counts_per_a + 0.5) if pl.adc_counts_per_a else None
     kf = 0
+    if measurement == "hall":
+        # hall edges: electrical angle offset + m x 60 deg; edge index of the present angle
+        e_per_rad = hall.pole_pairs * 3.0 / math.pi
+        e_off = hall.offset_deg / 60.0
+        h_idx = math.floor(th * e_per_rad - e_off)
+        h_last = h_period = 0
+        h_fwd, h_count, h_age = True, 0, 0
+        w_lsb = 2.0 ** -hall.qs
     for k in range(n):
         t = k * ts
         # ---- measurements at the sample
-        if measurement == "instant" or (k == 0 and not valid):
+        if measurement == "hall":
+            now = math.floor(t / hall.tick_s + 1e-9) & 0xFFFF
+            y = 0.0
+            if h_count >= 2 and h_age < hall.age_max:
+                p = max(h_period, (now - h_last) & 0xFFFF)
+                if p:
+                    y = min(hall.k_raw // p, 32767) * w_lsb * (1.0 if h_fwd else -1.0)
+            h_age = min(h_age + 1, 255)
+        elif measurement == "instant" or (k == 0 and not valid):
             y = w if measurement == "instant" else 0.0
         else:
             w_avg = (th - th_prev) / ts
@@ -468,7 +527,18 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
             w1 = (w * (1.0 - 0.5 * h * B / J) + h / J * (te - tload)) / (1.0 + 0.5 * h * B / J)
             if w != 0.0 and tl > 0.0 and (w1 > 0.0) != (w > 0.0) and (tload > 0.0) == (w > 0.0):
                 w1 = 0.0                                 # a passive load stops the rotor, never reverses it
-            th += 0.5 * h * (w + w1)
+            th1 = th + 0.5 * h * (w + w1)
+            if measurement == "hall":
+                idx = math.floor(th1 * e_per_rad - e_off)
+                while idx != h_idx:                       # the edges crossed in this period, in order
+                    fwd = idx > h_idx
+                    edge = (h_idx + (1 if fwd else 0) + e_off) / e_per_rad
+                    frac = (edge - th) / (th1 - th) if th1 != th else 1.0
+                    tick = math.floor((t + s * h + min(max(frac, 0.0), 1.0) * h) / hall.tick_s) & 0xFFFF
+                    h_period, h_last = (tick - h_last) & 0xFFFF, tick
+                    h_fwd, h_count, h_age = fwd, min(h_count + 1, 2), 0
+                    h_idx += 1 if fwd else -1
+            th = th1
             i, w = i1, w1
             tf[kf], wf[kf], jf[kf] = t + (s + 1) * h, w, i
             kf += 1

@@ -331,10 +331,25 @@ def sim_plan(profile) -> dict:
             "t_load_s": VerifyConfig.step_phase_s, "t_end_s": VerifyConfig.step_phase_s + VerifyConfig.load_phase_s}
 
 
+def speed_measurement(profile, law) -> dict:
+    """The firmware's speed measurement as :func:`picdrive.simulate.simulate_six_step` takes it:
+    ``{"measurement": "firmware"}`` (encoder M/T) or ``{"measurement": "hall", "hall": meter}``
+    (hall-edge period, :func:`picdrive.simulate.hall_speed_meter` of the firmware's own
+    fixed-point plan).  Raises the plan's :class:`picdrive.errors.PicdriveError` when no firmware
+    can be built for the law."""
+    if profile.sensors.speed_source != "hall":
+        return {"measurement": "firmware"}
+    from .fixedpoint import plan_fixed_point
+    from .pcpwm import plan_pwm
+    from .simulate import hall_speed_meter
+    return {"measurement": "hall", "hall": hall_speed_meter(profile, plan_fixed_point(profile, law, plan_pwm(profile)))}
+
+
 def run_sim(profile, law, plan=None, *, disturbances: bool = True, r_factor: float = 1.0,
             commutated: bool | None = None):
     """The verification run on the six-step drive: step from rest to the target (the 2016 load-torque
-    disturbance w3 on [0, 0.2] s when ``disturbances``), then the load step.  Returns
+    disturbance w3 on [0, 0.2] s when ``disturbances``), then the load step, with the firmware's
+    speed measurement (:func:`speed_measurement`).  Returns
     :class:`picdrive.simulate.SixStepResult`."""
     from .simulate import disturbances_2016, simulate_six_step
     plan = plan or sim_plan(profile)
@@ -345,7 +360,7 @@ def run_sim(profile, law, plan=None, *, disturbances: bool = True, r_factor: flo
         w3 = lambda t: float(disturbances_2016(t, amplitude=(0.0, 0.0, 0.1 * load))[0, 2])
     return simulate_six_step(profile, law, t_end=plan["t_end_s"], ref_rpm=plan["target_rpm"],
                              load=lambda t: load if t >= tl - 1e-12 else 0.0, torque_disturbance=w3,
-                             r_factor=r_factor,
+                             r_factor=r_factor, **speed_measurement(profile, law),
                              commutated=VerifyConfig.commutated if commutated is None else commutated)
 
 
@@ -356,19 +371,29 @@ def sector_period_s(profile, rpm: float) -> float:
     return 60.0 / (max(abs(rpm), 1e-9) * profile.motor.pole_pairs * 6.0)
 
 
-def sector_mean(profile, y: np.ndarray, ts: float, rpm: float) -> np.ndarray:
+def sector_mean(profile, y: np.ndarray, ts: float, rpm: float, *, breaks=()) -> np.ndarray:
     """``y`` (samples ``ts`` apart) averaged over one hall sector at ``rpm`` (centred moving mean;
-    the ends use what exists)."""
+    the ends use what exists).
+
+    ``breaks``: sample indices where a new phase of the run starts (the load step): no window
+    reaches across one, so what happens after a phase boundary never leaks into the figures of the
+    phase before it (and the other way round); near a boundary the window is the sector next to it
+    inside the phase."""
+    y = np.asarray(y, float)
     n = max(1, int(round(sector_period_s(profile, rpm) / ts)))
     if n <= 1:
-        return np.asarray(y, float)
-    y = np.asarray(y, float)
-    c = np.concatenate([[0.0], np.cumsum(y)])
-    k = np.arange(y.size)
-    lo = np.clip(k - n // 2, 0, y.size)
-    hi = np.clip(lo + n, 0, y.size)
-    lo = np.maximum(0, hi - n)
-    return (c[hi] - c[lo]) / (hi - lo)
+        return y.copy()
+    out = np.empty_like(y)
+    cuts = [0] + sorted(int(b) for b in breaks if 0 < int(b) < y.size) + [y.size]
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        seg = y[a:b]
+        c = np.concatenate([[0.0], np.cumsum(seg)])
+        k = np.arange(seg.size)
+        lo = np.clip(k - n // 2, 0, seg.size)
+        hi = np.clip(lo + n, 0, seg.size)
+        lo = np.maximum(0, hi - n)
+        out[a:b] = (c[hi] - c[lo]) / (hi - lo)
+    return out
 
 
 def step_figures(sim, plan, profile=None) -> dict:
@@ -382,8 +407,9 @@ def step_figures(sim, plan, profile=None) -> dict:
     t, raw = sim.t, sim.rpm
     tl, target = plan["t_load_s"], plan["target_rpm"]
     ts = float(t[1] - t[0])
-    rpm = sector_mean(profile, raw, ts, target) if profile is not None else raw
     a = t < tl
+    # the load step starts a new phase: no sector window reaches across it
+    rpm = sector_mean(profile, raw, ts, target, breaks=(int(np.count_nonzero(a)),)) if profile is not None else raw
     m1 = step_metrics(t[a], rpm[a], target, y0=0.0)
     band = VerifyConfig.band
     dev = np.abs(rpm[~a] - target) / target
@@ -448,7 +474,8 @@ def _sim_checks(profile, law) -> dict:
         tail |= (t >= t0) & (t < t1)
     sat = sim.saturated
     # on the edge for most of a hall sector (brief touches from the commutation ripple excepted)
-    sat_sector = sector_mean(profile, sat.astype(float), law.sample_time_s, target) >= 0.5
+    sat_sector = sector_mean(profile, sat.astype(float), law.sample_time_s, target,
+                             breaks=(int(np.count_nonzero(t < tl)),)) >= 0.5
     sat_tail = float(np.mean(sat_sector[tail]))
     out["sim_saturated_steady_fraction"] = {"value": sat_tail, "limit": 0.0, "ok": bool(sat_tail == 0.0), "unit": "1",
                                             "note": "fraction of the steady-state windows with u at the edge of "
