@@ -492,7 +492,12 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
             else:
                 v_pos, v_neg = -vbus, vbus
             if n_tab:
+                # the current and voltage here are in the forward sense (u < 0: -d Vbus); the reverse
+                # table drives its own pair source -> sink with +d Vbus, so in the forward sense its
+                # EMF constant is minus that pair's (plugging brakes a forward-turning rotor)
                 ke = tab[tab_dir][int((th + 0.5 * h * w) * ang_k) % n_tab]
+                if tab_dir:
+                    ke = -ke
             else:
                 ke = kb
             e = ke * w
