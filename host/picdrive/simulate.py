@@ -28,7 +28,7 @@ from .dqmodel import DqParams, derivatives, dq_params
 
 __all__ = ["SimResult", "simulate_law", "simulate_state_feedback", "disturbances_2016", "step_load",
            "SixStepPlant", "SixStepResult", "six_step_plant", "simulate_six_step",
-           "W_WINDOW_S", "HallSpeedMeter", "hall_speed_meter"]
+           "W_WINDOW_S", "HallSpeedMeter", "hall_speed_meter", "pwm_ripple_peak_a"]
 
 W_WINDOW_S = 0.2       # the 2016 disturbances act on [0, 0.2] s (Fig. 7: the energy ratio is constant after 0.2 s)
 
@@ -263,6 +263,26 @@ def six_step_plant(profile, *, r_factor: float = 1.0, commutated: bool = False) 
                         emf_table=tab)
 
 
+def pwm_ripple_peak_a(v_on_v: float, r_ohm: float, l_h: float, duty: float, period_s: float) -> float:
+    """How far the current's peak inside a PWM period lies above its period average, A.
+
+    An RL winding (with any back-EMF held over the period) switched between ``v_on_v`` for
+    ``duty`` of the period and 0 V for the rest (high-side PWM, the low side on: the current
+    freewheels through the source leg's low-side diode and the sink's low side: about 0 V across
+    the pair), in its periodic steady state:
+    ``i_max = (V/R) (1 - a) / (1 - a b)`` above the all-off level, ``a = exp(-d T/tau)``,
+    ``b = exp(-(1-d) T/tau)``, while the period average is ``d V/R`` (L di/dt averages to 0);
+    the back-EMF shifts both alike.  Models that average each PWM period (this module, the twin)
+    miss this excess: it is about ``V d (1-d) T / (2 L)`` for ``tau >> T`` and approaches
+    ``V/R (1 - d)`` when ``tau << T``."""
+    if not 0.0 < duty < 1.0 or r_ohm <= 0.0:
+        return 0.0
+    tau = l_h / r_ohm
+    a = math.exp(-duty * period_s / tau)
+    b = math.exp(-(1.0 - duty) * period_s / tau)
+    return v_on_v / r_ohm * ((1.0 - a) / (1.0 - a * b) - duty)
+
+
 @dataclass(frozen=True)
 class HallSpeedMeter:
     """The firmware's speed measurement from hall edges (``sensors.speed_source = "hall"``).
@@ -321,6 +341,8 @@ class SixStepResult:
     t_fine: np.ndarray           # s, every PWM period
     omega_fine: np.ndarray
     i_fine: np.ndarray
+    i_peak_fine: np.ndarray = field(default_factory=lambda: np.zeros(0))   # |i| + the PWM ripple above the
+                                                                            # period average (pwm_ripple_peak_a)
 
     @property
     def rpm(self) -> np.ndarray:
@@ -409,7 +431,8 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     o = {k: np.zeros(n) for k in ("t", "omega", "y", "i", "im", "u", "lo", "hi", "dir", "I", "ref", "load")}
     cap_on = np.zeros(n, bool)
     nf = n * n_sub
-    tf, wf, jf = np.zeros(nf), np.zeros(nf), np.zeros(nf)
+    tf, wf, jf, pf = np.zeros(nf), np.zeros(nf), np.zeros(nf), np.zeros(nf)
+    ripple = {}                                      # duty -> the PWM ripple above the period average
     i, w, th = float(x0[0]), float(x0[1]), 0.0
     st = LawState(integ_v=float(integrator0_v), y_prev=w if w != 0.0 else None)
     th_prev, w_avg_prev, valid = -w * ts, w, w != 0.0
@@ -546,12 +569,20 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
             th = th1
             i, w = i1, w1
             tf[kf], wf[kf], jf[kf] = t + (s + 1) * h, w, i
+            pk = abs(i)
+            if v is not None and d_dir != 0 and (v == v_pos if d_dir > 0 else v == v_neg) and 0.0 < d_duty < 1.0:
+                ex = ripple.get(d_duty)
+                if ex is None:
+                    ex = ripple[d_duty] = pwm_ripple_peak_a(vbus, R, L, d_duty, pl.pwm_period_s)
+                pk += ex
+            pf[kf] = pk
             kf += 1
         if not (math.isfinite(w) and math.isfinite(i)) or abs(w) > 1e7:
             raise FloatingPointError("six-step simulation diverged")
     return SixStepResult(t=o["t"], omega=o["omega"], y=o["y"], i=o["i"], i_meas=o["im"], u=o["u"], u_lo=o["lo"],
                          u_hi=o["hi"], direction=o["dir"], integ=o["I"], ref=o["ref"], load=o["load"],
-                         cap_active=cap_on, t_fine=tf[:kf], omega_fine=wf[:kf], i_fine=jf[:kf])
+                         cap_active=cap_on, t_fine=tf[:kf], omega_fine=wf[:kf], i_fine=jf[:kf],
+                         i_peak_fine=pf[:kf])
 
 
 def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: float, load_n_m: float = 0.0,
