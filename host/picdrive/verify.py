@@ -265,6 +265,77 @@ def _window_check(profile, law) -> dict:
                     "the profile's inverter.current_limit_a, motor.kb_v_s_per_rad, motor.r_line_ohm"}
 
 
+def bridge_hold_torque(profile, rpm: float, *, r_factor: float = 1.0) -> tuple[float, float]:
+    """Mean electromagnetic torque the bridge delivers at a held speed, and the torque the load and
+    friction take there, N m: ``(delivered, needed)``.
+
+    The three-phase plant of the motor twin (``picdrive_hil.plant.CPlant``: per-phase currents,
+    the floating phase and its diode, the commutation transfers the DC equivalent does not have)
+    at ``rpm`` held constant, driven by the firmware's hall table (high-side PWM, low side on) at
+    the largest duty the firmware applies there: bus x max duty, or less where the current window
+    ``Kb w + R_line I_lim`` is lower; R x ``r_factor``.  Averaged over whole hall sectors after the
+    currents have settled.  A drive whose sector is short against L/R loses torque at each
+    commutation; if ``delivered < needed`` the target cannot be held under the load, whatever the
+    law."""
+    from picdrive_hil.plant import CPlant, plant_from_profile
+
+    from .pcpwm import commutation_table
+    m, inv, se = profile.motor, profile.inverter, profile.sensors
+    w = rpm * RPM
+    cp = CPlant(plant_from_profile(profile))
+    cp.params.inertia_kg_m2 = 1e9 * max(m.inertia_kg_m2, 1e-9)     # the speed is held
+    cp.params.r_phase_ohm *= r_factor
+    cp.state.w_rad_s = w
+    u = min(inv.bus_voltage_v * profile.max_duty(), m.kb_v_s_per_rad * w + m.r_line_ohm * inv.current_limit_a)
+    d = max(0.0, min(1.0, u / inv.bus_voltage_v))
+    tab = commutation_table(se.hall_spacing_deg, se.hall_offset_deg, m.back_emf_shape).forward
+    h = 1.0 / inv.pwm_frequency_hz
+    sector = math.pi / 3 / (m.pole_pairs * max(w, 1e-9))
+    tau = m.l_line_h / (m.r_line_ohm * r_factor)
+    t_warm = max(10 * tau, 2 * sector)
+    n_sect = max(12, math.ceil(0.02 / sector))
+    legs_off = [(0.0, 0.0)] * 3
+
+    def legs_for(code):
+        st = tab[code]
+        if st is None:
+            return legs_off
+        lg = [(0.0, 0.0)] * 3
+        lg[st[0]] = (d, 0.0)
+        lg[st[1]] = (0.0, 1.0)
+        return lg
+    t = 0.0
+    while t < t_warm:
+        cp.step(legs_for(cp.hall_code()), 0.0, h)
+        t += h
+    t_end = t + n_sect * sector
+    acc = tt = 0.0
+    while tt < t_end - t:
+        hh = min(h, t_end - t - tt)
+        cp.step(legs_for(cp.hall_code()), 0.0, hh)
+        acc += cp.state.torque_e_n_m * hh
+        tt += hh
+    need = m.viscous_friction_n_m_s * w + profile.control.load_torque_n_m
+    return acc / tt, need
+
+
+def _hold_check(profile) -> dict:
+    eps = float(profile.design.get("resistance_uncertainty", 0.1))
+    tgt = profile.speed_step_rpm()
+    worst = None
+    for rs in (1.0, 1.0 + eps):
+        te, need = bridge_hold_torque(profile, tgt, r_factor=rs)
+        if worst is None or te - need < worst[0] - worst[1]:
+            worst = (te, need, rs)
+    te, need, rs = worst
+    return {"value": te, "limit": need, "ok": bool(te > need), "unit": "N m",
+            "note": f"mean torque the bridge delivers at the step target ({tgt:.0f} rpm held, R x {rs:g}) through "
+                    "the firmware's hall table at its largest duty, in the twin's three-phase plant (commutation "
+                    "transfers included), vs the load and friction torque there: below it the target cannot "
+                    f"be held under the load (hall sector {1e3 * sector_period_s(profile, tgt):.3g} ms, L/R "
+                    f"{1e3 * profile.motor.l_line_h / profile.motor.r_line_ohm:.3g} ms)"}
+
+
 def _dq_reachability(profile) -> dict | None:
     if profile.motor.back_emf_shape != "sinusoidal":
         return None
@@ -540,6 +611,8 @@ def verify_design(profile, result, *, simulate: bool = True):
         dq = _dq_reachability(profile)
         if dq is not None:
             checks["dq_hold_rpm"] = dq
+        if simulate:
+            checks["bridge_hold_torque_n_m"] = _hold_check(profile)
     checks.update(_certificate_checks(profile, result))
     if law is not None and simulate and checks.get("sampled_spectral_radius", {}).get("ok", True):
         checks.update(_sim_checks(profile, law))
