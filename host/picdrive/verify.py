@@ -12,7 +12,9 @@ six-step bridge (high-side PWM, low side on) on the motor's DC equivalent
 table commutates it, the conduction rule of the bridge (the current cannot
 reverse while ``0 <= u <`` back-EMF: no braking torque; ``u < 0`` plugs after
 one sample with all switches off), the firmware's measurement chain (M/T
-speed with half a sample of extrapolation, one ADC sample of the bus
+speed with half a sample of extrapolation, or -- ``sensors.speed_source =
+"hall"`` -- the hall-edge period in Timer5 ticks of the firmware's own plan,
+:class:`picdrive.simulate.HallSpeedMeter`; one ADC sample of the bus
 current) and its current window (:func:`picdrive.simulate.simulate_six_step`).
 ``tests/test_verify_twin.py`` checks that this model predicts the motor twin
 (firmware in the loop, three-phase plant) for every committed design.
@@ -37,6 +39,11 @@ Checks:
   checks (fuzzy designs) on the TS model the certificate refers to (the dq
   model): the LMIs re-assembled, every rule pair and polytope vertex, the
   achieved H-inf norm against the certified bound.
+* ``bridge_hold_torque_n_m`` -- the torque the bridge delivers at the step
+  target through the hall table at the firmware's largest duty, in the twin's
+  three-phase plant (:func:`bridge_hold_torque`: commutation transfers, which
+  the DC equivalent has not), against the load and friction there; R nominal
+  and +``design.resistance_uncertainty``.
 * ``dq_hold_rpm`` (sinusoidal motors only) -- steady-state reachability on the
   dq model (v_d = 0): the step target within what it holds under the load.
   For a trapezoidal motor the dq model does not describe the six-step drive
@@ -48,8 +55,11 @@ Checks:
   again after it, overshoot within the same 2 % band (the bridge cannot brake:
   an overshoot beyond the band coasts back on friction alone), final error
   (all on the speed averaged over one hall sector, :func:`sector_mean`; the
-  ripple inside a sector is reported as a figure, ``sim_speed_ripple_pct``),
-  peak line current vs the overcurrent trip, the firmware's current
+  ripple inside a sector is reported as a figure, ``sim_speed_ripple_pct``;
+  no window reaches across the load step),
+  peak line current inside the PWM periods (the period average plus the
+  periodic RL ripple, :func:`picdrive.simulate.pwm_ripple_peak_a`) vs the
+  overcurrent trip, the firmware's current
   walk-down backup never needed, saturation in steady state; the same step
   and load step with R at +-``design.resistance_uncertainty``
   (``sim_resistance_uncertainty``).
