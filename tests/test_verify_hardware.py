@@ -209,3 +209,21 @@ def test_short_sector_drive_cannot_hold_its_target_under_load():
     res = run_design(prof, "zn", progress=False)
     assert not res.ok
     assert any("bridge_hold_torque_n_m" in r for r in res.reasons)
+
+
+def test_twin_comparator_sees_the_current_inside_the_pwm_period(micro):
+    """The twin's plant averages each PWM period; its peak current (the overcurrent comparator's
+    input) adds the switched current's rise above that average, as the verification does."""
+    from picdrive_hil.plant import CPlant, plant_from_profile
+
+    from picdrive.simulate import pwm_ripple_peak_a
+    cp = CPlant(plant_from_profile(micro))
+    cp.params.inertia_kg_m2 = 1e3                        # rotor held (no EMF): a pure switched RL pair
+    h, d = 1.0 / micro.inverter.pwm_frequency_hz, 0.5
+    for _ in range(400):
+        cp.step([(d, 0.0), (0.0, 1.0), (0.0, 0.0)], 0.0, h)
+    i_avg = cp.state.i_a[0]
+    assert i_avg == pytest.approx(d * micro.inverter.bus_voltage_v / micro.motor.r_line_ohm, rel=1e-3)
+    excess = pwm_ripple_peak_a(micro.inverter.bus_voltage_v, micro.motor.r_line_ohm, micro.motor.l_line_h, d, h)
+    assert excess > 0.1
+    assert cp.state.i_peak_a == pytest.approx(i_avg + excess, rel=1e-6)
