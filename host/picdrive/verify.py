@@ -237,9 +237,12 @@ def _sampled_check(profile, law) -> dict:
             rad = float(np.max(np.abs(np.linalg.eigvals(Acl))))
             if rad > worst:
                 worst, where = rad, f"gains at {w / RPM:.0f} rpm, R x {rs:g}"
+    meas = ("the firmware's speed measurement" if profile.sensors.speed_source != "hall" else
+            "the encoder's M/T measurement (this profile measures speed from the halls: their period's lag, "
+            "which depends on the speed, is judged by the simulation, sim_*)")
     return {"value": worst, "limit": 1.0, "ok": bool(worst < 1.0), "unit": "1",
-            "note": "largest |eig| of the sampled closed loop on the six-step DC-equivalent plant with the "
-                    f"firmware's speed measurement; worst at {where}"}
+            "note": f"largest |eig| of the sampled closed loop on the six-step DC-equivalent plant with {meas}; "
+                    f"worst at {where}"}
 
 
 def six_step_equilibrium(profile, omega_rad_s: float, load_n_m: float = 0.0, r_factor: float = 1.0):
