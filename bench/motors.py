@@ -66,8 +66,9 @@ def run_case(profile_path: str, method: str) -> dict:
     t0 = time.perf_counter()
     try:
         prof = load_profile(profile_path)
-    except PicdriveError as e:
-        return {**out, "outcome": "refused", "stage": "profile", "reason": str(e)}
+    except PicdriveError as e:          # the message names the file: keep it machine-independent
+        return {**out, "outcome": "refused", "stage": "profile",
+                "reason": str(e).replace(str(profile_path), Path(profile_path).name)}
     try:
         res = run_design(prof, method, progress=False)
     except PicdriveError as e:

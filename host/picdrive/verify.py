@@ -408,11 +408,29 @@ def _certificate_checks(profile, result) -> dict:
 # ---------------------------------------------------------------------------
 # Nonlinear simulation on the six-step drive
 # ---------------------------------------------------------------------------
+def min_step_time_s(profile, rpm: float | None = None) -> float:
+    """The fastest the drive can reach ``rpm`` (default the step target) from rest at the current
+    limit, ``t_min = J w / (Kt I_lim - T_load)``, s (inf when the limit cannot carry the load)."""
+    m = profile.motor
+    w = (profile.speed_step_rpm() if rpm is None else rpm) * RPM
+    net = m.kt_n_m_per_a * profile.inverter.current_limit_a - profile.control.load_torque_n_m
+    return m.inertia_kg_m2 * w / net if net > 0 else math.inf
+
+
 def sim_plan(profile) -> dict:
-    """Step target (rpm), load, durations of the verification simulation."""
+    """Step target (rpm), load, durations of the verification simulation.
+
+    Each phase lasts ``VerifyConfig`` 's duration or three times the physical minimum step time
+    (:func:`min_step_time_s`), whichever is longer: a high-inertia drive cannot settle within a
+    fixed 0.6 s however good its law."""
+    t_min = min_step_time_s(profile)
+    scale = 1.0
+    if math.isfinite(t_min):
+        scale = max(1.0, 3.0 * t_min / VerifyConfig.step_phase_s)
+    step, load = VerifyConfig.step_phase_s * scale, VerifyConfig.load_phase_s * scale
     return {"target_rpm": profile.speed_step_rpm(), "profile_target_rpm": profile.speed_step_rpm(),
             "capped": False, "load_n_m": profile.control.load_torque_n_m,
-            "t_load_s": VerifyConfig.step_phase_s, "t_end_s": VerifyConfig.step_phase_s + VerifyConfig.load_phase_s}
+            "t_load_s": step, "t_end_s": step + load}
 
 
 def speed_measurement(profile, law) -> dict:
