@@ -493,6 +493,30 @@ def default_pole_disk(profile, ts) -> float:
     return max(math.pi / (2.0 * ts_s), 1.25 * plant)
 
 
+def no_certificate_reason(profile, ts, disk_rad_s: float) -> str | None:
+    """Why Theorem 1 with a pole disk of ``disk_rad_s`` has no solution on the six-step model, at any
+    gamma, or None when this argument does not apply.
+
+    The winding's current mode sits at ``-R/L``.  Only the current feedback ``kc`` can move it
+    (to ``-(R' + kc)/L``), and the certificate must hold for every ``R'`` in
+    ``R (1 -+ eps)`` (Assumption 1): stability at ``R (1 - eps)`` needs ``kc > -R (1 - eps)``, which
+    leaves the mode at ``|s| > eps R / L`` at the nominal ``R`` on which the disk is imposed.  When
+    ``eps R/L`` is outside the disk (a winding whose L/R is short against the speed-loop period) no
+    gain places the loop in it -- a larger gamma cannot help."""
+    m = profile.motor
+    eps = float(ts.info.get("resistance_uncertainty", profile.design.get("resistance_uncertainty", 0.1)))
+    r_over_l = m.r_line_ohm / m.l_line_h
+    if eps * r_over_l < disk_rad_s:
+        return None
+    return (f"no fuzzy-hinf certificate exists at any gamma: the winding's current mode is at R/L = "
+            f"{r_over_l:.4g} 1/s (L/R = {1e6 / r_over_l:.3g} us); only current feedback can slow it, and it must "
+            f"stay stable for R within -+{100 * eps:g} % (design.resistance_uncertainty), so it cannot come closer "
+            f"than eps R/L = {eps * r_over_l:.4g} rad/s, outside the largest pole disk the "
+            f"{profile.control.speed_loop_hz:g} Hz sampled law allows (pi/(2 Ts) = {disk_rad_s:.4g} rad/s); "
+            f"use mixed-pid or zn (no current feedback), or a speed loop of at least "
+            f"{2 * eps * r_over_l / math.pi:.4g} Hz")
+
+
 def integrator_need_v(profile, rules, b: float) -> float:
     """Largest ``|I*| = |u* + kp (1 - b) w* + kc i*|`` the law's integrator holds at the six-step
     equilibria (standstill and the step target, with and without the load, R at its uncertainty
@@ -666,7 +690,9 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
             res.fail(f"Theorem 1 LMIs infeasible for {variant!r} (gamma={gamma if gamma is not None else 'minimised'}, "
                      f"delta={delta if delta is not None else 'free'}, alpha={alpha:g}, rho={rho:g}, pole disk "
                      f"{disk if disk is not None else 'none'}): solver status {sol.status!r}, largest LMI eigenvalue "
-                     f"{sol.max_eig:.3g}; try a larger gamma or delta=None")
+                     f"{sol.max_eig:.3g}; " + ("gamma was a variable of the problem, so a larger gamma cannot help: "
+                                               "try a smaller pole disk (option pole_disk_rad_s)" if gamma is None
+                                               and delta is None else "try a larger gamma or delta=None"))
             res.certificate = {"model": model, "model_options": model_opts, "solver_status": sol.status,
                                "gamma": sol.gamma, "feasible": False, "pole_disk_rad_s": disk}
             return res
@@ -717,6 +743,13 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
     tries: list[dict] = []
     res = None
     t_lmi = t_ver = 0.0
+    why_none = no_certificate_reason(profile, ts, max(disks)) if model == "six-step" else None
+    if why_none:
+        res = result_of(Theorem1Solution(False, "not attempted", math.nan, math.nan, alpha, rho), max(disks))
+        res.reasons.clear()
+        res.fail(why_none)
+        res.certificate["why_no_certificate"] = why_none
+        disks = []
     for disk in disks:
         ta = _t.perf_counter()
         sol = solve(disk)

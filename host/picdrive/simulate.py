@@ -28,7 +28,7 @@ from .dqmodel import DqParams, derivatives, dq_params
 
 __all__ = ["SimResult", "simulate_law", "simulate_state_feedback", "disturbances_2016", "step_load",
            "SixStepPlant", "SixStepResult", "six_step_plant", "simulate_six_step",
-           "W_WINDOW_S"]
+           "W_WINDOW_S", "HallSpeedMeter", "hall_speed_meter", "pwm_ripple_peak_a"]
 
 W_WINDOW_S = 0.2       # the 2016 disturbances act on [0, 0.2] s (Fig. 7: the energy ratio is constant after 0.2 s)
 
@@ -263,6 +263,64 @@ def six_step_plant(profile, *, r_factor: float = 1.0, commutated: bool = False) 
                         emf_table=tab)
 
 
+def pwm_ripple_peak_a(v_on_v: float, r_ohm: float, l_h: float, duty: float, period_s: float) -> float:
+    """How far the current's peak inside a PWM period lies above its period average, A.
+
+    An RL winding (with any back-EMF held over the period) switched between ``v_on_v`` for
+    ``duty`` of the period and 0 V for the rest (high-side PWM, the low side on: the current
+    freewheels through the source leg's low-side diode and the sink's low side: about 0 V across
+    the pair), in its periodic steady state:
+    ``i_max = (V/R) (1 - a) / (1 - a b)`` above the all-off level, ``a = exp(-d T/tau)``,
+    ``b = exp(-(1-d) T/tau)``, while the period average is ``d V/R`` (L di/dt averages to 0);
+    the back-EMF shifts both alike.  Models that average each PWM period (this module, the twin)
+    miss this excess: it is about ``V d (1-d) T / (2 L)`` for ``tau >> T`` and approaches
+    ``V/R (1 - d)`` when ``tau << T``."""
+    if not 0.0 < duty < 1.0 or r_ohm <= 0.0:
+        return 0.0
+    tau = l_h / r_ohm
+    a = math.exp(-duty * period_s / tau)
+    b = math.exp(-(1.0 - duty) * period_s / tau)
+    return v_on_v / r_ohm * ((1.0 - a) / (1.0 - a * b) - duty)
+
+
+@dataclass(frozen=True)
+class HallSpeedMeter:
+    """The firmware's speed measurement from hall edges (``sensors.speed_source = "hall"``).
+
+    drive.c.j2 ``hall_edge()`` latches Timer5 at every hall edge (``h_period`` = ticks between
+    the last two edges, ``h_fwd`` = the edge followed the forward sequence); each speed-loop
+    sample ``measure()`` / ``core_speed_hall()`` reads ``w = K / max(h_period, elapsed)``
+    (``elapsed`` = ticks since the last edge: a slowing rotor reads no faster than the time it has
+    been silent), negative for a backward edge, and 0 until two edges were seen or once
+    ``age_max`` samples passed without an edge.  So the law sees the mean speed over the last
+    hall sector (60 electrical degrees), which lags the true speed by about half a sector, and
+    nothing below ``k / 65536`` ticks; the resolution is one Timer5 tick in the period."""
+
+    edges_per_rev: int           # 6 x pole pairs
+    tick_s: float                # Timer5 tick, s (prescaler / Fcy)
+    k_raw: int                   # CORE_K_SPEED: speed (Q qs) x period (ticks)
+    qs: int                      # speed Q format
+    age_max: int                 # FW_HALL_AGE_MAX, samples
+    offset_deg: float            # sensors.hall_offset_deg (edges at offset + m x 60 electrical degrees)
+    pole_pairs: int
+
+    @property
+    def lowest_rad_s(self) -> float:
+        """Slowest speed with a period inside the 16-bit timer, rad/s."""
+        return 2 * math.pi / self.edges_per_rev / (65535 * self.tick_s)
+
+
+def hall_speed_meter(profile, plan) -> HallSpeedMeter:
+    """The hall speed measurement of the firmware a fixed-point ``plan``
+    (:func:`picdrive.fixedpoint.plan_fixed_point`) builds for ``profile``."""
+    from .fixedpoint import FCY_HZ
+    # FW_HALL_AGE_MAX as codegen renders it (tests/test_verify_hall.py checks the two agree)
+    age_max = max(2, min(255, math.floor(65536 * plan.ps5 / 1e7 * plan.loop_hz) - 1))
+    return HallSpeedMeter(edges_per_rev=6 * profile.motor.pole_pairs, tick_s=plan.ps5 / FCY_HZ, k_raw=plan.k_speed,
+                          qs=plan.qs, age_max=age_max, offset_deg=profile.sensors.hall_offset_deg,
+                          pole_pairs=profile.motor.pole_pairs)
+
+
 @dataclass
 class SixStepResult:
     """Samples of :func:`simulate_six_step` (at the law's sample instants unless named ``_fine``)."""
@@ -283,6 +341,8 @@ class SixStepResult:
     t_fine: np.ndarray           # s, every PWM period
     omega_fine: np.ndarray
     i_fine: np.ndarray
+    i_peak_fine: np.ndarray = field(default_factory=lambda: np.zeros(0))   # |i| + the PWM ripple above the
+                                                                            # period average (pwm_ripple_peak_a)
 
     @property
     def rpm(self) -> np.ndarray:
@@ -303,7 +363,8 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
                       load: float | Callable[[float], float] = 0.0, r_factor: float = 1.0,
                       measurement: str = "firmware", commutated: bool = False,
                       torque_disturbance: Callable[[float], float] | None = None,
-                      plant: SixStepPlant | None = None, x0=(0.0, 0.0), integrator0_v: float = 0.0) -> SixStepResult:
+                      plant: SixStepPlant | None = None, x0=(0.0, 0.0), integrator0_v: float = 0.0,
+                      hall: HallSpeedMeter | None = None) -> SixStepResult:
     """The six-step drive under the firmware's law, averaged over each PWM period.
 
     Plant (DC equivalent, 2008 eq 1, the profile's ``r_line_ohm``, ``l_line_h``,
@@ -335,7 +396,9 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     (:func:`picdrive.control_law.law_step`, with its back-EMF current window)
     sees the speed by the M/T method with half a sample of extrapolation
     (``measurement="firmware"``: ``w_avg + (w_avg - w_avg_prev)/2``, ``w_avg``
-    the exact mean over the last sample; ``"instant"``: the true speed) and
+    the exact mean over the last sample; ``"instant"``: the true speed;
+    ``"hall"``: the hall-edge period of :class:`HallSpeedMeter` ``hall``, edges
+    located inside each PWM period, timed in Timer5 ticks) and
     the bus current as one ADC sample of the current in the applied direction
     (0 while all switches are off; 10-bit quantised); its output is applied
     from the next PWM period on; a change of sign switches all outputs off
@@ -344,8 +407,10 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     (exponential, speed held at its start), a current zero inside the period
     located on that exponential, then the speed by the trapezoidal rule.
     """
-    if measurement not in ("firmware", "instant"):
-        raise ValueError(f"measurement {measurement!r}: 'firmware' or 'instant'")
+    if measurement not in ("firmware", "instant", "hall"):
+        raise ValueError(f"measurement {measurement!r}: 'firmware', 'instant' or 'hall'")
+    if measurement == "hall" and hall is None:
+        raise ValueError("measurement 'hall' needs the firmware's HallSpeedMeter (hall=)")
     pl = plant if plant is not None else six_step_plant(profile, r_factor=r_factor, commutated=commutated)
     ts = law.sample_time_s
     n_sub = max(1, int(round(ts / pl.pwm_period_s)))
@@ -366,7 +431,8 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     o = {k: np.zeros(n) for k in ("t", "omega", "y", "i", "im", "u", "lo", "hi", "dir", "I", "ref", "load")}
     cap_on = np.zeros(n, bool)
     nf = n * n_sub
-    tf, wf, jf = np.zeros(nf), np.zeros(nf), np.zeros(nf)
+    tf, wf, jf, pf = np.zeros(nf), np.zeros(nf), np.zeros(nf), np.zeros(nf)
+    ripple = {}                                      # duty -> the PWM ripple above the period average
     i, w, th = float(x0[0]), float(x0[1]), 0.0
     st = LawState(integ_v=float(integrator0_v), y_prev=w if w != 0.0 else None)
     th_prev, w_avg_prev, valid = -w * ts, w, w != 0.0
@@ -379,10 +445,26 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     cap_step = pl.u_bridge_v * ts / 0.010
     i_lim_counts = math.floor(pl.current_limit_a * pl.adc_counts_per_a + 0.5) if pl.adc_counts_per_a else None
     kf = 0
+    if measurement == "hall":
+        # hall edges: electrical angle offset + m x 60 deg; edge index of the present angle
+        e_per_rad = hall.pole_pairs * 3.0 / math.pi
+        e_off = hall.offset_deg / 60.0
+        h_idx = math.floor(th * e_per_rad - e_off)
+        h_last = h_period = 0
+        h_fwd, h_count, h_age = True, 0, 0
+        w_lsb = 2.0 ** -hall.qs
     for k in range(n):
         t = k * ts
         # ---- measurements at the sample
-        if measurement == "instant" or (k == 0 and not valid):
+        if measurement == "hall":
+            now = math.floor(t / hall.tick_s + 1e-9) & 0xFFFF
+            y = 0.0
+            if h_count >= 2 and h_age < hall.age_max:
+                p = max(h_period, (now - h_last) & 0xFFFF)
+                if p:
+                    y = min(hall.k_raw // p, 32767) * w_lsb * (1.0 if h_fwd else -1.0)
+            h_age = min(h_age + 1, 255)
+        elif measurement == "instant" or (k == 0 and not valid):
             y = w if measurement == "instant" else 0.0
         else:
             w_avg = (th - th_prev) / ts
@@ -433,7 +515,12 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
             else:
                 v_pos, v_neg = -vbus, vbus
             if n_tab:
+                # the current and voltage here are in the forward sense (u < 0: -d Vbus); the reverse
+                # table drives its own pair source -> sink with +d Vbus, so in the forward sense its
+                # EMF constant is minus that pair's (plugging brakes a forward-turning rotor)
                 ke = tab[tab_dir][int((th + 0.5 * h * w) * ang_k) % n_tab]
+                if tab_dir:
+                    ke = -ke
             else:
                 ke = kb
             e = ke * w
@@ -468,15 +555,34 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
             w1 = (w * (1.0 - 0.5 * h * B / J) + h / J * (te - tload)) / (1.0 + 0.5 * h * B / J)
             if w != 0.0 and tl > 0.0 and (w1 > 0.0) != (w > 0.0) and (tload > 0.0) == (w > 0.0):
                 w1 = 0.0                                 # a passive load stops the rotor, never reverses it
-            th += 0.5 * h * (w + w1)
+            th1 = th + 0.5 * h * (w + w1)
+            if measurement == "hall":
+                idx = math.floor(th1 * e_per_rad - e_off)
+                while idx != h_idx:                       # the edges crossed in this period, in order
+                    fwd = idx > h_idx
+                    edge = (h_idx + (1 if fwd else 0) + e_off) / e_per_rad
+                    frac = (edge - th) / (th1 - th) if th1 != th else 1.0
+                    tick = math.floor((t + s * h + min(max(frac, 0.0), 1.0) * h) / hall.tick_s) & 0xFFFF
+                    h_period, h_last = (tick - h_last) & 0xFFFF, tick
+                    h_fwd, h_count, h_age = fwd, min(h_count + 1, 2), 0
+                    h_idx += 1 if fwd else -1
+            th = th1
             i, w = i1, w1
             tf[kf], wf[kf], jf[kf] = t + (s + 1) * h, w, i
+            pk = abs(i)
+            if v is not None and d_dir != 0 and (v == v_pos if d_dir > 0 else v == v_neg) and 0.0 < d_duty < 1.0:
+                ex = ripple.get(d_duty)
+                if ex is None:
+                    ex = ripple[d_duty] = pwm_ripple_peak_a(vbus, R, L, d_duty, pl.pwm_period_s)
+                pk += ex
+            pf[kf] = pk
             kf += 1
         if not (math.isfinite(w) and math.isfinite(i)) or abs(w) > 1e7:
             raise FloatingPointError("six-step simulation diverged")
     return SixStepResult(t=o["t"], omega=o["omega"], y=o["y"], i=o["i"], i_meas=o["im"], u=o["u"], u_lo=o["lo"],
                          u_hi=o["hi"], direction=o["dir"], integ=o["I"], ref=o["ref"], load=o["load"],
-                         cap_active=cap_on, t_fine=tf[:kf], omega_fine=wf[:kf], i_fine=jf[:kf])
+                         cap_active=cap_on, t_fine=tf[:kf], omega_fine=wf[:kf], i_fine=jf[:kf],
+                         i_peak_fine=pf[:kf])
 
 
 def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: float, load_n_m: float = 0.0,

@@ -12,7 +12,9 @@ six-step bridge (high-side PWM, low side on) on the motor's DC equivalent
 table commutates it, the conduction rule of the bridge (the current cannot
 reverse while ``0 <= u <`` back-EMF: no braking torque; ``u < 0`` plugs after
 one sample with all switches off), the firmware's measurement chain (M/T
-speed with half a sample of extrapolation, one ADC sample of the bus
+speed with half a sample of extrapolation, or -- ``sensors.speed_source =
+"hall"`` -- the hall-edge period in Timer5 ticks of the firmware's own plan,
+:class:`picdrive.simulate.HallSpeedMeter`; one ADC sample of the bus
 current) and its current window (:func:`picdrive.simulate.simulate_six_step`).
 ``tests/test_verify_twin.py`` checks that this model predicts the motor twin
 (firmware in the loop, three-phase plant) for every committed design.
@@ -37,6 +39,11 @@ Checks:
   checks (fuzzy designs) on the TS model the certificate refers to (the dq
   model): the LMIs re-assembled, every rule pair and polytope vertex, the
   achieved H-inf norm against the certified bound.
+* ``bridge_hold_torque_n_m`` -- the torque the bridge delivers at the step
+  target through the hall table at the firmware's largest duty, in the twin's
+  three-phase plant (:func:`bridge_hold_torque`: commutation transfers, which
+  the DC equivalent has not), against the load and friction there; R nominal
+  and +``design.resistance_uncertainty``.
 * ``dq_hold_rpm`` (sinusoidal motors only) -- steady-state reachability on the
   dq model (v_d = 0): the step target within what it holds under the load.
   For a trapezoidal motor the dq model does not describe the six-step drive
@@ -48,8 +55,11 @@ Checks:
   again after it, overshoot within the same 2 % band (the bridge cannot brake:
   an overshoot beyond the band coasts back on friction alone), final error
   (all on the speed averaged over one hall sector, :func:`sector_mean`; the
-  ripple inside a sector is reported as a figure, ``sim_speed_ripple_pct``),
-  peak line current vs the overcurrent trip, the firmware's current
+  ripple inside a sector is reported as a figure, ``sim_speed_ripple_pct``;
+  no window reaches across the load step),
+  peak line current inside the PWM periods (the period average plus the
+  periodic RL ripple, :func:`picdrive.simulate.pwm_ripple_peak_a`) vs the
+  overcurrent trip, the firmware's current
   walk-down backup never needed, saturation in steady state; the same step
   and load step with R at +-``design.resistance_uncertainty``
   (``sim_resistance_uncertainty``).
@@ -227,9 +237,12 @@ def _sampled_check(profile, law) -> dict:
             rad = float(np.max(np.abs(np.linalg.eigvals(Acl))))
             if rad > worst:
                 worst, where = rad, f"gains at {w / RPM:.0f} rpm, R x {rs:g}"
+    meas = ("the firmware's speed measurement" if profile.sensors.speed_source != "hall" else
+            "the encoder's M/T measurement (this profile measures speed from the halls: their period's lag, "
+            "which depends on the speed, is judged by the simulation, sim_*)")
     return {"value": worst, "limit": 1.0, "ok": bool(worst < 1.0), "unit": "1",
-            "note": "largest |eig| of the sampled closed loop on the six-step DC-equivalent plant with the "
-                    f"firmware's speed measurement; worst at {where}"}
+            "note": f"largest |eig| of the sampled closed loop on the six-step DC-equivalent plant with {meas}; "
+                    f"worst at {where}"}
 
 
 def six_step_equilibrium(profile, omega_rad_s: float, load_n_m: float = 0.0, r_factor: float = 1.0):
@@ -263,6 +276,77 @@ def _window_check(profile, law) -> dict:
     return {"value": list(have), "limit": list(want), "ok": bool(ok), "unit": "A, V s/rad, ohm",
             "note": "the law's current window (current_limit_a, kb_v_s_per_rad, r_ohm) must be the firmware's: "
                     "the profile's inverter.current_limit_a, motor.kb_v_s_per_rad, motor.r_line_ohm"}
+
+
+def bridge_hold_torque(profile, rpm: float, *, r_factor: float = 1.0) -> tuple[float, float]:
+    """Mean electromagnetic torque the bridge delivers at a held speed, and the torque the load and
+    friction take there, N m: ``(delivered, needed)``.
+
+    The three-phase plant of the motor twin (``picdrive_hil.plant.CPlant``: per-phase currents,
+    the floating phase and its diode, the commutation transfers the DC equivalent does not have)
+    at ``rpm`` held constant, driven by the firmware's hall table (high-side PWM, low side on) at
+    the largest duty the firmware applies there: bus x max duty, or less where the current window
+    ``Kb w + R_line I_lim`` is lower; R x ``r_factor``.  Averaged over whole hall sectors after the
+    currents have settled.  A drive whose sector is short against L/R loses torque at each
+    commutation; if ``delivered < needed`` the target cannot be held under the load, whatever the
+    law."""
+    from picdrive_hil.plant import CPlant, plant_from_profile
+
+    from .pcpwm import commutation_table
+    m, inv, se = profile.motor, profile.inverter, profile.sensors
+    w = rpm * RPM
+    cp = CPlant(plant_from_profile(profile))
+    cp.params.inertia_kg_m2 = 1e9 * max(m.inertia_kg_m2, 1e-9)     # the speed is held
+    cp.params.r_phase_ohm *= r_factor
+    cp.state.w_rad_s = w
+    u = min(inv.bus_voltage_v * profile.max_duty(), m.kb_v_s_per_rad * w + m.r_line_ohm * inv.current_limit_a)
+    d = max(0.0, min(1.0, u / inv.bus_voltage_v))
+    tab = commutation_table(se.hall_spacing_deg, se.hall_offset_deg, m.back_emf_shape).forward
+    h = 1.0 / inv.pwm_frequency_hz
+    sector = math.pi / 3 / (m.pole_pairs * max(w, 1e-9))
+    tau = m.l_line_h / (m.r_line_ohm * r_factor)
+    t_warm = max(10 * tau, 2 * sector)
+    n_sect = max(12, math.ceil(0.02 / sector))
+    legs_off = [(0.0, 0.0)] * 3
+
+    def legs_for(code):
+        st = tab[code]
+        if st is None:
+            return legs_off
+        lg = [(0.0, 0.0)] * 3
+        lg[st[0]] = (d, 0.0)
+        lg[st[1]] = (0.0, 1.0)
+        return lg
+    t = 0.0
+    while t < t_warm:
+        cp.step(legs_for(cp.hall_code()), 0.0, h)
+        t += h
+    t_end = t + n_sect * sector
+    acc = tt = 0.0
+    while tt < t_end - t:
+        hh = min(h, t_end - t - tt)
+        cp.step(legs_for(cp.hall_code()), 0.0, hh)
+        acc += cp.state.torque_e_n_m * hh
+        tt += hh
+    need = m.viscous_friction_n_m_s * w + profile.control.load_torque_n_m
+    return acc / tt, need
+
+
+def _hold_check(profile) -> dict:
+    eps = float(profile.design.get("resistance_uncertainty", 0.1))
+    tgt = profile.speed_step_rpm()
+    worst = None
+    for rs in (1.0, 1.0 + eps):
+        te, need = bridge_hold_torque(profile, tgt, r_factor=rs)
+        if worst is None or te - need < worst[0] - worst[1]:
+            worst = (te, need, rs)
+    te, need, rs = worst
+    return {"value": te, "limit": need, "ok": bool(te > need), "unit": "N m",
+            "note": f"mean torque the bridge delivers at the step target ({tgt:.0f} rpm held, R x {rs:g}) through "
+                    "the firmware's hall table at its largest duty, in the twin's three-phase plant (commutation "
+                    "transfers included), vs the load and friction torque there: below it the target cannot "
+                    f"be held under the load (hall sector {1e3 * sector_period_s(profile, tgt):.3g} ms, L/R "
+                    f"{1e3 * profile.motor.l_line_h / profile.motor.r_line_ohm:.3g} ms)"}
 
 
 def _dq_reachability(profile) -> dict | None:
@@ -324,17 +408,50 @@ def _certificate_checks(profile, result) -> dict:
 # ---------------------------------------------------------------------------
 # Nonlinear simulation on the six-step drive
 # ---------------------------------------------------------------------------
+def min_step_time_s(profile, rpm: float | None = None) -> float:
+    """The fastest the drive can reach ``rpm`` (default the step target) from rest at the current
+    limit, ``t_min = J w / (Kt I_lim - T_load)``, s (inf when the limit cannot carry the load)."""
+    m = profile.motor
+    w = (profile.speed_step_rpm() if rpm is None else rpm) * RPM
+    net = m.kt_n_m_per_a * profile.inverter.current_limit_a - profile.control.load_torque_n_m
+    return m.inertia_kg_m2 * w / net if net > 0 else math.inf
+
+
 def sim_plan(profile) -> dict:
-    """Step target (rpm), load, durations of the verification simulation."""
+    """Step target (rpm), load, durations of the verification simulation.
+
+    Each phase lasts ``VerifyConfig`` 's duration or three times the physical minimum step time
+    (:func:`min_step_time_s`), whichever is longer: a high-inertia drive cannot settle within a
+    fixed 0.6 s however good its law."""
+    t_min = min_step_time_s(profile)
+    scale = 1.0
+    if math.isfinite(t_min):
+        scale = max(1.0, 3.0 * t_min / VerifyConfig.step_phase_s)
+    step, load = VerifyConfig.step_phase_s * scale, VerifyConfig.load_phase_s * scale
     return {"target_rpm": profile.speed_step_rpm(), "profile_target_rpm": profile.speed_step_rpm(),
             "capped": False, "load_n_m": profile.control.load_torque_n_m,
-            "t_load_s": VerifyConfig.step_phase_s, "t_end_s": VerifyConfig.step_phase_s + VerifyConfig.load_phase_s}
+            "t_load_s": step, "t_end_s": step + load}
+
+
+def speed_measurement(profile, law) -> dict:
+    """The firmware's speed measurement as :func:`picdrive.simulate.simulate_six_step` takes it:
+    ``{"measurement": "firmware"}`` (encoder M/T) or ``{"measurement": "hall", "hall": meter}``
+    (hall-edge period, :func:`picdrive.simulate.hall_speed_meter` of the firmware's own
+    fixed-point plan).  Raises the plan's :class:`picdrive.errors.PicdriveError` when no firmware
+    can be built for the law."""
+    if profile.sensors.speed_source != "hall":
+        return {"measurement": "firmware"}
+    from .fixedpoint import plan_fixed_point
+    from .pcpwm import plan_pwm
+    from .simulate import hall_speed_meter
+    return {"measurement": "hall", "hall": hall_speed_meter(profile, plan_fixed_point(profile, law, plan_pwm(profile)))}
 
 
 def run_sim(profile, law, plan=None, *, disturbances: bool = True, r_factor: float = 1.0,
             commutated: bool | None = None):
     """The verification run on the six-step drive: step from rest to the target (the 2016 load-torque
-    disturbance w3 on [0, 0.2] s when ``disturbances``), then the load step.  Returns
+    disturbance w3 on [0, 0.2] s when ``disturbances``), then the load step, with the firmware's
+    speed measurement (:func:`speed_measurement`).  Returns
     :class:`picdrive.simulate.SixStepResult`."""
     from .simulate import disturbances_2016, simulate_six_step
     plan = plan or sim_plan(profile)
@@ -345,7 +462,7 @@ def run_sim(profile, law, plan=None, *, disturbances: bool = True, r_factor: flo
         w3 = lambda t: float(disturbances_2016(t, amplitude=(0.0, 0.0, 0.1 * load))[0, 2])
     return simulate_six_step(profile, law, t_end=plan["t_end_s"], ref_rpm=plan["target_rpm"],
                              load=lambda t: load if t >= tl - 1e-12 else 0.0, torque_disturbance=w3,
-                             r_factor=r_factor,
+                             r_factor=r_factor, **speed_measurement(profile, law),
                              commutated=VerifyConfig.commutated if commutated is None else commutated)
 
 
@@ -356,19 +473,29 @@ def sector_period_s(profile, rpm: float) -> float:
     return 60.0 / (max(abs(rpm), 1e-9) * profile.motor.pole_pairs * 6.0)
 
 
-def sector_mean(profile, y: np.ndarray, ts: float, rpm: float) -> np.ndarray:
+def sector_mean(profile, y: np.ndarray, ts: float, rpm: float, *, breaks=()) -> np.ndarray:
     """``y`` (samples ``ts`` apart) averaged over one hall sector at ``rpm`` (centred moving mean;
-    the ends use what exists)."""
+    the ends use what exists).
+
+    ``breaks``: sample indices where a new phase of the run starts (the load step): no window
+    reaches across one, so what happens after a phase boundary never leaks into the figures of the
+    phase before it (and the other way round); near a boundary the window is the sector next to it
+    inside the phase."""
+    y = np.asarray(y, float)
     n = max(1, int(round(sector_period_s(profile, rpm) / ts)))
     if n <= 1:
-        return np.asarray(y, float)
-    y = np.asarray(y, float)
-    c = np.concatenate([[0.0], np.cumsum(y)])
-    k = np.arange(y.size)
-    lo = np.clip(k - n // 2, 0, y.size)
-    hi = np.clip(lo + n, 0, y.size)
-    lo = np.maximum(0, hi - n)
-    return (c[hi] - c[lo]) / (hi - lo)
+        return y.copy()
+    out = np.empty_like(y)
+    cuts = [0] + sorted(int(b) for b in breaks if 0 < int(b) < y.size) + [y.size]
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        seg = y[a:b]
+        c = np.concatenate([[0.0], np.cumsum(seg)])
+        k = np.arange(seg.size)
+        lo = np.clip(k - n // 2, 0, seg.size)
+        hi = np.clip(lo + n, 0, seg.size)
+        lo = np.maximum(0, hi - n)
+        out[a:b] = (c[hi] - c[lo]) / (hi - lo)
+    return out
 
 
 def step_figures(sim, plan, profile=None) -> dict:
@@ -382,8 +509,9 @@ def step_figures(sim, plan, profile=None) -> dict:
     t, raw = sim.t, sim.rpm
     tl, target = plan["t_load_s"], plan["target_rpm"]
     ts = float(t[1] - t[0])
-    rpm = sector_mean(profile, raw, ts, target) if profile is not None else raw
     a = t < tl
+    # the load step starts a new phase: no sector window reaches across it
+    rpm = sector_mean(profile, raw, ts, target, breaks=(int(np.count_nonzero(a)),)) if profile is not None else raw
     m1 = step_metrics(t[a], rpm[a], target, y0=0.0)
     band = VerifyConfig.band
     dev = np.abs(rpm[~a] - target) / target
@@ -398,7 +526,10 @@ def step_figures(sim, plan, profile=None) -> dict:
             "final_error_rpm": float(target - np.mean(rpm[-n_tail:])),
             "ripple_pct": float(100 * np.ptp(raw[-n_tail:] - rpm[-n_tail:]) / target),
             "t_reach_s": float(t[inside[0]]) if inside.size else math.inf,
-            "peak_current_a": float(np.max(np.abs(sim.i_fine))) if sim.i_fine.size else 0.0}
+            "peak_current_a": float(np.max(np.abs(sim.i_fine))) if sim.i_fine.size else 0.0,
+            # with the current's rise inside each PWM period (simulate.pwm_ripple_peak_a); a twin run has none
+            "peak_current_ripple_a": float(np.max(sim.i_peak_fine)) if getattr(sim, "i_peak_fine", np.zeros(0)).size
+            else (float(np.max(np.abs(sim.i_fine))) if sim.i_fine.size else 0.0)}
 
 
 def _sim_checks(profile, law) -> dict:
@@ -448,7 +579,8 @@ def _sim_checks(profile, law) -> dict:
         tail |= (t >= t0) & (t < t1)
     sat = sim.saturated
     # on the edge for most of a hall sector (brief touches from the commutation ripple excepted)
-    sat_sector = sector_mean(profile, sat.astype(float), law.sample_time_s, target) >= 0.5
+    sat_sector = sector_mean(profile, sat.astype(float), law.sample_time_s, target,
+                             breaks=(int(np.count_nonzero(t < tl)),)) >= 0.5
     sat_tail = float(np.mean(sat_sector[tail]))
     out["sim_saturated_steady_fraction"] = {"value": sat_tail, "limit": 0.0, "ok": bool(sat_tail == 0.0), "unit": "1",
                                             "note": "fraction of the steady-state windows with u at the edge of "
@@ -457,10 +589,15 @@ def _sim_checks(profile, law) -> dict:
     out["sim_saturated_time_s"] = {"value": float(np.sum(sat) * law.sample_time_s), "limit": 0.5 * tl,
                                    "ok": bool(np.sum(sat) * law.sample_time_s <= 0.5 * tl), "unit": "s"}
     trip = profile.inverter.overcurrent_trip_a
-    out["sim_peak_bus_current_a"] = {"value": f["peak_current_a"], "limit": trip,
-                                     "ok": bool(f["peak_current_a"] < trip), "unit": "A",
-                                     "note": f"peak line current (every PWM period) vs the overcurrent trip; the "
-                                             f"current limit is {profile.inverter.current_limit_a:g} A"}
+    tau = profile.motor.l_line_h / profile.motor.r_line_ohm
+    t_pwm = 1.0 / profile.inverter.pwm_frequency_hz
+    out["sim_peak_bus_current_a"] = {"value": f["peak_current_ripple_a"], "limit": trip,
+                                     "ok": bool(f["peak_current_ripple_a"] < trip), "unit": "A",
+                                     "note": f"peak line current inside the PWM periods (the period average peaks at "
+                                             f"{f['peak_current_a']:.4g} A; the rise within a period adds up to "
+                                             f"{f['peak_current_ripple_a'] - f['peak_current_a']:.3g} A at L/R = "
+                                             f"{tau * 1e6:.3g} us, PWM period {t_pwm * 1e6:.3g} us) vs the overcurrent "
+                                             f"trip; the current limit is {profile.inverter.current_limit_a:g} A"}
     n_cap = int(np.sum(sim.cap_active))
     out["sim_current_backup_samples"] = {"value": n_cap, "limit": 0, "ok": bool(n_cap == 0), "unit": "samples",
                                          "note": "samples with the firmware's walk-down backup (measured current "
@@ -478,10 +615,10 @@ def _sim_checks(profile, law) -> dict:
             continue
         good = (fr["settling_s"] < 0.8 * tl and fr["overshoot_pct"] <= 100 * band
                 and fr["load_recovery_s"] < 0.8 * (t_end - tl) and abs(fr["final_error_rpm"]) <= band * target
-                and fr["peak_current_a"] < trip)
+                and fr["peak_current_ripple_a"] < trip)
         ok &= bool(good)
         worst[f"R x {rs:g}"] = {k: round(fr[k], 4) for k in ("settling_s", "overshoot_pct", "load_recovery_s",
-                                                             "final_error_rpm", "peak_current_a")}
+                                                             "final_error_rpm", "peak_current_ripple_a")}
     out["sim_resistance_uncertainty"] = {"value": worst, "limit": "the same limits", "ok": ok, "unit": "",
                                          "note": f"step and load step with R x (1 -+ {eps:g})"}
     return out
@@ -505,6 +642,8 @@ def verify_design(profile, result, *, simulate: bool = True):
         dq = _dq_reachability(profile)
         if dq is not None:
             checks["dq_hold_rpm"] = dq
+        if simulate:
+            checks["bridge_hold_torque_n_m"] = _hold_check(profile)
     checks.update(_certificate_checks(profile, result))
     if law is not None and simulate and checks.get("sampled_spectral_radius", {}).get("ok", True):
         checks.update(_sim_checks(profile, law))

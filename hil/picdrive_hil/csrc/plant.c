@@ -366,6 +366,16 @@ static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3
         ibus += im * (hi + (im < 0.0 ? foff[x] : 0.0));
         if (leg[x].f_hi > 0.0) ilink += i1[x];
         if (fabs(i1[x]) > ipk) ipk = fabs(i1[x]);
+        if (hi > 0.0 && hi < 1.0 && i1[x] > 0.0) {
+            /* the step is the PWM-period average; the switched current of a PWM'd high side rises
+               above it inside the period: the periodic RL solution of the pair (Vbus for d h, 0 for
+               the rest, tau = L/R) peaks (Vbus/2R) ((1-a)/(1-ab) - d) above its mean
+               (picdrive.simulate.pwm_ripple_peak_a); the comparator sees that peak */
+            double tau = p->l_phase_h / p->r_phase_ohm;
+            double a = exp(-hi * h / tau), b = exp(-(1.0 - hi) * h / tau);
+            double pk = i1[x] + vbus / (2.0 * p->r_phase_ohm) * ((1.0 - a) / (1.0 - a * b) - hi);
+            if (pk > ipk) ipk = pk;
+        }
         double v;
         if (i1[x] > 0.0) v = vp[x];
         else if (i1[x] < 0.0) v = vm[x];

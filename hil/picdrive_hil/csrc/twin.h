@@ -57,7 +57,8 @@ typedef struct {
     double torque_load_n_m;  /* load torque applied over the last step (incl. passive sign) */
     double i_bus_a;          /* average DC-link current over the last step (out of +bus) */
     double i_link_on_a;      /* DC-link current while the PWM'd high switch conducts */
-    double i_peak_a;         /* largest |phase current| at the end of the step */
+    double i_peak_a;         /* largest |phase current| at the end of the step, plus the rise of a PWM'd
+                                high side's switched current above the period average (comparator input) */
     double energy_j;         /* energy drawn from the bus since reset */
     int32_t locked;          /* rotor locked by injection */
     int32_t te_valid;        /* torque_e_n_m is the torque of the present i and theta (to O(h^2)) */

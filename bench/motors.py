@@ -1,0 +1,200 @@
+#!/usr/bin/env python3
+"""The corpus of real motors (tests/motors/*.toml): design -> firmware -> twin, and the table of docs/motors.md.
+
+For each profile and each design method (fuzzy-hinf, mixed-pid, zn) this runs what a user would:
+load the profile, ``picdrive design`` (design + verification), and for a verified design
+``picdrive firmware``'s codegen and the motor twin through the verification's own step and load
+step (:func:`picdrive.verify.twin_run`), beside the verification's six-step model of the same run
+(:func:`picdrive.verify.run_sim`, no disturbances); both judged by
+:func:`picdrive.verify.step_figures`.  Every outcome is one of
+
+* ``verified`` -- with the twin's and the model's rise, overshoot and final error;
+* ``refused`` -- at a stage (profile, design, firmware) with the reason picdrive gave.
+
+:func:`judge` states the tolerances a verified design must meet in the twin
+(tests/test_motors_corpus.py asserts them); nothing is cached between runs except the twin's
+compiled library, which is keyed by the hash of its sources.
+
+    python3 bench/motors.py [--jobs N] [--only NAME ...] [--write]     # prints the table; --write regenerates docs/motors.md
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import tempfile
+import time
+import warnings
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+CORPUS = ROOT / "tests" / "motors"
+DOC = ROOT / "docs" / "motors.md"
+METHODS = ("fuzzy-hinf", "mixed-pid", "zn")
+
+# tolerances of a verified design in the twin against its verification (the same as
+# tests/test_verify_twin.py's, stated there): the twin must also pass the verification's limits
+RISE_REL = 0.25          # rise time within 25 % of the twin's (+ one speed-loop sample)
+OVERSHOOT_PP = 1.0       # overshoot within 1 percentage point
+FINAL_REL = 0.001        # final speed under the load within 0.1 % of the target
+
+
+def profiles() -> list[Path]:
+    return sorted(CORPUS.glob("*.toml"))
+
+
+def _short(text: str, n: int = 260) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= n else text[: n - 3] + "..."
+
+
+def run_case(profile_path: str, method: str) -> dict:
+    """One profile x method through the chain; a plain dict (picklable)."""
+    from picdrive.design import run_design
+    from picdrive.errors import PicdriveError
+    from picdrive.profile import load_profile
+    from picdrive.result import save_design
+    from picdrive.verify import run_sim, sim_plan, step_figures, twin_run
+
+    warnings.simplefilter("ignore")
+    import tomllib
+    with open(profile_path, "rb") as fh:
+        src = tomllib.load(fh).get("drive", {}).get("source", "")
+    out = {"profile": Path(profile_path).stem, "method": method, "source": src}
+    t0 = time.perf_counter()
+    try:
+        prof = load_profile(profile_path)
+    except PicdriveError as e:          # the message names the file: keep it machine-independent
+        return {**out, "outcome": "refused", "stage": "profile",
+                "reason": str(e).replace(str(profile_path), Path(profile_path).name)}
+    try:
+        res = run_design(prof, method, progress=False)
+    except PicdriveError as e:
+        return {**out, "outcome": "refused", "stage": "design", "reason": str(e), "wall_s": time.perf_counter() - t0}
+    if not res.ok:
+        return {**out, "outcome": "refused", "stage": "design", "reason": "; ".join(res.reasons),
+                "wall_s": time.perf_counter() - t0}
+    plan = sim_plan(prof)
+    with tempfile.TemporaryDirectory(prefix="picdrive-corpus-") as tmp:
+        path = Path(tmp) / f"{prof.name}.{method}.design.json"
+        save_design(res, path)
+        try:
+            tw = twin_run(prof, path, plan, workdir=tmp)
+        except PicdriveError as e:
+            return {**out, "outcome": "refused", "stage": "firmware", "reason": str(e),
+                    "wall_s": time.perf_counter() - t0}
+    twin = step_figures(tw, plan, prof)
+    model = step_figures(run_sim(prof, res.law, plan, disturbances=False), plan, prof)
+    keys = ("rise_s", "settling_s", "overshoot_pct", "final_error_rpm", "load_recovery_s", "load_dip_rpm",
+            "peak_current_a", "t_reach_s")
+    return {**out, "outcome": "verified", "target_rpm": plan["target_rpm"], "t_load_s": plan["t_load_s"],
+            "t_end_s": plan["t_end_s"], "trip_a": prof.inverter.overcurrent_trip_a,
+            "ts_s": 1.0 / prof.control.speed_loop_hz,
+            "twin": {k: float(twin[k]) for k in keys}, "model": {k: float(model[k]) for k in keys},
+            "wall_s": time.perf_counter() - t0}
+
+
+def judge(case: dict) -> list[str]:
+    """What a case breaks (empty: fine).  A refusal must name a reason; a verified design must
+    behave in the twin within the tolerances above of its verification and pass its limits."""
+    if case["outcome"] == "refused":
+        return [] if case.get("reason", "").strip() else ["refused without a reason"]
+    tw, mo, tgt = case["twin"], case["model"], case["target_rpm"]
+    bad = []
+    if not abs(mo["rise_s"] - tw["rise_s"]) <= RISE_REL * tw["rise_s"] + case["ts_s"]:
+        bad.append(f"rise {1e3 * tw['rise_s']:.3g} ms in the twin vs {1e3 * mo['rise_s']:.3g} ms verified")
+    if not abs(mo["overshoot_pct"] - tw["overshoot_pct"]) <= OVERSHOOT_PP:
+        bad.append(f"overshoot {tw['overshoot_pct']:.3g} % in the twin vs {mo['overshoot_pct']:.3g} % verified")
+    if not abs(mo["final_error_rpm"] - tw["final_error_rpm"]) <= FINAL_REL * tgt:
+        bad.append(f"final error {tw['final_error_rpm']:.4g} rpm in the twin vs {mo['final_error_rpm']:.4g} rpm verified")
+    band = 0.02
+    if not tw["settling_s"] < 0.8 * case["t_load_s"]:
+        bad.append(f"the twin does not settle ({tw['settling_s']:.3g} s)")
+    if not tw["overshoot_pct"] <= 100 * band:
+        bad.append(f"the twin overshoots {tw['overshoot_pct']:.3g} %")
+    if not tw["load_recovery_s"] < 0.8 * (case["t_end_s"] - case["t_load_s"]):
+        bad.append(f"the twin does not recover from the load step ({tw['load_recovery_s']:.3g} s)")
+    if not abs(tw["final_error_rpm"]) <= band * tgt:
+        bad.append(f"the twin's final error {tw['final_error_rpm']:.4g} rpm")
+    if not tw["peak_current_a"] < case["trip_a"]:
+        bad.append(f"the twin's peak current {tw['peak_current_a']:.3g} A reaches the trip")
+    if not math.isfinite(tw["t_reach_s"]):
+        bad.append("the twin never reaches the target")
+    return bad
+
+
+def run_all(names=None, jobs: int | None = None) -> list[dict]:
+    paths = [p for p in profiles() if not names or p.stem in names]
+    cases = [(str(p), m) for p in paths for m in METHODS]
+    jobs = jobs or min(2, os.cpu_count() or 1)
+    if jobs <= 1:
+        return [run_case(*c) for c in cases]
+    with ProcessPoolExecutor(max_workers=jobs) as ex:
+        return list(ex.map(run_case, *zip(*cases)))
+
+
+def cell(case: dict) -> str:
+    if case["outcome"] == "refused":
+        return f"refused ({case['stage']}): {_short(case['reason']).replace('|', '/')}"
+    tw, mo = case["twin"], case["model"]
+    return (f"verified; twin / verification: rise {1e3 * tw['rise_s']:.1f} / {1e3 * mo['rise_s']:.1f} ms, "
+            f"overshoot {tw['overshoot_pct']:.2f} / {mo['overshoot_pct']:.2f} %, final error "
+            f"{tw['final_error_rpm']:.2f} / {mo['final_error_rpm']:.2f} rpm at {case['target_rpm']:.0f} rpm"
+            + ("" if not judge(case) else " -- OUT OF TOLERANCE: " + "; ".join(judge(case))))
+
+
+def table(cases: list[dict]) -> str:
+    by = {(c["profile"], c["method"]): c for c in cases}
+    names = sorted({c["profile"] for c in cases})
+    lines = ["| profile | source | " + " | ".join(METHODS) + " |", "|---" * (2 + len(METHODS)) + "|"]
+    for n in names:
+        src = next((by[(n, m)].get("source", "") for m in METHODS if (n, m) in by), "")
+        lines.append(f"| `{n}` | {_short(src, 140).replace('|', '/')} | "
+                     + " | ".join(cell(by[(n, m)]) if (n, m) in by else "" for m in METHODS) + " |")
+    return "\n".join(lines)
+
+
+DOC_HEAD = """# Motors picdrive has never seen: the corpus
+
+<!-- generated by `python3 bench/motors.py --write`; do not edit by hand -->
+
+Profiles of real motors written from datasheets (`tests/motors/*.toml`; none is bundled; each
+names its source and marks what it assumes in its comments) go through what a user does: load
+the profile, `picdrive design` with each method (design and verification), `picdrive firmware`
+and the motor twin through the verification's own step from rest to `Profile.speed_step_rpm()`
+and load step (`picdrive.verify.twin_run`).  A verified design must behave in the twin within
+25 % (+ one sample) of its verification's rise time, 1 percentage point of its overshoot and
+0.1 % of the target in final error, and pass the verification's own limits there
+(`bench/motors.py` `judge`, asserted by `tests/test_motors_corpus.py`); a refusal names its stage
+and reason.  Figures: twin / verification, on the speed averaged over one hall sector.
+"""
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--jobs", type=int, default=None, help="worker processes (default: min(2, CPUs))")
+    ap.add_argument("--only", nargs="*", help="profile names (file stems) to run")
+    ap.add_argument("--write", action="store_true", help="regenerate docs/motors.md from this run")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    cases = run_all(args.only, args.jobs)
+    wall = time.perf_counter() - t0
+    text = DOC_HEAD + "\n" + table(cases) + "\n"
+    print(text)
+    n_ver = sum(c["outcome"] == "verified" for c in cases)
+    n_bad = sum(bool(judge(c)) for c in cases)
+    print(f"{len(cases)} cases: {n_ver} verified, {len(cases) - n_ver} refused, {n_bad} out of tolerance; "
+          f"{wall:.0f} s wall")
+    if args.write:
+        if args.only:
+            print("--write needs the whole corpus (no --only)", file=sys.stderr)
+            return 2
+        DOC.write_text(text)
+        print(f"wrote {DOC}")
+    return 1 if n_bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
