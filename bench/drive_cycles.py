@@ -22,8 +22,11 @@ from picdrive.p18f4431 import render_sdcc_device
 TC = Path(os.environ.get("PICDRIVE_SDCC", Path.home() / ".cache/picdrive/toolchain/sdcc-4.2.0-pic16"))
 LIB = TC / "share/sdcc/lib/pic16"
 LKR = "/usr/share/gputils/lkr/18f4431_g.lkr"
-#: extra SDCC options (PICDRIVE_SDCC_OPTS, space-separated), to compare optimisation flags
-EXTRA = os.environ.get("PICDRIVE_SDCC_OPTS", "").split()
+#: the image's SDCC options (the same as bench/link_pic18.py): banksel and data-flow optimisation
+#: take 0.7 kB off drive_core.c and 0.5 kB off drive.c; --opt-code-size, --pstack-model=small and
+#: --no-peep change nothing here.  PICDRIVE_SDCC_OPTS (space-separated) adds options to compare.
+CFLAGS = ["--obanksel=9", "--optimize-cmp", "--optimize-df"]
+EXTRA = CFLAGS + os.environ.get("PICDRIVE_SDCC_OPTS", "").split()
 
 # (target, adc, speed state) samples: rest, step into the current limit, reversal,
 # saturation, int16 extremes
@@ -84,15 +87,28 @@ def sdcc(args, cwd):
         raise SystemExit(f"sdcc {' '.join(args)} failed:\n{r.stderr[-2000:]}")
 
 
-def code_bytes(obj: Path) -> int:
-    """Bytes of the code and const (initialised program-memory) sections of an object (gpvo)."""
+def section_bytes(obj: Path) -> dict:
+    """Bytes of each code and const (initialised program-memory) section of an object (gpvo):
+    SDCC puts each function in its own section S_<file>__<function>."""
     out = subprocess.run(["gpvo", str(obj)], capture_output=True, text=True).stdout
-    total = 0
+    secs = {}
     for blk in out.split("Section Header")[1:]:
+        name = re.search(r"Name\s+(\S+)", blk)
         size = re.search(r"Size of Section\s+(\d+)", blk)
-        if size and ("Executable code" in blk or "ROM data" in blk or "Program memory" in blk):
-            total += int(size.group(1))
-    return total
+        if name and size and ("Executable code" in blk or "ROM data" in blk or "Program memory" in blk):
+            secs[re.sub(r"^S_[A-Za-z0-9_]+?__", "", name.group(1))] = int(size.group(1))
+    return secs
+
+
+def code_bytes(obj: Path) -> int:
+    """Bytes of the code and const sections of an object."""
+    return sum(section_bytes(obj).values())
+
+
+def size_table(secs: dict, top: int = 12) -> str:
+    """The largest sections, one 'bytes name' per line."""
+    rows = sorted(secs.items(), key=lambda kv: -kv[1])[:top]
+    return "\n".join(f"    {b:6d}  {n}" for n, b in rows)
 
 
 def measure(folder: Path, controller: int = 1) -> dict:
@@ -106,11 +122,12 @@ def measure(folder: Path, controller: int = 1) -> dict:
                 (t / f.name).write_text(f.read_text())
         vec = ", ".join("{%d, %d, %d}" % v for v in CORPUS)
         (t / "harness.c").write_text(HARNESS % {"vec": vec, "n": len(CORPUS), "controller": controller})
-        sizes = {}
+        sizes, funcs = {}, {}
         for src in ("drive_core.c", "drive.c", "harness.c", "xc_sfr.c"):
             if (t / src).exists():
                 sdcc(["-c", src], t)
-                sizes[src] = code_bytes(t / src.replace(".c", ".o"))
+                funcs[src] = section_bytes(t / src.replace(".c", ".o"))
+                sizes[src] = sum(funcs[src].values())
         objs = [str(LIB / "crt0i.o"), "harness.o", "drive_core.o", "xc_sfr.o", str(LIB / "libsdcc.lib")]
         r = subprocess.run(["gplink", "-m", "-w", "-s", LKR, "-o", "h.hex", *objs], cwd=t,
                            capture_output=True, text=True)
@@ -131,7 +148,7 @@ def measure(folder: Path, controller: int = 1) -> dict:
             raise SystemExit(f"gpsim gave {len(cyc)} of {n_marks} cycle counts")
         law = [cyc[3 * k + 1] - cyc[3 * k] for k in range(len(CORPUS))]
         enc = [cyc[3 * k + 2] - cyc[3 * k + 1] for k in range(len(CORPUS))]
-        return {"sizes": sizes, "core_control": law, "core_speed_encoder": enc}
+        return {"sizes": sizes, "funcs": funcs, "core_control": law, "core_speed_encoder": enc}
 
 
 PRODUCTS = r"""
@@ -215,6 +232,10 @@ def main(argv):
             m = measure(f, ctl)
             print(f"{f}  controller={ctl}")
             print(f"  flash bytes: drive_core.c {m['sizes']['drive_core.c']}, drive.c {m['sizes'].get('drive.c')}")
+            if ctl == 1:
+                for src in ("drive_core.c", "drive.c"):
+                    if src in m["funcs"]:
+                        print(f"  largest functions of {src} (bytes):\n{size_table(m['funcs'][src])}")
             for k in ("core_control", "core_speed_encoder"):
                 print(f"  {k:20s} worst {max(m[k]):6d} cycles  best {min(m[k]):6d}  ({m[k]})")
 
