@@ -161,7 +161,7 @@ void bad(void) { }
 void main(void)
 {
     uint16_t x = 12345u, y = 54321u, k;
-    uint32_t ss = 0u, su = 0u;
+    uint32_t ss = 0u, su = 0u, sr = 0u, sl = 0u;
     for (k = 0u; k < %(n)du; k++) {
         x = (uint16_t)(x * 25173u + 13849u);
         y = (uint16_t)(y * 16807u + 12345u);
@@ -170,8 +170,15 @@ void main(void)
         if (k == 2u) { x = 0xFFFFu; y = 0xFFFFu; }
         ss = ss * 31u + (uint32_t)CORE_MULS((int16_t)x, (int16_t)y);
         su = su * 31u + CORE_MULU(x, y);
+        core_sh.x = (int32_t)(((uint32_t)x << 16) | y);
+        core_sh.n = (uint8_t)(k & 31u);
+        core_asr_asm();
+        sr = sr * 31u + (uint32_t)core_sh.x;
+        core_sh.x = (k & 32u) ? (int32_t)(int16_t)y : (int32_t)(((uint32_t)x << 16) | y);
+        core_sh.n = (uint8_t)(k & 31u);
+        sl = sl * 31u + (uint32_t)core_shl_sat();
     }
-    if (ss == %(ss)sUL && su == %(su)sUL) { ok(); } else { bad(); }
+    if (ss == %(ss)sUL && su == %(su)sUL && sr == %(sr)sUL && sl == %(sl)sUL) { ok(); } else { bad(); }
     for (;;) { }
 }
 """
@@ -179,7 +186,8 @@ void main(void)
 
 def expected_products(n):
     """The host's checksums of the same product sequence (Python integers)."""
-    x, y, ss, su = 12345, 54321, 0, 0
+    x, y, ss, su, sr, sl = 12345, 54321, 0, 0, 0, 0
+    sat = lambda v, b: min(max(v, -2**(b - 1)), 2**(b - 1) - 1)  # noqa: E731
     for k in range(n):
         x = (x * 25173 + 13849) & 0xFFFF
         y = (y * 16807 + 12345) & 0xFFFF
@@ -187,12 +195,18 @@ def expected_products(n):
         sx, sy = x - (x >> 15 << 16), y - (y >> 15 << 16)
         ss = (ss * 31 + (sx * sy)) & 0xFFFFFFFF
         su = (su * 31 + x * y) & 0xFFFFFFFF
-    return ss, su
+        xy = (x << 16) | y
+        xy -= (xy >> 31) << 32
+        sr = (sr * 31 + (xy >> (k & 31))) & 0xFFFFFFFF               # Python >> is floor
+        v = sy if k & 32 else xy
+        sl = (sl * 31 + sat(v << (k & 31), 32)) & 0xFFFFFFFF
+    return ss, su, sr, sl
 
 
 def check_products(folder: Path, n: int = 3000) -> bool:
-    """CORE_MULS / CORE_MULU on the PIC18 core (gpsim) against exact products: True if equal."""
-    ss, su = expected_products(n)
+    """CORE_MULS / CORE_MULU and the shifts core_asr_asm / core_shl_sat on the PIC18 core (gpsim)
+    against exact results (floor division, saturated product): True if equal."""
+    ss, su, sr, sl = expected_products(n)
     stubs = "\n".join(f"void __eeprom_gptr{k}(void) {{ }}" for k in
                       ("get1", "get2", "get4", "put1", "put2", "put4"))
     with tempfile.TemporaryDirectory(prefix="drivemul-") as td:
@@ -202,7 +216,8 @@ def check_products(folder: Path, n: int = 3000) -> bool:
         (t / "xc_sfr.c").write_text(s)
         for f in ("drive_core.c", "drive_core.h", "drive_params.h"):
             (t / f).write_text((folder / f).read_text())
-        (t / "mc.c").write_text(PRODUCTS % {"n": n, "ss": f"0x{ss:08X}", "su": f"0x{su:08X}", "stubs": stubs})
+        (t / "mc.c").write_text(PRODUCTS % {"n": n, "ss": f"0x{ss:08X}", "su": f"0x{su:08X}", "sr": f"0x{sr:08X}",
+                                     "sl": f"0x{sl:08X}", "stubs": stubs})
         for src in ("mc.c", "drive_core.c", "xc_sfr.c"):
             sdcc(["-c", src], t)
         subprocess.run(["gplink", "-m", "-w", "-s", LKR, "-o", "mc.hex", str(LIB / "crt0i.o"), "mc.o",
@@ -226,8 +241,8 @@ def check_products(folder: Path, n: int = 3000) -> bool:
 def main(argv):
     folders = [Path(a) for a in argv] or [Path("firmware_build/duy2008")]
     for f in folders:
-        print(f"{f}  CORE_MULS/CORE_MULU on the PIC18 core, 3000 pairs incl. -32768 and 0xFFFF: "
-              + ("equal to the exact products" if check_products(f) else "MISMATCH"))
+        print(f"{f}  CORE_MULS/CORE_MULU and the shifts on the PIC18 core, 3000 pairs incl. -32768 and "
+              "0xFFFF, counts 0..31: " + ("equal to the exact results" if check_products(f) else "MISMATCH"))
         for ctl in (1, 0):
             m = measure(f, ctl)
             print(f"{f}  controller={ctl}")
