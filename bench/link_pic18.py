@@ -159,18 +159,27 @@ def _frames(header: str) -> str:
                      for k, v in frames.items())
 
 
+def _sections(obj: Path) -> tuple[dict, int]:
+    """({section: flash bytes}, RAM bytes) of an object: code/const sections (SDCC puts each function
+    in its own, S_<file>__<function>), udata sections."""
+    out = _run(["gpvo", str(obj)], obj.parent)
+    secs, ram = {}, 0
+    for blk in out.split("Section Header")[1:]:
+        m = re.search(r"Name\s+(\S+).*?Size of Section\s+(\d+).*?Flags\s+(0x[0-9a-fA-F]+)", blk, re.S)
+        if not m:
+            continue
+        name, size, f = m.group(1), int(m.group(2)), int(m.group(3), 16)
+        if f & 0x20:
+            secs[re.sub(r"^S_link_fw__", "", name)] = size
+        elif name.startswith(("udata", "idata")):
+            ram += size
+    return secs, ram
+
+
 def _object_sizes(obj: Path) -> tuple[int, int]:
     """(flash, RAM) bytes of an object: code/const sections, udata sections."""
-    out = _run(["gpvo", str(obj)], obj.parent)
-    flash = ram = 0
-    for name, size, flags in re.findall(r"Name\s+(\S+).*?Size of Section\s+(\d+).*?Flags\s+(0x[0-9a-fA-F]+)", out,
-                                        re.S):
-        f = int(flags, 16)
-        if f & 0x20:
-            flash += int(size)
-        elif name.startswith(("udata", "idata")):
-            ram += int(size)
-    return flash, ram
+    secs, ram = _sections(obj)
+    return sum(secs.values()), ram
 
 
 def flash_with(c_text: str, h_text: str, defines: list[str]) -> int:
@@ -203,7 +212,8 @@ def measure(c_text: str, h_text: str) -> dict:
                 raise SystemExit(f"sdcc {f} failed:\n{r.stdout[-3000:]}{r.stderr[-3000:]}")
         _run(["gplink", "-m", "-w", "-s", LKR, "-o", "out.hex", str(LIB / "crt0i.o"), "h.o", "link_fw.o",
               "xc_sfr.o", "eestub.o", str(LIB / "libsdcc.lib")], d)
-        flash, ram = _object_sizes(d / "link_fw.o")
+        funcs, ram = _sections(d / "link_fw.o")
+        flash = sum(funcs.values())
         mp = (d / "out.map").read_text()
         lib = {m.group(1): int(m.group(2), 16) for m in
                re.finditer(r"^\s*S_(\w+?)___\w+\s+code\s+0x[0-9a-f]+\s+program\s+0x([0-9a-f]+)", mp, re.M)
@@ -222,7 +232,7 @@ def measure(c_text: str, h_text: str) -> dict:
     ov = d_[0]                                      # marker to marker, nothing between
     isr = [x - ov - 4 for x in d_[2:4]]            # minus BSF INT0IF and the loop's increment and test
     samples = [x - ov - 4 for x in d_[12:27]]      # minus the loop (the first sample follows the feeds)
-    return dict(flash=flash, ram=ram, lib=lib, helpers=helpers, overhead=ov,
+    return dict(flash=flash, funcs=funcs, ram=ram, lib=lib, helpers=helpers, overhead=ov,
                 rx_isr=max(isr), poll_max=d_[5] - ov, poll_get=d_[7] - ov, poll_info=d_[9] - ov,
                 crc_per_byte=(d_[10] - ov) / 40.0,
                 sample_max=max(samples), sample_mean=sum(samples) / len(samples), tick=d_[27] - ov)
@@ -245,6 +255,8 @@ def main() -> int:
     m = measure(c_text, h_text)
     print(f"link_fw.c ({a.rev or 'working tree'}), SDCC 4.2.0 {' '.join(CFLAGS[1:])}, gpsim p18f4520")
     print(f"  flash        {m['flash']:6d} B  (code + const of link_fw.o)")
+    top = sorted(m["funcs"].items(), key=lambda kv: -kv[1])[:15]
+    print("  largest sections (bytes; .code = the const tables):\n" + "\n".join(f"    {b:6d}  {n}" for n, b in top))
     print(f"  runtime lib  {sum(m['lib'].values()):6d} B  ({', '.join(f'{k} {v}' for k, v in sorted(m['lib'].items()))})")
     print(f"  helpers      {', '.join(m['helpers']) or 'none'} (called from link_fw.c)")
     print(f"  RAM          {m['ram']:6d} B  (static)")
