@@ -35,7 +35,7 @@ def _user_folder(d: Path) -> Path:
 
 def test_firmware_into_a_folder_with_an_unrelated_file_and_a_subfolder_leaves_both(tmp_path):
     mine = _user_folder(tmp_path / "mine")
-    r = picdrive(tmp_path, "firmware", "--profile", "duy2008", "--design", DESIGN, "-o", "mine")
+    r = picdrive(tmp_path, "firmware", "--no-hex", "--profile", "duy2008", "--design", DESIGN, "-o", "mine")
     assert r.returncode == 2 and "not written by picdrive" in r.stderr, r.stderr
     assert (mine / "notes.txt").read_text() == "mine" and (mine / "sub" / "data.csv").read_text() == "1,2\n"
     assert sorted(p.name for p in mine.iterdir()) == ["notes.txt", "sub"]
@@ -44,13 +44,13 @@ def test_firmware_into_a_folder_with_an_unrelated_file_and_a_subfolder_leaves_bo
 
 def test_a_file_is_not_replaced_by_a_folder(tmp_path):
     (tmp_path / "fw").write_text("a file of mine")
-    r = picdrive(tmp_path, "firmware", "--profile", "duy2008", "--design", DESIGN, "-o", "fw")
+    r = picdrive(tmp_path, "firmware", "--no-hex", "--profile", "duy2008", "--design", DESIGN, "-o", "fw")
     assert r.returncode == 2 and "fw exists and is not a folder" in r.stderr, r.stderr
     assert (tmp_path / "fw").read_text() == "a file of mine"
 
 
 def test_the_marker_lets_picdrive_replace_its_own_output_and_only_that(tmp_path):
-    r = picdrive(tmp_path, "firmware", "--profile", "duy2008", "--design", DESIGN, "-o", "fw")
+    r = picdrive(tmp_path, "firmware", "--no-hex", "--profile", "duy2008", "--design", DESIGN, "-o", "fw")
     assert r.returncode == 0, r.stderr
     fw = tmp_path / "fw"
     man = json.loads((fw / outputs.MARKER).read_text())
@@ -58,12 +58,12 @@ def test_the_marker_lets_picdrive_replace_its_own_output_and_only_that(tmp_path)
     (fw / "build").mkdir()
     (fw / "build" / "duy2008.hex").write_text(":00000001FF\n")           # what make leaves: regenerable
     (fw / "drive.c").unlink()                                          # a file picdrive wrote, removed: fine
-    r = picdrive(tmp_path, "firmware", "--profile", "duy2008", "--design", DESIGN, "-o", "fw")
+    r = picdrive(tmp_path, "firmware", "--no-hex", "--profile", "duy2008", "--design", DESIGN, "-o", "fw")
     assert r.returncode == 0, r.stderr
     assert (fw / "drive.c").is_file() and not (fw / "build").exists()
     # a file the user added to picdrive's folder stops the replacement, and survives
     (fw / "my_notes.txt").write_text("tuning notes")
-    r = picdrive(tmp_path, "firmware", "--profile", "duy2008", "--design", DESIGN, "-o", "fw")
+    r = picdrive(tmp_path, "firmware", "--no-hex", "--profile", "duy2008", "--design", DESIGN, "-o", "fw")
     assert r.returncode == 2 and "my_notes.txt" in r.stderr, r.stderr
     assert (fw / "my_notes.txt").read_text() == "tuning notes"
 
@@ -89,13 +89,13 @@ def test_missing_folders_are_created_the_same_way_by_every_command(tmp_path):
                  "-o", "new/deeper/duy2008.zn.design.json")
     assert r.returncode == 0, r.stderr
     # firmware: missing parents are created too
-    r = picdrive(tmp_path, "firmware", "--profile", "duy2008", "--design",
+    r = picdrive(tmp_path, "firmware", "--no-hex", "--profile", "duy2008", "--design",
                  str(tmp_path / "new" / "deeper" / "duy2008.zn.design.json"), "-o", "a/b/fw/")
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "a" / "b" / "fw" / "drive.c").is_file()
     # and into an existing empty folder
     (tmp_path / "empty").mkdir()
-    r = picdrive(tmp_path, "firmware", "--profile", "duy2008", "--design", DESIGN, "-o", "empty")
+    r = picdrive(tmp_path, "firmware", "--no-hex", "--profile", "duy2008", "--design", DESIGN, "-o", "empty")
     assert r.returncode == 0 and (tmp_path / "empty" / outputs.MARKER).is_file(), r.stderr
 
 
