@@ -74,9 +74,25 @@ def generate_baseline(design: Path, out: Path, work: Path) -> tuple[Path, str]:
     return out, profile
 
 
-def measure(folder: Path, name: str, work: Path) -> tuple[target.Build, dict]:
+BASELINE_PACKAGE = "picdrive_baseline"
+
+
+def import_baseline(root: Path) -> str:
+    """The baseline revision's picdrive, importable as ``picdrive_baseline`` (its codec frames its protocol)."""
+    import importlib.util
+    if BASELINE_PACKAGE not in sys.modules:
+        pkg = root / "host" / "picdrive"
+        spec = importlib.util.spec_from_file_location(BASELINE_PACKAGE, pkg / "__init__.py",
+                                                      submodule_search_locations=[str(pkg)])
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[BASELINE_PACKAGE] = mod
+        spec.loader.exec_module(mod)
+    return BASELINE_PACKAGE
+
+
+def measure(folder: Path, name: str, work: Path, protocol_package: str = "picdrive") -> tuple[target.Build, dict]:
     b = target.build_measured(folder, work / "hex", name=name)
-    return b, gpsim.measure_modes(folder, work / "timing")
+    return b, gpsim.measure_modes(folder, work / "timing", protocol_package=protocol_package)
 
 
 def _row(label, b, c, period):
@@ -112,7 +128,8 @@ def main() -> int:
             runs["today"] = measure(folder, name, work / stem / "new")
             if not a.no_baseline:
                 folder, name = generate_baseline(d, work / stem / "base" / "fw", work)
-                runs["baseline"] = measure(folder, name, work / stem / "base")
+                runs["baseline"] = measure(folder, name, work / stem / "base",
+                                           protocol_package=import_baseline(baseline_tree(work)))
             for mode in gpsim.TELEMETRY_MODES:
                 print(f"{stem}, telemetry {mode}")
                 print(head)

@@ -142,10 +142,14 @@ class Cycles:
         return self.worst[key] / period_cycles
 
 
-def _frames(table=None) -> dict[str, list[bytes]]:
-    """The link frames the corpus sends, encoded by picdrive.codec (so they follow the protocol)."""
-    from . import codec
-    from . import protocol as P
+def _frames(package: str = __package__) -> dict[str, list[bytes]]:
+    """The link frames the corpus sends, encoded by ``<package>.codec`` (so they follow the protocol).
+
+    ``package``: picdrive itself, or the picdrive of another revision imported
+    under its own name (bench/target.py's baseline speaks that revision's framing)."""
+    import importlib
+    codec = importlib.import_module(f"{package}.codec")
+    P = importlib.import_module(f"{package}.protocol")
     names = [s.name for s in P.SIGNALS]
     mask = sum(1 << names.index(s) for s in P.DEFAULT_TELEMETRY_SIGNALS)   # the four default signals
     big = 2 ** 31 - 1
@@ -321,7 +325,7 @@ void main(void)
 TELEMETRY_MODES = ("off", "4", "4+capture")
 
 
-def default_corpus(modes=TELEMETRY_MODES) -> list[tuple[str, list]]:
+def default_corpus(modes=TELEMETRY_MODES, *, protocol_package: str = __package__) -> list[tuple[str, list]]:
     """The firmware states measured, once per telemetry mode.
 
     States: rest, a step into the current limit (full reference, ADC at full
@@ -329,7 +333,7 @@ def default_corpus(modes=TELEMETRY_MODES) -> list[tuple[str, list]]:
     the largest reply and a MAX_PAYLOAD frame.  ``modes``: 'off', '4' (four
     signals streaming) and/or '4+capture' (and a capture armed).
     """
-    f = _frames()
+    f = _frames(protocol_package)
     cases = []
     for m in modes:
         if m not in TELEMETRY_MODES:
@@ -378,18 +382,19 @@ def measure(folder, out_dir, telemetry: str = "4+capture", **kw) -> Cycles:
 
 
 def measure_modes(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3,
-                  max_cycles: int = 20_000_000) -> dict[str, Cycles]:
+                  max_cycles: int = 20_000_000, protocol_package: str = __package__) -> dict[str, Cycles]:
     """Build the timing harness around a firmware folder and run it in gpsim (one run for all modes).
 
     Returns {mode: Cycles}; keys of ``Cycles.worst``: ``speed_loop_isr`` (and
     ``speed_loop_isr:<state>``), ``hall_isr``, ``uart_rx_byte``, ``uart_tx_byte``,
     ``link_poll`` (idle pass), ``link_poll_max_frame`` and ``link_poll_frame:<frame>``.
-    Interrupt figures include ``ENTRY_CYCLES``.
+    Interrupt figures include ``ENTRY_CYCLES``.  ``protocol_package``: whose
+    codec frames the link commands (the firmware's own protocol revision).
     """
     from .target import build_hex
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    cases = default_corpus(modes)
+    cases = default_corpus(modes, protocol_package=protocol_package)
     hall_codes = [1, 3, 2, 6, 4, 5, 1, 5, 4, 6, 2, 3, 1]    # forward, then reverse; HALL_INVALID apart
     harness, keys, counts = harness_c(cases, hall_codes, hall_shift)
     hdr, sfr = timing_device()
