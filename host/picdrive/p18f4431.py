@@ -232,16 +232,21 @@ def _bit_structs(groups: list[list[tuple[str, int]]]) -> list[list[tuple[str, in
     return structs
 
 
-def _struct_c(fields: list[tuple[str, int]]) -> str:
+def _struct_members(fields: list[tuple[str, int]], ctype: str) -> str:
+    """One byte's bit-field members, padding the gaps: ``ctype NAME:1;`` per named bit."""
     parts, pos = [], 0
     for name, p in fields:
         if p > pos:
-            parts.append(f"uint8_t :{p - pos};")
-        parts.append(f"uint8_t {name}:1;")
+            parts.append(f"{ctype} :{p - pos};")
+        parts.append(f"{ctype} {name}:1;")
         pos = p + 1
     if pos < 8:
-        parts.append(f"uint8_t :{8 - pos};")
-    return "    __extension__ struct { " + " ".join(parts) + " };"
+        parts.append(f"{ctype} :{8 - pos};")
+    return " ".join(parts)
+
+
+def _struct_c(fields: list[tuple[str, int]]) -> str:
+    return "    __extension__ struct { " + _struct_members(fields, "uint8_t") + " };"
 
 
 PIN_READ_REGISTERS = ("PORTA", "PORTB", "PORTC", "PORTD", "PORTE")
@@ -343,15 +348,7 @@ def render_host_shim(path=None) -> str:
 
 
 def _struct_sdcc(fields: list[tuple[str, int]]) -> str:
-    parts, pos = [], 0
-    for name, p in fields:
-        if p > pos:
-            parts.append(f"unsigned :{p - pos};")
-        parts.append(f"unsigned {name}:1;")
-        pos = p + 1
-    if pos < 8:
-        parts.append(f"unsigned :{8 - pos};")
-    return "    struct { " + " ".join(parts) + " };"
+    return "    struct { " + _struct_members(fields, "unsigned") + " };"
 
 
 def render_sdcc_device(path=None) -> tuple[str, str]:
