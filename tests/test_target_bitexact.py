@@ -3,8 +3,8 @@ on the PIC18 core in gpsim, against the Python model (picdrive.fixedpoint), on r
 
 The chip generates its own vectors (xorshift32, biased to int16/int32 extremes and saturation) and
 folds every output into a checksum per function (rotate-xor and a sum, both 32-bit) and a 16-bit
-checkpoint every CK vectors; Python runs the same generator through the model and computes the
-same figures.  A mismatch is located by a second, short run that records one checkpoint per
+checkpoint (the sum's low 16 bits) every CK vectors; Python runs the same generator through the
+model and computes the same figures.  A mismatch is located by a second, short run that records one checkpoint per
 vector from the first failing interval on: the report names the function, the vector index, its
 inputs and the model's outputs.
 
@@ -29,10 +29,13 @@ firmware_templates/drive_core.c.j2 (e.g. no temporary between a computed term an
 store, or sa/sb volatile); until then test_known_sdcc_miscompile_of_core_law asserts the
 mismatch, so the fix turns it red and moves law/control into CHECKED.
 
-NOT YET EXPLAINED (not asserted): core_speed_encoder agrees on 2,000 vectors; on 10^4 its checksum
-differs, the trace run places the first difference at vector 8201, yet a gpsim dump of the main
-build around that call shows the model's values (pos_prev 63208, t5_prev 148, w_avg = speed =
-32767).  Under investigation; CHECKED holds the functions that agree (core_duty).
+MODEL AGAINST C (not a chip fault; not asserted here, the fix is the model's or the template's):
+core_speed_encoder on the chip equals the gcc build, but both differ from fixedpoint.speed_encoder
+when w_avg = -32768, no count in the sample and K / t5 > 32767 (t5 < 62 ticks): the C's
+div_sat15 caps the one-count bound at 32767 < |-32768| and sets w_avg = -32767, the model's
+unsaturated bound K // t5 leaves -32768.  First at vector 8020 (valid 1, pos = pos_prev = 65452,
+t5 = 54, t5_prev 33068, w_avg -32768): chip and gcc -32767, model -32768.  CHECKED therefore
+holds core_duty only until model and C agree on that edge.
 """
 import re
 import subprocess
@@ -212,7 +215,7 @@ void main(void)
             s = k / ck;
         }
         if (s < %(n_slots)du) {
-            for (f = 0u; f < 4u; f++) slot[s][f] = (uint16_t)hh[f];
+            for (f = 0u; f < 4u; f++) slot[s][f] = (uint16_t)ss[f];
         }
     }
     for (f = 0u; f < 4u; f++) { res[2u * f] = hh[f]; res[2u * f + 1u] = ss[f]; }
@@ -356,7 +359,7 @@ def model_run(plan, n, t0, n_slots):
         elif (k + 1) % CK == 0:
             s = k // CK
         if s is not None and s < n_slots:
-            slots[s] = [x.h & 0xFFFF for x in sums]
+            slots[s] = [x.s & 0xFFFF for x in sums]
     return [v for x in sums for v in (x.h, x.s)], slots, inputs
 
 
