@@ -27,7 +27,9 @@ the model and the gcc build give u_min -4719 and integ 91431874.  Any change of 
 (six volatile debug stores) moves the allocation and hides it.  The fix belongs in
 firmware_templates/drive_core.c.j2 (e.g. no temporary between a computed term and its sa/sb
 store, or sa/sb volatile); until then test_known_sdcc_miscompile_of_core_law asserts the
-mismatch, so the fix turns it red and moves law/control into CHECKED.
+mismatch, so the fix turns it red and moves law/control into CHECKED.  With sa/sb declared
+volatile (a temp copy: the only change) law and control agree with the model on all 10^4
+vectors (test_law_and_control_agree_with_sa_sb_volatile).
 
 MODEL AGAINST C (not a chip fault; not asserted here, the fix is the model's or the template's):
 core_speed_encoder on the chip equals the gcc build, but both differ from fixedpoint.speed_encoder
@@ -448,6 +450,15 @@ def test_known_sdcc_miscompile_of_core_law(design):
     assert verdict["control"] is not None, verdict
     asm = (tmp / "known" / "run" / "obj" / "drive_core.asm").read_text()
     assert "MOVFF\t_core_sh, _sb" in asm, "the coalesced store is gone: re-check law/control (CHECKED)"
+
+
+def test_law_and_control_agree_with_sa_sb_volatile(design):
+    """The miscompile's workaround on a temp copy: core_law and core_control bit-exact on 10^4 vectors."""
+    plan, folder, tmp = design
+    fixed = _mutated(folder, tmp, "volatile", "drive_core.c", "static int32_t sa, sb;",
+                     "static volatile int32_t sa, sb;")
+    verdict = compare(fixed, tmp / "volatile-run", plan, funcs=("law", "control", "duty"))
+    assert verdict == {"law": None, "control": None, "duty": None}, verdict
 
 
 def _mutated(folder, tmp, name, fn, old, new):
