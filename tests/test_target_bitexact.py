@@ -1,0 +1,491 @@
+"""Bit-exact on the target (issue 9, item 4): drive_core.c compiled by SDCC's pic16 port and run
+on the PIC18 core in gpsim, against the Python model (picdrive.fixedpoint), on random vectors.
+
+The chip generates its own vectors (xorshift32, biased to int16/int32 extremes and saturation) and
+folds every output into a checksum per function (rotate-xor and a sum, both 32-bit) and a 16-bit
+checkpoint (the sum's low 16 bits) every CK vectors; Python runs the same generator through the
+model and computes the same figures.  A mismatch is located by a second, short run that records one checkpoint per
+vector from the first failing interval on: the report names the function, the vector index, its
+inputs and the model's outputs.
+
+Functions: core_law, core_control (limiter, ramp, law, duty, direction), core_speed_encoder (or
+core_speed_hall), core_duty.  The law parameters cycle through the design's own and random sets
+(fixedpoint._rand_params, the host comparison's generator).  The mutation tests make sure the
+comparison can fail: a one-LSB change of a constant and a removed 32-bit product cast.
+
+KNOWN DEFECT, NAMED: SDCC 4.2 pic16 miscompiles core_law (and so core_control).  In
+    t = CORE_MULS(kc, i); cterm = CORE_SHIFT_C(t);
+    q = add32(pterm, st->d_filt);        /* (sa = pterm, sb = st->d_filt, add32s()) */
+    q = sub32(q, cterm);                 /* (sa = q, sb = cterm, sub32s()) */
+the compiler coalesces the single-use temporary cterm with the global sb it is later assigned to
+(drive_core.asm: "MOVFF _core_sh, _sb" right after the shift), past the intervening store
+sb = st->d_filt, so sub32s subtracts d_filt instead of the current term: on the chip the law
+ignores the current feedback (and the output window it sets) whenever they differ.  Seen in
+gpsim at vector 1 (parameter set 1, r=200 y=-478 i=32767): sub32s entered with sa=14408, sb=4
+(d_filt) instead of sb=1005281 (cterm); the chip returns u_max 6257 and leaves integ at 26626,
+the model and the gcc build give u_min -4719 and integ 91431874.  Any change of core_law's shape
+(six volatile debug stores) moves the allocation and hides it.  The fix belongs in
+firmware_templates/drive_core.c.j2 (e.g. no temporary between a computed term and its sa/sb
+store, or sa/sb volatile); until then test_known_sdcc_miscompile_of_core_law asserts the
+mismatch, so the fix turns it red and moves law/control into CHECKED.  With sa/sb declared
+volatile (a temp copy: the only change) law and control agree with the model on all 10^4
+vectors (test_law_and_control_agree_with_sa_sb_volatile).
+
+MODEL AGAINST C (not a chip fault; not asserted here, the fix is the model's or the template's):
+core_speed_encoder on the chip equals the gcc build, but both differ from fixedpoint.speed_encoder
+when w_avg = -32768, no count in the sample and K / t5 > 32767 (t5 < 62 ticks): the C's
+div_sat15 caps the one-count bound at 32767 < |-32768| and sets w_avg = -32767, the model's
+unsaturated bound K // t5 leaves -32768.  First at vector 8020 (valid 1, pos = pos_prev = 65452,
+t5 = 54, t5_prev 33068, w_avg -32768): chip and gcc -32767, model -32768.  CHECKED therefore
+holds core_duty only until model and C agree on that edge.
+"""
+import re
+import subprocess
+
+import numpy as np
+import pytest
+
+from picdrive import codegen, fixedpoint as fx, gpsim
+from picdrive.paths import repo_root
+from picdrive.profile import load_profile
+from picdrive.target import build_hex
+
+N_VECTORS = 10_000          # per function
+CK = 100                    # vectors per checkpoint
+N_PARAM_SETS = 8
+SEED = 0x2545F491
+M32 = 0xFFFFFFFF
+EXT16 = (-32768, -32767, -1, 0, 1, 32766, 32767, -16384)
+EXT32 = (-2 ** 31, 2 ** 31 - 1, -1, 0)
+FUNCS = ("law", "control", "speed", "duty")
+#: compared by the tests (see KNOWN DEFECT above: law and control are not, yet)
+CHECKED = ("duty",)
+N_SLOTS = (0xF00 - gpsim.RESULT_ADDR - 32) // 8      # checkpoints that fit the result area
+
+HARNESS = r"""
+/* bit-exact harness (tests/test_target_bitexact.py): GENERATED, test build only */
+#include <stdint.h>
+#include "drive_core.h"
+#pragma config WDTEN = OFF
+void __eeprom_gptrget1(void) { }
+void __eeprom_gptrget2(void) { }
+void __eeprom_gptrget4(void) { }
+void __eeprom_gptrput1(void) { }
+void __eeprom_gptrput2(void) { }
+void __eeprom_gptrput4(void) { }
+__at(0x%(res)03X) volatile uint32_t res[8];
+__at(0x%(slots)03X) volatile uint16_t slot[%(n_slots)d][4];
+static const int16_t ptab[%(np)d][4 * CORE_N_RULES + 9] = { %(ptab)s };
+static const int16_t ext16[8] = { -32767 - 1, -32767, -1, 0, 1, 32766, 32767, -16384 };
+static const int32_t ext32[4] = { INT32_MIN, INT32_MAX, -1, 0 };
+static core_params_t cp;
+static core_state_t cs;
+static core_law_t cl;
+static uint32_t x, hh[4], ss[4];
+static uint8_t f;
+
+void harness_done(void) { for (;;) { } }
+
+static uint32_t rnd(void)
+{
+    uint32_t t;
+    t = x << 13; x ^= t;
+    t = x >> 17; x ^= t;
+    t = x << 5; x ^= t;
+    return x;
+}
+
+static int16_t r16(void)
+{
+    uint32_t v = rnd();
+    uint8_t m = (uint8_t)(v >> 24);
+    if (m < 48u) return ext16[m & 7u];
+    if (m < 128u) return (int16_t)((int16_t)(uint16_t)(v & 0x3FFu) - 512);
+    return (int16_t)(uint16_t)v;
+}
+
+static int32_t r32(void)
+{
+    uint32_t v = rnd();
+    uint8_t m = (uint8_t)v;
+    if (m < 32u) return ext32[m & 3u];
+    if (m < 128u) return (int32_t)(int16_t)(uint16_t)(v >> 8);
+    return (int32_t)v;
+}
+
+static void fold(uint16_t v)
+{
+    uint32_t t = hh[f] >> 31;
+    hh[f] = (hh[f] << 1) | t;
+    hh[f] ^= v;
+    ss[f] += v;
+}
+
+static void fold32(int32_t v)
+{
+    fold((uint16_t)(uint32_t)v);
+    fold((uint16_t)((uint32_t)v >> 16));
+}
+
+static void law_state(core_law_t *l)
+{
+    l->integ = r32();
+    l->d_filt = r32();
+    l->y_prev = r16();
+    l->primed = (uint8_t)(rnd() & 1u);
+    l->mu1 = 0;
+}
+
+static void fold_law(const core_law_t *l)
+{
+    fold32(l->integ); fold32(l->d_filt); fold((uint16_t)l->y_prev); fold(l->primed); fold((uint16_t)l->mu1);
+}
+
+void main(void)
+{
+    uint16_t k, s, n = %(n)du, ck = %(ck)du, t0 = %(t0)du;
+    uint8_t j, q;
+    int16_t u, r, y, i;
+    uint16_t a, pos, t5;
+    uint32_t v;
+    x = %(seed)sUL;
+    for (k = 0u; k < n; k++) {
+        __asm
+        CLRWDT
+        __endasm;
+        q = (uint8_t)(k %% %(np)du);
+        for (j = 0u; j < CORE_N_RULES; j++) {
+            cp.kp[j] = ptab[q][j]; cp.kits[j] = ptab[q][CORE_N_RULES + j];
+            cp.kdts[j] = ptab[q][2 * CORE_N_RULES + j]; cp.kc[j] = ptab[q][3 * CORE_N_RULES + j];
+        }
+        cp.premise_lo = ptab[q][4 * CORE_N_RULES]; cp.premise_hi = ptab[q][4 * CORE_N_RULES + 1];
+        cp.mu_k = (uint16_t)ptab[q][4 * CORE_N_RULES + 2]; cp.b_q14 = ptab[q][4 * CORE_N_RULES + 3];
+        cp.u_min = ptab[q][4 * CORE_N_RULES + 4]; cp.u_max = ptab[q][4 * CORE_N_RULES + 5];
+        cp.controller = (uint8_t)ptab[q][4 * CORE_N_RULES + 6]; cp.ilim = ptab[q][4 * CORE_N_RULES + 7];
+        cp.accel_step = (uint16_t)ptab[q][4 * CORE_N_RULES + 8];
+        /* core_law */
+        f = 0u;
+        law_state(&cl);
+        r = r16(); y = r16(); i = r16();
+        u = core_law(&cl, &cp, r, y, i, cp.u_min, cp.u_max);
+        fold((uint16_t)u); fold_law(&cl);
+        /* core_control */
+        f = 1u;
+        law_state(&cs.law);
+        cs.speed_valid = (uint8_t)(rnd() & 1u);
+        cs.r_applied = r16();
+        v = rnd();
+        cs.cap = (int16_t)(uint16_t)(v & 0x7FFFu);
+        if (cs.cap > CORE_U_LIMIT) cs.cap = CORE_U_LIMIT;
+        cs.speed = r16();
+        cs.current = 0; cs.u = 0; cs.hold = 0; cs.pdc = 0;
+        cs.dir = (uint8_t)(rnd() & 1u);
+        r = r16();
+        a = (uint16_t)(rnd() & 0x3FFu);
+        u = core_control(&cs, &cp, r, a);
+        fold((uint16_t)u); fold_law(&cs.law);
+        fold((uint16_t)cs.r_applied); fold((uint16_t)cs.cap); fold((uint16_t)cs.current); fold((uint16_t)cs.u);
+        fold(cs.dir); fold(cs.hold); fold(cs.pdc);
+        /* speed measurement */
+        f = 2u;
+        cs.speed_valid = (uint8_t)(rnd() & 1u);
+        cs.w_avg = r16();
+        cs.pos_prev = (uint16_t)r16();
+        cs.t5_prev = (uint16_t)r16();
+        v = rnd();
+        j = (uint8_t)(v >> 24);
+        if (j < 100u) pos = (uint16_t)(cs.pos_prev + (uint16_t)(int16_t)(int8_t)(uint8_t)(v >> 8));
+        else if (j < 140u) pos = cs.pos_prev;
+        else pos = (uint16_t)v;
+        v = rnd();
+        t5 = ((uint8_t)(v >> 24) < 96u) ? (uint16_t)(v & 0xFFu) : (uint16_t)v;
+        j = (uint8_t)(((uint8_t)(v >> 16) & 7u) == 0u);
+#if %(hall)d
+        u = core_speed_hall(&cs, pos, t5, (uint8_t)(j ^ 1u), (uint8_t)((v >> 20) & 1u));
+#else
+        u = core_speed_encoder(&cs, pos, t5, j);
+#endif
+        fold((uint16_t)u); fold(cs.speed_valid); fold((uint16_t)cs.speed); fold((uint16_t)cs.w_avg);
+        fold(cs.pos_prev); fold(cs.t5_prev);
+        /* core_duty */
+        f = 3u;
+        fold(core_duty(r16()));
+        s = 0xFFFFu;
+        if (k >= t0) {
+            if (k - t0 < %(n_slots)du) s = k - t0;
+        } else if ((uint16_t)(k + 1u) %% ck == 0u) {
+            s = k / ck;
+        }
+        if (s < %(n_slots)du) {
+            for (f = 0u; f < 4u; f++) slot[s][f] = (uint16_t)ss[f];
+        }
+    }
+    for (f = 0u; f < 4u; f++) { res[2u * f] = hh[f]; res[2u * f + 1u] = ss[f]; }
+    harness_done();
+}
+"""
+
+
+# --- the generator and the model, as the harness runs them ------------------------------------
+class Rng:
+    def __init__(self, seed):
+        self.x = seed
+
+    def rnd(self):
+        x = self.x
+        x ^= (x << 13) & M32
+        x ^= x >> 17
+        x ^= (x << 5) & M32
+        self.x = x
+        return x
+
+    def r16(self):
+        v = self.rnd()
+        m = v >> 24
+        if m < 48:
+            return EXT16[m & 7]
+        if m < 128:
+            return (v & 0x3FF) - 512
+        return fx._s16(v)
+
+    def r32(self):
+        v = self.rnd()
+        m = v & 0xFF
+        if m < 32:
+            return EXT32[m & 3]
+        if m < 128:
+            return fx._s16(v >> 8)
+        return v - (1 << 32) if v >> 31 else v
+
+
+class Sum:
+    def __init__(self):
+        self.h = self.s = 0
+
+    def fold(self, v):
+        v &= 0xFFFF
+        self.h = (((self.h << 1) | (self.h >> 31)) & M32) ^ v
+        self.s = (self.s + v) & M32
+
+    def fold32(self, v):
+        self.fold(v)
+        self.fold((v & M32) >> 16)
+
+
+def param_sets(plan):
+    """The design's own parameters, then random ones (the host comparison's generator)."""
+    rng = np.random.default_rng(7)
+    sets = [fx.law_params_from_plan(plan)]
+    while len(sets) < N_PARAM_SETS:
+        sets.append(fx._rand_params(plan, rng, wide=len(sets) % 3 == 0))
+    return sets
+
+
+def param_row(p):
+    return [*p.kp, *p.kits, *p.kdts, *p.kc, p.premise_lo, p.premise_hi, fx._s16(p.mu_k), p.b_q14,
+            p.u_min, p.u_max, p.controller, p.ilim, fx._s16(p.accel_step)]
+
+
+def model_run(plan, n, t0, n_slots):
+    """The model over the harness's vectors: (8 sums, {slot: 4 checkpoints}, inputs of each vector)."""
+    g = Rng(SEED)
+    sums = [Sum() for _ in FUNCS]
+    sets = param_sets(plan)
+    slots, inputs = {}, []
+
+    def law_state():
+        integ, d = g.r32(), g.r32()
+        yp = g.r16()
+        return fx.LawState(integ=integ, d_filt=d, y_prev=yp, primed=g.rnd() & 1, mu1=0)
+
+    def fold_law(h, s):
+        h.fold32(s.integ), h.fold32(s.d_filt), h.fold(s.y_prev), h.fold(s.primed), h.fold(s.mu1)
+
+    for k in range(n):
+        p = sets[k % N_PARAM_SETS]
+        h = sums[0]
+        ls = law_state()
+        r, y, i = g.r16(), g.r16(), g.r16()
+        vin = {"law": (f"params set {k % N_PARAM_SETS} {p}", f"state {ls}", f"r={r} y={y} i={i}")}
+        u = fx.law_step(plan, p, ls, r, y, i, p.u_min, p.u_max)
+        h.fold(u), fold_law(h, ls)
+        vin["law"] += (f"-> u={u} state {ls}",)
+        h = sums[1]
+        st = fx.CoreState(law=law_state())
+        st.speed_valid = g.rnd() & 1
+        st.r_applied = g.r16()
+        st.cap = min(g.rnd() & 0x7FFF, plan.u_limit)
+        st.speed = g.r16()
+        st.dir = g.rnd() & 1
+        target = g.r16()
+        adc = g.rnd() & 0x3FF
+        vin["control"] = (f"params set {k % N_PARAM_SETS}", f"state {st}", f"target={target} adc={adc}")
+        u = fx.core_control(plan, p, st, target, adc)
+        h.fold(u), fold_law(h, st.law)
+        for v in (st.r_applied, st.cap, st.current, st.u, st.dir, st.hold, st.pdc):
+            h.fold(v)
+        vin["control"] += (f"-> u={u} state {st}",)
+        h = sums[2]
+        st = fx.CoreState(speed_valid=g.rnd() & 1)
+        st.w_avg = g.r16()
+        st.pos_prev = g.r16() & 0xFFFF
+        st.t5_prev = g.r16() & 0xFFFF
+        v = g.rnd()
+        m = v >> 24
+        if m < 100:
+            b = (v >> 8) & 0xFF
+            pos = (st.pos_prev + (b - 256 if b & 0x80 else b)) & 0xFFFF
+        elif m < 140:
+            pos = st.pos_prev
+        else:
+            pos = v & 0xFFFF
+        v = g.rnd()
+        t5 = (v & 0xFF) if (v >> 24) < 96 else (v & 0xFFFF)
+        j = 1 if ((v >> 16) & 7) == 0 else 0
+        vin["speed"] = (f"state {st}", f"pos={pos} t5={t5} ovf/valid={j} v={v:#x}")
+        if plan.speed_source == "hall":
+            w = fx.speed_hall(plan, st, pos, t5, j ^ 1, (v >> 20) & 1)
+        else:
+            w = fx.speed_encoder(plan, st, pos, t5, j)
+        for x in (w, st.speed_valid, st.speed, st.w_avg, st.pos_prev, st.t5_prev):
+            h.fold(x)
+        vin["speed"] += (f"-> w={w} state {st}",)
+        uu = g.r16()
+        sums[3].fold(fx.duty_counts(plan, uu))
+        vin["duty"] = (f"u={uu} -> {fx.duty_counts(plan, uu)}",)
+        inputs.append(vin)
+        s = None
+        if k >= t0:
+            if k - t0 < n_slots:
+                s = k - t0
+        elif (k + 1) % CK == 0:
+            s = k // CK
+        if s is not None and s < n_slots:
+            slots[s] = [x.s & 0xFFFF for x in sums]
+    return [v for x in sums for v in (x.h, x.s)], slots, inputs
+
+
+# --- the chip -----------------------------------------------------------------------------------
+def chip_run(folder, out, plan, n, t0=0xFFFF):
+    """Build the harness around ``folder``'s drive_core.c, run it in gpsim: (8 sums, {slot: 4})."""
+    n_slots = min(N_SLOTS, n // CK if t0 == 0xFFFF else N_SLOTS)
+    sets = param_sets(plan)
+    ptab = ", ".join("{" + ", ".join(str(v) for v in param_row(p)) + "}" for p in sets)
+    harness = HARNESS % {"res": gpsim.RESULT_ADDR, "slots": gpsim.RESULT_ADDR + 32, "n_slots": N_SLOTS,
+                         "np": N_PARAM_SETS, "ptab": ptab, "n": n, "ck": CK, "t0": t0, "seed": f"0x{SEED:08X}",
+                         "hall": int(plan.speed_source == "hall")}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bitexact.lkr").write_text(gpsim.timing_lkr())
+    b = build_hex(folder, out, name="bitexact", linker_script=out / "bitexact.lkr", sources=("drive_core.c",),
+                  extra_c={"harness.c": harness})
+    script = out / "bitexact.stc"
+    script.write_text("\n".join([f"break e 0x{b.functions['_harness_done'].address:x}",
+                                 "break c 2000000000", "run", "dump r", "quit", ""]))
+    r = subprocess.run([gpsim._gpsim(), "-i", "-S", "disable", "-p", gpsim.TIMING_PROCESSOR, "-c", str(script),
+                        str(b.hex_path.resolve())], capture_output=True, stdin=subprocess.DEVNULL, timeout=900)
+    text = r.stdout.decode("latin-1") + r.stderr.decode("latin-1")
+    (out / "bitexact.out").write_text(text)
+    assert re.search(rf"0x0*{b.functions['_harness_done'].address:x}\b", text, re.I), \
+        f"the harness did not reach harness_done (see {out / 'bitexact.out'})"
+    mem = gpsim._dump(text)
+
+    def word(a, nb):
+        return sum(mem[a + i] << (8 * i) for i in range(nb))
+    sums = [word(gpsim.RESULT_ADDR + 4 * i, 4) for i in range(8)]
+    slots = {s: [word(gpsim.RESULT_ADDR + 32 + 8 * s + 2 * f, 2) for f in range(4)] for s in range(n_slots)}
+    return sums, slots
+
+
+def compare(folder, out, plan, n=N_VECTORS, funcs=CHECKED):
+    """Chip against model: {function: None if equal, else a description of the first failing vector}."""
+    chip, chip_slots = chip_run(folder, out / "run", plan, n)
+    model, model_slots, inputs = model_run(plan, n, 0xFFFF, N_SLOTS)
+    verdict = {}
+    for fi, name in enumerate(FUNCS):
+        if name not in funcs:
+            continue
+        if chip[2 * fi:2 * fi + 2] == model[2 * fi:2 * fi + 2]:
+            verdict[name] = None
+            continue
+        bad = [s for s in sorted(model_slots) if chip_slots[s][fi] != model_slots[s][fi]]
+        start = bad[0] * CK if bad else (n // CK) * CK
+        start = max(0, min(start, n - 1))
+        tchip, tslots = chip_run(folder, out / f"trace-{name}", plan, min(n, start + N_SLOTS), t0=start)
+        _m, mslots, _i = model_run(plan, min(n, start + N_SLOTS), start, N_SLOTS)
+        first = next((start + s for s in sorted(mslots) if tslots[s][fi] != mslots[s][fi]), None)
+        if first is None:
+            verdict[name] = f"sums differ (chip {chip[2 * fi:2 * fi + 2]}, model {model[2 * fi:2 * fi + 2]})"
+        else:
+            verdict[name] = f"first failing vector {first}: " + "; ".join(inputs[first][name]) + " (model)"
+    return verdict
+
+
+@pytest.fixture(scope="module")
+def design(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("bitexact")
+    prof = load_profile("duy2008")
+    fw = codegen.generate(prof, repo_root() / "examples" / "duy2008.fuzzy-hinf.design.json")
+    out = codegen.write_firmware(fw, tmp / "fw", check=False)
+    return fw.plan, out, tmp
+
+
+def test_generator_mirrors_are_consistent():
+    # the Python mirror of the harness's xorshift32: the published sequence for seed 1
+    g = Rng(1)
+    assert [g.rnd() for _ in range(3)] == [270369, 67634689, 2647435461]
+
+
+def test_pic18_code_matches_the_model(design):
+    plan, folder, tmp = design
+    verdict = compare(folder, tmp / "good", plan)
+    assert verdict == {f: None for f in CHECKED}, verdict
+
+
+def test_known_sdcc_miscompile_of_core_law(design):
+    """SDCC 4.2 pic16 coalesces cterm with the global sb past sb = st->d_filt (module docstring):
+    the chip's core_law, and core_control through it, disagree with the model from vector 1 on."""
+    plan, folder, tmp = design
+    verdict = compare(folder, tmp / "known", plan, n=200, funcs=("law", "control"))
+    assert verdict["law"] is not None and verdict["law"].startswith("first failing vector 1: "), verdict
+    assert verdict["control"] is not None, verdict
+    asm = (tmp / "known" / "run" / "obj" / "drive_core.asm").read_text()
+    assert "MOVFF\t_core_sh, _sb" in asm, "the coalesced store is gone: re-check law/control (CHECKED)"
+
+
+def test_law_and_control_agree_with_sa_sb_volatile(design):
+    """The miscompile's workaround on a temp copy: core_law and core_control bit-exact on 10^4 vectors."""
+    plan, folder, tmp = design
+    fixed = _mutated(folder, tmp, "volatile", "drive_core.c", "static int32_t sa, sb;",
+                     "static volatile int32_t sa, sb;")
+    verdict = compare(fixed, tmp / "volatile-run", plan, funcs=("law", "control", "duty"))
+    assert verdict == {"law": None, "control": None, "duty": None}, verdict
+
+
+def _mutated(folder, tmp, name, fn, old, new):
+    dst = tmp / name
+    dst.mkdir()
+    for p in folder.iterdir():
+        if p.is_file() and p.suffix in (".c", ".h"):
+            (dst / p.name).write_text(p.read_text())
+    text = (dst / fn).read_text()
+    assert text.count(old) == 1, (fn, old)
+    (dst / fn).write_text(text.replace(old, new))
+    return dst
+
+
+def test_a_one_lsb_constant_change_is_caught(design):
+    plan, folder, tmp = design
+    m = re.search(r"#define CORE_KDUTY UINT32_C\((\d+)\)\n", (folder / "drive_params.h").read_text())
+    bad = _mutated(folder, tmp, "lsb", "drive_params.h", m[0], f"#define CORE_KDUTY UINT32_C({int(m[1]) + 1})\n")
+    verdict = compare(bad, tmp / "lsb-run", plan, n=2000)
+    assert verdict["duty"] is not None, verdict
+
+
+def test_a_removed_32_bit_cast_is_caught(design):
+    plan, folder, tmp = design
+    # mul_u16_k's low partial product as the portable 16x16 product without its (uint32_t) cast:
+    # int is 16 bits on the PIC18, the product is truncated to 16 bits
+    bad = _mutated(folder, tmp, "cast", "drive_core.c", "uint32_t r = CORE_MULU(x, (uint16_t)(k & 0xFFFFu));",
+                   "uint32_t r = x * (uint16_t)(k & 0xFFFFu);")
+    verdict = compare(bad, tmp / "cast-run", plan, n=2000)
+    assert verdict["duty"] is not None, verdict
