@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .console_step import parse_number
+from .console_step import parse_number, split_options
 from .errors import PicdriveError
 
 __all__ = ["ScopeError", "ScopeSetup", "parse_scope_args", "save_scope_plot", "TRIGGERS", "SCOPE_USAGE"]
@@ -76,21 +76,8 @@ def parse_scope_args(args: list[str]) -> ScopeSetup:
     rest = list(args)
     if rest and rest[0].lower() in ("single", "normal", "arm", "read"):
         st.mode = rest.pop(0).lower()
-    opts: dict[str, str] = {}
-    pos: list[str] = []
-    it = iter(rest)
     known = ("--trigger", "--level", "--pre", "--samples", "--decimation", "--count", "--timeout", "--png", "--csv")
-    for a in it:
-        key = a.split("=", 1)[0]
-        if key in known:
-            v = a.split("=", 1)[1] if "=" in a else next(it, None)
-            if v is None:
-                raise ScopeError(f"{key} needs a value; usage: {SCOPE_USAGE}")
-            opts[key] = v
-        elif a.startswith("--"):
-            raise ScopeError(f"unknown option {a!r} for scope; usage: {SCOPE_USAGE}")
-        else:
-            pos.append(a)
+    pos, opts = split_options(rest, known, "scope", SCOPE_USAGE, ScopeError)
     if len(pos) > 1:
         raise ScopeError(f"scope: signals are one comma-separated word (e.g. speed,setpoint); usage: {SCOPE_USAGE}")
     if pos:

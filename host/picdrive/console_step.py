@@ -93,20 +93,8 @@ def parse_step_args(args: list[str]) -> tuple[float, float, float, str | None]:
 
     ``hold`` defaults to 1 s.
     """
-    pos: list[str] = []
-    opts = {"--hold": None, "--png": None}
-    it = iter(args)
-    for a in it:
-        key = a.split("=", 1)[0]
-        if key in opts:
-            v = a.split("=", 1)[1] if "=" in a else next(it, None)
-            if v is None:
-                raise StepError(f"{key} needs a value, e.g. 'step 0 2400 --hold 1.0 --png step.png'")
-            opts[key] = v
-        elif a.startswith("--"):
-            raise StepError(f"unknown option {a!r} for step; usage: {STEP_USAGE}")
-        else:
-            pos.append(a)
+    pos, given = split_options(args, ("--hold", "--png"), "step", STEP_USAGE, StepError)
+    opts = {"--hold": None, "--png": None, **given}
     if len(pos) != 2:
         raise StepError(f"usage: {STEP_USAGE}, e.g. 'step 0 2400 --hold 1.0'")
     f, t = _number(pos[0], "from"), _number(pos[1], "to")
@@ -122,6 +110,29 @@ def parse_step_args(args: list[str]) -> tuple[float, float, float, str | None]:
 
 
 STEP_USAGE = "step <from_rpm> <to_rpm> [--hold <s>] [--png <file.png>]"
+
+
+def split_options(args: list[str], known: tuple[str, ...], command: str, usage: str,
+                  error: type[PicdriveError] = PicdriveError) -> tuple[list[str], dict[str, str]]:
+    """A console command's positional words and its ``--key value`` / ``--key=value`` options.
+
+    Only ``known`` keys are accepted; a key without a value or an unknown
+    ``--option`` raises ``error`` with the command's ``usage``."""
+    pos: list[str] = []
+    opts: dict[str, str] = {}
+    it = iter(args)
+    for a in it:
+        key = a.split("=", 1)[0]
+        if key in known:
+            v = a.split("=", 1)[1] if "=" in a else next(it, None)
+            if v is None:
+                raise error(f"{key} needs a value; usage: {usage}")
+            opts[key] = v
+        elif a.startswith("--"):
+            raise error(f"unknown option {a!r} for {command}; usage: {usage}")
+        else:
+            pos.append(a)
+    return pos, opts
 
 
 def parse_number(s: str, what: str, error: type[PicdriveError] = PicdriveError) -> float:
