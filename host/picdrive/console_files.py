@@ -16,11 +16,12 @@ What is written is written whole or not at all (temporary file + rename, in
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from .outputs import OutputError, file_output
 
-__all__ = ["FileRuleError", "output_path", "written_by_picdrive", "PNG_SOFTWARE"]
+__all__ = ["FileRuleError", "output_path", "written_by_picdrive", "write_png", "PNG_SOFTWARE"]
 
 PNG_SOFTWARE = "picdrive"
 """Value of the PNG ``Software`` text chunk in every PNG the console writes."""
@@ -70,3 +71,17 @@ def output_path(path: str | Path, ext: str, what: str) -> Path:
     except OSError as e:
         raise FileRuleError(f"{what} {p}: cannot create folder {p.parent} ({e.strerror}); choose another path") from None
     return p
+
+
+def write_png(fig, p: Path, dpi: int) -> None:
+    """Save a matplotlib figure to ``p`` whole or not at all, with picdrive's ``Software`` mark.
+
+    Temporary file beside ``p``, then rename; on an OSError the temporary
+    file is removed and the error re-raised for the caller to word."""
+    tmp = p.with_name(f".{p.name}.tmp.png")
+    try:
+        fig.savefig(tmp, dpi=dpi, metadata={"Software": PNG_SOFTWARE})
+        os.replace(tmp, p)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise

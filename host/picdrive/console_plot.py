@@ -236,14 +236,11 @@ def _plot_main(q, status, signals, window_s, png_path, backend, png_interval_s):
 
 
 def _save_png(fig, path: str) -> None:
-    p = Path(path)
-    tmp = p.with_name(f".{p.name}.tmp.png")
-    from .console_files import PNG_SOFTWARE
+    from .console_files import write_png
     try:
-        fig.savefig(tmp, dpi=90, metadata={"Software": PNG_SOFTWARE})
-        os.replace(tmp, p)
+        write_png(fig, Path(path), dpi=90)
     except OSError:                  # the folder went away: keep plotting on screen, never a traceback
-        tmp.unlink(missing_ok=True)
+        pass
 
 
 class LivePlot:

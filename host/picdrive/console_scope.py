@@ -15,7 +15,6 @@ speed setpoint), ``rising`` / ``falling`` (the measured speed crossing
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -140,7 +139,7 @@ def save_scope_plot(path: str | Path, t_s: np.ndarray, data: dict[str, np.ndarra
     ``level``: (signal, value) of a level trigger, drawn as a dotted line on that signal's axis."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    from .console_files import PNG_SOFTWARE, output_path
+    from .console_files import output_path, write_png
 
     p = output_path(path, ".png", "scope --png")
     groups = unit_groups([(n, units.get(n, "")) for n in data])
@@ -161,11 +160,8 @@ def save_scope_plot(path: str | Path, t_s: np.ndarray, data: dict[str, np.ndarra
     axes[-1].set_xlabel("time from trigger [ms]")
     fig.suptitle(f"{title}\n{trigger_note}", fontsize=8)
     fig.tight_layout()
-    tmp = p.with_name(f".{p.name}.tmp.png")
     try:
-        fig.savefig(tmp, dpi=110, metadata={"Software": PNG_SOFTWARE})
-        os.replace(tmp, p)
+        write_png(fig, p, dpi=110)
     except OSError as e:
-        tmp.unlink(missing_ok=True)
         raise ScopeError(f"cannot write scope plot {p}: {e.strerror}") from None
     return p

@@ -240,13 +240,10 @@ def save_step_plot(rec: StepRecord, path: str | Path, *, band: float = 0.02) -> 
     ident = textwrap.wrap("; ".join(rec.identity_lines()), 130)
     fig.suptitle("\n".join([title] + ident), fontsize=7.5)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.012 * len(ident)))
-    from .console_files import PNG_SOFTWARE, output_path
+    from .console_files import output_path, write_png
     p = output_path(p, ".png", "step plot")
-    tmp = p.with_name(f".{p.name}.tmp.png")
     try:
-        fig.savefig(tmp, dpi=110, metadata={"Software": PNG_SOFTWARE})
-        os.replace(tmp, p)
+        write_png(fig, p, dpi=110)
     except OSError as e:
-        tmp.unlink(missing_ok=True)
         raise StepError(f"cannot write step plot {p}: {e.strerror}") from None
     return p
