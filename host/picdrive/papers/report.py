@@ -6,7 +6,6 @@ all (built in a temporary folder, then renamed into place), following the output
 """
 from __future__ import annotations
 
-import importlib
 import shutil
 import warnings
 from pathlib import Path
@@ -25,9 +24,9 @@ def compare_designs(profile, outdir: Path, *, progress: bool = True) -> str:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from ..design.dispatch import run_design
     from ..analysis.metrics import step_metrics
-    from ..design.verify import run_sim, sim_plan
+    from ..analysis.steptest import run_sim, sim_plan
+    from ..gate import run_design, speed_measurement
     plan = sim_plan(profile)
     rows, sims = [], {}
     it = METHODS
@@ -37,13 +36,13 @@ def compare_designs(profile, outdir: Path, *, progress: bool = True) -> str:
     for m in it:
         try:
             r = run_design(profile, m, progress=False)
-        except (ModuleNotFoundError, PicdriveError) as e:
+        except PicdriveError as e:
             rows.append(f"| {m} | not available: {e} | | | | | |")
             continue
         if r.law is None:
             rows.append(f"| {m} | no law ({r.status}) | | | | | |")
             continue
-        s = run_sim(profile, r.law, plan)
+        s = run_sim(profile, r.law, plan, measurement=speed_measurement(profile, r.law))
         sims[m] = s
         a = s.t < plan["t_load_s"]
         if not np.all(np.isfinite(s.omega)):
@@ -77,19 +76,14 @@ def write_report(outdir="out/report", *, profiles=("assawinchaichote2016", "duy2
                  progress: bool = True) -> Path:
     """Build the whole report into ``outdir`` (replaced atomically)."""
     from .. import outputs
-    from . import repro2016
+    from . import repro2008, repro2016
     from ..profile import load_profile
     outdir = outputs.dir_output(outdir, what="report folder")
     tmp = outputs.new_temp_dir(outdir, what="report folder")
     try:
         parts = ["# picdrive reproduction report", ""]
         parts.append(repro2016.section(tmp, quick=quick))
-        try:
-            repro2008 = importlib.import_module("picdrive.papers.repro2008")
-            parts.append(repro2008.section(tmp))
-        except ModuleNotFoundError:
-            parts.append("## The 2008 paper (Duy et al.)\n\nThis section is missing: picdrive.papers.repro2008 is not "
-                         "in this checkout.\n")
+        parts.append(repro2008.section(tmp))
         parts.append("## The three designs compared\n")
         for name in profiles:
             with warnings.catch_warnings():
