@@ -128,27 +128,3 @@ def test_speed_quantum(duy):
     hall = duy.replace(sensors={"speed_source": "hall"})
     edges = 6 * duy.motor.pole_pairs                 # hall edges per mechanical turn
     assert speed_quantum_rad_s(hall) == pytest.approx(2 * math.pi / (edges * 1e-3))
-
-
-def test_batch_simulation_equals_law_step_simulation(duy):
-    """simulate_sampled_batch (eq 1, saturated step) is law_step written for arrays (a law without
-    the current window: the batch has none; the six-step batch of picdrive.models.simulate has it)."""
-    import dataclasses
-
-    from picdrive.design.mixed_pid import pid_law as _pid_law
-
-    def pid_law(*a):
-        return dataclasses.replace(_pid_law(*a), current_limit_a=None)
-    from picdrive.models.tfmodel import simulate_sampled, simulate_sampled_batch
-    kp = np.array([0.1, 0.5, 3.0, 0.3]); ki = np.array([10.0, 40.0, 300.0, 0.0]); kd = np.array([0, 1e-3, 5e-3, 2e-3])
-    ref = 2400 * math.pi / 30
-    law0 = pid_law(duy, 1, 1, 0)
-    for delay, meas in ((1, "average"), (0, "instant")):
-        b = simulate_sampled_batch(duy, kp, ki, kd, ts=law0.sample_time_s, u_max_v=law0.u_max_v, t_end_s=0.15,
-                                   ref_rad_s=ref, delay_samples=delay, measurement=meas)
-        for j in range(kp.size):
-            s = simulate_sampled(duy, pid_law(duy, kp[j], ki[j], kd[j]), t_end_s=0.15, ref_rad_s=ref,
-                                 delay_samples=delay, measurement=meas)
-            np.testing.assert_allclose(b["speed_rad_s"][:, j], s["speed_rad_s"], rtol=1e-10, atol=1e-9)
-            np.testing.assert_allclose(b["current_a"][:, j], s["current_a"], rtol=1e-10, atol=1e-9)
-        assert np.max(np.abs(b["current_a"][:, 2])) > 1.0      # the aggressive law saturates and draws current

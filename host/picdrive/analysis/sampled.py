@@ -14,6 +14,8 @@ import math
 import numpy as np
 import scipy.linalg as sla
 
+from ..models.tfmodel import motor_ss
+
 __all__ = ["six_step_closed_loop", "law_check_points", "sampled_radius", "six_step_equilibrium"]
 
 RPM = 2.0 * math.pi / 60.0      # rad/s per rpm
@@ -30,14 +32,14 @@ def six_step_closed_loop(profile, gains, ts: float, derivative_filter_hz: float 
     sample); the current it sees is the line current at the sample.  State
     ``[i, w, w_avg, w_avg_prev, u_prev, I, y_prev, d]``; the law is linear when
     unsaturated (deviation coordinates, r = 0)."""
-    m = profile.motor
-    R, L, J, B = m.r_line_ohm * r_factor, m.l_line_h, m.inertia_kg_m2, m.viscous_friction_n_m_s
-    kb, kt = m.kb_v_s_per_rad, m.kt_n_m_per_a
+    Am, Bm = motor_ss(profile, r_factor=r_factor)
     hd = (1.0 / profile.inverter.pwm_frequency_hz) if delay_s is None else float(delay_s)
     hd = min(max(hd, 0.0), ts)
     # x = [i, w, s] with s' = w (s: angle over the sample), input u
-    Ac = np.array([[-R / L, -kb / L, 0.0], [kt / J, -B / J, 0.0], [0.0, 1.0, 0.0]])
-    Bc = np.array([1.0 / L, 0.0, 0.0])
+    Ac = np.zeros((3, 3))
+    Ac[:2, :2] = Am
+    Ac[2, 1] = 1.0
+    Bc = np.array([Bm[0, 0], 0.0, 0.0])
 
     def zoh(h):
         M = sla.expm(np.block([[Ac, Bc[:, None]], [np.zeros((1, 4))]]) * h)

@@ -116,6 +116,12 @@ def _hex8(v: int) -> str:
     return f"0x{v:02X}u"
 
 
+def _reg(reg: str, *flags: str, **fields: int) -> str:
+    """A register byte from its bit names in p18f4431.inc (:func:`p18f4431.reg_value`), as C."""
+    from .p18f4431 import reg_value
+    return _hex8(reg_value(reg, *flags, **fields))
+
+
 def _inputs_hash(profile, design_bytes: bytes, options: dict) -> tuple[int, str]:
     from . import p18f4431
     from ..paths import templates_dir
@@ -174,24 +180,24 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
     S.append({"title": "clock", "defines": [
         _d("FW_FOSC_HZ", f"{FOSC_HZ}UL", "10 MHz crystal, HSPLL (x4)"),
         _d("FW_FCY_HZ", f"{FCY_HZ}UL", "instruction clock Fosc / 4"),
-        _d("FW_TCY_PER_MS", "10000u", "Tcy per millisecond"),
+        _d("FW_TCY_PER_MS", f"{FCY_HZ // 1000}u", "Tcy per millisecond"),
     ]})
     ps_code = {1: 0, 4: 1, 16: 2, 64: 3}[per.prescale]
     S.append({"title": "PCPWM (pcpwm.plan_pwm)", "defines": [
         _d("FW_PTPER", f"{per.ptper}u", f"round(Fcy / ({per.prescale} x inverter.pwm_frequency_hz = "
            f"{inv.pwm_frequency_hz:g} Hz)) - 1 -> {per.frequency_hz:.2f} Hz, duty resolution "
            f"{per.duty_full_counts} counts"),
-        _d("FW_PTCON0", _hex8(ps_code << 2), f"free-running (edge-aligned), prescaler 1:{per.prescale}, postscaler 1:1"),
-        _d("FW_PTCON1", "0x80u", "PTEN: time base on, counting up"),
-        _d("FW_PWMCON0", "0x47u", "PWMEN = 100 (PWM0-5), PMOD = 0111 (pairs 0-2 independent)"),
-        _d("FW_PWMCON1", "0x01u", "OSYNC: override changes at the PWM period boundary; UDIS = 0"),
+        _d("FW_PTCON0", _reg("PTCON0", PTCKPS=ps_code), f"free-running (edge-aligned), prescaler 1:{per.prescale}, postscaler 1:1"),
+        _d("FW_PTCON1", _reg("PTCON1", "PTEN"), "PTEN: time base on, counting up"),
+        _d("FW_PWMCON0", _reg("PWMCON0", PWMEN=0b100, PMOD=0b0111), "PWMEN = 100 (PWM0-5), PMOD = 0111 (pairs 0-2 independent)"),
+        _d("FW_PWMCON1", _reg("PWMCON1", "OSYNC"), "OSYNC: override changes at the PWM period boundary; UDIS = 0"),
         _d("FW_DTCON", _hex8(dt.dtcon), f"inverter.dead_time_ns = {dt.requested_ns:g} -> DTPS = {dt.dtps}, "
            f"DT = {dt.dt}: {dt.dead_time_ns:g} ns (acts in complementary mode only; see docs/firmware.md)"),
-        _d("FW_FLTCONFIG", "0x09u", "FLTAEN, FLTCON (all outputs), FLTAMOD = 0: off until FLTAS is cleared"),
+        _d("FW_FLTCONFIG", _reg("FLTCONFIG", "FLTAEN", "FLTCON"), "FLTAEN, FLTCON (all outputs), FLTAMOD = 0: off until FLTAS is cleared"),
         _d("FW_PDC_MAX", f"{pwm.pdc_max}u", f"duty limit {pwm.max_duty:.4f} = 1 - (inverter.bootstrap_refresh_ns "
            f"{inv.bootstrap_refresh_ns:g} + 2 x {dt.dead_time_ns:g} ns) / {per.period_ns:.0f} ns "
            f"(Profile.max_duty() = {profile.max_duty():.4f}), in PDC counts of {per.duty_full_counts}"),
-        _d("FW_OVDCONS_BRAKE", "0x15u", "brake: PWM0, PWM2, PWM4 (low sides) on"),
+        _d("FW_OVDCONS_BRAKE", _reg("OVDCONS", "POUT0", "POUT2", "POUT4"), "brake: PWM0, PWM2, PWM4 (low sides) on"),
     ]})
     fwd = ", ".join(_hex8(v) for v in t.ovdcond[0])
     S.append({"title": f"commutation (sensors.hall_spacing_deg = {t.hall_spacing_deg}, hall_offset_deg = "
@@ -214,21 +220,21 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
         _d("FW_HALL_SHIFT", f"{pm.hall_shift}u", "hall A is this bit of the port, B and C the next two"),
         _d("FW_TRISA", _hex8(tr["A"]), ""), _d("FW_TRISB", _hex8(tr["B"]), "RB0-RB5: PWM0-PWM5"),
         _d("FW_TRISC", _hex8(tr["C"]), ""), _d("FW_TRISD", _hex8(tr["D"]), ""), _d("FW_TRISE", _hex8(tr["E"]), ""),
-        _d("FW_ANSEL0", "0x03u", "AN0 bus current, AN1 bus voltage; RA2-RA4 digital (QEI/IC)"),
-        _d("FW_INTCON2", "0x80u", "NOT_RBPU: no PORTB pull-ups; INTEDGx set at init"),
-        _d("FW_INTCON3", "0xD8u" if hall_int else "0x00u", "INT2IP, INT1IP high priority; INT2IE, INT1IE"),
-        _d("FW_INTCON", "0x10u" if hall_int else "0x00u", "INT0IE (INT0 is always high priority)"),
-        _d("FW_CAPXCON_HALL", "0x08u", "CAPxM = 1000: capture on every state change, no Timer5 reset"),
+        _d("FW_ANSEL0", _reg("ANSEL0", "ANS0", "ANS1"), "AN0 bus current, AN1 bus voltage; RA2-RA4 digital (QEI/IC)"),
+        _d("FW_INTCON2", _reg("INTCON2", "NOT_RBPU"), "NOT_RBPU: no PORTB pull-ups; INTEDGx set at init"),
+        _d("FW_INTCON3", _reg("INTCON3", *(("INT2IP", "INT1IP", "INT2IE", "INT1IE") if hall_int else ())), "INT2IP, INT1IP high priority; INT2IE, INT1IE"),
+        _d("FW_INTCON", _reg("INTCON", *(("INT0IE",) if hall_int else ())), "INT0IE (INT0 is always high priority)"),
+        _d("FW_CAPXCON_HALL", _reg("CAP1CON", CAP1M=0b1000), "CAPxM = 1000: capture on every state change, no Timer5 reset"),
     ]})
     enc = plan.speed_source == "encoder"
     pdec_code = {1: 0, 4: 1, 16: 2, 64: 3}[plan.pdec]
     ps5_code = {1: 0, 2: 1, 4: 2, 8: 3}[plan.ps5]
     S.append({"title": "speed measurement (fixedpoint.plan_fixed_point)", "defines": [
         _d("FW_SPEED_ENCODER", "1" if enc else "0", "sensors.speed_source = " + plan.speed_source),
-        _d("FW_QEICON", _hex8(0x18 | pdec_code), f"VELM = 0 (velocity mode), QEIM = 110 (x4, MAXCNT reset), "
+        _d("FW_QEICON", _reg("QEICON", QEIM=0b110, PDEC=pdec_code), f"VELM = 0 (velocity mode), QEIM = 110 (x4, MAXCNT reset), "
            f"PDEC 1:{plan.pdec}: a velocity event at every count"),
-        _d("FW_CAP1CON", "0x40u", "CAP1REN: Timer5 restarts at each velocity event (every count)"),
-        _d("FW_T5CON", _hex8(0x40 | ps5_code << 3 | 0x01), f"TMR5ON, Tcy, prescaler 1:{plan.ps5}, continuous, "
+        _d("FW_CAP1CON", _reg("CAP1CON", "CAP1REN"), "CAP1REN: Timer5 restarts at each velocity event (every count)"),
+        _d("FW_T5CON", _reg("T5CON", "NOT_RESEN", "TMR5ON", T5PS=ps5_code), f"TMR5ON, Tcy, prescaler 1:{plan.ps5}, continuous, "
            "special-event reset off"),
         _d("FW_HALL_AGE_MAX", f"{max(2, min(255, math.floor(65536 * plan.ps5 / FCY_HZ * plan.loop_hz) - 1))}u",
            "hall speed: samples after the last edge before Timer5 may have wrapped (speed reads 0)"),
@@ -236,21 +242,21 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
     pre_code = {1: 0, 4: 1, 16: 2}[plan.t2_pre]
     S.append({"title": "speed-loop timing (Timer2)", "defines": [
         _d("FW_PR2", f"{plan.pr2}u", ""),
-        _d("FW_T2CON", _hex8((plan.t2_post - 1) << 3 | 0x04 | pre_code),
+        _d("FW_T2CON", _reg("T2CON", "TMR2ON", T2OUTPS=plan.t2_post - 1, T2CKPS=pre_code),
            f"postscaler 1:{plan.t2_post}, TMR2ON, prescaler 1:{plan.t2_pre}"),
         _d("FW_LOOP_DIV", f"{plan.loop_div}u", f"speed loop every {plan.loop_div} Timer2 interrupt(s): "
            f"{plan.loop_hz:.3f} Hz (control.speed_loop_hz = {co.speed_loop_hz:g})"),
-        _d("FW_TCY_PER_TICK_MS", f"{plan.tcy_per_tick // 10000}u", f"a Timer2 interrupt is {plan.tcy_per_tick} Tcy: "
+        _d("FW_TCY_PER_TICK_MS", f"{plan.tcy_per_tick // (FCY_HZ // 1000)}u", f"a Timer2 interrupt is {plan.tcy_per_tick} Tcy: "
            "whole ms"),
-        _d("FW_TCY_PER_TICK_MOD", f"{plan.tcy_per_tick % 10000}u", "and the remainder, accumulated"),
+        _d("FW_TCY_PER_TICK_MOD", f"{plan.tcy_per_tick % (FCY_HZ // 1000)}u", "and the remainder, accumulated"),
     ]})
     S.append({"title": "ADC (bus current AN0, bus voltage AN1)", "defines": [
-        _d("FW_ADCON2", "0x92u", "ADFM right-justified, ACQT = 0010 (4 TAD), ADCS = 010 (Fosc/32, TAD 0.8 us): "
+        _d("FW_ADCON2", _reg("ADCON2", "ADFM", ACQT=0b0010, ADCS=0b010), "ADFM right-justified, ACQT = 0010 (4 TAD), ADCS = 010 (Fosc/32, TAD 0.8 us): "
            "a conversion takes 4 + 12 TAD = 12.8 us"),
         _d("FW_ADC_POLLS", "200u", "GO_DONE polls before a conversion is given up (> 12.8 us at >= 4 cycles a poll)"),
         _d("FW_EE_POLLS", "60000u", "EECON1.WR polls before an EEPROM write is given up (> 4 ms)"),
-        _d("FW_ADCON0_CUR", "0x01u", "ADON, single shot, single channel, group A (AN0)"),
-        _d("FW_ADCON0_BUS", "0x05u", "ADON, single shot, single channel, group B (AN1)"),
+        _d("FW_ADCON0_CUR", _reg("ADCON0", "ADON"), "ADON, single shot, single channel, group A (AN0)"),
+        _d("FW_ADCON0_BUS", _reg("ADCON0", "ADON", ACMOD=0b01), "ADON, single shot, single channel, group B (AN1)"),
         _d("FW_ADC_TRIP", f"{plan.itrip}u", f"inverter.overcurrent_trip_a = {inv.overcurrent_trip_a:g} A x "
            f"{plan.counts_per_a:.2f} counts/A (current_sense_v_per_a {inv.current_sense_v_per_a:g} V/A, 5 V / 1024)"
            + (" -- beyond the ADC range: never" if plan.itrip >= 1024 else "")),
@@ -272,13 +278,13 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
     S.append({"title": "EUSART and interrupts", "defines": [
         _d("FW_SPBRG", f"{brg}u", f"uart.baud = {profile.uart.baud} -> Fosc / (4 (n + 1)) = {baud:.0f} baud "
            f"({100 * (baud - profile.uart.baud) / profile.uart.baud:+.2f} %)"),
-        _d("FW_BAUDCON", "0x08u", "BRG16"),
-        _d("FW_TXSTA", "0x24u", "TXEN, BRGH, asynchronous"),
-        _d("FW_RCSTA", "0x90u", "SPEN, CREN"),
-        _d("FW_IPR1", "0x20u", "RCIP high; TMR2IP, TXIP low"),
-        _d("FW_IPR3", "0x00u" if hall_int else "0x0Eu", "IC1IP/IC2QEIP/IC3DRIP high (halls on IC)"),
-        _d("FW_PIE1", "0x22u", "RCIE, TMR2IE (TXIE while the TX queue holds bytes)"),
-        _d("FW_PIE3", "0x00u" if hall_int else "0x0Eu", "IC1IE/IC2QEIE/IC3DRIE (halls on IC)"),
+        _d("FW_BAUDCON", _reg("BAUDCON", "BRG16"), "BRG16"),
+        _d("FW_TXSTA", _reg("TXSTA", "TXEN", "BRGH"), "TXEN, BRGH, asynchronous"),
+        _d("FW_RCSTA", _reg("RCSTA", "SPEN", "CREN"), "SPEN, CREN"),
+        _d("FW_IPR1", _reg("IPR1", "RCIP"), "RCIP high; TMR2IP, TXIP low"),
+        _d("FW_IPR3", _reg("IPR3", *(() if hall_int else ("IC1IP", "IC2QEIP", "IC3DRIP"))), "IC1IP/IC2QEIP/IC3DRIP high (halls on IC)"),
+        _d("FW_PIE1", _reg("PIE1", "RCIE", "TMR2IE"), "RCIE, TMR2IE (TXIE while the TX queue holds bytes)"),
+        _d("FW_PIE3", _reg("PIE3", *(() if hall_int else ("IC1IE", "IC2QEIE", "IC3DRIE"))), "IC1IE/IC2QEIE/IC3DRIE (halls on IC)"),
     ]})
     # the core
     def shift_macro(name, s):

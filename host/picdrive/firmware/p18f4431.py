@@ -46,7 +46,7 @@ from pathlib import Path
 from ..errors import PicdriveError
 
 __all__ = ["IncError", "IncData", "INC_PATH", "SFR_BASE", "parse_inc", "registers", "bits",
-           "config_settings", "shim_registers", "render_host_shim", "render_sdcc_device", "write_host_shim", "names_used"]
+           "reg_value", "config_settings", "shim_registers", "render_host_shim", "render_sdcc_device", "names_used"]
 
 #: default location of the include file (Debian/Ubuntu package gputils)
 INC_PATH = Path("/usr/share/gputils/header/p18f4431.inc")
@@ -190,6 +190,35 @@ def bits(path=None) -> dict[str, dict[str, int]]:
                 d[name] = pos
         out[reg] = d
     return out
+
+
+def reg_value(reg: str, *flags: str, path=None, **fields: int) -> int:
+    """A register byte composed from its bit names in ``p18f4431.inc``.
+
+    ``flags``: single bits to set (``"PTEN"``); ``fields``: multi-bit fields by
+    their stem, whose bits the ``.inc`` names ``<stem>0``, ``<stem>1``...
+    (``PMOD=0b0111`` sets PMOD0..PMOD2).  An unknown register or bit, or a
+    field value wider than its bits, raises :class:`IncError`, so a value
+    that compiles also says, by name, what it sets.
+    """
+    table = bits(path)
+    if reg not in table:
+        raise IncError(f"{reg} has no bits in p18f4431.inc")
+    b = table[reg]
+    v = 0
+    for name in flags:
+        if name not in b:
+            raise IncError(f"{reg} has no bit {name}")
+        v |= 1 << b[name]
+    for stem, x in fields.items():
+        k = 0
+        while x >> k:
+            if f"{stem}{k}" not in b:
+                raise IncError(f"{reg}.{stem} = {x:#x} needs bit {stem}{k}, which {reg} does not have")
+            if x >> k & 1:
+                v |= 1 << b[f"{stem}{k}"]
+            k += 1
+    return v
 
 
 def config_settings(path=None) -> dict[str, dict[str, str]]:
@@ -411,12 +440,6 @@ def render_sdcc_device(path=None) -> tuple[str, str]:
         body.append(f"__at(0x{a:03X}) volatile __{reg}bits_t {reg}bits;")
     head += ["", "#endif /* PICDRIVE_XC_SDCC_H */"]
     return "\n".join(head) + "\n", "\n".join(body) + "\n"
-
-
-def write_host_shim(folder, path=None) -> Path:
-    """Write ``xc.h`` into ``folder`` (atomically); returns its path."""
-    from ..fileio import atomic_write_text
-    return atomic_write_text(Path(folder) / "xc.h", render_host_shim(path))
 
 
 # ---------------------------------------------------------------------------

@@ -6,9 +6,6 @@
   six-step mapping ``v_q = k_v u``, ``v_d = 0``; measured speed = mechanical
   speed, measured current = bus current ``k_i i_q``; load-torque profile and
   the 2016 disturbances; the bridge saturates ``|u|`` at bus voltage x max duty.
-* :func:`simulate_state_feedback` -- the same plant under a two-input (v_q,
-  v_d) fuzzy state feedback ``u = sum mu_j K_j x`` (+ optional integral
-  action), sampled, for designs that have no six-step law.
 * :func:`disturbances_2016` -- the paper's w1, w2, w3 (Fig. 6), reconstructed.
 
 The plant is integrated with classical RK4 on ``n_sub`` sub-steps per sample
@@ -26,7 +23,7 @@ import numpy as np
 from ..control_law import LawState, law_step
 from .dqmodel import DqParams, derivatives, dq_params
 
-__all__ = ["SimResult", "simulate_law", "simulate_state_feedback", "disturbances_2016", "step_load",
+__all__ = ["SimResult", "simulate_law", "disturbances_2016", "step_load",
            "SixStepPlant", "SixStepResult", "six_step_plant", "simulate_six_step",
            "W_WINDOW_S", "HallSpeedMeter", "hall_speed_meter", "pwm_ripple_peak_a"]
 
@@ -136,60 +133,6 @@ def simulate_law(profile, law, *, t_end: float, ref_rpm: float | Callable[[float
             break
     return SimResult(t=out["t"], omega=out["omega"], iq=out["iq"], id=out["id"], u=out["u"], ref=out["ref"],
                      load=out["load"], saturated=sat, i_bus=out["ibus"], w=ws)
-
-
-def simulate_state_feedback(profile, K_rules, premise_rad_s, *, t_end: float, ref_rpm=0.0, load=0.0,
-                            disturbance=None, params: DqParams | None = None, integral: bool = False,
-                            sample_time_s: float | None = None, v_max: float | None = None,
-                            x0=(0.0, 0.0, 0.0), n_sub: int = 20, memberships_of=None) -> SimResult:
-    """The dq motor under a two-input fuzzy state feedback, sampled with ZOH.
-
-    Without integral action (the paper's regulator) ``[v_q, v_d] = sum mu_j K_j x``
-    (K_j 2x3, the paper's sign: ``u = K x``).  With ``integral=True`` K_j is
-    2x4 on ``[omega - r, i_q, i_d, z]``, ``z = int (r - omega)``, plus the
-    voltage that holds the reference at no load as feedforward is *not* added
-    (the integrator finds it).  ``v_max`` limits ``|(v_q, v_d)|`` (None: no
-    limit, as in the paper).
-    """
-    p = params if params is not None else dq_params(profile)
-    ts = sample_time_s if sample_time_s is not None else 1.0 / profile.control.speed_loop_hz
-    rfun = ref_rpm if callable(ref_rpm) else (lambda t, v=float(ref_rpm): v)
-    lfun = load if callable(load) else (lambda t, v=float(load): v)
-    wfun = _wfun(disturbance)
-    Ks = [np.asarray(k, float) for k in K_rules]
-    from types import SimpleNamespace
-    from ..control_law import memberships
-    lawlike = SimpleNamespace(n_rules=len(Ks), premise_rad_s=tuple(premise_rad_s))
-    n = int(round(t_end / ts)) + 1
-    T = np.zeros(n); Om = np.zeros(n); Iq = np.zeros(n); Id = np.zeros(n); U = np.zeros((n, 2)); R = np.zeros(n)
-    Ld = np.zeros(n); sat = np.zeros(n, bool); ws = np.zeros((n, 3))
-    x = np.array(x0, float)
-    z = 0.0
-    rpm = 2 * math.pi / 60
-    for k in range(n):
-        t = k * ts
-        r = rfun(t) * rpm
-        mu = memberships(lawlike, x[0])
-        Kb = sum(m_ * K for m_, K in zip(mu, Ks))
-        if integral:
-            v = Kb @ np.array([x[0] - r, x[1], x[2], z])
-        else:
-            v = Kb @ x
-        mag = float(np.hypot(v[0], v[1]))
-        if v_max is not None and mag > v_max:
-            v = v * (v_max / mag)
-            sat[k] = True
-        T[k], Om[k], Iq[k], Id[k], U[k], R[k], Ld[k] = t, x[0], x[1], x[2], v, r, lfun(t)
-        ws[k] = wfun(t)
-        f = lambda tt, xx: derivatives(p, xx, v[0], v[1], lfun(tt), wfun(tt))
-        x = _rk4(f, x, t, ts / n_sub, n_sub)
-        z += ts * (r - Om[k])
-        if not np.all(np.isfinite(x)) or abs(x[0]) > 1e9:
-            T[k + 1:] = np.arange(k + 1, n) * ts
-            Om[k + 1:] = np.nan
-            break
-    return SimResult(t=T, omega=Om, iq=Iq, id=Id, u=U, ref=R, load=Ld, saturated=sat,
-                     i_bus=p.ki_ibus_per_iq * Iq, w=ws)
 
 
 # ---------------------------------------------------------------------------

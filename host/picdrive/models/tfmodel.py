@@ -37,7 +37,6 @@ __all__ = [
     "TF", "motor_tf", "xi_tf", "XI_DEN", "perturbed_plant", "load_gains", "load_tf",
     "pid_num", "loop_polys", "closed_loop_tf", "tracking_error_tf", "perturbed_loop_tf",
     "SampledPlant", "sampled_plant", "speed_quantum_rad_s", "motor_ss", "simulate_sampled",
-    "simulate_sampled_batch",
 ]
 
 # xi(s) = d / (s^2 + 0.1 s + 10), eq 19
@@ -296,13 +295,16 @@ def speed_quantum_rad_s(profile) -> float:
 # ---------------------------------------------------------------------------
 # nonlinear (saturating) simulation of the sampled speed loop on eq 1
 # ---------------------------------------------------------------------------
-def motor_ss(profile):
-    """Physical state space of eq 1: x = [i (A), w (rad/s)], inputs [v (V), T_L (N m)].
+def motor_ss(profile, *, r_factor: float = 1.0):
+    """The six-step drive's DC equivalent (2008 eq 1) in state space -- the one copy every model,
+    analysis and simulation builds on: x = [i (A, line current), w (rad/s)], inputs [v (V), T_L (N m)].
 
-    ``L di/dt = v - R i - Kb w``, ``J dw/dt = Kt i - D w - T_L``.  Returns (A, B) with B (2, 2).
+    ``L di/dt = v - R i - Kb w``, ``J dw/dt = Kt i - D w - T_L`` with the profile's line R (x
+    ``r_factor``) and L, Kt = Kb.  Returns ``(A, B)``: A (2, 2) in 1/s, B (2, 2) in A/(V s) and
+    rad/(N m s^2).
     """
     m = getattr(profile, "motor", profile)
-    L, R, J, D = m.l_line_h, m.r_line_ohm, m.inertia_kg_m2, m.viscous_friction_n_m_s
+    L, R, J, D = m.l_line_h, m.r_line_ohm * r_factor, m.inertia_kg_m2, m.viscous_friction_n_m_s
     kt, kb = m.kt_n_m_per_a, m.kb_v_s_per_rad
     A = np.array([[-R / L, -kb / L], [kt / J, -D / J]])
     B = np.array([[1.0 / L, 0.0], [0.0, -1.0 / J]])
@@ -360,62 +362,3 @@ def simulate_sampled(profile, law, *, t_end_s: float, ref_rad_s: float, load_n_m
     return out
 
 
-@functools.lru_cache(maxsize=32)
-def _zoh_motor(L, R, J, D, kt, kb, ts):
-    """Exact ZOH discretisation of eq 1 with the speed integral: (phi, gam, qx, qu)."""
-    A = np.array([[-R / L, -kb / L], [kt / J, -D / J]])
-    M = np.zeros((4, 4))
-    M[:2, :2] = A
-    M[0, 3] = 1.0 / L
-    M[2, 1] = 1.0
-    E = expm(M * ts)
-    return E[:2, :2], E[:2, 3], E[2, :2], E[2, 3]
-
-
-def simulate_sampled_batch(profile, kp, ki, kd, *, ts: float, u_max_v: float, t_end_s: float, ref_rad_s: float,
-                           delay_samples: int = 1, measurement: str = "average",
-                           i_lim_v: float | None = None) -> dict:
-    """:func:`simulate_sampled` for many one-rule PID laws at once (no load torque).
-
-    The law is ``control_law.law_step`` written out for arrays (one rule,
-    b = 1, unfiltered derivative on measurement, integration only into the
-    output headroom, integrator range +-``i_lim_v`` (default ``u_max_v``, the
-    law's default), output clamp to +-``u_max_v``), so that a GA can judge
-    the saturated step of every chromosome.  A test keeps it equal to
-    :func:`simulate_sampled` with ``law_step``.  Returns ``speed_rad_s`` and ``current_a`` of shape
-    (samples, batch) at the sample instants.
-    """
-    kp, ki, kd = (np.atleast_1d(np.asarray(v, float)) for v in (kp, ki, kd))
-    kp, ki, kd = np.broadcast_arrays(kp, ki, kd)
-    m_ = getattr(profile, "motor", profile)
-    phi, gam, qx, qu = _zoh_motor(m_.l_line_h, m_.r_line_ohm, m_.inertia_kg_m2, m_.viscous_friction_n_m_s,
-                                  m_.kt_n_m_per_a, m_.kb_v_s_per_rad, float(ts))
-    n = int(round(t_end_s / ts)) + 1
-    m = kp.size
-    x = np.zeros((2, m))
-    y_avg = np.zeros(m)
-    u_app = np.zeros(m)
-    integ = np.zeros(m)
-    y_prev = None
-    r = float(ref_rad_s)
-    i_lim = float(u_max_v if i_lim_v is None else i_lim_v)
-    w_out = np.zeros((n, m)); i_out = np.zeros((n, m))
-    for k in range(n):
-        w_out[k] = x[1]; i_out[k] = x[0]
-        y = y_avg if measurement == "average" else x[1]
-        e = r - y
-        q = kp * e + kd * ((y if y_prev is None else y_prev) - y) / ts      # b = 1, kc = 0
-        di = ki * ts * e
-        up = np.minimum(integ + di, np.maximum(integ, u_max_v - q))       # headroom rule of law_step
-        dn = np.maximum(integ + di, np.minimum(integ, -u_max_v - q))
-        integ = np.where(di > 0, up, np.where(di < 0, dn, integ))
-        integ = np.minimum(np.maximum(integ, -i_lim), i_lim)
-        u_cmd = np.minimum(np.maximum(q + integ, -u_max_v), u_max_v)
-        y_prev = y
-        if delay_samples == 0:
-            u_app = u_cmd
-        y_avg = (qx[0] * x[0] + qx[1] * x[1] + qu * u_app) / ts
-        x = phi @ x + gam[:, None] * u_app
-        if delay_samples == 1:
-            u_app = u_cmd
-    return {"speed_rad_s": w_out, "current_a": i_out}

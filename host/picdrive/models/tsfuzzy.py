@@ -31,6 +31,7 @@ import numpy as np
 
 from ..control_law import memberships
 from .dqmodel import DqParams, dq_params, equilibrium, jacobian, max_speed_rad_s
+from .tfmodel import motor_ss
 
 __all__ = ["TSModel", "rule_centres", "paper_model", "tracking_model", "six_step_model", "operating_region",
            "emf_range", "model_for", "paper_as_printed_model", "PAPER_TABLE1", "PAPER_PREMISE_RAD_S"]
@@ -282,10 +283,11 @@ def six_step_model(profile, *, rules: int | None = None, premise_rad_s=None,
     rho = rho if rho is not None else d.get("rho", 1.0)
     R, L, J, B, kb = m.r_line_ohm, m.l_line_h, m.inertia_kg_m2, m.viscous_friction_n_m_s, m.kb_v_s_per_rad
     n = 3
-    A0 = np.array([[-B / J, kb / J, 0.0], [-kb / L, -R / L, 0.0], [-1.0, 0.0, 0.0]])
+    Am, Bs = motor_ss(profile)                 # the DC equivalent in [i, w]; here the states are [w, i, z]
+    A0 = np.array([[Am[1, 1], Am[1, 0], 0.0], [Am[0, 1], Am[0, 0], 0.0], [-1.0, 0.0, 0.0]])
     A = np.repeat(A0[None], r, 0)
-    Bm = np.repeat(np.array([[0.0], [1.0 / L], [0.0]])[None], r, 0)
-    Bw = np.array([[0.0, 0.0, -1.0 / J], [0.0, 0.1, 0.0], [0.0, 0.0, 0.0]])
+    Bm = np.repeat(np.array([[0.0], [Bs[0, 0]], [0.0]])[None], r, 0)
+    Bw = np.array([[0.0, 0.0, Bs[1, 1]], [0.0, 0.1, 0.0], [0.0, 0.0, 0.0]])
     if integral_weight_rad_s is None:
         integral_weight_rad_s = 0.2 * (B + m.kt_n_m_per_a * kb / R) / J
     wi = float(integral_weight_rad_s)
