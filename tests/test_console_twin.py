@@ -33,7 +33,7 @@ FIRMWARE = REPO / "firmware_build" / "duy2008"
 PROFILE = load_profile(REPO / "examples" / "duy2008.toml")
 RPM = 60.0 / (2.0 * math.pi)
 
-twin_mod = pytest.importorskip("picdrive_hil.twin")
+import picdrive_hil.twin as twin_mod  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -115,9 +115,27 @@ quit
 """
 
 
-def test_bench_session_every_command_with_run(twin, tmp_path):
+@pytest.fixture
+def board_gains_restored(twin, tmp_path):
+    """The board's gains before the test, put back (RAM and EEPROM) after it, passed or failed: the
+    twin is shared by the module's tests."""
     tw, srv, cable = twin
     before = _board_values(cable.url)
+    yield before
+    with Link.open(cable.url) as lk:             # a test that failed half-way may leave it running
+        lk.stop()
+        if lk.status().fault:
+            lk.fault_clear()
+    s = tmp_path / "restore.txt"
+    s.write_text(f"load {_design(before, 1.0, tmp_path / 'board.design.json')}\nsave\n")
+    r = _cli(cable.url, "--run", str(s))
+    assert r.returncode == 0, r.stderr
+    assert _board_values(cable.url) == before
+
+
+def test_bench_session_every_command_with_run(twin, board_gains_restored, tmp_path):
+    tw, srv, cable = twin
+    before = board_gains_restored
     design = _design(before, 0.9, tmp_path / "board_x0.9.design.json")
     s = tmp_path / "session.txt"
     csv, live, png = tmp_path / "rec.csv", tmp_path / "live.png", tmp_path / "step.png"
@@ -173,10 +191,6 @@ def test_bench_session_every_command_with_run(twin, tmp_path):
     assert blocks["save"][0] == "saved 18 parameters to EEPROM"
     assert blocks["faults"][0] == "no fault latched (state idle)"
     assert tw.state()["speed_rad_s"] == pytest.approx(0.0, abs=5.0)
-    # put the board's own gains back for the other tests
-    s.write_text(f"load {_design(before, 1.0, tmp_path / 'board.design.json')}\nsave\n")
-    assert _cli(cable.url, "--run", str(s)).returncode == 0
-    assert _board_values(cable.url) == before
 
 
 def test_script_stops_at_a_rejected_value(twin, tmp_path):

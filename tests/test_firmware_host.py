@@ -15,9 +15,8 @@ import pytest
 
 from picdrive.link import codec, protocol
 from picdrive.firmware import codegen
-from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.profile import load_profile
-from picdrive.result import DesignResult, save_design
+from picdrive.result import load_design
 from picdrive.paths import repo_root
 
 STUB = r"""
@@ -74,15 +73,7 @@ def fw(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("fwhost")
     prof = load_profile("duy2008")
     design = repo_root() / "examples" / "duy2008.fuzzy-hinf.design.json"
-    try:
-        from picdrive.result import load_design
-        load_design(design, require_usable=True, profile=prof)
-    except Exception:
-        law = ScheduledLaw(rules=(Rule(0.17, 5.0, 0.0, 13.0), Rule(0.15, 4.8, 0.0, 11.0)),
-                           premise_rad_s=(0.0, 2600 * RPM), sample_time_s=1e-3, u_min_v=-44.16, u_max_v=44.16)
-        design = save_design(DesignResult(method="zn", status="verified", profile_name=prof.name,
-                                          profile_sha256=prof.sha256, law=law, variant="test-fixture"),
-                             tmp / "fixture.design.json")
+    load_design(design, require_usable=True, profile=prof)      # the committed design; stale or missing fails
     f = codegen.generate(prof, design)
     out = codegen.write_firmware(f, tmp / "fw", check=False)
     (out / "host" / "stub.c").write_text(STUB)
@@ -172,8 +163,16 @@ def test_init_programs_the_peripherals(fw):
     fw.reset()
     per = fw.fw.pwm.period
     assert fw.r("PTPERL") | fw.r("PTPERH") << 8 == per.ptper
-    assert fw.r("PWMCON0") == 0x47 and fw.r("PWMCON1") == 0x01 and fw.r("DTCON") == fw.fw.pwm.dead.dtcon
-    assert fw.bit("PTCON1", "PTEN") == 1 and fw.r("FLTCONFIG") == 0x09
+    # the fields by their data-sheet meaning (DS39616 section 18), not the byte codegen writes
+    pwmen = sum(fw.bit("PWMCON0", f"PWMEN{k}") << k for k in range(3))
+    pmod = sum(fw.bit("PWMCON0", f"PMOD{k}") << k for k in range(4))
+    assert pwmen == 0b100                       # PWM0-PWM5 are PWM outputs
+    assert pmod == 0b0111                       # pairs 0-2 independent (six-step by override), pair 3 unused
+    assert fw.bit("PWMCON1", "OSYNC") == 1 and fw.bit("PWMCON1", "UDIS") == 0   # overrides at the period
+    assert fw.r("DTCON") == fw.fw.pwm.dead.dtcon
+    assert fw.bit("PTCON1", "PTEN") == 1
+    assert fw.bit("FLTCONFIG", "FLTAEN") == 1 and fw.bit("FLTCONFIG", "FLTCON") == 1   # FLTA drives all outputs off
+    assert fw.bit("FLTCONFIG", "FLTAMOD") == 0  # latched until cleared (cycle-by-cycle would let it restart)
     assert fw.outputs() == (0, 0) and fw.duty() == [0, 0, 0]
     assert fw.r("PR2") == fw.plan.pr2 and fw.bit("T2CON", "TMR2ON") == 1
     assert fw.bit("RCON", "IPEN") == 1 and fw.bit("INTCON", "GIEH") == 1 and fw.bit("INTCON", "GIEL") == 1

@@ -9,6 +9,7 @@ from picdrive.design.ga import run_ga
 from picdrive.analysis.h2hinf import j3_jury_dewey, tracking_error_polys
 from picdrive.analysis.metrics import step_metrics
 from picdrive.gate import BuiltDrive
+from support.committed import assert_reproduces
 from picdrive.models.tfmodel import closed_loop_tf, motor_tf, simulate_sampled
 
 DRIVE = BuiltDrive()
@@ -160,3 +161,9 @@ def test_bad_options_are_clear_errors(profiles):
     bad = p.replace(design={"kp_range": [5.0, 10.0]})
     with pytest.raises(mp.MixedPidError, match="lies outside the gains the sampled loop"):
         mp.design(bad, drive=DRIVE, progress=False)
+
+
+@pytest.mark.parametrize("name", PROFILES)
+def test_the_committed_design_reproduces(name, profiles, drive_designs):
+    """examples/<profile>.mixed-pid.design.json is what the code designs now (default options, seed 1)."""
+    assert_reproduces(profiles[name], drive_designs[name], rel=1e-9)

@@ -19,8 +19,6 @@ import pytest
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 
-pytest.importorskip("picdrive_hil.twin")
-
 
 def _bench():
     spec = importlib.util.spec_from_file_location("bench_motors", ROOT / "bench" / "motors.py")

@@ -22,9 +22,6 @@ warnings.simplefilter("ignore", ProfileWarning)
 ROOT = Path(__file__).resolve().parents[1]
 FW = ROOT / "firmware_build" / "duy2008"
 
-needs_fw = pytest.mark.skipif(not (FW / "board.json").exists(), reason="firmware_build/duy2008 not generated")
-
-
 def picdrive(*args, **kw):
     return subprocess.Popen([sys.executable, "-m", "picdrive", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, cwd=ROOT, **kw)
@@ -43,7 +40,6 @@ def read_frame(port, timeout=2.0):
     raise AssertionError("no frame from the twin")
 
 
-@needs_fw
 def test_cli_serves_socket_and_pty_and_keeps_the_eeprom(tmp_path):
     ee = tmp_path / "board.eeprom"
     p = picdrive("twin", "--profile", "duy2008", "--firmware", str(FW), "--pty", "--eeprom", str(ee))
@@ -106,7 +102,6 @@ def test_cli_names_a_missing_firmware_folder(tmp_path):
     assert p.returncode == 2 and "does not exist" in err and "picdrive firmware" in err
 
 
-@needs_fw
 def test_real_time_pacing_and_speed_factor():
     from picdrive_hil.twin import Twin
     tw = Twin("duy2008", FW)
@@ -121,7 +116,6 @@ def test_real_time_pacing_and_speed_factor():
     tw.close()
 
 
-@needs_fw
 def test_a_client_that_disconnects_leaves_the_board_running_and_a_new_one_connects():
     from picdrive_hil.twin import Twin
     tw = Twin("duy2008", FW)
@@ -145,7 +139,6 @@ class FakeClock:
         return self.t
 
 
-@needs_fw
 def test_pacing_resynchronises_after_a_stall_and_says_it_fell_behind():
     from picdrive_hil.endpoint import TwinServer
     from picdrive_hil.twin import Twin
@@ -185,7 +178,6 @@ def _wait_sim(tw, seconds, wall_limit=30.0):
         time.sleep(0.01)
 
 
-@needs_fw
 def test_a_departed_clients_queued_command_does_not_run_for_the_next_client():
     import socket
     from picdrive_hil.twin import Twin
@@ -207,7 +199,6 @@ def test_a_departed_clients_queued_command_does_not_run_for_the_next_client():
         tw.close()
 
 
-@needs_fw
 def test_input_beyond_the_twins_queue_is_held_back_not_dropped():
     import socket
     from picdrive_hil.endpoint import TwinServer

@@ -32,8 +32,6 @@ from picdrive.result import load_design
 from picdrive.analysis.steptest import VerifyConfig, run_sim, sim_plan, step_figures
 from picdrive.gate import speed_measurement, twin_run
 
-pytest.importorskip("picdrive_hil.twin")
-
 CASES = [(p, m) for p in ("duy2008", "assawinchaichote2016") for m in ("fuzzy-hinf", "mixed-pid", "zn")]
 
 RISE_REL = 0.25

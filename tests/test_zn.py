@@ -7,6 +7,7 @@ import pytest
 from picdrive.design import zn
 from picdrive.design.mixed_pid import term_limits
 from picdrive.gate import BuiltDrive
+from support.committed import assert_reproduces
 from picdrive.models.tfmodel import motor_tf, sampled_plant
 
 DRIVE = BuiltDrive()
@@ -105,3 +106,9 @@ def test_bad_options(profiles):
         zn.design(p, drive=DRIVE, progress=False, rule="tyreus")
     with pytest.raises(zn.ZnError, match="unknown zn option"):
         zn.design(p, drive=DRIVE, progress=False, seed=3)
+
+
+@pytest.mark.parametrize("name", ["duy2008", "assawinchaichote2016"])
+def test_the_committed_design_reproduces(name, profiles):
+    """examples/<profile>.zn.design.json is what the code designs now (rule auto)."""
+    assert_reproduces(profiles[name], zn.design(profiles[name], drive=DRIVE, progress=False), rel=1e-9)

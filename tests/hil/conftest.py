@@ -103,8 +103,7 @@ def open_bench(request, target, firmware_cache):
             from picdrive_hil.twin import Twin
             method = method or "fuzzy-hinf"
             dp = design_path(profile_name, method)
-            if not dp.exists():
-                pytest.skip(f"no committed design {dp.name}")
+            assert dp.exists(), f"the committed design {dp.name} is missing"
             design = load_design(dp, require_usable=True, profile=prof)
             tw = Twin(prof, firmware_cache.get(profile_name, method), perturb=perturb)
             srv = tw.serve(port=0, realtime=True)
