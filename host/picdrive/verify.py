@@ -88,6 +88,7 @@ class VerifyConfig:
     load_phase_s: float = 0.6
     band: float = 0.02             # settling band and steady-error limit, fraction of the step target
     commutated: bool = True        # the pair's EMF per rotor angle (simulate.commutated_emf), not the DC Kb
+    three_phase: bool = True       # the twin's three-phase winding (commutation transfers), not the DC equivalent
 
 
 # ---------------------------------------------------------------------------
@@ -448,7 +449,7 @@ def speed_measurement(profile, law) -> dict:
 
 
 def run_sim(profile, law, plan=None, *, disturbances: bool = True, r_factor: float = 1.0,
-            commutated: bool | None = None):
+            commutated: bool | None = None, three_phase: bool | None = None):
     """The verification run on the six-step drive: step from rest to the target (the 2016 load-torque
     disturbance w3 on [0, 0.2] s when ``disturbances``), then the load step, with the firmware's
     speed measurement (:func:`speed_measurement`).  Returns
@@ -463,7 +464,8 @@ def run_sim(profile, law, plan=None, *, disturbances: bool = True, r_factor: flo
     return simulate_six_step(profile, law, t_end=plan["t_end_s"], ref_rpm=plan["target_rpm"],
                              load=lambda t: load if t >= tl - 1e-12 else 0.0, torque_disturbance=w3,
                              r_factor=r_factor, **speed_measurement(profile, law),
-                             commutated=VerifyConfig.commutated if commutated is None else commutated)
+                             commutated=VerifyConfig.commutated if commutated is None else commutated,
+                             three_phase=VerifyConfig.three_phase if three_phase is None else three_phase)
 
 
 def sector_period_s(profile, rpm: float) -> float:
