@@ -359,18 +359,6 @@ class SixStepResult:
         return self.i
 
 
-def _three_phase_plant(profile, r_factor: float = 1.0):
-    """The motor twin's three-phase plant of a profile at rest (R x ``r_factor``, active load: the
-    passive rule is applied by :func:`_three_phase_step`), and the profile's hall table."""
-    from picdrive_hil.plant import CPlant, plant_from_profile
-
-    from .pcpwm import commutation_table
-    se, m = profile.sensors, profile.motor
-    cp = CPlant(plant_from_profile(profile, {"resistance": r_factor} if r_factor != 1.0 else None,
-                                   load_mode="active"))
-    return cp, commutation_table(se.hall_spacing_deg, se.hall_offset_deg, m.back_emf_shape)
-
-
 def _three_phase_step(cp, tab, legs_off, d_dir: int, d_duty: float, tl: float, td: float, w: float,
                       h: float) -> tuple[float, float, float, float, float]:
     """One PWM period of the three-phase plant under the firmware's bridge rule (high-side PWM on the
@@ -404,7 +392,7 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
                       measurement: str = "firmware", commutated: bool = False,
                       torque_disturbance: Callable[[float], float] | None = None,
                       plant: SixStepPlant | None = None, x0=(0.0, 0.0), integrator0_v: float = 0.0,
-                      hall: HallSpeedMeter | None = None, three_phase: bool = False) -> SixStepResult:
+                      hall: HallSpeedMeter | None = None, three_phase=None) -> SixStepResult:
     """The six-step drive under the firmware's law, averaged over each PWM period.
 
     Plant (DC equivalent, 2008 eq 1, the profile's ``r_line_ohm``, ``l_line_h``,
@@ -447,15 +435,17 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     (exponential, speed held at its start), a current zero inside the period
     located on that exponential, then the speed by the trapezoidal rule.
 
-    ``three_phase``: the plant is instead the three-phase winding of the motor
-    twin (:class:`picdrive_hil.plant.CPlant`: per-phase currents, the floating
-    phase and its body diode, the current transfer at every commutation),
-    driven by the hall table (high-side PWM, low side on) through the same
-    firmware rules, one PWM period per step; the law sees the current of the
-    switch that carries the line current (the twin's ``link_on`` signal).  A
-    drive whose hall sector is short against L/R loses torque at each
-    commutation, which the DC equivalent does not have (docs/verification.md).
-    ``x0`` must then be at rest, and ``plant`` and ``commutated`` do not apply.
+    ``three_phase``: a three-phase plant to use instead (the motor twin's
+    winding, ``picdrive_hil.plant.CPlant``, built by the caller for this
+    profile with R x ``r_factor`` and an active load, at rest: per-phase
+    currents, the floating phase and its body diode, the current transfer at
+    every commutation), driven through the profile's hall table (high-side
+    PWM, low side on) by the same firmware rules, one PWM period per step;
+    the law then sees the current of the switch that carries the line
+    current (the twin's ``link_on`` signal).  A drive whose hall sector is
+    short against L/R loses torque at each commutation, which the DC
+    equivalent does not have.  ``plant`` and ``commutated`` then do not
+    apply and ``x0`` must be at rest.
     """
     if measurement not in ("firmware", "instant", "hall"):
         raise ValueError(f"measurement {measurement!r}: 'firmware', 'instant' or 'hall'")
@@ -503,11 +493,13 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
         h_last = h_period = 0
         h_fwd, h_count, h_age = True, 0, 0
         w_lsb = 2.0 ** -hall.qs
-    cp = None
-    if three_phase:
-        if x0[0] != 0.0 or x0[1] != 0.0:
-            raise ValueError("three_phase starts at rest (x0 = (0, 0))")
-        cp, ctab = _three_phase_plant(profile, r_factor)
+    cp = three_phase
+    if cp is not None:
+        from ..firmware.pcpwm import commutation_table
+        if x0[0] != 0.0 or x0[1] != 0.0 or cp.state.w_rad_s != 0.0:
+            raise ValueError("a three-phase run starts at rest (x0 = (0, 0))")
+        ctab = commutation_table(profile.sensors.hall_spacing_deg, profile.sensors.hall_offset_deg,
+                                 profile.motor.back_emf_shape)
         legs_off = [(0.0, 0.0)] * 3
     for k in range(n):
         t = k * ts
