@@ -78,7 +78,7 @@ def bench_firmware(prof, tmp: Path) -> tuple[Path, str]:
     (with the reason) when neither is possible."""
     from picdrive_hil.twin import firmware_profile_hash
     fw = ROOT / "firmware_build" / prof.name
-    if fw.exists() and firmware_profile_hash(fw) in (None, prof.sha256[:8]):
+    if fw.exists() and firmware_profile_hash(fw) in (None, prof.hash32):
         return fw, f"firmware_build/{prof.name}"
     why = f"firmware_build/{prof.name} is from another profile; " if fw.exists() else ""
     try:

@@ -27,3 +27,21 @@ def pytest_addoption(parser):
     parser.addoption("--profile", default=None,
                      help="HIL: the bundled profile to test: required with a serial --target (the board's "
                           "profile); with the twin, only that profile's tests run (default: all)")
+
+
+_SECTIONS = pytest.StashKey[list]()
+
+
+@pytest.fixture
+def report_section(request):
+    """``report_section(title, text)``: a figure or table a test wants shown after the run (the
+    import contract's layers, for one)."""
+    def add(title: str, text: str) -> None:
+        request.config.stash.setdefault(_SECTIONS, []).append((title, text))
+    return add
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    for title, text in config.stash.get(_SECTIONS, []):
+        terminalreporter.section(title)
+        terminalreporter.write_line(text)

@@ -345,7 +345,7 @@ def test_a_fine_encoder_on_a_fast_motor_is_refused_with_the_limit_not_as_a_bug(t
 
 
 def test_the_design_command_refuses_the_encoder_before_designing(tmp_path):
-    from picdrive.design.dispatch import run_design
+    from picdrive.gate import run_design
     from picdrive.firmware.fixedpoint import FixedPointError
     with pytest.raises(FixedPointError, match="at most 958 lines"):
         run_design(_fast(1024), "zn", progress=False)

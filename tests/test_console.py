@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 from picdrive.link import protocol as P
-from picdrive.console.session import Console, ConsoleError, profile_hash32
+from picdrive.console.session import Console, ConsoleError
 from picdrive.console.record import read_recording
 from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.analysis.metrics import step_metrics
-from picdrive.design.verify import sector_mean
+from picdrive.analysis.steptest import sector_mean
 from picdrive.profile import load_profile
 from picdrive.result import DesignResult, save_design
 
@@ -36,7 +36,7 @@ TABLE = P.build_table(2, {n: P.ParamOverride(scale=1 / 1024) for n in
 
 class Board:
     def __init__(self, profile_hash=None):
-        self.fb = FakeBoard(TABLE, profile_hash=profile_hash32(PROFILE) if profile_hash is None else profile_hash)
+        self.fb = FakeBoard(TABLE, profile_hash=PROFILE.hash32 if profile_hash is None else profile_hash)
         self.cable = Cable(self.fb.serve())
 
     def close(self):
@@ -91,7 +91,7 @@ def test_handshake_names_build_protocol_and_profile(board, tmp_path):
         text = "\n".join(c.lines)
         major, minor = P.PROTOCOL_VERSION
         assert f"firmware build 0x{c.link.info.build_id:08x}, protocol {major}.{minor}" in text
-        assert f"profile hash 0x{profile_hash32(PROFILE):08x}" in text
+        assert f"profile hash 0x{PROFILE.hash32:08x}" in text
         assert "profile: duy2008 (bundled profile with this hash)" in text
     finally:
         c.close()
@@ -244,7 +244,7 @@ def test_telemetry_record_and_view(board, con, tmp_path):
     assert out[0].startswith(f"recording saved to {csv}")
     r = read_recording(csv)
     assert r.columns == ["t_s", "speed", "setpoint", "current"] and r.units == ["s", "rpm", "rpm", "A"]
-    assert r.rate_hz == 250 and r.meta["profile"] == f"duy2008 hash 0x{profile_hash32(PROFILE):08x}"
+    assert r.rate_hz == 250 and r.meta["profile"] == f"duy2008 hash 0x{PROFILE.hash32:08x}"
     assert r.meta["firmware"].startswith(f"build 0x{con.link.info.build_id:08x}")
     assert 200 <= r.samples <= 300 and r.dropped == 0
     assert np.allclose(np.diff(r.column("t_s")), 0.004)

@@ -22,7 +22,7 @@ from picdrive.console.record import read_recording
 from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.link.client import Link
 from picdrive.analysis.metrics import step_metrics
-from picdrive.design.verify import sector_mean
+from picdrive.analysis.steptest import sector_mean
 from picdrive.profile import load_profile
 from picdrive.result import DesignResult, save_design
 

@@ -356,7 +356,7 @@ def test_hello_over_the_uart_registers(fw):
     major, minor, build_id, profile_hash, table_hash = struct.unpack_from("<BBIII", payload)
     assert (major, minor) == protocol.PROTOCOL_VERSION
     assert build_id == fw.fw.build_id and table_hash == fw.table.hash
-    assert profile_hash == int(fw.prof.sha256[:8], 16)
+    assert profile_hash == fw.prof.hash32
 
 
 def test_eeprom_persistence_through_the_registers(fw):

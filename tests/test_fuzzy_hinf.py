@@ -4,11 +4,15 @@ import warnings
 import numpy as np
 import pytest
 
-from picdrive.design.fuzzy_hinf import assemble_xi, certified_gain, lmi_margins, minimise_gamma, solve_theorem1
+from picdrive.analysis.lmi import assemble_xi, certified_gain, lmi_margins
+from picdrive.design.fuzzy_hinf import minimise_gamma, solve_theorem1
 from picdrive.profile import load_profile
-from picdrive.papers.repro2016 import paper_as_printed_model, printed_checks
-from picdrive.models.tsfuzzy import paper_model
-from picdrive.design.verify import hinf_norm
+from picdrive.papers.repro2016 import printed_checks
+from picdrive.models.tsfuzzy import model_for, paper_as_printed_model, paper_model
+from picdrive.analysis.h2hinf import hinf_norm
+from picdrive.gate import BuiltDrive
+
+DRIVE = BuiltDrive()
 
 
 @pytest.fixture(scope="module", params=["assawinchaichote2016", "duy2008"])
@@ -117,7 +121,7 @@ def six_step(request):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         p = load_profile(request.param)
-    return p, fuzzy_hinf.design(p, progress=False)
+    return p, fuzzy_hinf.design(p, drive=DRIVE, progress=False)
 
 
 def test_six_step_design_verified_with_its_certificate(six_step):
@@ -125,7 +129,7 @@ def test_six_step_design_verified_with_its_certificate(six_step):
     assert r.ok, r.reasons
     c = r.certificate
     assert c["model"] == "six-step" and c["state_names"] == ["d_omega_m", "d_i", "d_z"]
-    ts = fuzzy_hinf.model_for(p, c["model"], c["model_options"])
+    ts = model_for(p, c["model"], c["model_options"])
     assert ts.offsets.shape[0] == 2                                   # the EMF polytope's two vertices
     assert c["emf_range_v_s"] == pytest.approx(list(emf_range(p)))
     # the certificate re-assembled independently: every LMI strictly negative, K = Y P^-1
@@ -164,5 +168,5 @@ def test_six_step_without_current_feedback_is_infeasible_and_says_so():
     ts = six_step_model(p)
     s = solve_theorem1(ts, 1e5, delta=None, zero_gain_states=(1,))
     assert not s.feasible and s.status == "infeasible"
-    r = fuzzy_hinf.design(p, progress=False, zero_gain_states=[1], pole_disk_rad_s=1000.0)
+    r = fuzzy_hinf.design(p, drive=DRIVE, progress=False, zero_gain_states=[1], pole_disk_rad_s=1000.0)
     assert not r.ok and "infeasible" in r.reasons[0]

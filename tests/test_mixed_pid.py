@@ -8,14 +8,17 @@ from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.design.ga import run_ga
 from picdrive.analysis.h2hinf import j3_jury_dewey, tracking_error_polys
 from picdrive.analysis.metrics import step_metrics
+from picdrive.gate import BuiltDrive
 from picdrive.models.tfmodel import closed_loop_tf, motor_tf, simulate_sampled
+
+DRIVE = BuiltDrive()
 
 PROFILES = ["duy2008", "assawinchaichote2016"]
 
 
 @pytest.fixture(scope="module")
 def drive_designs(profiles):
-    return {n: mp.design(p, progress=False) for n, p in profiles.items()}
+    return {n: mp.design(p, drive=DRIVE, progress=False) for n, p in profiles.items()}
 
 
 @pytest.mark.parametrize("name", PROFILES)
@@ -100,7 +103,7 @@ def test_evaluate_bound_shortcut_agrees_with_exact(profiles):
 
 def test_paper_variant_reaches_box_corner_and_fails_when_sampled(profiles):
     p = profiles["duy2008"]
-    r = mp.design(p, progress=False, variant="paper")
+    r = mp.design(p, drive=DRIVE, progress=False, variant="paper")
     g = r.law.rules[0]
     np.testing.assert_allclose([g.kp, g.ki, g.kd], [p.design[k][1] for k in ("kp_range", "ki_range", "kd_range")],
                                rtol=1e-6)                                      # the box corner
@@ -114,7 +117,7 @@ def test_paper_variant_reaches_box_corner_and_fails_when_sampled(profiles):
 
 def test_de_optimiser_agrees_with_ga(profiles, drive_designs):
     p = profiles["assawinchaichote2016"]
-    r = mp.design(p, progress=False, optimizer="de", de_maxiter=40)
+    r = mp.design(p, drive=DRIVE, progress=False, optimizer="de", de_maxiter=40)
     assert r.certificate["feasible"]
     j_ga = drive_designs["assawinchaichote2016"].certificate["j3_s"]
     # same problem: DE (more evaluations) is at least as good; the paper's GA (200 x 20) within 10 %
@@ -145,15 +148,15 @@ def test_derivative_on_measurement_vs_error_in_the_law(profiles):
 def test_bad_options_are_clear_errors(profiles):
     p = profiles["duy2008"]
     with pytest.raises(mp.MixedPidError, match="unknown mixed-pid option.*gamma"):
-        mp.design(p, progress=False, gamma=1.0)
+        mp.design(p, drive=DRIVE, progress=False, gamma=1.0)
     with pytest.raises(mp.MixedPidError, match="variant 'exact' is unknown"):
-        mp.design(p, progress=False, variant="exact")
+        mp.design(p, drive=DRIVE, progress=False, variant="exact")
     with pytest.raises(mp.MixedPidError, match="optimizer 'pso'"):
-        mp.design(p, progress=False, optimizer="pso")
+        mp.design(p, drive=DRIVE, progress=False, optimizer="pso")
     with pytest.raises(mp.MixedPidError, match=r"ms_max=0.5 is outside \[1.05, 100.0\]"):
-        mp.design(p, progress=False, ms_max=0.5)
+        mp.design(p, drive=DRIVE, progress=False, ms_max=0.5)
     with pytest.raises(mp.MixedPidError, match="population='many'"):
-        mp.design(p, progress=False, population="many")
+        mp.design(p, drive=DRIVE, progress=False, population="many")
     bad = p.replace(design={"kp_range": [5.0, 10.0]})
     with pytest.raises(mp.MixedPidError, match="lies outside the gains the sampled loop"):
-        mp.design(bad, progress=False)
+        mp.design(bad, drive=DRIVE, progress=False)

@@ -12,8 +12,13 @@ from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.profile import load_profile
 from picdrive.papers.repro2016 import PRINTED
 from picdrive.result import DesignResult
-from picdrive.design.verify import run_sim, sampled_closed_loop, sector_mean, sim_plan, six_step_closed_loop, step_figures, verify_design
+from picdrive.analysis.sampled import six_step_closed_loop
+from picdrive.analysis.steptest import run_sim, sector_mean, sim_plan, step_figures
+from picdrive.design.verify import verify_design
+from picdrive.gate import BuiltDrive, speed_measurement, three_phase_plant
 from picdrive.models.simulate import simulate_six_step
+
+DRIVE = BuiltDrive()
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +50,7 @@ def _result(prof, law=None, cert=None):
 
 def test_paper_printed_K_rejected(prof):
     r = _result(prof, cert={"model": "paper-as-printed", "K": [PRINTED["K1"], PRINTED["K2"]]})
-    verify_design(prof, r)
+    verify_design(prof, r, drive=DRIVE)
     assert r.status == "failed"
     assert r.verification["continuous_max_real_eig"]["ok"] is False
     assert r.verification["continuous_max_real_eig"]["value"] > 0
@@ -55,7 +60,7 @@ def test_paper_printed_K_rejected(prof):
 def test_unstable_law_rejected_without_simulating(prof):
     law = _pid(prof, -5.0, -50.0)
     r = _result(prof, law=law)
-    verify_design(prof, r)
+    verify_design(prof, r, drive=DRIVE)
     assert r.status == "failed"
     assert r.verification["sampled_spectral_radius"]["value"] > 1
     assert "sim_skipped" in r.verification
@@ -68,25 +73,6 @@ def test_law_beyond_the_bridge_rejected(prof):
     r = _result(prof, law=law)
     verify_design(prof, r, simulate=False)
     assert r.status == "failed" and r.verification["law_output_limits_v"]["ok"] is False
-
-
-def test_sampled_closed_loop_matches_direct_iteration(prof):
-    # the closed-loop matrix is the law + ZOH plant iterated by hand
-    A = np.array([[-2.0, 1.0], [-1.0, -3.0]]); b = np.array([0.0, 1.5])
-    g = Rule(kp=0.3, ki=2.0, kd=0.01, kc=0.2)
-    ts = 0.01
-    M = sampled_closed_loop(A, b, np.array([1.0, 0.0]), np.array([0.0, 1.0]), g, ts, 50.0)
-    import scipy.linalg as sla
-    E = sla.expm(np.block([[A, b[:, None]], [np.zeros((1, 3))]]) * ts)
-    x = np.array([1.0, -0.5]); I = 0.2; yp = 0.7; d = 0.05
-    a = ts / (ts + 1 / (2 * np.pi * 50.0))
-    s = np.array([*x, I, yp, d])
-    y, i = x[0], x[1]
-    I2 = I + g.ki * ts * (-y)
-    d2 = d + a * (g.kd * (yp - y) / ts - d)
-    u = -g.kp * y + I2 + d2 - g.kc * i
-    x2 = E[:2, :2] @ x + E[:2, 2] * u
-    assert M @ s == pytest.approx(np.array([*x2, I2, y, d2]))
 
 
 def test_six_step_closed_loop_matches_the_simulation(duy):
@@ -119,7 +105,7 @@ def test_six_step_closed_loop_matches_the_simulation(duy):
 
 def test_good_pi_law_passes(duy):
     r = _result(duy, law=_pid(duy, 0.4, 29.0, 9e-4))
-    verify_design(duy, r)
+    verify_design(duy, r, drive=DRIVE)
     bad = {k: v for k, v in r.verification.items() if not v["ok"]}
     assert r.ok, bad
     v = r.verification
@@ -138,7 +124,7 @@ def test_law_without_the_firmware_window_fails(duy):
 def test_overshoot_the_bridge_cannot_brake_fails(duy):
     # ZN's "no-overshoot" row on duy2008: the low kp leaves the approach to the integrator, 7 % overshoot
     r = _result(duy, law=_pid(duy, 0.176, 24.7, 8.35e-4))
-    verify_design(duy, r)
+    verify_design(duy, r, drive=DRIVE)
     assert r.status == "failed"
     assert r.verification["sim_overshoot_pct"]["value"] > 2.0
     assert any("sim_overshoot_pct" in why for why in r.reasons)
@@ -163,8 +149,8 @@ def test_commutation_30_degrees_early_on_the_sinusoidal_motor_fails(prof):
         early = prof.replace(sensors={"hall_offset_deg": 0.0})
         aligned = prof.replace(sensors={"hall_offset_deg": 30.0})
     r0, r1 = _result(early, law=law), _result(aligned, law=law)
-    verify_design(early, r0)
-    verify_design(aligned, r1)
+    verify_design(early, r0, drive=DRIVE)
+    verify_design(aligned, r1, drive=DRIVE)
     assert r0.status == "failed" and r0.verification["sim_overshoot_pct"]["value"] > 5.0
     ok = {k: c["ok"] for k, c in r1.verification.items() if k != "sim_resistance_uncertainty"}
     assert all(ok.values()), ok
@@ -177,7 +163,8 @@ def test_sector_mean_removes_the_commutation_ripple(prof):
     figures are judged on the mean over one hall sector, and the ripple is reported."""
     law = _pid(prof, 0.663, 192.0, 2.28e-3)
     plan = sim_plan(prof)
-    sim = run_sim(prof, law, plan, disturbances=False)
+    sim = run_sim(prof, law, plan, measurement=speed_measurement(prof, law), disturbances=False,
+                  three_phase=three_phase_plant)
     f = step_figures(sim, plan, prof)
     tail = sim.t > plan["t_end_s"] - 0.1
     raw = sim.rpm[tail]

@@ -4,8 +4,8 @@ For every committed design (examples/*.design.json) the firmware is generated
 and run in the twin (firmware C + PIC peripheral model + three-phase plant,
 in-process, free-running) through the verification's step and load step, and
 the verification's six-step model (picdrive.models.simulate.simulate_six_step via
-picdrive.design.verify.run_sim) runs the same; both are judged by the same figures
-(picdrive.design.verify.step_figures: sector-mean speed) and must agree within the
+picdrive.analysis.steptest.run_sim) runs the same; both are judged by the same figures
+(picdrive.analysis.steptest.step_figures: sector-mean speed) and must agree within the
 tolerances below, and the twin must pass the limits the verification passed.
 
 Tolerances (stated; from the agreement measured on the six committed designs,
@@ -29,7 +29,8 @@ import pytest
 from picdrive.paths import repo_root
 from picdrive.profile import ProfileWarning, load_profile
 from picdrive.result import load_design
-from picdrive.design.verify import VerifyConfig, run_sim, sim_plan, step_figures, twin_run
+from picdrive.analysis.steptest import VerifyConfig, run_sim, sim_plan, step_figures
+from picdrive.gate import speed_measurement, three_phase_plant, twin_run
 
 pytest.importorskip("picdrive_hil.twin")
 
@@ -54,7 +55,8 @@ def test_verification_model_predicts_the_twin(profile_name, method, tmp_path):
     design = load_design(path, require_usable=True, profile=prof)
     plan = sim_plan(prof)
     twin = step_figures(twin_run(prof, path, plan, workdir=tmp_path), plan, prof)
-    model = step_figures(run_sim(prof, design.law, plan, disturbances=False), plan, prof)
+    model = step_figures(run_sim(prof, design.law, plan, measurement=speed_measurement(prof, design.law), disturbances=False,
+                                 three_phase=three_phase_plant), plan, prof)
     tgt = plan["target_rpm"]
     why = "twin " + ", ".join(f"{k} {twin[k]:.4g}" for k in ("rise_s", "overshoot_pct", "final_error_rpm",
                                                              "load_dip_rpm")) + \

@@ -6,7 +6,10 @@ import pytest
 
 from picdrive.design import zn
 from picdrive.design.mixed_pid import term_limits
+from picdrive.gate import BuiltDrive
 from picdrive.models.tfmodel import motor_tf, sampled_plant
+
+DRIVE = BuiltDrive()
 
 PROFILES = ["duy2008", "assawinchaichote2016"]
 
@@ -37,7 +40,7 @@ def test_classic_rule_by_hand(profiles):
 
 
 def test_zn_duy2008_verified(profiles):
-    r = zn.design(profiles["duy2008"], progress=False)
+    r = zn.design(profiles["duy2008"], drive=DRIVE, progress=False)
     assert r.ok, r.reasons
     assert r.method == "zn" and r.variant == "ultimate"
     assert r.certificate["sensitivity_peak_sampled"] > 2.0          # ZN is aggressive: Ms ~ 2.8
@@ -49,15 +52,15 @@ def test_zn_auto_keeps_the_first_row_that_verifies(profiles):
     six-step verification.  On duy2008 the milder rows overshoot *more* (their lower kp leaves the
     approach to the integrator) and the bridge cannot brake: they fail, the classic row passes."""
     p = profiles["duy2008"]
-    auto = zn.design(p, progress=False)
+    auto = zn.design(p, drive=DRIVE, progress=False)
     assert auto.ok and auto.variant == "ultimate" and auto.options["rule"] == "auto"
     assert [t["rule"] for t in auto.certificate["rule_tries"]] == ["ultimate"]
-    mild = zn.design(p, progress=False, rule="no-overshoot")
+    mild = zn.design(p, drive=DRIVE, progress=False, rule="no-overshoot")
     assert not mild.ok and mild.verification["sim_overshoot_pct"]["value"] > 2.0
     assert any("sim_overshoot_pct" in x for x in mild.reasons)
     # the law carries the firmware's current window, so the 2016 classic row no longer runs into the
     # current limit (it drew 19.9 A before the window): it verifies
-    c = zn.design(profiles["assawinchaichote2016"], progress=False)
+    c = zn.design(profiles["assawinchaichote2016"], drive=DRIVE, progress=False)
     assert c.ok, c.reasons
     assert c.law.current_limit_a == profiles["assawinchaichote2016"].inverter.current_limit_a
     assert c.verification["sim_peak_bus_current_a"]["value"] < profiles["assawinchaichote2016"].inverter.overcurrent_trip_a
@@ -69,7 +72,7 @@ def test_paper2016_preset_units_and_verdict(profiles):
     # rpm -> rad/s (60/2pi) and v_q -> six-step u (3 sqrt(3)/pi for a sinusoidal machine)
     assert f == pytest.approx(60 / (2 * math.pi) * 3 * math.sqrt(3) / math.pi, rel=1e-9)
     assert (kp, ki, kd) == pytest.approx((0.43 * f, 2.30 * f, 0.28 * f))
-    r = zn.design(p, progress=False, preset="paper2016")
+    r = zn.design(p, drive=DRIVE, progress=False, preset="paper2016")
     assert r.variant == "paper2016" and r.law.rules[0].kp == pytest.approx(kp)
     assert not r.ok and any("unstable" in x for x in r.reasons)    # kd = 4.4 V s^2/rad at 1 kHz
     assert r.certificate["stable_continuous"]                       # fine in continuous time
@@ -97,8 +100,8 @@ def test_reaction_curve(profiles):
 def test_bad_options(profiles):
     p = profiles["duy2008"]
     with pytest.raises(zn.ZnError, match="preset 'paper2017' is unknown"):
-        zn.design(p, progress=False, preset="paper2017")
+        zn.design(p, drive=DRIVE, progress=False, preset="paper2017")
     with pytest.raises(zn.ZnError, match="rule 'tyreus' is unknown"):
-        zn.design(p, progress=False, rule="tyreus")
+        zn.design(p, drive=DRIVE, progress=False, rule="tyreus")
     with pytest.raises(zn.ZnError, match="unknown zn option"):
-        zn.design(p, progress=False, seed=3)
+        zn.design(p, drive=DRIVE, progress=False, seed=3)

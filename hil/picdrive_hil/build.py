@@ -49,6 +49,11 @@ _X86_LEVELS = (
 )
 
 
+class TwinError(PicdriveError):
+    """The twin could not be built or started, or the firmware did something
+    the twin reports as an error (interrupt storm, wrong baud rate...)."""
+
+
 class TwinBuildError(PicdriveError):
     """The twin's shared library could not be built (compiler missing or the C did not compile)."""
 

@@ -32,7 +32,7 @@ import sys
 import threading
 import time
 
-from .twin import Twin, TwinError
+from .build import TwinError
 
 CHUNK_S = 1e-3          # simulated time advanced per loop iteration in real time
 MAX_LAG_S = 0.25        # if the twin falls this far behind the wall clock, it drops the debt
@@ -42,7 +42,7 @@ READ_BYTES = 4096       # bytes read from the socket / pty at a time
 class TwinServer:
     """Serve a Twin's UART on a socket (and a pty); see the module docstring."""
 
-    def __init__(self, twin: Twin, *, port: int = 0, host: str = "127.0.0.1", realtime: bool = True,
+    def __init__(self, twin: "picdrive_hil.twin.Twin", *, port: int = 0, host: str = "127.0.0.1", realtime: bool = True,
                  pty: bool = False, speed: float = 1.0, log=None, clock=time.perf_counter):
         if not (speed > 0):
             raise ValueError("speed must be > 0 (simulated seconds per wall second)")

@@ -18,12 +18,12 @@ from .errors import PicdriveError
 
 # (module, purpose) in the order they appear in --help
 COMMAND_MODULES = [
-    "picdrive.design.dispatch",   # picdrive design
-    "picdrive.papers.report",        # picdrive report
-    "picdrive.firmware.codegen",       # picdrive firmware
-    "picdrive_hil.cli",       # picdrive twin
-    "picdrive.console.session",  # picdrive console
-    "picdrive.demo",          # picdrive demo
+    "picdrive.gate",               # picdrive design
+    "picdrive.papers.report",      # picdrive report
+    "picdrive.firmware.codegen",   # picdrive firmware
+    "picdrive_hil.cli",            # picdrive twin
+    "picdrive.console.session",    # picdrive console
+    "picdrive.demo",               # picdrive demo
 ]
 
 
@@ -42,14 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--version", action="version", version=f"picdrive {__version__}")
     sub = ap.add_subparsers(dest="command", metavar="COMMAND")
     for modname in COMMAND_MODULES:
-        try:
-            mod = importlib.import_module(modname)
-        except ModuleNotFoundError as e:
-            if e.name == modname:      # command not built yet in this checkout
-                continue
-            raise
-        if hasattr(mod, "register"):   # a command module still being built has none yet
-            mod.register(sub)
+        importlib.import_module(modname).register(sub)
     return ap
 
 

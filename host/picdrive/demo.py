@@ -58,7 +58,7 @@ def _say(msg: str) -> None:
 
 def redesign(profile, method: str, progress: bool):
     """Design with the options of the committed design (if any); returns (result, committed or None)."""
-    from .design.dispatch import run_design
+    from .gate import run_design
     from .result import DesignError, load_design
 
     committed = None

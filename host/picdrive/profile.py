@@ -37,7 +37,7 @@ SCHEMA_ID = "picdrive.profile/1"
 __all__ = [
     "ProfileError", "ProfileWarning", "Profile", "Motor", "Inverter",
     "Sensors", "Control", "Uart", "load_profile", "loads_profile",
-    "bundled_profiles", "resolve_profile_path", "SCHEMA",
+    "bundled_profiles", "resolve_profile_path", "SCHEMA", "hash32",
 ]
 
 
@@ -295,6 +295,11 @@ class Uart:
     link_timeout_ms: float
 
 
+def hash32(sha256_hex: str) -> int:
+    """The firmware's 32-bit profile hash of a profile SHA-256 (hex): its first 4 bytes, 0 for ''."""
+    return int(sha256_hex[:8], 16) if sha256_hex else 0
+
+
 @dataclass(frozen=True)
 class Profile:
     """A validated drive profile.  Build with :func:`load_profile`."""
@@ -313,6 +318,12 @@ class Profile:
     raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     # -- derived quantities used in several places ------------------------
+    @property
+    def hash32(self) -> int:
+        """The profile hash the firmware carries (``profile_hash`` in hello and board.json): the first
+        4 bytes of :attr:`sha256` as an unsigned integer, 0 when the profile has no hash."""
+        return hash32(self.sha256)
+
     def max_reachable_rpm(self, load_torque_n_m: float = 0.0) -> float:
         """Highest steady speed the bridge can hold against a load torque, rpm.
 

@@ -59,7 +59,7 @@ def target_answers(request):
     prof = profile(request.config.getoption("--profile"))
     from picdrive.link.client import LinkError
     try:
-        with Link.open(target, expect_profile_hash=int(prof.sha256[:8], 16)):
+        with Link.open(target, expect_profile_hash=prof.hash32):
             pass
     except LinkError as e:
         pytest.fail(f"--target {target}: the board under test does not answer or is not the one named: {e}",
@@ -95,7 +95,7 @@ def open_bench(request, target, firmware_cache):
 
     def _open(profile_name: str = "duy2008", method: str | None = None, perturb=None) -> Bench:
         prof = profile(profile_name)
-        phash = int(prof.sha256[:8], 16)
+        phash = prof.hash32
         selected = request.config.getoption("--profile")
         if target == "twin" and selected is not None and profile_name != selected:
             pytest.skip(f"--profile {selected} selects that profile's tests")

@@ -134,11 +134,11 @@ class Bench:
 
 
 def sector_speed(prof, data: np.ndarray, target: float) -> np.ndarray:
-    """The measured speed averaged over one hall sector at the target speed (picdrive.design.verify.sector_mean):
+    """The measured speed averaged over one hall sector at the target speed (picdrive.analysis.steptest.sector_mean):
     the speed a six-step drive regulates; inside a sector the pair's EMF, hence the torque per ampere,
     ripples with the rotor angle (the 2016 motor under its 1 N m load: about +-2.5 % at 76 Hz with a
     PID, which no 1 kHz speed law removes).  The design's verification judges the same mean."""
-    from picdrive.design.verify import sector_mean
+    from picdrive.analysis.steptest import sector_mean
     t = data["t"]
     ts = float(np.median(np.diff(t))) if t.size > 1 else 1.0 / prof.control.speed_loop_hz
     return sector_mean(prof, data["speed"].astype(float), ts, target)

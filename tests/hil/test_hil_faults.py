@@ -50,7 +50,7 @@ def test_link_loss_stops_the_drive_within_the_watchdog_timeout(open_bench):
         assert timeout_s * 0.75 - 0.01 <= t_off - t_close <= timeout_s + 0.005
     else:
         time.sleep(timeout_s + 0.3)
-    b.link = Link.open(url, expect_profile_hash=int(b.profile.sha256[:8], 16))
+    b.link = Link.open(url, expect_profile_hash=b.profile.hash32)
     st = b.link.status()
     assert st.state == P.State.FAULT and st.fault == P.Fault.LINK_LOST, st
     b.link.fault_clear()

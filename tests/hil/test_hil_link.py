@@ -11,7 +11,7 @@ def test_handshake_identifies_the_profile_and_table(open_bench):
     b = open_bench("duy2008")
     info = b.link.info
     assert info.proto_version[0] == P.PROTOCOL_VERSION[0]
-    assert info.profile_hash == int(b.profile.sha256[:8], 16)
+    assert info.profile_hash == b.profile.hash32
     assert info.table_hash == b.link.table.hash
     assert info.sample_hz == pytest.approx(b.profile.control.speed_loop_hz)
     st = b.link.status()

@@ -217,7 +217,7 @@ class Console:
         """``--strict``: refuse a board built from another profile than ``--profile``."""
         if self.profile is None:
             return
-        mine = profile_hash32(self.profile)
+        mine = self.profile.hash32
         if mine != link.info.profile_hash:
             raise ConsoleError(f"--strict: the board was built from another profile (board hash "
                                f"0x{link.info.profile_hash:08x}, local profile {self.profile.name} hash 0x{mine:08x}); "
@@ -265,7 +265,7 @@ class Console:
                  f"profile hash 0x{info.profile_hash:08x}, table hash 0x{info.table_hash:08x} "
                  f"({len(table)} entries, {rules} rule{'s' if rules != 1 else ''}), speed loop {rate}"]
         if self.profile is not None:
-            mine = profile_hash32(self.profile)
+            mine = self.profile.hash32
             if mine == info.profile_hash:
                 lines.append(f"profile {self.profile.name}: matches the board (hash 0x{mine:08x})")
             else:
@@ -748,11 +748,6 @@ def _expects_fault(line: str) -> bool:
     return len(w) >= 2 and w[0].lower() == "expect" and w[1].lower() in ("fault", "state")
 
 
-def profile_hash32(profile) -> int:
-    """The 32-bit profile hash a firmware carries: first 4 bytes of the profile's SHA-256."""
-    return int(profile.sha256[:8], 16)
-
-
 def bundled_profile_by_hash(h: int) -> str | None:
     """Name of the bundled profile whose hash the board reports, if any."""
     import warnings
@@ -761,7 +756,7 @@ def bundled_profile_by_hash(h: int) -> str | None:
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                if profile_hash32(load_profile(path)) == h:
+                if load_profile(path).hash32 == h:
                     return name
         except PicdriveError:
             continue
@@ -1283,6 +1278,7 @@ def _quit(con, args):
          complete=_files(".json"))
 def _load(con, args):
     _nargs("load", args, 1)
+    from ..profile import hash32
     from ..result import load_design
     link = con.link
     r = load_design(args[0], require_usable=True, profile=con.profile)
@@ -1295,8 +1291,8 @@ def _load(con, args):
     if hz and abs(1.0 / law.sample_time_s - hz) > 1e-6 * hz:
         raise ConsoleError(f"load: the design is sampled at {1.0 / law.sample_time_s:g} Hz, the board's speed loop "
                            f"runs at {hz} Hz; discrete gains do not carry over: design for {hz} Hz")
-    if r.profile_sha256 and int(r.profile_sha256[:8], 16) != link.info.profile_hash:
-        raise ConsoleError(f"load: the design was made from profile {r.profile_name!r} (hash 0x{r.profile_sha256[:8]}), "
+    if r.profile_sha256 and hash32(r.profile_sha256) != link.info.profile_hash:
+        raise ConsoleError(f"load: the design was made from profile {r.profile_name!r} (hash 0x{hash32(r.profile_sha256):08x}), "
                            f"the board was built from profile hash 0x{link.info.profile_hash:08x}; "
                            "use a design of the board's profile")
     rpm = 60.0 / (2.0 * math.pi)
@@ -1800,7 +1796,7 @@ STEP_GAIN_PARAMS = ("setpoint_weight", "premise_low", "premise_high", "u_min", "
 def _board_profile(con):
     """The profile the board was built from, if known here (--profile, or a bundled one with its hash)."""
     if con.profile is not None:
-        return con.profile if profile_hash32(con.profile) == con.link.info.profile_hash else None
+        return con.profile if con.profile.hash32 == con.link.info.profile_hash else None
     name = bundled_profile_by_hash(con.link.info.profile_hash)
     if name is None:
         return None

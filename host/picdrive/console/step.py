@@ -22,7 +22,6 @@ Conventions (the same as the HIL suite's):
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -156,7 +155,7 @@ def analyse_step(rec: StepRecord, *, pre_t_s: np.ndarray | None = None,
 
     ``pre_*``: samples before the step (t < 0) used for ``y0``.  With the board's
     ``profile`` the metrics are judged on the speed averaged over one hall sector at
-    the target (:func:`picdrive.design.verify.sector_mean`, as the verifier and the HIL suite
+    the target (:func:`picdrive.analysis.steptest.sector_mean`, as the verifier and the HIL suite
     do: the commutation ripple is no regulation error), over the samples after the
     step only (the mean never looks across the step); ``rec.speed_basis`` says which.
     """
@@ -175,7 +174,7 @@ def analyse_step(rec: StepRecord, *, pre_t_s: np.ndarray | None = None,
     ya = y[sel]
     rec.speed_basis = "raw speed"
     if profile is not None:
-        from ..design.verify import sector_mean, sector_period_s
+        from ..analysis.steptest import sector_mean, sector_period_s
         ya = sector_mean(profile, ya, rec.sample_period_s, float(rec.to_rpm))
         n = max(1, int(round(sector_period_s(profile, float(rec.to_rpm)) / rec.sample_period_s)))
         if n > 1:

@@ -33,7 +33,7 @@ gives ``dV/dt + |z~|^2 - g^2 |w~|^2 < 0``, hence ``int alpha |(C + D K) x|^2 +
 alpha rho^2 |(H3 + H4 K) x|^2 <= g^2 int |w|^2``; by the triangle inequality
 ``|z|^2 <= 2 |(C+DK)x|^2 + 2 rho^2 |(H3+H4K)x|^2``, so alpha >= 2 gives the
 theorem's L2 gain ``<= gamma``; with ``H3 = H4 = 0`` the bound is the sharper
-``gamma / sqrt(alpha)``  (:func:`certified_gain`).
+``gamma / sqrt(alpha)``  (:func:`picdrive.analysis.lmi.certified_gain`).
 
 Beyond the paper (``design()`` variants ``tracking`` and ``six-step``):
 integral action on the speed error (:func:`picdrive.models.tsfuzzy.tracking_model`),
@@ -52,11 +52,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from ..analysis.lmi import assemble, certified_gain, lmi_margins, xi_blocks
+from ..analysis.sampled import sampled_radius, six_step_equilibrium
 from ..control_law import ScheduledLaw
 from ..errors import PicdriveError
+from ..models.tsfuzzy import model_for
 
-__all__ = ["Theorem1Solution", "solve_theorem1", "minimise_gamma", "assemble_xi", "lmi_margins",
-           "certified_gain", "design", "DEFAULT_SOLVER", "FuzzyHinfError", "OPTIONS"]
+__all__ = ["Theorem1Solution", "solve_theorem1", "minimise_gamma", "design", "DEFAULT_SOLVER", "FuzzyHinfError",
+           "OPTIONS"]
 
 DEFAULT_SOLVER = "CLARABEL"
 
@@ -89,110 +92,6 @@ class Theorem1Solution:
 
 
 # ---------------------------------------------------------------------------
-# The assembled inequality (numpy or cvxpy operands)
-# ---------------------------------------------------------------------------
-def _nz(M) -> bool:
-    return M is not None and np.any(np.asarray(M) != 0)
-
-
-def _xi_blocks(ts, i: int, j: int, v: int, P, Yj, gamma, delta, alpha, rho, tau=None, gamma_w=None):
-    """Blocks of Xi_ij: ``psi1`` and a list of ``(off-diagonal block, size, diagonal coefficient)``.
-
-    Paper form (``tau is None``): the uncertainty pairs are ``(d E^T, -g)`` and
-    ``(g rho/d H1 P, -g)``.  Multiplier form (``tau`` given, a cvxpy variable):
-    ``(tau E^T, -tau)`` and ``(rho H1 P, -tau)``: both forms have the same
-    Schur complement ``tau E E^T + rho^2/tau P H1^T H1 P`` with ``tau = d^2/g``,
-    so optimising ``tau`` is Theorem 1 with the best delta, and gamma then
-    enters linearly.  ``gamma_w`` (default gamma) is the diagonal of the
-    ``Bw`` block (see :class:`_Problem`).
-    """
-    A = ts.A[i] + ts.offsets[v]
-    B, C, D = ts.B[i], ts.C[i], ts.D[i]
-    E = ts.E_matrix
-    k = E.shape[1]
-    AP = A @ P + B @ Yj
-    psi1 = AP + AP.T
-    unc_w, unc_z = [], []
-    h1, h2 = _nz(ts.H1[i]), _nz(ts.H2[i])
-    if tau is None:
-        g_over = gamma * rho / delta
-        if h1:
-            unc_w.append((delta * E.T, k, -gamma))
-            unc_z.append((g_over * (ts.H1[i] @ P), ts.H1.shape[1], -gamma))
-        if h2:
-            unc_w.append((delta * E.T, k, -gamma))
-            unc_z.append((g_over * (ts.H2[i] @ Yj), ts.H2.shape[1], -gamma))
-    else:
-        if h1:
-            unc_w.append((tau * E.T, k, -tau))
-            unc_z.append((rho * (ts.H1[i] @ P), ts.H1.shape[1], -tau))
-        if h2:
-            unc_w.append((tau * E.T, k, -tau))
-            unc_z.append((rho * (ts.H2[i] @ Yj), ts.H2.shape[1], -tau))
-    col = unc_w + [(ts.Bw.T, ts.Bw.shape[1], -(gamma if gamma_w is None else gamma_w))] + unc_z
-    if _nz(ts.H3[i]) or _nz(ts.H4[i]):
-        col.append((math.sqrt(alpha) * rho * (ts.H3[i] @ P + ts.H4[i] @ Yj), ts.H3.shape[1], -gamma))
-    col.append((math.sqrt(alpha) * (C @ P + D @ Yj), C.shape[0], -gamma))
-    return psi1, col
-
-
-def _assemble(psi1, col, backend):
-    rows = [[psi1] + [c[0].T for c in col]]
-    for a, (blk, na, dg) in enumerate(col):
-        row = [blk]
-        for b, (_, nb, _) in enumerate(col):
-            row.append(dg * np.eye(na) if a == b else np.zeros((na, nb)))
-        rows.append(row)
-    return backend(rows)
-
-
-def assemble_xi(ts, P, Y: Sequence, i: int, j: int, gamma, delta, alpha, rho=None, v: int = 0) -> np.ndarray:
-    """The numeric matrix ``Xi_ij`` (vertex v) of LMI (15) in the paper's form, for a candidate solution."""
-    rho = ts.rho if rho is None else rho
-    psi1, col = _xi_blocks(ts, i, j, v, np.asarray(P), np.asarray(Y[j]), gamma, delta, alpha, rho)
-    return _assemble(psi1, col, np.block)
-
-
-def lmi_margins(ts, P, Y, gamma, delta, alpha, rho=None, *, scaled: bool = True) -> dict[str, float]:
-    """Largest eigenvalue of each LMI (12)-(14) at a candidate solution (all < 0: satisfied).
-
-    ``scaled``: evaluate ``T Xi T`` with ``T = diag(S^-1, I, ...)`` (``S`` the
-    model's state scale) -- an exact congruence, so the sign of every
-    eigenvalue is that of the unscaled inequality, but the numbers are not
-    swamped by the spread of the physical units.
-    """
-    sx = np.asarray(ts.info.get("state_scale", np.ones(ts.n)), float) if scaled else np.ones(ts.n)
-    P = np.asarray(P, float)
-    Si = np.diag(1.0 / sx)
-    Ps = Si @ P @ Si
-    out = {"P>0": float(-np.linalg.eigvalsh(0.5 * (Ps + Ps.T)).min())}
-
-    def assemble_xi(ts, P, Y, i, j, gamma, delta, alpha, rho, v, _T=None):
-        X = globals()["assemble_xi"](ts, P, Y, i, j, gamma, delta, alpha, rho, v)
-        T = np.eye(X.shape[0])
-        T[:ts.n, :ts.n] = Si
-        return T @ X @ T
-    for v in range(ts.offsets.shape[0]):
-        for i in range(ts.r):
-            X = assemble_xi(ts, P, Y, i, i, gamma, delta, alpha, rho, v)
-            out[f"Xi_{i+1}{i+1}" + (f"@v{v+1}" if ts.offsets.shape[0] > 1 else "")] = float(np.linalg.eigvalsh(0.5 * (X + X.T)).max())
-            for j in range(i + 1, ts.r):
-                X = (assemble_xi(ts, P, Y, i, j, gamma, delta, alpha, rho, v)
-                     + assemble_xi(ts, P, Y, j, i, gamma, delta, alpha, rho, v))
-                out[f"Xi_{i+1}{j+1}+Xi_{j+1}{i+1}" + (f"@v{v+1}" if ts.offsets.shape[0] > 1 else "")] = \
-                    float(np.linalg.eigvalsh(0.5 * (X + X.T)).max())
-    return out
-
-
-def certified_gain(ts, gamma: float, alpha: float) -> float:
-    """L2 gain w -> z the theorem certifies: gamma/sqrt(alpha) when H3 = H4 = 0
-    (no output uncertainty), else gamma (which needs alpha >= 2)."""
-    if not (_nz(ts.H3) or _nz(ts.H4)):
-        return gamma / math.sqrt(alpha)
-    return gamma
-
-
-# ---------------------------------------------------------------------------
 # The cvxpy problem
 # ---------------------------------------------------------------------------
 class _Problem:
@@ -204,7 +103,7 @@ class _Problem:
       LMIs are not jointly linear in gamma (``g rho/d H1 P``), so gamma is
       minimised by bisection (:meth:`solve` per gamma).
     * ``delta=None``: the S-procedure multiplier ``tau = d^2/g`` is a variable
-      (see :func:`_xi_blocks`) and gamma enters linearly, so the smallest gamma
+      (see :func:`picdrive.analysis.lmi.xi_blocks`) and gamma enters linearly, so the smallest gamma
       is one SDP.  With an input bound the Lyapunov matrix cannot be rescaled
       freely any more; the variables are then ``Q = P/t``, ``Yh = Y/t`` with
       separate diagonals ``-g_w`` (disturbance block) and ``-g_z`` (output
@@ -218,7 +117,7 @@ class _Problem:
     is multiplied on both sides by ``diag(S^-1, I, ...)`` -- an exact
     congruence, so the feasible set is unchanged while the solver sees O(1)
     data.  Every returned solution is re-checked in numpy in the paper's form
-    (:func:`lmi_margins`).
+    (:func:`picdrive.analysis.lmi.lmi_margins`).
     """
 
     def __init__(self, ts, delta, alpha, rho, *, zero_gain_states=(), input_bound=None, pole_disk_rad_s=None,
@@ -277,11 +176,11 @@ class _Problem:
         nv = ts.offsets.shape[0]
 
         def xi(i, j, v):
-            psi1, col = _xi_blocks(ts, i, j, v, P, Y[j], g_z, self.delta, self.alpha, self.rho, tau=self.tau,
+            psi1, col = xi_blocks(ts, i, j, v, P, Y[j], g_z, self.delta, self.alpha, self.rho, tau=self.tau,
                                    gamma_w=g_w)
             psi1 = Si @ psi1 @ Si          # congruence diag(S^-1, I, ...)
             col = [(blk @ Si, k, dg) for blk, k, dg in col]
-            return _assemble(psi1, col, cp.bmat)
+            return assemble(psi1, col, cp.bmat)
 
         for v in range(nv):
             for i in range(r):
@@ -460,28 +359,6 @@ OPTIONS: dict[str, str] = {
 }
 
 
-def model_for(profile, model: str, options: dict | None = None):
-    """Rebuild the TS model a certificate refers to (``paper``, ``tracking-dq``, ``tracking-six-step``,
-    ``six-step``)."""
-    from ..models.tsfuzzy import paper_model, six_step_model, tracking_model
-    o = dict(options or {})
-    kw = {k: o[k] for k in ("rules", "resistance_uncertainty", "rho") if o.get(k) is not None}
-    if model == "paper":
-        return paper_model(profile, **kw)
-    if model == "paper-as-printed":
-        from ..papers.repro2016 import paper_as_printed_model
-        return paper_as_printed_model()
-    if o.get("integral_weight_rad_s") is not None:
-        kw["integral_weight_rad_s"] = o["integral_weight_rad_s"]
-    if model in ("tracking-dq", "tracking-six-step"):
-        return tracking_model(profile, inputs=model.split("-", 1)[1], **kw)
-    if model == "six-step":
-        if o.get("emf_polytope") is not None:
-            kw["emf_polytope"] = bool(o["emf_polytope"])
-        return six_step_model(profile, **kw)
-    raise FuzzyHinfError(f"unknown fuzzy model {model!r}")
-
-
 def default_pole_disk(profile, ts) -> float:
     """Pole-disk radius, rad/s: a quarter of the sample rate in rad/s
     (``pi/(2 Ts)``: the hold's half-sample delay costs at most 22 deg there),
@@ -521,7 +398,6 @@ def integrator_need_v(profile, rules, b: float) -> float:
     """Largest ``|I*| = |u* + kp (1 - b) w* + kc i*|`` the law's integrator holds at the six-step
     equilibria (standstill and the step target, with and without the load, R at its uncertainty
     extremes), V."""
-    from .verify import six_step_equilibrium
     eps = float(profile.design.get("resistance_uncertainty", 0.1))
     need = 0.0
     for w in (0.0, profile.speed_step_rpm() * 2 * math.pi / 60):
@@ -567,11 +443,6 @@ def _law_from_gains(profile, ts, K, setpoint_weight: float | None = None) -> "Sc
                         notes=f"fuzzy-hinf six-step: u = kp ({b:g} r - w) - kc i_bus + int ki (r - w) per rule")
 
 
-def _sampled_radius(profile, law) -> float:
-    from .verify import _sampled_check
-    return float(_sampled_check(profile, law)["value"])
-
-
 # option -> (kind, low, high) of its value; the profile's [design] bounds where the profile has the field
 _OPTION_KINDS: dict[str, tuple] = {
     "pole_disk_rad_s": (float, 1e-6, 1e9),
@@ -614,7 +485,8 @@ def _check_options(options: dict, gamma) -> None:
                                  f"in [{lo:g}, {hi:g}] ({OPTIONS.get(name, 'prescribed H-inf level')})")
 
 
-def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: float | None = None, **options):
+def design(profile, *, drive=None, progress: bool = True, variant: str = "six-step", gamma: float | None = None,
+           **options):
     """Design, verify and return a :class:`picdrive.result.DesignResult`.
 
     ``variant``: ``six-step`` (default; one voltage, speed + bus current,
@@ -729,7 +601,7 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
         res.timings_s = timings
         if sol.feasible:
             t2 = _t.perf_counter()
-            verify_design(profile, res, simulate=simulate)
+            verify_design(profile, res, drive=drive, simulate=simulate)
             res.timings_s["verify"] = _t.perf_counter() - t2
         return res
 
@@ -761,7 +633,7 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
             tries.append(entry)
             res = res or r
             continue
-        rad = _sampled_radius(profile, r.law)
+        rad, _ = sampled_radius(profile, r.law)
         entry["sampled_spectral_radius"] = rad
         if rad > rho_max and len(disks) > 1:
             entry["status"] = f"sampled spectral radius {rad:.4f} > {rho_max:g}"
@@ -783,7 +655,7 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
             rb = result_of(sol, disk) if bb != b_list[0] else r
             rb.law = _law_from_gains(profile, ts, sol.K, bb)
             tb = _t.perf_counter()
-            verify_design(profile, rb, simulate=simulate)
+            verify_design(profile, rb, drive=drive, simulate=simulate)
             t_ver += _t.perf_counter() - tb
             note = ""
             if rb.ok and bb != b_list[-1] and simulate:
@@ -809,7 +681,7 @@ def design(profile, *, progress: bool = True, variant: str = "six-step", gamma: 
     if res is None:
         raise FuzzyHinfError("no pole disk to try: give pole_disk_rad_s")
     if res.law is not None and res.status != "failed" and not res.verification:
-        verify_design(profile, res, simulate=simulate)
+        verify_design(profile, res, drive=drive, simulate=simulate)
     if not res.ok and not res.reasons:
         res.fail("no pole disk gave a law within the sampled-loop bound: " +
                  "; ".join(f"{t['pole_disk_rad_s']:.0f} rad/s: {t['status']}" for t in tries))

@@ -52,12 +52,15 @@ import numpy as np
 from ..control_law import Rule, ScheduledLaw
 from ..errors import PicdriveError
 from .ga import run_ga
-from ..analysis.h2hinf import hinf_exact_z, xi_tustin, j3_discrete, j3_jury_dewey, h2_lyapunov, robust_constraint, robust_constraint_z, routh_hurwitz, sampled_loop, sampled_loop_polys, schur_char, schur_stable, sensitivity_peak, sensitivity_peak_z, tracking_error_polys
+from ..analysis.h2hinf import (hinf_exact_z, j3_discrete, j3_jury_dewey, pid_figures_continuous, pid_figures_sampled,
+                               robust_constraint, robust_constraint_z, sampled_loop, sampled_loop_polys, schur_char,
+                               schur_stable, sensitivity_peak, sensitivity_peak_z, tracking_error_polys, xi_tustin)
 from ..result import DesignResult
-from ..models.tfmodel import TF, SampledPlant, loop_polys, motor_tf, sampled_plant, simulate_sampled, speed_quantum_rad_s
+from .verify import pid_model_checks, verify_design
+from ..models.tfmodel import TF, SampledPlant, motor_tf, sampled_plant, speed_quantum_rad_s
 
 __all__ = ["MixedPidError", "Problem", "make_problem", "term_limits", "evaluate", "design", "pid_law",
-           "check_pid_design", "VARIANTS", "DEFAULTS"]
+           "run_verify", "VARIANTS", "DEFAULTS"]
 
 VARIANTS = ("drive", "paper")
 RPM = 2.0 * math.pi / 60.0
@@ -305,122 +308,15 @@ def pid_law(profile, kp: float, ki: float, kd: float, notes: str = "") -> Schedu
                         r_ohm=m.r_line_ohm)
 
 
-def _continuous_figures(plant: TF, kp, ki, kd, d) -> dict[str, Any]:
-    char, _ = loop_polys(plant, kp, ki, kd)
-    stable = bool(routh_hurwitz(char))
-    out = {"stable_continuous": stable, "closed_loop_poles_continuous": np.roots(char)}
-    if stable:
-        ne, de_ = tracking_error_polys(plant, kp, ki, kd, derivative="error")
-        nm, dm = tracking_error_polys(plant, kp, ki, kd, derivative="measurement")
-        out["j3_continuous_error_form_s"] = float(j3_jury_dewey(ne, de_))
-        out["j3_continuous_error_form_lyapunov_s"] = float(h2_lyapunov(ne, de_))
-        out["j3_continuous_measurement_form_s"] = float(j3_jury_dewey(nm, dm))
-        out["hinf_constraint_continuous"] = float(robust_constraint(plant, kp, ki, kd, d)[0])
-    return out
-
-
-def _sampled_figures(sp: SampledPlant, kp, ki, kd, d) -> dict[str, Any]:
-    A, B, C = sampled_loop(sp, kp, ki, kd)
-    stable, rho = schur_stable(A)
-    out = {"spectral_radius_sampled": float(rho), "stable_sampled": bool(stable),
-           "closed_loop_poles_sampled_z": np.linalg.eigvals(A)}
-    if stable:
-        out["j3_sampled_s"] = float(j3_discrete(A, B, C, sp.ts))
-        h, _, wh = robust_constraint_z(sp, kp, ki, kd, d)
-        ms, wms = sensitivity_peak_z(sp, kp, ki, kd)
-        out.update(hinf_constraint_sampled=float(h), hinf_constraint_sampled_w_rad_s=float(wh),
-                   sensitivity_peak_sampled=float(ms), sensitivity_peak_w_rad_s=float(wms),
-                   gain_margin_lower_bound=float(ms / (ms - 1.0)) if ms > 1 else math.inf,
-                   phase_margin_lower_bound_deg=float(math.degrees(2 * math.asin(min(1.0, 0.5 / ms)))))
-    return out
-
-
-def check_pid_design(profile, result: DesignResult, *, ms_max: float | None = None,
-                     delay_samples: int = 1, measurement: str = "average", d: float | None = None) -> None:
-    """picdrive's own checks of a PID law on the eq 1 model (fills ``verification``, fails on error).
-
-    * the sampled closed loop is stable (spectral radius < 1);
-    * eq 6 on the sampled loop <= 1;
-    * the sensitivity peak <= ``ms_max`` (when given);
-    * a nonlinear simulation of the law (saturation, anti-windup) on eq 1:
-      step from rest to ``profile.speed_step_rpm()``, then the profile's
-      load-torque step; the step must settle (2 %) before the load is
-      applied and the speed must be back within 1 % at the end.
-    """
-    law = result.law
-    g = law.rules[0]
-    d = profile.design["perturbation_d"] if d is None else d
-    sp = sampled_plant(motor_tf(profile), law.sample_time_s, delay_samples=delay_samples, measurement=measurement)
-    fig = _sampled_figures(sp, g.kp, g.ki, g.kd, d)
-    v = result.verification
-    v["pid_sampled_spectral_radius"] = {"value": round(fig["spectral_radius_sampled"], 6), "limit": 1.0,
-                                    "ok": fig["stable_sampled"]}
-    if not fig["stable_sampled"]:
-        result.fail(f"the sampled closed loop at {1 / law.sample_time_s:g} Hz (ZOH, {delay_samples} sample delay, "
-                    f"{measurement} speed) is unstable: spectral radius {fig['spectral_radius_sampled']:.4g} >= 1")
-        return
-    v["pid_hinf_constraint_sampled"] = {"value": round(fig["hinf_constraint_sampled"], 6), "limit": 1.0,
-                                    "ok": fig["hinf_constraint_sampled"] <= 1.0}
-    if fig["hinf_constraint_sampled"] > 1.0:
-        result.fail(f"robust constraint ||P C xi/(1+PC)||_inf = {fig['hinf_constraint_sampled']:.4g} > 1 (eq 6, d = {d:g})")
-    if ms_max is not None:
-        ok = fig["sensitivity_peak_sampled"] <= ms_max * (1 + 1e-9)
-        v["pid_sensitivity_peak"] = {"value": round(fig["sensitivity_peak_sampled"], 4), "limit": ms_max, "ok": ok}
-        if not ok:
-            result.fail(f"sensitivity peak {fig['sensitivity_peak_sampled']:.4g} exceeds {ms_max:g}")
-    else:
-        v["pid_sensitivity_peak"] = {"value": round(fig["sensitivity_peak_sampled"], 4)}
-    # nonlinear simulation
-    from ..analysis.metrics import step_metrics
-    A, _, _ = sampled_loop(sp, g.kp, g.ki, g.kd)
-    rho = max(fig["spectral_radius_sampled"], 1e-9)
-    tau = law.sample_time_s / max(-math.log(rho), 1e-9)
-    m = profile.motor
-    tau_m = m.inertia_kg_m2 * m.r_line_ohm / (m.kt_n_m_per_a * m.kb_v_s_per_rad)
-    phase = min(max(0.1, 12 * tau, 12 * tau_m), 20.0)
-    ref = profile.speed_step_rpm() * RPM
-    sim = simulate_sampled(profile, law, t_end_s=2 * phase, ref_rad_s=ref, load_n_m=profile.control.load_torque_n_m,
-                           t_load_s=phase, delay_samples=delay_samples, measurement=measurement)
-    t, w = sim["t_s"], sim["speed_rad_s"]
-    first = t < phase
-    sm = step_metrics(t[first], w[first], ref)
-    end_err = abs(ref - float(np.mean(w[-max(3, len(w) // 50):]))) / ref * 100
-    sat = float(np.mean(np.abs(sim["u_v"][first]) >= law.u_max_v * (1 - 1e-9)))
-    v["pid_tf_step"] = {"value": {"step_rpm": round(ref / RPM, 2), "rise_ms": round(sm.rise_time_s * 1e3, 3),
-                                     "settling_ms": round(sm.settling_time_s * 1e3, 3) if math.isfinite(sm.settling_time_s) else "inf",
-                                     "overshoot_pct": round(sm.overshoot_pct, 3),
-                                     "saturated_fraction": round(sat, 3)},
-                           "limit": f"settles (2 %) within {phase * 1e3:.0f} ms",
-                           "ok": math.isfinite(sm.settling_time_s)}
-    if not math.isfinite(sm.settling_time_s):
-        result.fail(f"the simulated step to {ref / RPM:.0f} rpm (saturating law on eq 1) does not settle "
-                    f"within {phase * 1e3:.0f} ms")
-    v["pid_tf_load_step"] = {"value": {"load_n_m": profile.control.load_torque_n_m,
-                                          "final_error_pct": round(end_err, 4),
-                                          "min_speed_rpm": round(float(np.min(w[~first])) / RPM, 2)},
-                                "limit": "final error <= 1 %", "ok": end_err <= 1.0}
-    if end_err > 1.0:
-        result.fail(f"after the {profile.control.load_torque_n_m:g} N m load step the speed is {end_err:.3g} % "
-                    "off the reference at the end of the simulation")
-
-
-def run_verify(profile, result: DesignResult) -> DesignResult:
-    """picdrive.design.verify.verify_design, when it is part of this checkout."""
-    try:
-        from .verify import verify_design
-    except ModuleNotFoundError as e:
-        if e.name != "picdrive.design.verify":
-            raise
-        result.verification["verify_design"] = {"value": "not available in this checkout"}
-        return result
+def run_verify(profile, result: DesignResult, drive) -> DesignResult:
+    """:func:`picdrive.design.verify.verify_design` against ``drive``, timed in ``timings_s``."""
     t0 = time.perf_counter()
-    out = verify_design(profile, result)
-    result = out if isinstance(out, DesignResult) else result
+    verify_design(profile, result, drive=drive)
     result.timings_s["verify_design"] = time.perf_counter() - t0
     return result
 
 
-def design(profile, *, progress: bool = True, optimizer: str = "ga", seed: int | None = None,
+def design(profile, *, drive=None, progress: bool = True, optimizer: str = "ga", seed: int | None = None,
            variant: str = "drive", **options) -> DesignResult:
     """Mixed H2/H-inf PID design of a profile; the result comes back verified (or failed).
 
@@ -478,8 +374,8 @@ def design(profile, *, progress: bool = True, optimizer: str = "ga", seed: int |
         "volts_per_count_if_position_difference": (kp + kd * profile.control.speed_loop_hz) * speed_quantum_rad_s(profile),
         "optimizer": opt_info,
     }
-    cert.update(_continuous_figures(pb.plant, kp, ki, kd, pb.d))
-    cert.update(_sampled_figures(pb.sp, kp, ki, kd, pb.d))
+    cert.update(pid_figures_continuous(pb.plant, kp, ki, kd, pb.d))
+    cert.update(pid_figures_sampled(pb.sp, kp, ki, kd, pb.d))
     cert["hinf_constraint"] = cert.get("hinf_constraint_continuous" if variant == "paper" else "hinf_constraint_sampled",
                                        math.inf)
     res = DesignResult(method="mixed-pid", variant=variant, status="verified", profile_name=profile.name,
@@ -490,10 +386,10 @@ def design(profile, *, progress: bool = True, optimizer: str = "ga", seed: int |
         res.fail(f"the {optimizer} found no gains in the box {pb.lo.tolist()}..{pb.hi.tolist()} that meet the "
                  "constraints (stability, eq 6" + (f", ||S||_inf <= {pb.ms_max:g})" if variant == "drive" else ")"))
     t2 = time.perf_counter()
-    check_pid_design(profile, res, ms_max=pb.ms_max if variant == "drive" else None,
+    pid_model_checks(profile, res, ms_max=pb.ms_max if variant == "drive" else None,
                      delay_samples=used["delay_samples"], measurement=used["measurement"], d=pb.d)
     res.timings_s["checks"] = time.perf_counter() - t2
-    return run_verify(profile, res)
+    return run_verify(profile, res, drive)
 
 
 def _run_de(pb: Problem, seed: int, popsize: int, maxiter: int):

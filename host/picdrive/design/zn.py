@@ -51,7 +51,9 @@ import numpy as np
 from scipy.optimize import brentq
 
 from ..errors import PicdriveError
-from .mixed_pid import _continuous_figures, _sampled_figures, check_pid_design, pid_law, run_verify, term_limits
+from ..analysis.h2hinf import pid_figures_continuous, pid_figures_sampled
+from .mixed_pid import pid_law, run_verify, term_limits
+from .verify import pid_model_checks
 from ..result import DesignResult
 from ..models.tfmodel import TF, SampledPlant, motor_tf, sampled_plant
 
@@ -184,7 +186,7 @@ def paper2016_unit_study(profile="assawinchaichote2016", *, t_end_s: float = 5.0
 AUTO_ORDER = ("ultimate", "some-overshoot", "no-overshoot")
 
 
-def design(profile, *, progress: bool = True, preset: str | None = None, rule: str = "auto",
+def design(profile, *, drive=None, progress: bool = True, preset: str | None = None, rule: str = "auto",
            delay_samples: int = 1, measurement: str = "average", **options) -> DesignResult:
     """Ziegler-Nichols PID (or the ``paper2016`` preset) for a profile, verified.
 
@@ -200,7 +202,7 @@ def design(profile, *, progress: bool = True, preset: str | None = None, rule: s
     if rule == "auto" and preset is None and not options:
         tries, res = [], None
         for row in AUTO_ORDER:
-            res = design(profile, progress=progress, rule=row, delay_samples=delay_samples,
+            res = design(profile, drive=drive, progress=progress, rule=row, delay_samples=delay_samples,
                          measurement=measurement)
             tries.append({"rule": row, "status": res.status, "reasons": list(res.reasons)})
             if res.ok:
@@ -237,8 +239,8 @@ def design(profile, *, progress: bool = True, preset: str | None = None, rule: s
         cert.update(rule=rule, **fig)
     cert["gains"] = {"kp_v_per_rad_s": kp, "ki_v_per_rad": ki, "kd_v_s2_per_rad": kd}
     d = profile.design["perturbation_d"]
-    cert.update(_continuous_figures(plant, kp, ki, kd, d))
-    cert.update(_sampled_figures(sp, kp, ki, kd, d))
+    cert.update(pid_figures_continuous(plant, kp, ki, kd, d))
+    cert.update(pid_figures_sampled(sp, kp, ki, kd, d))
     law = pid_law(profile, kp, ki, kd, notes=f"Ziegler-Nichols ({variant}); derivative on measurement, b = 1")
     res = DesignResult(method="zn", variant=variant, status="verified", profile_name=profile.name,
                        profile_sha256=profile.sha256, profile_path=str(profile.path) if profile.path else None,
@@ -246,6 +248,6 @@ def design(profile, *, progress: bool = True, preset: str | None = None, rule: s
                                          "measurement": measurement},
                        certificate=cert, timings_s={"design": time.perf_counter() - t0})
     t1 = time.perf_counter()
-    check_pid_design(profile, res, ms_max=None, delay_samples=delay_samples, measurement=measurement, d=d)
+    pid_model_checks(profile, res, ms_max=None, delay_samples=delay_samples, measurement=measurement, d=d)
     res.timings_s["checks"] = time.perf_counter() - t1
-    return run_verify(profile, res)
+    return run_verify(profile, res, drive)

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .. import __version__
+from ..board import FCY_HZ, FOSC_HZ
 from ..errors import PicdriveError
 
 __all__ = ["CodegenError", "Firmware", "generate", "write_firmware", "build_check", "host_build",
@@ -47,7 +48,6 @@ SDCC_ONLY_SOURCES = ("main_sdcc.c",)
 TEMPLATES = ("drive_params.h", "drive_core.h", "drive_core.c", "drive.h", "drive.c", "fw_port.h",
              "main_xc8.c", "config_xc8.c", "main_sdcc.c")
 HOST_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-Wconversion")
-FOSC_HZ = 40_000_000
 #: the overspeed trip, x control.speed_max_rpm (the profile has no field for it)
 OVERSPEED_FACTOR = 1.2
 CAPTURE_BYTES = 128
@@ -172,8 +172,8 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
     per, dt = pwm.period, pwm.dead
     S = []
     S.append({"title": "clock", "defines": [
-        _d("FW_FOSC_HZ", "40000000UL", "10 MHz crystal, HSPLL (x4)"),
-        _d("FW_FCY_HZ", "10000000UL", "instruction clock Fosc / 4"),
+        _d("FW_FOSC_HZ", f"{FOSC_HZ}UL", "10 MHz crystal, HSPLL (x4)"),
+        _d("FW_FCY_HZ", f"{FCY_HZ}UL", "instruction clock Fosc / 4"),
         _d("FW_TCY_PER_MS", "10000u", "Tcy per millisecond"),
     ]})
     ps_code = {1: 0, 4: 1, 16: 2, 64: 3}[per.prescale]
@@ -230,7 +230,7 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
         _d("FW_CAP1CON", "0x40u", "CAP1REN: Timer5 restarts at each velocity event (every count)"),
         _d("FW_T5CON", _hex8(0x40 | ps5_code << 3 | 0x01), f"TMR5ON, Tcy, prescaler 1:{plan.ps5}, continuous, "
            "special-event reset off"),
-        _d("FW_HALL_AGE_MAX", f"{max(2, min(255, math.floor(65536 * plan.ps5 / 1e7 * plan.loop_hz) - 1))}u",
+        _d("FW_HALL_AGE_MAX", f"{max(2, min(255, math.floor(65536 * plan.ps5 / FCY_HZ * plan.loop_hz) - 1))}u",
            "hall speed: samples after the last edge before Timer5 may have wrapped (speed reads 0)"),
     ]})
     pre_code = {1: 0, 4: 1, 16: 2}[plan.t2_pre]
@@ -374,7 +374,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     bus = bus_sense(profile)
     options = {"hall_input": hall_input, "fault_pin": fault_pin}
     build_id, digest = _inputs_hash(profile, design_bytes, options)
-    profile_hash = int(profile.sha256[:8], 16) if profile.sha256 else 0
+    profile_hash = profile.hash32
     name = name or profile.name
 
     try:

@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from ..board import FCY_HZ
 from ..errors import PicdriveError
 
 __all__ = ["FixedPointError", "Coef", "FixedPointPlan", "plan_fixed_point", "ParamSpec",
@@ -49,7 +50,6 @@ __all__ = ["FixedPointError", "Coef", "FixedPointPlan", "plan_fixed_point", "Par
 
 INT16_MIN, INT16_MAX = -32768, 32767
 INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
-FCY_HZ = 10_000_000
 ADC_COUNTS = 1024          # 10-bit converter, code = Vin / Vref * 1024
 ADC_VREF_V = 5.0
 MU_ONE = 4096              # Q12 membership

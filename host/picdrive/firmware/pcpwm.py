@@ -17,28 +17,21 @@ Chip facts used (PIC18F2331/2431/4331/4431 data sheet, DS39616D, section 18):
   pair 0 = phase A, pair 1 = B, pair 2 = C (docs/firmware.md explains why
   not complementary mode).
 
-Hall convention (the same as the twin's plant): electrical angle ``th``;
-phase A back-EMF rises through zero at ``th = 0``; B and C lag by 120 and
-240 degrees.  Hall k (k = 0, 1, 2 for A, B, C) reads 1 while ``(th -
-hall_offset_deg - k x hall_spacing_deg) mod 360`` is in [0, 180).  The hall
-code is ``(C << 2) | (B << 1) | A``.
+Hall convention and the choice of drive state per hall code: :mod:`picdrive.commutation`.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
-
+from ..board import FCY_HZ, FOSC_HZ
+from ..commutation import PHASES, hall_table
 from ..errors import PicdriveError
 
 __all__ = ["PwmError", "FOSC_HZ", "FCY_HZ", "PwmPeriod", "DeadTime", "CommutationTable", "PwmPlan",
            "pwm_period", "dead_time", "duty_limit", "commutation_table", "drive_state_registers",
            "plan_pwm", "PHASES"]
 
-FOSC_HZ = 40_000_000.0
-FCY_HZ = FOSC_HZ / 4.0
-PHASES = "ABC"
 _PTCKPS = {1: 0b00, 4: 0b01, 16: 0b10, 64: 0b11}
 _DTPS_TOSC = {0b00: 2, 0b01: 4, 0b10: 8, 0b11: 16}
 
@@ -138,35 +131,11 @@ def duty_limit(period: PwmPeriod, dt: DeadTime, bootstrap_refresh_ns: float,
 
 
 # ---------------------------------------------------------------------------
-# Commutation
+# Commutation: the hall table (picdrive.commutation) with the override registers
 # ---------------------------------------------------------------------------
-def emf_unit(shape: str, th: np.ndarray) -> np.ndarray:
-    """Per-unit back-EMF of phase A at electrical angle th (rad): rising zero at 0; the
-    trapezoid is flat over [30, 150] deg (the twin's convention too)."""
-    if shape == "sinusoidal":
-        return np.sin(th)
-    t = np.mod(th + math.pi / 6, 2 * math.pi)
-    p3 = math.pi / 3
-    return np.select([t < p3, t < math.pi, t < math.pi + p3],
-                     [(t - math.pi / 6) / (math.pi / 6), 1.0, 1.0 - (t - math.pi) / (math.pi / 6)], -1.0)
-
-
-def hall_code_at(theta_e_deg, hall_spacing_deg: int, hall_offset_deg: float):
-    th = np.asarray(theta_e_deg, dtype=float)
-    code = np.zeros(th.shape, dtype=int)
-    for k in range(3):
-        x = np.mod(th - hall_offset_deg - k * hall_spacing_deg, 360.0)
-        code |= (x < 180.0).astype(int) << k
-    return code
-
-
 def drive_state_registers(source: int, sink: int) -> tuple[int, int]:
     """(OVDCOND, OVDCONS) for high side of ``source`` modulated, low side of ``sink`` on."""
     return 1 << (2 * source + 1), 1 << (2 * sink)
-
-
-#: the six drive states as (source, sink) phase indices
-DRIVE_STATES = [(s, k) for s in range(3) for k in range(3) if s != k]
 
 
 @dataclass(frozen=True)
@@ -194,55 +163,13 @@ class CommutationTable:
 
 def commutation_table(hall_spacing_deg: int, hall_offset_deg: float,
                       back_emf_shape: str = "trapezoidal") -> CommutationTable:
-    """Six-step table from the hall placement.
-
-    For each hall code, the drive state (source phase high side, sink phase
-    low side) with the largest mean torque over the electrical arc where the
-    code is seen (forward), or the most negative (reverse).  A tie (the hall
-    edges fall exactly between two commutation points, e.g. ``hall_offset_deg
-    = 0``) is broken towards phase advance in the direction of rotation.
-    Codes that never occur are faults: 000 and 111 for 120-degree halls, 010
-    and 101 for 60-degree halls (a 60-degree set is a 120-degree set with hall
-    B inverted and B, C swapped; the arc method maps it directly).
-    """
+    """The six-step table of :func:`picdrive.commutation.hall_table` (the drive state with the
+    largest mean torque over each hall code's arc, both directions) with the OVDCOND/OVDCONS
+    values of each state (:func:`drive_state_registers`)."""
     if hall_spacing_deg not in (60, 120):
         raise PwmError(f"sensors.hall_spacing_deg = {hall_spacing_deg!r}: expected 60 or 120")
-    n = 7200
-    th_deg = (np.arange(n) + 0.5) * (360.0 / n)
-    codes = hall_code_at(th_deg, hall_spacing_deg, hall_offset_deg)
-    th = np.radians(th_deg)
-    f = [emf_unit(back_emf_shape, th - k * 2 * math.pi / 3) for k in range(3)]
-    torque = {st: f[st[0]] - f[st[1]] for st in DRIVE_STATES}
-    # centre of each state's own best window, for the tie-break
-    fwd, rev = [None] * 8, [None] * 8
-    valid = 0
-    for code in range(8):
-        sel = codes == code
-        if not sel.any():
-            continue
-        valid |= 1 << code
-        ang = th[sel]
-        # circular mean angle of the arc
-        centre = math.atan2(np.sin(ang).mean(), np.cos(ang).mean())
-        for direction, out in ((1, fwd), (-1, rev)):
-            best, best_key = None, None
-            for st in DRIVE_STATES:
-                mean_t = direction * float(torque[st][sel].mean())
-                # where is this state at its best (largest direction*torque)?
-                peak = th[np.argmax(direction * torque[st])]
-                lead = math.remainder(peak - centre, 2 * math.pi) * direction  # > 0: advanced
-                key = (round(mean_t, 9), lead)
-                if best_key is None or key > best_key:
-                    best, best_key = st, key
-            out[code] = best
-    # forward sequence of codes
-    order, seen = [], set()
-    for c in codes:
-        if not order or order[-1] != c:
-            if int(c) in seen:
-                break
-            order.append(int(c))
-            seen.add(int(c))
+    h = hall_table(hall_spacing_deg, hall_offset_deg, back_emf_shape)
+    fwd, rev, valid, order = h.forward, h.reverse, h.valid_mask, h.sequence
     ovd = tuple(tuple(drive_state_registers(*st)[0] if st else 0 for st in tab) for tab in (fwd, rev))
     ovs = tuple(tuple(drive_state_registers(*st)[1] if st else 0 for st in tab) for tab in (fwd, rev))
     return CommutationTable(hall_spacing_deg=hall_spacing_deg, hall_offset_deg=float(hall_offset_deg),

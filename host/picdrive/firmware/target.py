@@ -36,13 +36,13 @@ import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..board import FCY_HZ
 from ..errors import PicdriveError
 
 __all__ = ["TargetError", "Toolchain", "Budgets", "BUDGETS", "FCY_HZ", "RAM_BYTES", "FLASH_BYTES",
            "TARGET_SOURCES", "toolchain", "build_hex", "Build", "Function", "call_graph",
            "budget_lines", "over_budget", "build_measured", "enlarged_lkr", "shared_static_helpers", "unsaved_table_pointer"]
 
-FCY_HZ = 10_000_000          # instruction cycles per second (40 MHz HSPLL / 4)
 FLASH_BYTES = 16_384         # PIC18F4431 program memory
 RAM_BYTES = 768              # PIC18F4431 data memory (0x000-0x2FF)
 HW_STACK_LEVELS = 31         # PIC18 return-address stack

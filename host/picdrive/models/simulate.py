@@ -222,14 +222,14 @@ def commutated_emf(profile) -> tuple[np.ndarray, np.ndarray]:
 
     ``(k_fwd, k_rev)``, each ``EMF_TABLE_N`` values of ``lambda_m P (f_source - f_sink)``
     (V per mechanical rad/s) over one electrical turn: the forward and the reverse
-    table of :func:`picdrive.firmware.pcpwm.commutation_table` from the profile's hall
+    table of :func:`picdrive.commutation.hall_table` from the profile's hall
     placement.  Its mean over the aligned sector is the DC equivalent ``Kb``; with
     ``hall_offset_deg = 0`` the table commutates 30 degrees early and the pair's
     EMF (and torque per ampere) ripples within every sector.
     """
-    from ..firmware.pcpwm import commutation_table, emf_unit, hall_code_at
+    from ..commutation import emf_unit, hall_code_at, hall_table
     m, se = profile.motor, profile.sensors
-    tab = commutation_table(se.hall_spacing_deg, se.hall_offset_deg, m.back_emf_shape)
+    tab = hall_table(se.hall_spacing_deg, se.hall_offset_deg, m.back_emf_shape)
     th = (np.arange(EMF_TABLE_N) + 0.5) * (2 * math.pi / EMF_TABLE_N)
     codes = hall_code_at(np.degrees(th), se.hall_spacing_deg, se.hall_offset_deg)
     f = [emf_unit(m.back_emf_shape, th - k * 2 * math.pi / 3) for k in range(3)]
@@ -313,9 +313,9 @@ class HallSpeedMeter:
 def hall_speed_meter(profile, plan) -> HallSpeedMeter:
     """The hall speed measurement of the firmware a fixed-point ``plan``
     (:func:`picdrive.firmware.fixedpoint.plan_fixed_point`) builds for ``profile``."""
-    from ..firmware.fixedpoint import FCY_HZ
-    # FW_HALL_AGE_MAX as codegen renders it (tests/test_verify_hall.py checks the two agree)
-    age_max = max(2, min(255, math.floor(65536 * plan.ps5 / 1e7 * plan.loop_hz) - 1))
+    from ..board import FCY_HZ
+    # FW_HALL_AGE_MAX as codegen renders it (tests/test_verify_hardware.py checks the two agree)
+    age_max = max(2, min(255, math.floor(65536 * plan.ps5 / FCY_HZ * plan.loop_hz) - 1))
     return HallSpeedMeter(edges_per_rev=6 * profile.motor.pole_pairs, tick_s=plan.ps5 / FCY_HZ, k_raw=plan.k_speed,
                           qs=plan.qs, age_max=age_max, offset_deg=profile.sensors.hall_offset_deg,
                           pole_pairs=profile.motor.pole_pairs)
@@ -495,11 +495,11 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
         w_lsb = 2.0 ** -hall.qs
     cp = three_phase
     if cp is not None:
-        from ..firmware.pcpwm import commutation_table
+        from ..commutation import hall_table
         if x0[0] != 0.0 or x0[1] != 0.0 or cp.state.w_rad_s != 0.0:
             raise ValueError("a three-phase run starts at rest (x0 = (0, 0))")
-        ctab = commutation_table(profile.sensors.hall_spacing_deg, profile.sensors.hall_offset_deg,
-                                 profile.motor.back_emf_shape)
+        ctab = hall_table(profile.sensors.hall_spacing_deg, profile.sensors.hall_offset_deg,
+                          profile.motor.back_emf_shape)
         legs_off = [(0.0, 0.0)] * 3
     for k in range(n):
         t = k * ts

@@ -33,7 +33,7 @@ from ..control_law import memberships
 from .dqmodel import DqParams, dq_params, equilibrium, jacobian, max_speed_rad_s
 
 __all__ = ["TSModel", "rule_centres", "paper_model", "tracking_model", "six_step_model", "operating_region",
-           "emf_range"]
+           "emf_range", "model_for", "paper_as_printed_model", "PAPER_TABLE1", "PAPER_PREMISE_RAD_S"]
 
 
 @dataclass(frozen=True)
@@ -311,3 +311,58 @@ def six_step_model(profile, *, rules: int | None = None, premise_rad_s=None,
                          "integral_weight_rad_s": wi, "inputs": "six-step", "emf_range_v_s": (k_lo, k_hi),
                          "state_scale": np.array([max(w_top, 1.0), i_s, max(w_top, 1.0) / wi]),
                          "input_scale": np.array([profile.inverter.bus_voltage_v])})
+
+
+#: the 2016 paper's Table 1 (its section 6 example), as printed: pole pairs, L (H), R (ohm),
+#: J (kg m^2), B (N m s), lambda_m (V s)
+PAPER_TABLE1 = {"P": 2, "L": 0.0018, "R": 0.5, "J": 0.003, "B": 0.0008, "lambda_m": 0.311}
+#: its premise bounds N1, N2 as printed (inserted into A_1, A_2)
+PAPER_PREMISE_RAD_S = (0.0, 3000.0)
+
+
+def paper_as_printed_model(N=None):
+    """Section 6's TS model exactly as printed (numbers of Table 1, x1 electrical rad/s).
+
+    ``A_i`` with ``-B/J, 3/2 P/J lambda_m`` in row 1, ``N_i`` in the coupling
+    terms; ``B_1 = B_2``, ``Bw`` with ``-P/J``, ``C = diag(1, 0, 0)`` (as the
+    1 x 3 output ``x1``), ``H1 = diag(0, -0.1 R/L, -0.1 R/L)``.
+    """
+    t = PAPER_TABLE1
+    P_, L, R, J, B, lam = t["P"], t["L"], t["R"], t["J"], t["B"], t["lambda_m"]
+    N = PAPER_PREMISE_RAD_S if N is None else N
+
+    def A(n):
+        return np.array([[-B / J, 1.5 * P_ / J * lam, 0.0],
+                         [-lam / L, -R / L, -L / L * n],
+                         [0.0, L / L * n, -R / L]])
+    Bm = np.array([[0.0, 0.0], [1 / L, 0.0], [0.0, 1 / L]])
+    Bw = np.array([[0.0, 0.0, -P_ / J], [0.0, 0.1, 0.0], [0.1, 0.0, 0.0]])
+    H1 = np.diag([0.0, -0.1 * R / L, -0.1 * R / L])
+    return TSModel(A=np.stack([A(N[0]), A(N[1])]), B=np.stack([Bm, Bm]), Bw=Bw,
+                   C=np.stack([np.array([[1.0, 0, 0]])] * 2), D=np.zeros((2, 1, 2)), H1=np.stack([H1, H1]),
+                   H2=np.zeros((2, 3, 2)), H3=np.zeros((2, 1, 3)), H4=np.zeros((2, 1, 2)), rho=1.0,
+                   premise_rad_s=(float(N[0]), float(N[1])),
+                   state_names=("omega_e", "i_q", "i_d"), input_names=("v_q", "v_d"),
+                   disturbance_names=("w1", "w2", "w3"), output_names=("omega_e",),
+                   info={"state_scale": np.array([max(N[1], 1.0), 10.0, 10.0]),
+                         "input_scale": np.array([48.0, 48.0])})
+
+
+def model_for(profile, model: str, options: dict | None = None):
+    """Rebuild the TS model a certificate refers to (``paper``, ``tracking-dq``, ``tracking-six-step``,
+    ``six-step``)."""
+    o = dict(options or {})
+    kw = {k: o[k] for k in ("rules", "resistance_uncertainty", "rho") if o.get(k) is not None}
+    if model == "paper":
+        return paper_model(profile, **kw)
+    if model == "paper-as-printed":
+        return paper_as_printed_model()
+    if o.get("integral_weight_rad_s") is not None:
+        kw["integral_weight_rad_s"] = o["integral_weight_rad_s"]
+    if model in ("tracking-dq", "tracking-six-step"):
+        return tracking_model(profile, inputs=model.split("-", 1)[1], **kw)
+    if model == "six-step":
+        if o.get("emf_polytope") is not None:
+            kw["emf_polytope"] = bool(o["emf_polytope"])
+        return six_step_model(profile, **kw)
+    raise ValueError(f"unknown fuzzy model {model!r}")

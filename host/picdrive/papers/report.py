@@ -6,7 +6,6 @@ all (built in a temporary folder, then renamed into place), following the output
 """
 from __future__ import annotations
 
-import importlib
 import shutil
 import warnings
 from pathlib import Path
@@ -25,9 +24,9 @@ def compare_designs(profile, outdir: Path, *, progress: bool = True) -> str:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from ..design.dispatch import run_design
     from ..analysis.metrics import step_metrics
-    from ..design.verify import run_sim, sim_plan
+    from ..analysis.steptest import run_sim, sim_plan
+    from ..gate import run_design, speed_measurement, three_phase_plant
     plan = sim_plan(profile)
     rows, sims = [], {}
     it = METHODS
@@ -37,13 +36,13 @@ def compare_designs(profile, outdir: Path, *, progress: bool = True) -> str:
     for m in it:
         try:
             r = run_design(profile, m, progress=False)
-        except (ModuleNotFoundError, PicdriveError) as e:
+        except PicdriveError as e:
             rows.append(f"| {m} | not available: {e} | | | | | |")
             continue
         if r.law is None:
             rows.append(f"| {m} | no law ({r.status}) | | | | | |")
             continue
-        s = run_sim(profile, r.law, plan)
+        s = run_sim(profile, r.law, plan, measurement=speed_measurement(profile, r.law), three_phase=three_phase_plant)
         sims[m] = s
         a = s.t < plan["t_load_s"]
         if not np.all(np.isfinite(s.omega)):
@@ -66,7 +65,7 @@ def compare_designs(profile, outdir: Path, *, progress: bool = True) -> str:
     head = [f"### {profile.name}", "",
             f"Step from rest to {plan['target_rpm']:.0f} rpm, the 2016 load-torque disturbance w3, load step of "
             f"{plan['load_n_m']:g} N m at {plan['t_load_s']:g} s; the verification's six-step drive model "
-            "(DC equivalent with the commutated pair's EMF, the bridge's conduction rule, the firmware's "
+            "(the motor's three-phase winding driven through the hall table, the bridge's conduction rule, the firmware's "
             "measurement and current window), sampled law.", "",
             "| design | rise [ms] | settling [ms] | overshoot [%] | steady error [rpm] | peak u [V] | peak i_line [A] |",
             "|---|---|---|---|---|---|---|"]
@@ -77,19 +76,14 @@ def write_report(outdir="out/report", *, profiles=("assawinchaichote2016", "duy2
                  progress: bool = True) -> Path:
     """Build the whole report into ``outdir`` (replaced atomically)."""
     from .. import outputs
-    from . import repro2016
+    from . import repro2008, repro2016
     from ..profile import load_profile
     outdir = outputs.dir_output(outdir, what="report folder")
     tmp = outputs.new_temp_dir(outdir, what="report folder")
     try:
         parts = ["# picdrive reproduction report", ""]
         parts.append(repro2016.section(tmp, quick=quick))
-        try:
-            repro2008 = importlib.import_module("picdrive.papers.repro2008")
-            parts.append(repro2008.section(tmp))
-        except ModuleNotFoundError:
-            parts.append("## The 2008 paper (Duy et al.)\n\nThis section is missing: picdrive.papers.repro2008 is not "
-                         "in this checkout.\n")
+        parts.append(repro2008.section(tmp))
         parts.append("## The three designs compared\n")
         for name in profiles:
             with warnings.catch_warnings():

@@ -14,11 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..models.tsfuzzy import PAPER_PREMISE_RAD_S, PAPER_TABLE1, paper_as_printed_model
+
 __all__ = ["PRINTED", "CLAIMS", "paper_as_printed_model", "printed_checks", "claims", "section"]
 
 PRINTED = {
-    "table1": {"P": 2, "L": 0.0018, "R": 0.5, "J": 0.003, "B": 0.0008, "lambda_m": 0.311},
-    "gamma": 1.0, "delta": 1.0, "alpha": 2.0, "rho": 1.0, "N": (0.0, 3000.0), "R_uncertainty": 0.1,
+    "table1": PAPER_TABLE1,
+    "gamma": 1.0, "delta": 1.0, "alpha": 2.0, "rho": 1.0, "N": PAPER_PREMISE_RAD_S, "R_uncertainty": 0.1,
     "P_lyap": np.array([[0.2987, 0.0041, 0.0], [0.0041, 1.4933, 0.0], [0.0, 0.0, 1.4933]]),
     "Y1": np.array([[0.2019, 0.0029, -0.0157], [0.0, 0.0190, 0.0054]]),
     "Y2": np.array([[0.0180, 12.2413, 0.0053], [0.2019, 0.0029, 0.8601]]),
@@ -50,38 +52,9 @@ CLAIMS = (
 )
 
 
-def paper_as_printed_model(N=None):
-    """Section 6's TS model exactly as printed (numbers of Table 1, x1 electrical rad/s).
-
-    ``A_i`` with ``-B/J, 3/2 P/J lambda_m`` in row 1, ``N_i`` in the coupling
-    terms; ``B_1 = B_2``, ``Bw`` with ``-P/J``, ``C = diag(1, 0, 0)`` (as the
-    1 x 3 output ``x1``), ``H1 = diag(0, -0.1 R/L, -0.1 R/L)``.
-    """
-    from ..models.tsfuzzy import TSModel
-    t = PRINTED["table1"]
-    P_, L, R, J, B, lam = t["P"], t["L"], t["R"], t["J"], t["B"], t["lambda_m"]
-    N = PRINTED["N"] if N is None else N
-
-    def A(n):
-        return np.array([[-B / J, 1.5 * P_ / J * lam, 0.0],
-                         [-lam / L, -R / L, -L / L * n],
-                         [0.0, L / L * n, -R / L]])
-    Bm = np.array([[0.0, 0.0], [1 / L, 0.0], [0.0, 1 / L]])
-    Bw = np.array([[0.0, 0.0, -P_ / J], [0.0, 0.1, 0.0], [0.1, 0.0, 0.0]])
-    H1 = np.diag([0.0, -0.1 * R / L, -0.1 * R / L])
-    return TSModel(A=np.stack([A(N[0]), A(N[1])]), B=np.stack([Bm, Bm]), Bw=Bw,
-                   C=np.stack([np.array([[1.0, 0, 0]])] * 2), D=np.zeros((2, 1, 2)), H1=np.stack([H1, H1]),
-                   H2=np.zeros((2, 3, 2)), H3=np.zeros((2, 1, 3)), H4=np.zeros((2, 1, 2)), rho=1.0,
-                   premise_rad_s=(float(N[0]), float(N[1])),
-                   state_names=("omega_e", "i_q", "i_d"), input_names=("v_q", "v_d"),
-                   disturbance_names=("w1", "w2", "w3"), output_names=("omega_e",),
-                   info={"state_scale": np.array([max(N[1], 1.0), 10.0, 10.0]),
-                         "input_scale": np.array([48.0, 48.0])})
-
-
 def printed_checks(ts=None) -> dict:
     """What the printed P, Y_j, K_j do in the printed model (or ``ts``)."""
-    from ..design.fuzzy_hinf import lmi_margins
+    from ..analysis.lmi import lmi_margins
     ts = paper_as_printed_model() if ts is None else ts
     P, Y1, Y2, K1, K2 = (PRINTED[k] for k in ("P_lyap", "Y1", "Y2", "K1", "K2"))
     Pi = np.linalg.inv(P)
@@ -133,7 +106,8 @@ def energy_ratio(t, z, w):
 def claims(quick: bool = False) -> dict:
     """Compute every printed claim; returns rows and the data the figures need."""
     from ..control_law import Rule, ScheduledLaw
-    from ..design.fuzzy_hinf import certified_gain, design, minimise_gamma, solve_theorem1
+    from ..analysis.lmi import certified_gain
+    from ..design.fuzzy_hinf import design, minimise_gamma, solve_theorem1
     from ..analysis.metrics import step_metrics
     from ..models.simulate import disturbances_2016, simulate_law, step_load
     from ..models.tsfuzzy import paper_model
@@ -240,8 +214,9 @@ def _row5_literal(ts):
     against the true closed loop's H-inf norm from w to z.
     """
     import dataclasses
-    from ..design.fuzzy_hinf import certified_gain, minimise_gamma
-    from ..design.verify import hinf_norm
+    from ..analysis.h2hinf import hinf_norm
+    from ..analysis.lmi import certified_gain
+    from ..design.fuzzy_hinf import minimise_gamma
     claim = "LMI (15) row 5 read as printed (Bw, not Bw^T)"
     if ts.Bw.shape[0] != ts.Bw.shape[1]:
         return (claim, "Bw", f"not solvable: Bw is {ts.Bw.shape[0]} x {ts.Bw.shape[1]}, the printed block does not fit",
