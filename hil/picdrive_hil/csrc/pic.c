@@ -160,16 +160,22 @@ static void t5_config(void)
 
 static void timer_event(timer_t_ *t, int which)
 {
-    /* wrap/match at t->next == g.now */
-    t->t_ref = g.now;
+    /* wrap/match at t->next (== g.now in the SIL twin; the processor twin reaches it at the end
+       of the instruction that crosses it, so the period is anchored on the exact time) */
+    int64_t at = t->next;
+    t->t_ref = at;
     t->cnt_ref = 0;
-    t->next = g.now + (int64_t)t->modulus * t->tick_ps;
+    t->next = at + (int64_t)t->modulus * t->tick_ps;
     switch (which) {
     case 0: hw_setbit(R_INTCON, B_INTCON_TMR0IF); break;
     case 1: hw_setbit(R_PIR1, B_PIR1_TMR1IF); break;
     case 2: {
         uint32_t post = ((picsim_sfr[R_T2CON] >> B_T2CON_T2OUTPS0) & 15) + 1;
-        if (++t->post >= post) { t->post = 0; hw_setbit(R_PIR1, B_PIR1_TMR2IF); }
+        if (++t->post >= post) {
+            t->post = 0;
+            PIL_TIMER2_FIRED(sfr_bit(R_PIR1, B_PIR1_TMR2IF));
+            hw_setbit(R_PIR1, B_PIR1_TMR2IF);
+        }
         break;
     }
     case 5: hw_setbit(R_PIR3, B_PIR3_TMR5IF); break;
@@ -214,7 +220,7 @@ static void pwm_load_buffers(void)
         }
 }
 
-static void pwm_start_period(void)
+static void pwm_start_period(int64_t at)
 {
     pwm_load_buffers();
     if ((picsim_sfr[R_PWMCON1] >> B_PWMCON1_OSYNC) & 1 &&
@@ -223,7 +229,7 @@ static void pwm_start_period(void)
         g.ovs_act = picsim_sfr[R_OVDCONS];
         g.legs_dirty = 1;
     }
-    g.pwm_start = g.now;
+    g.pwm_start = at;
     int64_t per;
     if (g.per_key_valid && g.per_key_ptper == g.ptper_act && g.per_key_ptcon0 == picsim_sfr[R_PTCON0]) {
         per = g.per_key_ps;                  /* same PTPER and PTCON0 as the last period */
@@ -237,7 +243,7 @@ static void pwm_start_period(void)
     }
     if (per != g.pwm_period) g.legs_dirty = 1;
     g.pwm_period = per;
-    g.pwm_next = g.now + g.pwm_period;
+    g.pwm_next = at + g.pwm_period;
     if (g.flt_cbc && !g.flta_asserted) {
         g.flt_cbc = 0;
         g.legs_dirty = 1;
@@ -253,7 +259,7 @@ static void pwm_time_base(void)
     if (on && !g.pwm_on) {
         g.pwm_on = 1;
         g.pwm_post = 0;
-        pwm_start_period();
+        pwm_start_period(g.now);
     } else if (!on && g.pwm_on) {
         g.pwm_on = 0;
         g.pwm_next = NEVER;
@@ -272,7 +278,7 @@ static void pwm_boundary(void)
         g.pwm_next = NEVER;
         return;
     }
-    pwm_start_period();
+    pwm_start_period(g.pwm_next);   /* the exact boundary (== g.now in the SIL twin) */
 }
 
 /* PWMEN<2:0> -> outputs driven by the module (DS39616D register 18-3) */

@@ -149,6 +149,14 @@ typedef struct {
     uint32_t isr_high_calls, isr_low_calls, poll_calls;
 } twin_t;
 
+/* the processor twin counts speed-loop periods its interrupt missed (pil.c) */
+#ifdef TWIN_PIL
+static void pil_timer2_fired(int flag_was_set);
+#define PIL_TIMER2_FIRED(was) pil_timer2_fired(was)
+#else
+#define PIL_TIMER2_FIRED(was) ((void)0)
+#endif
+
 /* one twin per loaded copy of the library; prefixed names keep clear of the firmware's */
 #define g picsim_twin
 extern twin_t g;
