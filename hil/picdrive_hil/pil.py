@@ -31,7 +31,7 @@ class PilStats(C.Structure):
     """ctypes mirror of ``pil_stats_t`` (csrc/twin.h)."""
 
     _fields_ = [(n, C.c_uint64) for n in (
-        "cycles", "insns", "cpu_status", "fault_pc", "fault_word", "pc", "stkptr", "stack_high",
+        "cycles", "insns", "cpu_status", "fault_pc", "fault_word", "insn_pc", "pc", "stkptr", "stack_high",
         "fsr1_lo", "fsr1_hi", "ram_written",
         "speed_n", "speed_min", "speed_max", "speed_sum", "speed_last", "speed_overrun", "speed_lost",
         "high_n", "high_min", "high_max", "high_sum", "low_n", "low_min", "low_max", "low_sum",
@@ -100,12 +100,63 @@ def check_config(img: ihex.HexImage, board, name: str) -> list[str]:
             f"{'resets' if img.stvren else 'does not reset'} the core; the twin stops either way)"]
 
 
-def cpu_stop_message(st: PilStats, hex_name: str) -> str:
-    """The core's stop, naming the address and the instruction (``pic18.Stop``'s words)."""
-    from .pic18 import Stop
-    msg = Stop(int(st.cpu_status), int(st.fault_pc), int(st.fault_word)).message
-    return (f"processor stopped running {hex_name}: {msg}; PWM outputs off (peripherals reset); "
-            "power the twin on again to restart")
+_BRANCH = {0xE0: "BZ", 0xE1: "BNZ", 0xE2: "BC", 0xE3: "BNC", 0xE4: "BOV", 0xE5: "BNOV", 0xE6: "BN", 0xE7: "BNN"}
+
+
+def mnemonic(flash: bytes, addr: int) -> str:
+    """The instruction at ``addr`` in words a reader recognises: control flow by name, anything
+    else by its opcode word(s) (no full disassembler: gpdasm does that)."""
+    def word(a):
+        return flash[a] | (flash[a + 1] << 8) if 0 <= a < len(flash) - 1 else None
+    w, w2 = word(addr), word(addr + 2)
+    if w is None:
+        return f"(no instruction: 0x{addr:06X} is outside the flash)"
+    two = f"0x{w:04X} 0x{w2:04X}" if w2 is not None else f"0x{w:04X}"
+    if (w & 0xFF00) == 0xEF00 and w2 is not None:
+        return f"GOTO 0x{((w & 0xFF) | ((w2 & 0xFFF) << 8)) << 1:06X} ({two})"
+    if (w & 0xFE00) == 0xEC00 and w2 is not None:
+        return f"CALL 0x{((w & 0xFF) | ((w2 & 0xFFF) << 8)) << 1:06X}{', FAST' if w & 0x100 else ''} ({two})"
+    if (w & 0xF000) == 0xD000:
+        n = w & 0x7FF
+        n = n - 0x800 if n & 0x400 else n
+        return f"{'RCALL' if w & 0x800 else 'BRA'} 0x{addr + 2 + 2 * n:06X} (0x{w:04X})"
+    if (w >> 8) in _BRANCH:
+        n = w & 0xFF
+        n = n - 0x100 if n & 0x80 else n
+        return f"{_BRANCH[w >> 8]} 0x{addr + 2 + 2 * n:06X} (0x{w:04X})"
+    named = {0x0012: "RETURN", 0x0013: "RETURN FAST", 0x0010: "RETFIE", 0x0011: "RETFIE FAST",
+             0x0005: "PUSH", 0x0006: "POP", 0x00FF: "RESET", 0x0003: "SLEEP"}
+    if w in named:
+        return f"{named[w]} (0x{w:04X})"
+    if (w & 0xFF00) == 0x0C00:
+        return f"RETLW 0x{w & 0xFF:02X} (0x{w:04X})"
+    if (w & 0xFF00) == 0x6E00 and (w & 0xFF) == 0xF9:
+        return f"MOVWF PCL (0x{w:04X}, a computed jump)"
+    return f"opcode 0x{w:04X}"
+
+
+def cpu_stop_message(st: PilStats, img: ihex.HexImage, hex_name: str) -> str:
+    """The core's stop in one line, naming the address and the instruction."""
+    code, ipc, target = int(st.cpu_status), int(st.insn_pc), int(st.fault_pc)
+    insn = mnemonic(bytes(img.flash), ipc)
+    top = len(img.flash) - 1
+    if code == 16:
+        if ipc == target:
+            what = f"execution ran off the end of the flash at 0x{target:06X} (0x0000-0x{top:04X})"
+        else:
+            what = (f"jump outside the flash: {insn} at 0x{ipc:06X} sent the PC to 0x{target:06X} "
+                    f"(flash 0x0000-0x{top:04X})")
+    elif code == 17:
+        what = (f"illegal or unimplemented opcode 0x{int(st.fault_word):04X} at 0x{ipc:06X} (an extended-set "
+                "or undefined instruction, or data executed as code)")
+    elif code == 3:
+        what = f"return-stack overflow (31st push) by {insn} at 0x{ipc:06X}"
+    elif code == 4:
+        what = f"return-stack underflow (pop of an empty stack) by {insn} at 0x{ipc:06X}"
+    else:
+        what = f"core stop {code} at 0x{ipc:06X} ({insn})"
+    return (f"processor twin stopped running {hex_name}: {what}; PWM outputs off (peripherals reset). "
+            "Fix the firmware (its .map names the function at that address) and power the twin on again")
 
 
 @dataclass(frozen=True)

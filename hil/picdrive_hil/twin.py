@@ -329,7 +329,7 @@ class Twin:
         if err:
             if err & cmodel.TWIN_ERR_CPU and self.processor:
                 from . import pil
-                raise TwinError(pil.cpu_stop_message(self.pil_stats(), str(self.hex_file)))
+                raise TwinError(pil.cpu_stop_message(self.pil_stats(), self._pil_img, str(self.hex_file)))
             msgs = [m for bit, m in cmodel.TWIN_ERRORS.items() if err & bit]
             raise TwinError("twin stopped: " + "; ".join(msgs or [f"error bits 0x{err:x}"]))
 

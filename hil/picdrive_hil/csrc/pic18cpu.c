@@ -735,6 +735,7 @@ L_PCFAULT:
     c->fault_word = 0xFFFF;
     goto out;
 pc_fault_jump:
+    c->insn_pc = ipc;               /* the instruction that jumped */
     c->status = PIC18_FAULT_PC;
     c->fault_pc = pc;               /* the target outside flash */
     c->fault_word = 0xFFFF;

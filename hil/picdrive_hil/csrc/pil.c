@@ -29,6 +29,7 @@ typedef struct {
     int loaded;
     int64_t t0;               /* time of cycle 0 */
     int64_t target;           /* time the present run is heading for */
+    int64_t t_plant;          /* the plant's time (<= g.now) */
     leg_t run_leg[3];         /* inverter state over the present run (the plant step's) */
     uint8_t lines;            /* interrupt request lines driven */
     int dead;                 /* the core stopped on a fault: outputs off until power-on */
@@ -76,6 +77,22 @@ static void pil_update_irq(void)
     }
 }
 
+/* ------------------------------------------------------------ plant */
+
+/* the plant (and the pins and QEI it drives) up to g.now, with the inverter state of the
+   present run: before the program reads an input the plant sets (ports, POSCNT, TMR5 with its
+   capture resets), so that what it reads is the state at that cycle */
+static void pil_plant_to_now(void)
+{
+    if (g.now <= P.t_plant) return;
+    int64_t t_prev = P.t_plant;
+    double h = (double)(g.now - t_prev) / PS_PER_S;
+    double tmid = ((double)t_prev + 0.5 * (double)(g.now - t_prev)) / PS_PER_S;
+    plant_step_cached(&g.pp, &g.ps, P.run_leg, load_at(tmid), h, &g.pcache);
+    P.t_plant = g.now;
+    pic_after_plant_step(t_prev, theta_measured());
+}
+
 /* ------------------------------------------------------------ SFR hooks */
 
 static uint8_t pil_sfr_read(void *ctx, uint16_t addr)
@@ -84,6 +101,16 @@ static uint8_t pil_sfr_read(void *ctx, uint16_t addr)
     uint8_t idx = (uint8_t)addr;
     pil_clock();
     uint32_t c;
+    switch (idx) {
+    case R_PORTA: case R_PORTB: case R_PORTC: case R_PORTD: case R_PORTE:
+    case R_POSCNTL: case R_POSCNTH: case R_TMR5L: case R_VELRL: case R_VELRH:
+        pil_plant_to_now();
+        if (pic_next_event() < P.target) pic18_request_stop(&P.cpu);
+        pil_update_irq();
+        break;
+    default:
+        break;
+    }
     switch (idx) {
     case R_PORTA: return picsim_sfr[idx] = port_value(0);
     case R_PORTB: return picsim_sfr[idx] = port_value(1);
@@ -228,12 +255,13 @@ static void pil_timer2_fired(int flag_was_set)
 
 /* ------------------------------------------------------------ faults */
 
-static void pil_fault(int status)
+static void pil_fault(int st)
 {
     P.dead = 1;
-    P.st.cpu_status = (uint64_t)status;
+    P.st.cpu_status = (uint64_t)st;
     P.st.fault_pc = P.cpu.fault_pc;
     P.st.fault_word = P.cpu.fault_word;
+    P.st.insn_pc = st == PIC18_FAULT_PC || st == PIC18_FAULT_ILLEGAL ? P.cpu.insn_pc : P.cpu.fault_pc;
     g.errors |= TWIN_ERR_CPU;
     /* outputs off: the peripherals go to their reset state (PWM time base and pins off) */
     pic_reset();
@@ -294,6 +322,7 @@ int twin_power_on(void)
     pic_compute_legs();
     pic18_power_on(&P.cpu);
     P.t0 = g.now;
+    P.t_plant = g.now;
     P.dead = 0;
     P.nest_n = 0;
     P.lines = 0;
@@ -347,12 +376,10 @@ int twin_run_until(int64_t t_end)
             P.cpu.cycles = cyc_target;
         }
         pil_clock();
-        if (g.now <= t_prev) continue;               /* stopped at once by a write: nothing elapsed */
-        /* the plant over the same interval, with the inverter state of its start */
-        double h = (double)(g.now - t_prev) / PS_PER_S;
-        double tmid = ((double)t_prev + 0.5 * (double)(g.now - t_prev)) / PS_PER_S;
-        plant_step_cached(&g.pp, &g.ps, P.run_leg, load_at(tmid), h, &g.pcache);
-        pic_after_plant_step(t_prev, theta_measured());
+        (void)t_prev;
+        /* the plant over the same interval (or what a read left of it), with the inverter
+           state of its start */
+        pil_plant_to_now();
         pic_events_due();
         if (g.trace_next <= g.now) {
             trace_record();

@@ -166,7 +166,7 @@ enum {
 typedef struct {
     uint64_t cycles, insns;
     uint64_t cpu_status;           /* PIC18_* of the stop that ended the run (0: running) */
-    uint64_t fault_pc, fault_word;
+    uint64_t fault_pc, fault_word, insn_pc;   /* insn_pc: the instruction that stopped the core */
     uint64_t pc, stkptr, stack_high;   /* return stack: STKPTR and its high-water mark (levels) */
     uint64_t fsr1_lo, fsr1_hi;     /* software stack: lowest address reached through FSR1, top (POSTDEC1) */
     uint64_t ram_written;          /* GPR bytes written since power-on */
