@@ -16,14 +16,13 @@ import ctypes as C
 from dataclasses import dataclass
 from pathlib import Path
 
-from picdrive.errors import PicdriveError
-
 from . import build, ihex
+from .twin import TwinError
 
 TCY_PER_S_40MHZ = 10_000_000
 
 
-class PilError(PicdriveError):
+class PilError(TwinError):
     """The HEX cannot run on the processor twin as configured."""
 
 

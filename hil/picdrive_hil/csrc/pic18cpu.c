@@ -729,6 +729,7 @@ L_ILL:
     goto out;
 L_PCFAULT:
     pc = ipc;
+    c->insn_pc = ipc;               /* execution ran past the end of the flash */
     ins--;
     c->status = PIC18_FAULT_PC;
     c->fault_pc = pc;
