@@ -34,7 +34,10 @@ class PilStats(C.Structure):
         "fsr1_lo", "fsr1_hi", "ram_written",
         "speed_n", "speed_min", "speed_max", "speed_sum", "speed_last", "speed_overrun", "speed_lost",
         "high_n", "high_min", "high_max", "high_sum", "low_n", "low_min", "low_max", "low_sum",
-        "retfie_outside", "in_isr", "resets", "sleep_runs", "adc_starts", "rcreg_reads")]
+        "retfie_outside", "in_isr", "resets", "sleep_runs", "adc_starts", "rcreg_reads",
+        "speed_preempted", "overrun_first_cycle", "pos_reads", "pos_delay_min", "pos_delay_max",
+        "pos_read_unmasked", "pos_read_after_adc", "adc_pwm_starts", "adc_in_on_time",
+        "adc_phase_min_ppm", "adc_phase_max_ppm")]
 
 
 def bind(lib: C.CDLL) -> C.CDLL:

@@ -35,7 +35,7 @@ typedef struct {
     int dead;                 /* the core stopped on a fault: outputs off until power-on */
     /* interrupts in progress (nesting: low, then high) */
     int nest_n;
-    struct { uint8_t what, speed; uint64_t start; } nest[PIL_NEST];
+    struct { uint8_t what, speed, pos_read, adc_started; uint64_t start; } nest[PIL_NEST];
     pil_stats_t st;
 } pil_t;
 
@@ -93,6 +93,46 @@ static void pil_plant_to_now(void)
     pic_after_plant_step(t_prev, theta_measured());
 }
 
+/* ------------------------------------------------------------ hazard measurements */
+
+/* the interrupt now executing, if it is the speed-loop interrupt */
+static int speed_top(void)
+{
+    int k = P.nest_n - 1;
+    return k >= 0 && k < PIL_NEST && P.nest[k].speed ? k : -1;
+}
+
+static void note_pos_read(void)
+{
+    int k = speed_top();
+    if (k < 0 || P.nest[k].pos_read) return;
+    P.nest[k].pos_read = 1;
+    uint64_t d = P.cpu.cycles - P.nest[k].start;
+    if (P.st.pos_reads == 0 || d < P.st.pos_delay_min) P.st.pos_delay_min = d;
+    if (d > P.st.pos_delay_max) P.st.pos_delay_max = d;
+    P.st.pos_reads++;
+    if (sfr_bit(R_INTCON, B_INTCON_GIEH)) P.st.pos_read_unmasked++;
+    if (P.nest[k].adc_started) P.st.pos_read_after_adc++;
+}
+
+static void note_adc_start(void)
+{
+    P.st.adc_starts++;
+    int k = speed_top();
+    if (k >= 0) P.nest[k].adc_started = 1;
+    if (!g.pwm_on || g.pwm_period <= 0) return;
+    double dmax = 0.0;
+    for (int x = 0; x < 4; x++) if (g.duty[x] > dmax) dmax = g.duty[x];
+    if (!(dmax > 0.0)) return;
+    /* edge-aligned: the PWM'd switch conducts from the period start for duty x period */
+    double ph = (double)(g.now - g.pwm_start) / (double)g.pwm_period;
+    uint64_t ppm = (uint64_t)(ph * 1e6);
+    if (P.st.adc_pwm_starts == 0 || ppm < P.st.adc_phase_min_ppm) P.st.adc_phase_min_ppm = ppm;
+    if (ppm > P.st.adc_phase_max_ppm) P.st.adc_phase_max_ppm = ppm;
+    P.st.adc_pwm_starts++;
+    if (ph < dmax) P.st.adc_in_on_time++;
+}
+
 /* ------------------------------------------------------------ SFR hooks */
 
 static uint8_t pil_sfr_read(void *ctx, uint16_t addr)
@@ -104,6 +144,7 @@ static uint8_t pil_sfr_read(void *ctx, uint16_t addr)
     switch (idx) {
     case R_PORTA: case R_PORTB: case R_PORTC: case R_PORTD: case R_PORTE:
     case R_POSCNTL: case R_POSCNTH: case R_TMR5L: case R_VELRL: case R_VELRH:
+        if (idx != R_VELRL && idx != R_VELRH) note_pos_read();
         pil_plant_to_now();
         if (pic_next_event() < P.target) pic18_request_stop(&P.cpu);
         pil_update_irq();
@@ -185,7 +226,7 @@ static void pil_sfr_write(void *ctx, uint16_t addr, uint8_t v)
     if ((idx == R_TMR0H && g.t0.modulus > 256) || (idx == R_TMR1H && sfr_bit(R_T1CON, B_T1CON_RD16)) ||
         idx == R_TMR5H)
         return;
-    if (idx == R_ADCON0 && sfr_bit(R_ADCON0, B_ADCON0_GO)) P.st.adc_starts++;
+    if (idx == R_ADCON0 && sfr_bit(R_ADCON0, B_ADCON0_GO) && g.adc_done == NEVER) note_adc_start();
     reg_written(idx);
     if (idx == R_PIR1 || idx == R_TXSTA || idx == R_TXREG || idx == R_RCSTA) enforce_readonly();
     g.irq_dirty = 1;
@@ -221,8 +262,12 @@ static void pil_irq_hook(void *ctx, int what)
     (void)ctx;
     pil_clock();
     if (what == PIC18_HOOK_HIGH || what == PIC18_HOOK_LOW) {
+        if (what == PIC18_HOOK_HIGH)
+            for (int k = 0; k < P.nest_n && k < PIL_NEST; k++)
+                if (P.nest[k].speed) { P.st.speed_preempted++; break; }
         if (P.nest_n < PIL_NEST) {
             P.nest[P.nest_n].what = (uint8_t)what;
+            P.nest[P.nest_n].pos_read = P.nest[P.nest_n].adc_started = 0;
             P.nest[P.nest_n].speed = (uint8_t)speed_source_pending(what);
             P.nest[P.nest_n].start = P.cpu.cycles - P.cpu.irq_vector_cycles;
         }
@@ -250,7 +295,11 @@ static void pil_timer2_fired(int flag_was_set)
     if (!P.loaded) return;
     if (flag_was_set) { P.st.speed_lost++; return; }
     for (int k = 0; k < P.nest_n && k < PIL_NEST; k++)
-        if (P.nest[k].speed) { P.st.speed_overrun++; return; }
+        if (P.nest[k].speed) {
+            if (!P.st.speed_overrun) P.st.overrun_first_cycle = P.cpu.cycles;
+            P.st.speed_overrun++;
+            return;
+        }
 }
 
 /* ------------------------------------------------------------ faults */

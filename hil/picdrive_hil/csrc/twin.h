@@ -178,6 +178,15 @@ typedef struct {
     uint64_t retfie_outside;       /* RETFIE without an interrupt in progress */
     uint64_t in_isr;               /* interrupts in progress now */
     uint64_t resets, sleep_runs, adc_starts, rcreg_reads;
+    /* issue 9's timing hazards, measured on the running code */
+    uint64_t speed_preempted;      /* high-priority interrupts taken inside the speed-loop interrupt */
+    uint64_t overrun_first_cycle;  /* cycle of the first overrun (0: none) */
+    uint64_t pos_reads, pos_delay_min, pos_delay_max;  /* speed ISR entry -> its first POSCNT/TMR5 read, cycles */
+    uint64_t pos_read_unmasked;    /* ... with GIEH set (a hall/UART interrupt could split the capture) */
+    uint64_t pos_read_after_adc;   /* ... after an ADC start in the same interrupt */
+    uint64_t adc_pwm_starts;       /* ADC starts while the PWM time base runs with a duty > 0 */
+    uint64_t adc_in_on_time;       /* ... of them inside the PWM'd switch's on-time */
+    uint64_t adc_phase_min_ppm, adc_phase_max_ppm;    /* PWM phase of those starts, 1e-6 of the period */
 } pil_stats_t;
 
 enum { INJ_HALL = 1, INJ_OVERCURRENT = 2, INJ_LOCK_ROTOR = 3, INJ_ENCODER = 4,
