@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from picdrive_hil.ihex import HexError
-from picdrive_hil.twin import Twin, TwinError
+from picdrive_hil.twin import BoardConfig, Twin, TwinError
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -78,7 +78,7 @@ def write(tmp_path, text: str, name="prog.hex") -> Path:
 
 
 def twin_for(path, **kw) -> Twin:
-    return Twin("duy2008", hex_file=path, seed=0, **kw)
+    return Twin("duy2008", hex_file=path, seed=0, board=BoardConfig(), **kw)
 
 
 # ---------------------------------------------------------------- bad HEX files
@@ -119,6 +119,38 @@ def test_cli_bad_hex_exit_2_one_line(tmp_path):
     assert r.returncode == 2
     assert "Traceback" not in r.stderr
     assert "0x005000" in r.stderr and "16 KB" in r.stderr
+
+
+def test_hex_without_board_wiring_is_refused(tmp_path):
+    p = write(tmp_path, hex_text({0: words(*goto(0))}))
+    with pytest.raises(TwinError, match="no board.json beside .*prog.hex"):
+        Twin("duy2008", hex_file=p)
+
+
+def test_cli_serves_the_hex_and_reports_the_processor_at_exit(tmp_path):
+    """picdrive twin --hex: the socket URL, then (SIGTERM) the processor's report on stderr."""
+    import signal
+    from picdrive.paths import firmware_build_dir
+    p = write(tmp_path, hex_text({0: outputs_on_then([*goto(0x12)])}))
+    (tmp_path / "board.json").write_text((firmware_build_dir() / "duy2008" / "board.json").read_text())
+    proc = subprocess.Popen([sys.executable, "-m", "picdrive", "twin", "--profile", "duy2008", "--hex", str(p)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = proc.stdout.readline().strip()
+        assert url.startswith("socket://127.0.0.1:")
+        head = []
+        while not head or "Ctrl-C stops" not in head[-1]:      # SIGTERM is handled from here on
+            line = proc.stderr.readline()
+            assert line, "".join(head)
+            head.append(line)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    err = "".join(head) + err
+    assert proc.returncode == 0, err
+    assert "on the PIC18 simulator" in err
+    assert "picdrive twin: processor:" in err and "stack high-water: return stack 0 of 31" in err
+    assert "RAM 1 B written" in err
 
 
 def test_enlarged_memory_takes_a_big_hex_and_says_so(tmp_path):

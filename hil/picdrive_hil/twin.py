@@ -180,7 +180,11 @@ class Twin:
                 raise TwinError("give either hex_file (processor twin) or firmware (C sources), not both")
             self._pil_img = pil.load_image(self.hex_file, enlarged=self.enlarged_memory)
             bj = (self.firmware_dir or self.hex_file.parent) / "board.json"
-            if board is None and bj.exists():
+            if board is None:
+                if not bj.exists():
+                    raise TwinError(f"no board.json {'in ' + str(self.firmware_dir) if self.firmware_dir else 'beside ' + str(self.hex_file)}: "
+                                    "the processor twin needs the board's wiring (hall pins, analog channels, Fosc); "
+                                    "give the generated firmware folder (--firmware DIR) or put its board.json beside the HEX")
                 board = board_from_json(bj)
             self.board = board or BoardConfig()
             self.pil_notes = pil.check_config(self._pil_img, self.board, str(self.hex_file))
