@@ -262,6 +262,7 @@ static void pil_irq_hook(void *ctx, int what)
     (void)ctx;
     pil_clock();
     if (what == PIC18_HOOK_HIGH || what == PIC18_HOOK_LOW) {
+        if (what == PIC18_HOOK_HIGH) g.isr_high_calls++; else g.isr_low_calls++;   /* state()'s counters */
         if (what == PIC18_HOOK_HIGH)
             for (int k = 0; k < P.nest_n && k < PIL_NEST; k++)
                 if (P.nest[k].speed) { P.st.speed_preempted++; break; }
