@@ -6,8 +6,8 @@ which is what the wall time is on an idle machine; this machine's 2 cores are
 shared with other jobs):
 
 * the LMI solve of Theorem 1 (2016) for the profile's gamma, delta, alpha, rho
-  (``picdrive.fuzzy_hinf.solve_theorem1`` on ``tsfuzzy.paper_model``);
-* gamma minimisation (``picdrive.fuzzy_hinf.minimise_gamma``);
+  (``picdrive.design.fuzzy_hinf.solve_theorem1`` on ``tsfuzzy.paper_model``);
+* gamma minimisation (``picdrive.design.fuzzy_hinf.minimise_gamma``);
 * the GA, 200 chromosomes x 20 generations, of the mixed H2/H-inf PID, for the
   paper's continuous problem and for the sampled drive problem, on both
   bundled profiles (scipy differential evolution for comparison);
@@ -52,11 +52,11 @@ def main(argv=None) -> int:
     warnings.simplefilter("ignore")
     import numpy as np
 
-    from picdrive import mixed_pid as mp
-    from picdrive.ga import run_ga
-    from picdrive.h2hinf import j3_jury_dewey, robust_constraint, tracking_error_polys
+    from picdrive.design import mixed_pid as mp
+    from picdrive.design.ga import run_ga
+    from picdrive.analysis.h2hinf import j3_jury_dewey, robust_constraint, tracking_error_polys
     from picdrive.profile import load_profile
-    from picdrive.repro2008 import GAINS
+    from picdrive.papers.repro2008 import GAINS
 
     profiles = {n: load_profile(n) for n in ("duy2008", "assawinchaichote2016")}
     print(f"picdrive design bench ({args.repeat} runs per figure: median / best)\n")
@@ -64,7 +64,8 @@ def main(argv=None) -> int:
     # --- LMI (2016)
     print("LMI design (2016 Theorem 1), profile assawinchaichote2016")
     try:
-        from picdrive import fuzzy_hinf, tsfuzzy
+        from picdrive.design import fuzzy_hinf
+        from picdrive.models import tsfuzzy
         p16 = profiles["assawinchaichote2016"]
         de = p16.design
         ts = tsfuzzy.paper_model(p16)
@@ -77,7 +78,7 @@ def main(argv=None) -> int:
         print(f"  minimise_gamma: {med:.3f} s / {best:.3f} s (CPU {CPU[0]:.3f} s)   gamma={sol.gamma:.4g} "
               f"(solves: {sol.extra.get('n_solves', '?')})   target < 2 s: {'met' if med < 2 else 'NOT met'}")
     except (ImportError, AttributeError, TypeError) as e:
-        print(f"  skipped: picdrive.fuzzy_hinf is not usable in this checkout ({type(e).__name__}: {e})")
+        print(f"  skipped: picdrive.design.fuzzy_hinf is not usable in this checkout ({type(e).__name__}: {e})")
     print()
 
     # --- GA timings
@@ -140,7 +141,7 @@ def twin_table(profiles) -> None:
     from pathlib import Path
 
     from picdrive.result import load_design
-    from picdrive.verify import run_sim, sim_plan, step_figures, twin_run
+    from picdrive.design.verify import run_sim, sim_plan, step_figures, twin_run
     try:
         import picdrive_hil.twin  # noqa: F401
     except ImportError as e:

@@ -17,7 +17,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from picdrive.p18f4431 import render_sdcc_device
+from picdrive.firmware.p18f4431 import render_sdcc_device
 
 TC = Path(os.environ.get("PICDRIVE_SDCC", Path.home() / ".cache/picdrive/toolchain/sdcc-4.2.0-pic16"))
 LIB = TC / "share/sdcc/lib/pic16"

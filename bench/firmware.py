@@ -26,7 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from picdrive import codegen, fixedpoint
+from picdrive.firmware import codegen, fixedpoint
 from picdrive.paths import firmware_build_dir, repo_root
 from picdrive.profile import load_profile
 from picdrive.result import load_design
@@ -93,7 +93,7 @@ def main() -> int:
         print(f"  {k:<14} {v:6d} B")
     print(f"  {'total':<14} {sum(flash.values()):6d} B (PIC18F4431 has 16384 B)")
 
-    print(f"\n== bit-exact: C (gcc) vs picdrive.fixedpoint on {a.vectors} random vectors per function")
+    print(f"\n== bit-exact: C (gcc) vs picdrive.firmware.fixedpoint on {a.vectors} random vectors per function")
     lib = fixedpoint.build_core_lib(folder)
     t0 = time.perf_counter()
     res = fixedpoint.compare_with_c(fw.plan, lib, a.vectors, seed=2024)
@@ -108,7 +108,7 @@ def main() -> int:
     print("   arithmetic: fixed-point law vs law_step on the same (instant) speed sample, limit 0.5 %")
     print("   with sensors: the firmware's measurements (encoder M/T + half-sample extrapolation, bus shunt,")
     print("   10-bit ADC, PDC counts) vs law_step on the true speed -- a sensor effect, not arithmetic")
-    from picdrive import pcpwm
+    from picdrive.firmware import pcpwm
     for pname in ("duy2008", "assawinchaichote2016"):
         p = load_profile(pname)
         for method in ("fuzzy-hinf", "mixed-pid", "zn"):

@@ -28,8 +28,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-from picdrive import protocol as P  # noqa: E402
-from picdrive.link import Link  # noqa: E402
+from picdrive.link import protocol as P  # noqa: E402
+from picdrive.link.client import Link  # noqa: E402
 from linksupport import build  # noqa: E402
 from linksupport.fakeboard import FakeBoard  # noqa: E402
 

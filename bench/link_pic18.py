@@ -6,7 +6,7 @@
     python3 bench/link_pic18.py --features       # + flash without capture / EEPROM (generation options)
 
 Compiles firmware_build/duy2008/link_fw.c for the PIC18F4431 (device header from
-picdrive.p18f4431.render_sdcc_device), links it with a small harness (app_* stubs: app_signal
+picdrive.firmware.p18f4431.render_sdcc_device), links it with a small harness (app_* stubs: app_signal
 reads an array, the UART TX queue always has room), and runs it in gpsim's p18f4520 (the same
 PIC18 core; the 18F4431 is not in gpsim).  Prints:
 
@@ -34,8 +34,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "host"))
-from picdrive import codec, protocol as P  # noqa: E402
-from picdrive.p18f4431 import render_sdcc_device  # noqa: E402
+from picdrive.link import codec, protocol as P  # noqa: E402
+from picdrive.firmware.p18f4431 import render_sdcc_device  # noqa: E402
 
 SDCC = Path(os.environ.get("PICDRIVE_SDCC", Path.home() / ".cache/picdrive/toolchain/sdcc-4.2.0-pic16"))
 LIB = SDCC / "share/sdcc/lib/pic16"

@@ -4,9 +4,9 @@
 For each profile and each design method (fuzzy-hinf, mixed-pid, zn) this runs what a user would:
 load the profile, ``picdrive design`` (design + verification), and for a verified design
 ``picdrive firmware``'s codegen and the motor twin through the verification's own step and load
-step (:func:`picdrive.verify.twin_run`), beside the verification's six-step model of the same run
-(:func:`picdrive.verify.run_sim`, no disturbances); both judged by
-:func:`picdrive.verify.step_figures`.  Every outcome is one of
+step (:func:`picdrive.design.verify.twin_run`), beside the verification's six-step model of the same run
+(:func:`picdrive.design.verify.run_sim`, no disturbances); both judged by
+:func:`picdrive.design.verify.step_figures`.  Every outcome is one of
 
 * ``verified`` -- with the twin's and the model's rise, overshoot and final error;
 * ``refused`` -- at a stage (profile, design, firmware) with the reason picdrive gave.
@@ -52,11 +52,11 @@ def _short(text: str, n: int = 260) -> str:
 
 def run_case(profile_path: str, method: str) -> dict:
     """One profile x method through the chain; a plain dict (picklable)."""
-    from picdrive.design import run_design
+    from picdrive.design.dispatch import run_design
     from picdrive.errors import PicdriveError
     from picdrive.profile import load_profile
     from picdrive.result import save_design
-    from picdrive.verify import run_sim, sim_plan, step_figures, twin_run
+    from picdrive.design.verify import run_sim, sim_plan, step_figures, twin_run
 
     warnings.simplefilter("ignore")
     import tomllib
@@ -164,7 +164,7 @@ Profiles of real motors written from datasheets (`tests/motors/*.toml`; none is 
 names its source and marks what it assumes in its comments) go through what a user does: load
 the profile, `picdrive design` with each method (design and verification), `picdrive firmware`
 and the motor twin through the verification's own step from rest to `Profile.speed_step_rpm()`
-and load step (`picdrive.verify.twin_run`).  A verified design must behave in the twin within
+and load step (`picdrive.design.verify.twin_run`).  A verified design must behave in the twin within
 25 % (+ one sample) of its verification's rise time, 1 percentage point of its overshoot and
 0.1 % of the target in final error, and pass the verification's own limits there
 (`bench/motors.py` `judge`, asserted by `tests/test_motors_corpus.py`); a refusal names its stage

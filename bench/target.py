@@ -3,8 +3,8 @@
 
 For each bundled design (examples/*.design.json) and each telemetry mode
 (off / 4 signals / 4 signals + a capture armed), prints:
-flash, static RAM + worst-case stack (picdrive.target: SDCC pic16 + gplink,
-stack from the call graph), and the worst-case cycles (picdrive.gpsim, over
+flash, static RAM + worst-case stack (picdrive.firmware.target: SDCC pic16 + gplink,
+stack from the call graph), and the worst-case cycles (picdrive.firmware.gpsim, over
 the corpus: rest, a step into the current limit, reversal, saturation, int16
 extremes) of the speed-loop interrupt (and % of its 1 ms period at 10 MIPS),
 the hall interrupt, the UART receive interrupt per byte and link_poll per
@@ -16,8 +16,8 @@ time (``git archive c0631cc``, so this needs the repository's history) and its
 own ``picdrive firmware`` renders the C; bench/baseline_main_sdcc.c is the
 SDCC vector file a new user would write for it (plain ``__interrupt``
 handlers, no table-pointer save).  The baseline does not fit the 18F4431's
-16 KB: it is linked with picdrive.target.enlarged_lkr() for measurement
-(marked '*').  Timing runs on gpsim's 18F4620 (see picdrive.gpsim).
+16 KB: it is linked with picdrive.firmware.target.enlarged_lkr() for measurement
+(marked '*').  Timing runs on gpsim's 18F4620 (see picdrive.firmware.gpsim).
 
 Usage:
   python3 bench/target.py                 # all six designs, today and baseline
@@ -34,7 +34,7 @@ import tarfile
 import tempfile
 from pathlib import Path
 
-from picdrive import codegen, gpsim, target
+from picdrive.firmware import codegen, gpsim, target
 from picdrive.paths import repo_root
 from picdrive.profile import load_profile
 

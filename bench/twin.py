@@ -71,7 +71,7 @@ def quiet_profile(name):
 
 
 def firmware_for(prof, method, tmp: Path) -> Path:
-    from picdrive import codegen
+    from picdrive.firmware import codegen
     out = tmp / f"{prof.name}.{method}"
     if not out.exists():
         fw = codegen.generate(prof, str(ROOT / "examples" / f"{prof.name}.{method}.design.json"))
@@ -97,7 +97,7 @@ def bench_firmware(prof, tmp: Path) -> tuple[Path, str]:
 def configure(tw, speed_rpm: float | None):
     """Through the link (real time, briefly): a long watchdog and a setpoint;
     returns the server stopped, so that the twin can then run free."""
-    from picdrive.link import Link
+    from picdrive.link.client import Link
     srv = tw.serve(port=0, realtime=True)
     try:
         lk = Link.open(srv.url, keepalive=False)
@@ -110,7 +110,7 @@ def configure(tw, speed_rpm: float | None):
 
 
 def send(tw, cmd: str, seq: int):
-    from picdrive import codec
+    from picdrive.link import codec
     tw.uart_write(codec.encode_command(cmd, seq))
 
 
@@ -179,7 +179,7 @@ def scenario(profile, fw: Path, warm_s: float, meas_s: float) -> None:
     """The fixed instruction-count scenario (free-running, deterministic): link watchdog at
     its maximum and the setpoint at the HIL step target over the UART, the profile's load,
     start, warm_s to speed, then meas_s."""
-    from picdrive import codec
+    from picdrive.link import codec
     from picdrive_hil.twin import Twin
     prof = quiet_profile(profile)
     tw = Twin(prof, fw, seed=0)
@@ -276,7 +276,7 @@ def bench_gem(seconds: float, twin_rtf: dict) -> None:
 
 
 def bench_physical_limit(tmp: Path) -> None:
-    from picdrive.metrics import step_metrics
+    from picdrive.analysis.metrics import step_metrics
     from picdrive_hil.twin import Twin
     print("3. Closed-loop step under the profile's load against t_min = J w / (Kt Imax - T_load)")
     print(f"   {'profile / design, load':40s} {'target':>7s} {'t_min':>8s} {'t_reach':>9s} {'ratio':>6s} "

@@ -11,7 +11,7 @@
 #   ${PICDRIVE_TOOLCHAIN:-$HOME/.cache/picdrive/toolchain}/sdcc-4.2.0-pic16
 # and this script returns at once when the cache is complete.  The device
 # header is not taken from SDCC (the dfsg source has none for the 18F4431):
-# picdrive renders it from p18f4431.inc (picdrive.p18f4431.render_sdcc_device).
+# picdrive renders it from p18f4431.inc (picdrive.firmware.p18f4431.render_sdcc_device).
 set -euo pipefail
 ROOT="${PICDRIVE_TOOLCHAIN:-$HOME/.cache/picdrive/toolchain}"
 PREFIX="$ROOT/sdcc-4.2.0-pic16"

@@ -285,7 +285,7 @@ def test_committed_designs_are_signed_and_load_as_usable(profiles):
 
 @pytest.mark.parametrize("edit", ["kp", "status", "verification", "profile", "certificate"])
 def test_a_hand_edited_design_is_not_built(tmp_path, profiles, edit):
-    from picdrive import codegen
+    from picdrive.firmware import codegen
     from picdrive.result import DesignError
     d = json.loads((EXAMPLES / "duy2008.zn.design.json").read_text())
     if edit == "kp":
@@ -318,7 +318,7 @@ def _fast(lines: int):
 
 
 def test_a_fine_encoder_on_a_fast_motor_is_refused_with_the_limit_not_as_a_bug(tmp_path):
-    from picdrive import codegen, fixedpoint
+    from picdrive.firmware import codegen, fixedpoint
     from picdrive.control_law import Rule, ScheduledLaw
     from picdrive.result import DesignResult, save_design
     p = _fast(1024)
@@ -345,7 +345,7 @@ def test_a_fine_encoder_on_a_fast_motor_is_refused_with_the_limit_not_as_a_bug(t
 
 
 def test_the_design_command_refuses_the_encoder_before_designing(tmp_path):
-    from picdrive.design import run_design
-    from picdrive.fixedpoint import FixedPointError
+    from picdrive.design.dispatch import run_design
+    from picdrive.firmware.fixedpoint import FixedPointError
     with pytest.raises(FixedPointError, match="at most 958 lines"):
         run_design(_fast(1024), "zn", progress=False)

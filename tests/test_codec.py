@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from picdrive import codec, protocol as P
-from picdrive.protocol import ProtocolError
+from picdrive.link import codec, protocol as P
+from picdrive.link.protocol import ProtocolError
 
 TABLE = P.build_table(2)
 SETTINGS = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from picdrive import cli, codegen, p18f4431
+from picdrive import cli
+from picdrive.firmware import codegen, p18f4431
 from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.paths import firmware_build_dir, repo_root
 from picdrive.profile import load_profile
@@ -20,7 +21,7 @@ COMMITTED = firmware_build_dir() / "duy2008"
 
 def run_cli(monkeypatch, *args) -> int:
     # only this piece's command: the CLI's error handling without the other commands' imports
-    monkeypatch.setattr(cli, "COMMAND_MODULES", ["picdrive.codegen"])
+    monkeypatch.setattr(cli, "COMMAND_MODULES", ["picdrive.firmware.codegen"])
     # the C generation only: the PIC18 HEX build and its budgets are tests/test_target.py's
     return cli.main(["firmware", "--no-hex", *map(str, args)])
 

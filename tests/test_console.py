@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from picdrive import protocol as P
-from picdrive.console import Console, ConsoleError, profile_hash32
-from picdrive.console_record import read_recording
+from picdrive.link import protocol as P
+from picdrive.console.session import Console, ConsoleError, profile_hash32
+from picdrive.console.record import read_recording
 from picdrive.control_law import Rule, ScheduledLaw
-from picdrive.metrics import step_metrics
-from picdrive.verify import sector_mean
+from picdrive.analysis.metrics import step_metrics
+from picdrive.design.verify import sector_mean
 from picdrive.profile import load_profile
 from picdrive.result import DesignResult, save_design
 
@@ -308,7 +308,7 @@ def test_unknown_command_and_usage_errors(con):
         run(con, 'set "x')
     assert con.run_line("frobnicate") is False and con.lines[-1].startswith("error: unknown command")
     out = run(con, "help")
-    assert len(out) == len(__import__("picdrive.console", fromlist=["COMMANDS"]).COMMANDS)
+    assert len(out) == len(__import__("picdrive.console.session", fromlist=["COMMANDS"]).COMMANDS)
     assert run(con, "help step")[0].startswith("step <from> <to>")
 
 
@@ -329,7 +329,7 @@ def test_link_lost_and_regained(board, con):
 
 
 def test_complete(con):
-    assert con.complete("", "") == sorted(c + " " for c in __import__("picdrive.console", fromlist=["x"]).COMMANDS)
+    assert con.complete("", "") == sorted(c + " " for c in __import__("picdrive.console.session", fromlist=["x"]).COMMANDS)
     assert con.complete("st", "st") == ["start ", "status ", "step ", "stop "]
     assert con.complete("get rule1_k", "rule1_k") == ["rule1_kc", "rule1_kd", "rule1_ki", "rule1_kp"]
     assert "speed" not in con.complete("set sp", "sp") and con.complete("set sp", "sp") == ["speed_setpoint"]

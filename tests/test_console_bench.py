@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from picdrive import protocol as P
-from picdrive.console import Console, ConsoleError
-from picdrive.console_files import written_by_picdrive
-from picdrive.console_record import read_recording
-from picdrive.link import Link
+from picdrive.link import protocol as P
+from picdrive.console.session import Console, ConsoleError
+from picdrive.console.files import written_by_picdrive
+from picdrive.console.record import read_recording
+from picdrive.link.client import Link
 from picdrive.profile import load_profile
 from picdrive_hil.twin import Twin
 

@@ -6,12 +6,12 @@ import time
 import numpy as np
 import pytest
 
-from picdrive.console_plot import LivePlot, PlotError, TextView, sparkline
-from picdrive.console_record import Recorder, RecordError, read_recording
+from picdrive.console.plot import LivePlot, PlotError, TextView, sparkline
+from picdrive.console.record import Recorder, RecordError, read_recording
 from picdrive.errors import PicdriveError
-from picdrive.console_files import written_by_picdrive
-from picdrive.console_step import StepError, StepRecord, analyse_step, parse_step_args, save_step_plot
-from picdrive.metrics import step_metrics
+from picdrive.console.files import written_by_picdrive
+from picdrive.console.step import StepError, StepRecord, analyse_step, parse_step_args, save_step_plot
+from picdrive.analysis.metrics import step_metrics
 
 SIGS = [("speed_rpm", "rpm"), ("current_a", "A")]
 
@@ -202,7 +202,7 @@ def test_live_plot_without_window_or_png_is_refused():
 # --------------------------------------------------------------------------- live plot
 
 def test_plot_buffer_segments_windows_and_envelopes():
-    from picdrive.console_plot import PlotBuffer, unit_axes
+    from picdrive.console.plot import PlotBuffer, unit_axes
     b = PlotBuffer(2, window_s=1.0)
     for k in range(3000):                       # 3 s at 1 kHz: only the last second is kept
         b.feed(k / 1000, [float(k), 0.0])

@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from picdrive.console_record import read_recording
+from picdrive.console.record import read_recording
 from picdrive.control_law import Rule, ScheduledLaw
-from picdrive.link import Link
-from picdrive.metrics import step_metrics
-from picdrive.verify import sector_mean
+from picdrive.link.client import Link
+from picdrive.analysis.metrics import step_metrics
+from picdrive.design.verify import sector_mean
 from picdrive.profile import load_profile
 from picdrive.result import DesignResult, save_design
 
@@ -256,7 +256,7 @@ def test_console_step_agrees_with_the_hil_step(tmp_path):
         from test_hil_step import RECORD_S
     finally:
         sys.path.remove(str(REPO / "tests" / "hil"))
-    from picdrive.console import Console
+    from picdrive.console.session import Console
 
     fw = FirmwareCache(tmp_path).get("duy2008", "mixed-pid")
     target = PROFILE.speed_step_rpm()

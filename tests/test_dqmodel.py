@@ -5,8 +5,7 @@ import warnings
 import numpy as np
 import pytest
 
-from picdrive.dqmodel import (derivatives, dq_params, electrical_power_w, equilibrium, jacobian,
-                              max_speed_rad_s, six_step_gains, stored_energy_j, torque_n_m)
+from picdrive.models.dqmodel import derivatives, dq_params, electrical_power_w, equilibrium, jacobian, max_speed_rad_s, six_step_gains, stored_energy_j, torque_n_m
 from picdrive.profile import load_profile
 
 

@@ -31,7 +31,8 @@ from pathlib import Path
 
 import pytest
 
-from picdrive import codegen, p18f4431, protocol
+from picdrive.firmware import codegen, p18f4431
+from picdrive.link import protocol
 from picdrive.paths import firmware_build_dir
 
 FOLDER = Path(os.environ.get("PICDRIVE_HAZARD_FW", firmware_build_dir() / "duy2008"))

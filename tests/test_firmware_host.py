@@ -13,7 +13,8 @@ import subprocess
 
 import pytest
 
-from picdrive import codec, codegen, protocol
+from picdrive.link import codec, protocol
+from picdrive.firmware import codegen
 from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.profile import load_profile
 from picdrive.result import DesignResult, save_design
@@ -110,8 +111,8 @@ class Board:
         self.lib, self.fw, self.prof = lib, fwobj, prof
         self.sfr = (C.c_uint8 * 256).in_dll(lib, "picsim_sfr")
         self.adc = (C.c_uint16 * 2).in_dll(lib, "stub_adc")
-        self.regs = __import__("picdrive.p18f4431", fromlist=["x"]).registers()
-        self.bits = __import__("picdrive.p18f4431", fromlist=["x"]).bits()
+        self.regs = __import__("picdrive.firmware.p18f4431", fromlist=["x"]).registers()
+        self.bits = __import__("picdrive.firmware.p18f4431", fromlist=["x"]).bits()
         self.table = fwobj.table
         self.plan = fwobj.plan
 

@@ -10,7 +10,7 @@ import math
 
 import pytest
 
-from picdrive import codegen, fixedpoint as fx, pcpwm
+from picdrive.firmware import codegen, fixedpoint as fx, pcpwm
 from picdrive.control_law import LawState, Rule, ScheduledLaw, law_step
 from picdrive.profile import load_profile
 from picdrive.result import DesignResult, save_design

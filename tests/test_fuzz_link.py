@@ -14,7 +14,7 @@ import pytest
 
 from linksupport import build
 from linksupport.fakeboard import FakeBoard
-from picdrive import codec, protocol as P
+from picdrive.link import codec, protocol as P
 
 KINDS = ("garbage", "nested", "truncated", "badlen", "flipped", "insdel")
 

@@ -4,11 +4,11 @@ import warnings
 import numpy as np
 import pytest
 
-from picdrive.fuzzy_hinf import (assemble_xi, certified_gain, lmi_margins, minimise_gamma, solve_theorem1)
+from picdrive.design.fuzzy_hinf import assemble_xi, certified_gain, lmi_margins, minimise_gamma, solve_theorem1
 from picdrive.profile import load_profile
-from picdrive.repro2016 import paper_as_printed_model, printed_checks
-from picdrive.tsfuzzy import paper_model
-from picdrive.verify import hinf_norm
+from picdrive.papers.repro2016 import paper_as_printed_model, printed_checks
+from picdrive.models.tsfuzzy import paper_model
+from picdrive.design.verify import hinf_norm
 
 
 @pytest.fixture(scope="module", params=["assawinchaichote2016", "duy2008"])
@@ -108,8 +108,8 @@ def test_hinf_norm_against_frequency_sweep():
 # ---------------------------------------------------------------------------
 # the six-step variant: Theorem 1 on the drive's DC equivalent, verified on the six-step model
 # ---------------------------------------------------------------------------
-from picdrive import fuzzy_hinf  # noqa: E402
-from picdrive.tsfuzzy import emf_range, six_step_model  # noqa: E402
+from picdrive.design import fuzzy_hinf  # noqa: E402
+from picdrive.models.tsfuzzy import emf_range, six_step_model  # noqa: E402
 
 
 @pytest.fixture(scope="module", params=["duy2008", "assawinchaichote2016"])

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from picdrive.ga import decimal_constant, decode, encode, run_ga
+from picdrive.design.ga import decimal_constant, decode, encode, run_ga
 
 
 @pytest.mark.parametrize("dc,value", [(-2, 0.0046997), (-1, 0.046997), (0, 0.46997), (1, 4.6997)])

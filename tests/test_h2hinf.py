@@ -4,11 +4,9 @@ import pytest
 from scipy import integrate, signal
 
 from picdrive.control_law import LawState, Rule, ScheduledLaw, law_step
-from picdrive.h2hinf import (h2_lyapunov, hinf_exact, hinf_exact_z, hinf_grid, hinf_statespace, j3_discrete,
-                             j3_jury_dewey, robust_constraint, routh_hurwitz, sampled_loop, sampled_loop_polys,
-                             schur_stable, sensitivity_peak_z, tracking_error_polys, robust_constraint_z, xi_tustin)
+from picdrive.analysis.h2hinf import h2_lyapunov, hinf_exact, hinf_exact_z, hinf_grid, hinf_statespace, j3_discrete, j3_jury_dewey, robust_constraint, routh_hurwitz, sampled_loop, sampled_loop_polys, schur_stable, sensitivity_peak_z, tracking_error_polys, robust_constraint_z, xi_tustin
 from picdrive.profile import load_profile
-from picdrive.tfmodel import TF, motor_tf, sampled_plant
+from picdrive.models.tfmodel import TF, motor_tf, sampled_plant
 
 P18 = TF([275577.36], [1, 417.7, 43567.5])
 

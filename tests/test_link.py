@@ -8,10 +8,10 @@ import time
 import numpy as np
 import pytest
 
-from picdrive import codec
-from picdrive import protocol as P
-from picdrive.link import BadCrcError, HandshakeMismatch, Link, LinkError, LinkTimeout, NackError, ParamError
-from picdrive.protocol import Nack
+from picdrive.link import codec
+from picdrive.link import protocol as P
+from picdrive.link.client import BadCrcError, HandshakeMismatch, Link, LinkError, LinkTimeout, NackError, ParamError
+from picdrive.link.protocol import Nack
 
 from linksupport import build
 from linksupport.fakeboard import FakeBoard

@@ -9,8 +9,8 @@ import random
 import numpy as np
 import pytest
 
-from picdrive import codec, protocol as P
-from picdrive.protocol import Nack
+from picdrive.link import codec, protocol as P
+from picdrive.link.protocol import Nack
 
 from linksupport.build import DEFAULT_BUILD_ID, DEFAULT_PROFILE_HASH
 from linksupport.fakeboard import FakeBoard

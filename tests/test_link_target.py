@@ -6,7 +6,7 @@ import re
 import pytest
 
 from linksupport import build
-from picdrive import protocol as P
+from picdrive.link import protocol as P
 
 ISR_ENTRIES = ("_link_rx_byte", "_link_tick_ms", "_link_sample")
 

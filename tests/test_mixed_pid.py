@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from picdrive import mixed_pid as mp
+from picdrive.design import mixed_pid as mp
 from picdrive.control_law import Rule, ScheduledLaw
-from picdrive.ga import run_ga
-from picdrive.h2hinf import j3_jury_dewey, tracking_error_polys
-from picdrive.metrics import step_metrics
-from picdrive.tfmodel import closed_loop_tf, motor_tf, simulate_sampled
+from picdrive.design.ga import run_ga
+from picdrive.analysis.h2hinf import j3_jury_dewey, tracking_error_polys
+from picdrive.analysis.metrics import step_metrics
+from picdrive.models.tfmodel import closed_loop_tf, motor_tf, simulate_sampled
 
 PROFILES = ["duy2008", "assawinchaichote2016"]
 
@@ -50,7 +50,7 @@ def test_drive_design_verified_on_both_profiles(name, profiles, drive_designs):
 def test_drive_design_j3_recomputed_independently(profiles, drive_designs):
     """J3 of the result by direct simulation of law_step on the sampled plant (no saturation)."""
     from picdrive.control_law import LawState, law_step
-    from picdrive.tfmodel import sampled_plant
+    from picdrive.models.tfmodel import sampled_plant
     p, r = profiles["duy2008"], drive_designs["duy2008"]
     g = r.law.rules[0]
     sp = sampled_plant(motor_tf(p), r.law.sample_time_s)
@@ -86,7 +86,7 @@ def test_search_box_is_cut_to_the_sampled_stability_limits(profiles):
 
 def test_evaluate_bound_shortcut_agrees_with_exact(profiles):
     """Where (1 + ||S||)||xi|| <= 1 certifies eq 6, the exact value is indeed <= 1 (and below the bound)."""
-    from picdrive.h2hinf import robust_constraint_z
+    from picdrive.analysis.h2hinf import robust_constraint_z
     pb = mp.make_problem(profiles["assawinchaichote2016"])
     rng = np.random.default_rng(4)
     g = rng.uniform(pb.lo, pb.hi, size=(300, 3))

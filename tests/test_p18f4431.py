@@ -5,7 +5,7 @@ import subprocess
 
 import pytest
 
-from picdrive import p18f4431 as inc
+from picdrive.firmware import p18f4431 as inc
 from picdrive.errors import PicdriveError
 
 INC = inc.INC_PATH

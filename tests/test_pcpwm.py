@@ -3,7 +3,7 @@ import math
 
 import pytest
 
-from picdrive import pcpwm
+from picdrive.firmware import pcpwm
 from picdrive.profile import load_profile
 
 # Hand-derived (docs/firmware.md convention): 120-degree halls whose edges sit

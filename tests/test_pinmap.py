@@ -1,7 +1,7 @@
 """Pin map: valid maps for the profiles, clear refusals of impossible ones."""
 import pytest
 
-from picdrive import pinmap
+from picdrive.firmware import pinmap
 from picdrive.profile import load_profile
 
 

@@ -1,6 +1,6 @@
 """The twin's compiled BLDC plant (hil/picdrive_hil/csrc/plant.c) against
 independent references: the scipy model of the same equations
-(picdrive_hil.reference, event-located continuous time), the dq model at
+(tests/support/plant_reference.py, event-located continuous time), the dq model at
 steady operating points, and the profile's six-step constants."""
 import math
 import warnings
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from picdrive.profile import ProfileWarning, load_profile
-from picdrive_hil import reference as ref
+from support import plant_reference as ref
 from picdrive_hil.plant import CPlant, PlantError, parse_perturb, plant_from_profile
 
 warnings.simplefilter("ignore", ProfileWarning)
@@ -193,11 +193,11 @@ def test_passive_load_holds_a_standing_rotor_and_never_reverses_it():
 
 
 def _dq_steady_state(prof, vq, vd, tl):
-    """Steady state of picdrive.dqmodel (the design's corrected 2016 eq 5) at
+    """Steady state of picdrive.models.dqmodel (the design's corrected 2016 eq 5) at
     voltages given in this test's Park convention (q axis on e_a's sine, d on
     its cosine); dqmodel's d axis points the other way: v_d, i_d change sign."""
     from scipy.optimize import brentq
-    from picdrive import dqmodel
+    from picdrive.models import dqmodel
     p = dqmodel.dq_params(prof)
     f = lambda w: dqmodel.equilibrium(p, w, tl, vd=-vd)[2] - vq
     w = brentq(f, 1e-6, 10 * vq / (p.pole_pairs * p.lambda_m_v_s), xtol=1e-12)

@@ -4,8 +4,7 @@ import warnings
 
 import pytest
 
-from picdrive.profile import (ProfileError, ProfileWarning, bundled_profiles, load_profile,
-                              loads_profile)
+from picdrive.profile import ProfileError, ProfileWarning, bundled_profiles, load_profile, loads_profile
 
 MIN = """
 [drive]

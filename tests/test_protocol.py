@@ -7,7 +7,7 @@ import zlib
 
 import pytest
 
-from picdrive import protocol as P
+from picdrive.link import protocol as P
 from picdrive.paths import repo_root
 from picdrive.profile import load_profile
 
@@ -156,9 +156,9 @@ def test_rendered_c_compiles_strict_gcc_and_avr(tmp_path, name, table):
 
 def test_docs_protocol_md_is_current():
     path = repo_root() / "docs" / "protocol.md"
-    assert path.exists(), "docs/protocol.md missing: python -m picdrive.protocol docs/protocol.md"
+    assert path.exists(), "docs/protocol.md missing: python -m picdrive.link.protocol docs/protocol.md"
     assert path.read_text() == P.render_markdown(), \
-        "docs/protocol.md is stale: regenerate with python -m picdrive.protocol docs/protocol.md"
+        "docs/protocol.md is stale: regenerate with python -m picdrive.link.protocol docs/protocol.md"
 
 
 def test_markdown_lists_every_command_code_and_entry():

@@ -3,7 +3,7 @@ import re
 
 import pytest
 
-from picdrive.report import write_report
+from picdrive.papers.report import write_report
 
 
 @pytest.mark.timeout(400)
@@ -21,7 +21,7 @@ def test_report_quick(tmp_path):
     assert "sqrt(0.0825) = 0.2872" in text
     assert re.search(r"\| K_1 = Y_1 P\^-1 \| \[0\.9577 .*\| \[0\.6759 ", text)
     # every printed claim has its row, computed or marked failed with a reason (none is dropped)
-    from picdrive.repro2016 import CLAIMS
+    from picdrive.papers.repro2016 import CLAIMS
     for claim in CLAIMS:
         assert re.search(r"^\| " + re.escape(claim) + r"[ (|]", text, re.M), f"report lost the row {claim!r}"
     m = re.search(r"^\| LMI \(15\) row 5 read as printed .*true H-inf norm ([0-9.e+-]+) \(([0-9.e+-]+) x\)", text, re.M)

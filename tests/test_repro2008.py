@@ -3,7 +3,7 @@ import math
 
 import pytest
 
-from picdrive import repro2008
+from picdrive.papers import repro2008
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from picdrive.control_law import LawState, Rule, ScheduledLaw, law_step, memberships
-from picdrive.metrics import step_metrics
+from picdrive.analysis.metrics import step_metrics
 from picdrive.result import DesignError, DesignResult, load_design, save_design
 
 

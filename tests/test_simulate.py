@@ -7,9 +7,9 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from picdrive.control_law import Rule, ScheduledLaw
-from picdrive.dqmodel import derivatives, dq_params, equilibrium
+from picdrive.models.dqmodel import derivatives, dq_params, equilibrium
 from picdrive.profile import load_profile
-from picdrive.simulate import disturbances_2016, simulate_law, step_load
+from picdrive.models.simulate import disturbances_2016, simulate_law, step_load
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +53,7 @@ def test_disturbances_finite_energy_and_deterministic():
 # ---------------------------------------------------------------------------
 # the six-step drive model (verification's plant)
 # ---------------------------------------------------------------------------
-from picdrive.simulate import commutated_emf, simulate_six_step, simulate_six_step_batch  # noqa: E402
+from picdrive.models.simulate import commutated_emf, simulate_six_step, simulate_six_step_batch  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -116,7 +116,7 @@ def test_commutated_emf_mean_is_kb_and_advance_ripples(duy):
 
 
 def test_batch_equals_scalar_simulation(duy):
-    from picdrive.mixed_pid import pid_law
+    from picdrive.design.mixed_pid import pid_law
     kp = np.array([0.12, 0.53, 0.2]); ki = np.array([10.0, 74.0, 400.0]); kd = np.array([0.0, 9e-4, 0.0])
     ref = 2400 * math.pi / 30
     n_sub = int(round(1e-3 * duy.inverter.pwm_frequency_hz)) - 1
@@ -132,7 +132,7 @@ def test_batch_equals_scalar_simulation(duy):
 def test_firmware_measurement_is_mt_average_plus_half_a_sample(duy):
     """y[k] = w_avg[k] + (w_avg[k] - w_avg[k-1]) / 2, w_avg[k] the mean speed over the last sample
     (from the PWM-period trajectory), no extrapolation at the first counts."""
-    from picdrive.mixed_pid import pid_law
+    from picdrive.design.mixed_pid import pid_law
     s = simulate_six_step(duy, pid_law(duy, 0.3, 30.0, 0.0), t_end=0.05, ref_rpm=1500.0)
     n_sub = s.t_fine.size // (s.t.size)
     w = np.concatenate([[0.0], s.omega_fine])

@@ -1,7 +1,7 @@
 """The firmware on the PIC18F4431: every bundled design builds, links and keeps its budgets.
 
-Built with SDCC's pic16 port and gputils (picdrive.target), timed on the PIC18
-core in gpsim (picdrive.gpsim).  Budgets: picdrive.target.BUDGETS (issue 9).
+Built with SDCC's pic16 port and gputils (picdrive.firmware.target), timed on the PIC18
+core in gpsim (picdrive.firmware.gpsim).  Budgets: picdrive.firmware.target.BUDGETS (issue 9).
 Also inspects the compiled output for hazards the host twin cannot show:
 the interrupt prologue must save the table pointer when an interrupt reads
 tables, and no runtime-library helper with static operands may be shared by
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from picdrive import codegen, gpsim, target
+from picdrive.firmware import codegen, gpsim, target
 from picdrive.paths import firmware_build_dir, repo_root
 from picdrive.profile import load_profile
 
@@ -48,7 +48,7 @@ def test_six_bundled_designs():
 FIGURES = repo_root() / "tests" / "target_figures.json"
 """The figures each bundled design measured when they were last recorded.
 
-The issue-9 budgets (picdrive.target.BUDGETS) are not met yet: no bundled
+The issue-9 budgets (picdrive.firmware.target.BUDGETS) are not met yet: no bundled
 design fits the 18F4431 under SDCC (docs/firmware.md, "Target figures").
 Until they are, this ratchet keeps every figure from growing: a build that
 measures more than its recorded figure fails.  Record again after a change

@@ -1,5 +1,5 @@
 """Bit-exact on the target (issue 9, item 4): drive_core.c compiled by SDCC's pic16 port and run
-on the PIC18 core in gpsim, against the Python model (picdrive.fixedpoint), on random vectors.
+on the PIC18 core in gpsim, against the Python model (picdrive.firmware.fixedpoint), on random vectors.
 
 The chip generates its own vectors (xorshift32, biased to int16/int32 extremes and saturation) and
 folds every output into a checksum per function (rotate-xor and a sum, both 32-bit) and a 16-bit
@@ -44,10 +44,10 @@ import subprocess
 import numpy as np
 import pytest
 
-from picdrive import codegen, fixedpoint as fx, gpsim
+from picdrive.firmware import codegen, fixedpoint as fx, gpsim
 from picdrive.paths import repo_root
 from picdrive.profile import load_profile
-from picdrive.target import build_hex
+from picdrive.firmware.target import build_hex
 
 N_VECTORS = 10_000          # per function
 CK = 100                    # vectors per checkpoint

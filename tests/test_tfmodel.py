@@ -6,8 +6,7 @@ import pytest
 from scipy import signal
 
 from picdrive.profile import load_profile
-from picdrive.tfmodel import (TF, closed_loop_tf, load_gains, load_tf, motor_tf, perturbed_loop_tf,
-                              perturbed_plant, sampled_plant, speed_quantum_rad_s, tracking_error_tf, xi_tf)
+from picdrive.models.tfmodel import TF, closed_loop_tf, load_gains, load_tf, motor_tf, perturbed_loop_tf, perturbed_plant, sampled_plant, speed_quantum_rad_s, tracking_error_tf, xi_tf
 
 K18 = 275577.36       # eq 18 as printed
 
@@ -133,14 +132,14 @@ def test_speed_quantum(duy):
 
 def test_batch_simulation_equals_law_step_simulation(duy):
     """simulate_sampled_batch (eq 1, saturated step) is law_step written for arrays (a law without
-    the current window: the batch has none; the six-step batch of picdrive.simulate has it)."""
+    the current window: the batch has none; the six-step batch of picdrive.models.simulate has it)."""
     import dataclasses
 
-    from picdrive.mixed_pid import pid_law as _pid_law
+    from picdrive.design.mixed_pid import pid_law as _pid_law
 
     def pid_law(*a):
         return dataclasses.replace(_pid_law(*a), current_limit_a=None)
-    from picdrive.tfmodel import simulate_sampled, simulate_sampled_batch
+    from picdrive.models.tfmodel import simulate_sampled, simulate_sampled_batch
     kp = np.array([0.1, 0.5, 3.0, 0.3]); ki = np.array([10.0, 40.0, 300.0, 0.0]); kd = np.array([0, 1e-3, 5e-3, 2e-3])
     ref = 2400 * math.pi / 30
     law0 = pid_law(duy, 1, 1, 0)

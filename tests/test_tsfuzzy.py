@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from picdrive.control_law import Rule, ScheduledLaw, memberships
-from picdrive.dqmodel import derivatives, dq_params, jacobian
+from picdrive.models.dqmodel import derivatives, dq_params, jacobian
 from picdrive.profile import load_profile
-from picdrive.tsfuzzy import operating_region, paper_model, rule_centres, tracking_model
+from picdrive.models.tsfuzzy import operating_region, paper_model, rule_centres, tracking_model
 
 
 @pytest.fixture(scope="module", params=["assawinchaichote2016", "duy2008"])
@@ -61,7 +61,7 @@ def test_tracking_model_deviation_is_exact(prof):
     ts = tracking_model(prof)
     p = dq_params(prof)
     reg = operating_region(prof)
-    from picdrive.dqmodel import equilibrium
+    from picdrive.models.dqmodel import equilibrium
     w0 = reg["omega_top_rad_s"]
     iq0, id0, vq0 = equilibrium(p, w0, reg["load_n_m"])
     dx = np.array([3.0, 0.05, -0.02])

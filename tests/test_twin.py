@@ -1,5 +1,5 @@
 """The twin's PIC18F4431 peripheral model and event loop, driven by the twin's
-own test firmware (hil/picdrive_hil/testfw/testfw.c, written against the
+own test firmware (tests/support/testfw/testfw.c, written against the
 register-shim contract): UART byte timing, timer interrupts and priorities,
 EEPROM unlock and write time, PCPWM override commutation against the plant
 alone, QEI counts, FLTA latching, hall faults, deliberate firmware bugs the
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from picdrive.profile import ProfileWarning, load_profile
-from picdrive_hil import reference as ref
+from support import plant_reference as ref
 from picdrive_hil.plant import plant_from_profile
-from picdrive_hil.testfw import make_twin
+from support.testfw import make_twin
 from picdrive_hil.twin import Twin, TwinError
 
 warnings.simplefilter("ignore", ProfileWarning)
@@ -343,7 +343,7 @@ def test_qei_index_mode_counts_from_the_last_index_both_ways(tmp_path):
     index pulse (forward: n mod 4 lines; backward: it wraps below the index,
     MAXCNT = 0xFFFF), IC2QEIF is set at the index and UP_DOWN follows the
     direction; the INDX pin (RA2) is high exactly on the index count."""
-    from picdrive import p18f4431
+    from picdrive.firmware import p18f4431
     from picdrive_hil import build
     from picdrive_hil.twin import BoardConfig, shim_dir
     src = tmp_path / "qeifw.c"
@@ -437,7 +437,7 @@ def test_pcpwm_duty_buffer_waits_for_udis_cleared_in_a_later_call(tmp_path):
 
 def _command(tw, name, seq, args=None, limit_s=0.1):
     """One command through the twin's UART in simulated time; returns its decoded reply."""
-    from picdrive import codec
+    from picdrive.link import codec
     tw.uart_write(codec.encode_command(name, seq, args))
     dec, t_end = codec.StreamDecoder(), tw.t + limit_s
     while tw.t < t_end:
@@ -453,8 +453,8 @@ def test_generated_firmware_with_halls_on_the_capture_pins_starts_and_runs(tmp_p
     """The documented no-encoder option (halls on IC1..IC3 = RA2..RA4, also AN2..AN4): the
     firmware reads the halls right after making the pins digital (ANSEL0); that read must see
     the pins then, not the analog 0 of the start of its init call."""
-    from picdrive import codegen
-    from picdrive import protocol as P
+    from picdrive.firmware import codegen
+    from picdrive.link import protocol as P
     from test_codegen import fixture_design, profile_file
     prof = load_profile(profile_file(tmp_path, "halls-ic", encoder_lines="0", speed_source='"hall"'))
     fw = codegen.generate(prof, fixture_design(tmp_path, prof), hall_input="ic")

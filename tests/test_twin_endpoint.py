@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 import serial
 
-from picdrive import codec
-from picdrive import protocol as P
-from picdrive.link import Link
+from picdrive.link import codec
+from picdrive.link import protocol as P
+from picdrive.link.client import Link
 from picdrive.profile import ProfileWarning
 
 warnings.simplefilter("ignore", ProfileWarning)

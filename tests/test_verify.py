@@ -10,11 +10,10 @@ import pytest
 
 from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.profile import load_profile
-from picdrive.repro2016 import PRINTED
+from picdrive.papers.repro2016 import PRINTED
 from picdrive.result import DesignResult
-from picdrive.verify import (run_sim, sampled_closed_loop, sector_mean, sim_plan,
-                             six_step_closed_loop, step_figures, verify_design)
-from picdrive.simulate import simulate_six_step
+from picdrive.design.verify import run_sim, sampled_closed_loop, sector_mean, sim_plan, six_step_closed_loop, step_figures, verify_design
+from picdrive.models.simulate import simulate_six_step
 
 
 @pytest.fixture(scope="module")

@@ -39,7 +39,7 @@ def micro():
 
 @pytest.fixture(scope="module")
 def micro_zn(micro):
-    from picdrive.design import run_design
+    from picdrive.design.dispatch import run_design
     res = run_design(micro, "zn", progress=False)
     assert res.ok, res.reasons
     return res
@@ -49,9 +49,9 @@ def micro_zn(micro):
 def test_hall_speed_meter_is_the_firmware_s(micro, micro_zn, tmp_path):
     """The verification's hall measurement has the Timer5 tick, speed constant and age limit the
     generated firmware is built with."""
-    from picdrive import codegen
+    from picdrive.firmware import codegen
     from picdrive.result import save_design
-    from picdrive.verify import speed_measurement
+    from picdrive.design.verify import speed_measurement
     path = tmp_path / "micro.zn.design.json"
     save_design(micro_zn, path)
     fw = codegen.generate(micro, str(path))
@@ -70,7 +70,7 @@ def test_halls_only_micro_motor_at_low_speed_is_judged_on_the_hall_measurement(m
     """At 3000 rpm a hall sector of the 1-pole-pair micro motor lasts 3.3 ms, longer than the 1 ms
     sample: the law sees a stale, lagging speed.  Verified on the encoder model before; the twin
     swung 1857..3345 rpm.  The verification now sees that overshoot itself."""
-    from picdrive.design import run_design
+    from picdrive.design.dispatch import run_design
     text = (MOTORS / "orbray_bms10_1003.toml").read_text().replace("reference_rpm = 20000.0", "reference_rpm = 3000.0")
     p = tmp_path / "orbray_3000.toml"
     p.write_text(text)
@@ -84,8 +84,8 @@ def test_halls_only_micro_motor_at_low_speed_is_judged_on_the_hall_measurement(m
 def test_hall_measurement_lags_and_quantises_like_the_firmware(micro, micro_zn):
     """Constant speed: the measurement is K / period in whole Timer5 ticks; from rest it reads 0
     until two edges were seen."""
-    from picdrive.simulate import simulate_six_step
-    from picdrive.verify import speed_measurement
+    from picdrive.models.simulate import simulate_six_step
+    from picdrive.design.verify import speed_measurement
     hall = speed_measurement(micro, micro_zn.law)["hall"]
     w = 2000.0
     sim = simulate_six_step(micro, micro_zn.law, t_end=0.02, ref_rpm=w * 60 / (2 * math.pi), x0=(0.0, w),
@@ -102,7 +102,7 @@ def test_hall_measurement_lags_and_quantises_like_the_firmware(micro, micro_zn):
 
 # --------------------------------------------------------------------- phase boundaries
 def test_sector_mean_never_reaches_across_a_phase_boundary(micro):
-    from picdrive.verify import sector_mean, sector_period_s
+    from picdrive.design.verify import sector_mean, sector_period_s
     ts = 1e-4
     rpm = 600.0
     n = int(round(sector_period_s(micro, rpm) / ts))
@@ -117,7 +117,7 @@ def test_sector_mean_never_reaches_across_a_phase_boundary(micro):
 def test_industrial_48v_motor_with_a_1_n_m_load_is_verified():
     """The load step leaked into the last samples of the step phase: settling read inf and the
     +-10 % R check failed on a design the twin runs within 0.1 rpm (docs/motors.md)."""
-    from picdrive.design import run_design
+    from picdrive.design.dispatch import run_design
     prof = _load(MOTORS / "industrial_310v_48v_bench.toml")
     res = run_design(prof, "zn", progress=False)
     assert res.ok, res.reasons
@@ -132,7 +132,7 @@ def test_industrial_48v_motor_with_a_1_n_m_load_is_verified():
 def test_pwm_ripple_peak_is_the_switched_circuit_s(duty, tau_over_t):
     """Against a brute-force integration of the switched RL circuit (with a back-EMF) to its
     periodic steady state."""
-    from picdrive.simulate import pwm_ripple_peak_a
+    from picdrive.models.simulate import pwm_ripple_peak_a
     T, R, V, e = 50e-6, 2.9, 4.0, 0.0        # continuous conduction (a back-EMF shifts mean and peak alike)
     L = tau_over_t * T * R
     n = 4000
@@ -161,7 +161,7 @@ def test_short_lr_winding_peak_current_includes_the_pwm_ripple(micro, micro_zn):
 
 # --------------------------------------------------------------------- fuzzy-hinf on a fast winding
 def test_fuzzy_hinf_says_why_no_certificate_exists(micro):
-    from picdrive.design import run_design
+    from picdrive.design.dispatch import run_design
     res = run_design(micro, "fuzzy-hinf", progress=False)
     assert not res.ok
     why = " ".join(res.reasons)
@@ -172,7 +172,7 @@ def test_fuzzy_hinf_says_why_no_certificate_exists(micro):
 
 def test_the_stated_bound_is_where_the_lmis_become_feasible(micro):
     """The reason's argument, checked on the solver: a pole disk just outside eps R/L is feasible."""
-    from picdrive import fuzzy_hinf
+    from picdrive.design import fuzzy_hinf
     m = micro.motor
     opts = {"rho": 1.0, "integral_weight_rad_s": (m.viscous_friction_n_m_s + m.kt_n_m_per_a * m.kb_v_s_per_rad
                                                   / m.r_line_ohm) / m.inertia_kg_m2}
@@ -187,7 +187,7 @@ def test_the_stated_bound_is_where_the_lmis_become_feasible(micro):
 # --------------------------------------------------------------------- the bridge's own limits
 def test_plugging_brakes_a_forward_turning_rotor(micro, micro_zn):
     """A negative command on a forward-turning rotor selects the reverse table: braking torque."""
-    from picdrive.simulate import simulate_six_step
+    from picdrive.models.simulate import simulate_six_step
     w0 = 700.0
     coast = simulate_six_step(micro, micro_zn.law, t_end=0.01, ref_rpm=0.0, x0=(0.0, w0), measurement="instant",
                               commutated=True, plant=None)
@@ -198,8 +198,8 @@ def test_plugging_brakes_a_forward_turning_rotor(micro, micro_zn):
 def test_short_sector_drive_cannot_hold_its_target_under_load():
     """maxon EC 45 flat, 8 pole pairs, 3000 rpm: the hall sector (0.42 ms) is shorter than L/R
     (0.45 ms) and the commutation transfers cost the torque the DC equivalent promised."""
-    from picdrive.design import run_design
-    from picdrive.verify import bridge_hold_torque
+    from picdrive.design.dispatch import run_design
+    from picdrive.design.verify import bridge_hold_torque
     prof = _load(MOTORS / "maxon_ec45flat_339281.toml")
     te, need = bridge_hold_torque(prof, prof.speed_step_rpm())
     assert te < need
@@ -216,7 +216,7 @@ def test_twin_comparator_sees_the_current_inside_the_pwm_period(micro):
     input) adds the switched current's rise above that average, as the verification does."""
     from picdrive_hil.plant import CPlant, plant_from_profile
 
-    from picdrive.simulate import pwm_ripple_peak_a
+    from picdrive.models.simulate import pwm_ripple_peak_a
     cp = CPlant(plant_from_profile(micro))
     cp.params.inertia_kg_m2 = 1e3                        # rotor held (no EMF): a pure switched RL pair
     h, d = 1.0 / micro.inverter.pwm_frequency_hz, 0.5

@@ -3,9 +3,9 @@
 For every committed design (examples/*.design.json) the firmware is generated
 and run in the twin (firmware C + PIC peripheral model + three-phase plant,
 in-process, free-running) through the verification's step and load step, and
-the verification's six-step model (picdrive.simulate.simulate_six_step via
-picdrive.verify.run_sim) runs the same; both are judged by the same figures
-(picdrive.verify.step_figures: sector-mean speed) and must agree within the
+the verification's six-step model (picdrive.models.simulate.simulate_six_step via
+picdrive.design.verify.run_sim) runs the same; both are judged by the same figures
+(picdrive.design.verify.step_figures: sector-mean speed) and must agree within the
 tolerances below, and the twin must pass the limits the verification passed.
 
 Tolerances (stated; from the agreement measured on the six committed designs,
@@ -29,7 +29,7 @@ import pytest
 from picdrive.paths import repo_root
 from picdrive.profile import ProfileWarning, load_profile
 from picdrive.result import load_design
-from picdrive.verify import VerifyConfig, run_sim, sim_plan, step_figures, twin_run
+from picdrive.design.verify import VerifyConfig, run_sim, sim_plan, step_figures, twin_run
 
 pytest.importorskip("picdrive_hil.twin")
 

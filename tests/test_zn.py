@@ -4,9 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from picdrive import zn
-from picdrive.mixed_pid import term_limits
-from picdrive.tfmodel import motor_tf, sampled_plant
+from picdrive.design import zn
+from picdrive.design.mixed_pid import term_limits
+from picdrive.models.tfmodel import motor_tf, sampled_plant
 
 PROFILES = ["duy2008", "assawinchaichote2016"]
 

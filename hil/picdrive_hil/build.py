@@ -2,7 +2,7 @@
 into a shared library, cached by content hash.
 
 The firmware is compiled with its own flags and include folders (the ones
-``picdrive.codegen.host_build`` gives, shim first) and the twin's C with the
+``picdrive.firmware.codegen.host_build`` gives, shim first) and the twin's C with the
 twin's; the objects are linked into one library.  The cache key covers every
 source and header byte, the flags and the compiler's version, so a change
 to any of them rebuilds and nothing else does.  Builds go to a temporary

@@ -132,12 +132,12 @@ def board_from_json(path: str | Path) -> BoardConfig:
 
 def firmware_group(firmware_dir: str | Path) -> build.Group:
     """Sources, include folders and flags of a generated firmware folder
-    (``picdrive.codegen.host_build``), compiled unchanged."""
+    (``picdrive.firmware.codegen.host_build``), compiled unchanged."""
     fw = Path(firmware_dir)
     if not fw.is_dir():
         raise TwinError(f"firmware folder {fw} does not exist: generate it with "
                         "'picdrive firmware --profile P --design D -o <folder>'")
-    from picdrive import codegen
+    from picdrive.firmware import codegen
     hb = codegen.host_build(fw)
     # their flags, optimised; warnings that only optimisation reveals must not stop the twin
     flags = tuple(hb["cflags"]) + ("-O2", "-Wno-error")

@@ -18,11 +18,11 @@ from .errors import PicdriveError
 
 # (module, purpose) in the order they appear in --help
 COMMAND_MODULES = [
-    "picdrive.design",        # picdrive design
-    "picdrive.report",        # picdrive report
-    "picdrive.codegen",       # picdrive firmware
+    "picdrive.design.dispatch",   # picdrive design
+    "picdrive.papers.report",        # picdrive report
+    "picdrive.firmware.codegen",       # picdrive firmware
     "picdrive_hil.cli",       # picdrive twin
-    "picdrive.console",       # picdrive console
+    "picdrive.console.session",  # picdrive console
     "picdrive.demo",          # picdrive demo
 ]
 

@@ -50,7 +50,7 @@ six-step DC-equivalent line voltage (duty = u / bus voltage; a negative u
 reverses the commutation table).  kp in V/(rad/s), ki in V/rad, kd in
 V s^2/rad, kc in V/A.
 
-The firmware's fixed-point implementation (``picdrive.fixedpoint``) and its C
+The firmware's fixed-point implementation (``picdrive.firmware.fixedpoint``) and its C
 are checked against this reference.
 """
 from __future__ import annotations

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import PicdriveError
-from .metrics import step_metrics
+from .analysis.metrics import step_metrics
 
 METHODS = ("fuzzy-hinf", "mixed-pid", "zn")
 TELEMETRY = ("speed", "setpoint", "voltage", "current")
@@ -58,7 +58,7 @@ def _say(msg: str) -> None:
 
 def redesign(profile, method: str, progress: bool):
     """Design with the options of the committed design (if any); returns (result, committed or None)."""
-    from .design import run_design
+    from .design.dispatch import run_design
     from .result import DesignError, load_design
 
     committed = None
@@ -93,7 +93,7 @@ def run_in_twin(profile, firmware_dir: Path, method: str, *, step_s: float, load
     """Speed step then load step on the twin, commanded and recorded through picdrive.link."""
     from picdrive_hil.twin import Twin
 
-    from .link import Link
+    from .link.client import Link
 
     target = profile.speed_step_rpm()
     load = profile.control.load_torque_n_m
@@ -231,7 +231,7 @@ def write_report(out: Path, profile, designs: dict, committed: dict, firmwares: 
          f"(reference {profile.control.reference_rpm:g} rpm), load step {profile.control.load_torque_n_m:g} N m.", ""]
     L += ["## 1. Designs", "",
           "Each method re-run with the options of its committed design and verified "
-          "(`picdrive.verify`); *vs committed* is the largest relative difference of any rule gain.", "",
+          "(`picdrive.design.verify`); *vs committed* is the largest relative difference of any rule gain.", "",
           "| method | variant | status | rules | kp (V/(rad/s)) | ki (V/rad) | kd (V s²/rad) | kc (V/A) | vs committed | time (s) |",
           "|---|---|---|---|---|---|---|---|---|---|"]
     for meth, r in designs.items():
@@ -273,7 +273,8 @@ def write_report(out: Path, profile, designs: dict, committed: dict, firmwares: 
 
 def run_demo(profile_ref: str = "duy2008", out_dir: str | Path = "out/demo", *, methods=METHODS,
              step_s: float = 1.0, load_s: float = 1.0, progress: bool = True) -> Path:
-    from . import codegen, outputs
+    from .firmware import codegen
+    from . import outputs
     from .profile import ProfileWarning, load_profile
     from .result import save_design
 

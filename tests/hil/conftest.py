@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from picdrive.link import Link
+from picdrive.link.client import Link
 from picdrive.result import load_design
 
 from hilbench import PROFILES, Bench, FirmwareCache, design_path, match_design, profile
@@ -75,7 +75,7 @@ def target_answers(request):
     if is_generated(target) or target.startswith("pil:"):
         return
     prof = profile(request.config.getoption("--profile"))
-    from picdrive.link import LinkError
+    from picdrive.link.client import LinkError
     try:
         with Link.open(target, expect_profile_hash=int(prof.sha256[:8], 16)):
             pass

@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from picdrive import protocol as P
-from picdrive.link import Link
-from picdrive.metrics import step_metrics
+from picdrive.link import protocol as P
+from picdrive.link.client import Link
+from picdrive.analysis.metrics import step_metrics
 from picdrive.profile import ProfileWarning, load_profile
 from picdrive.result import load_design
 
@@ -134,11 +134,11 @@ class Bench:
 
 
 def sector_speed(prof, data: np.ndarray, target: float) -> np.ndarray:
-    """The measured speed averaged over one hall sector at the target speed (picdrive.verify.sector_mean):
+    """The measured speed averaged over one hall sector at the target speed (picdrive.design.verify.sector_mean):
     the speed a six-step drive regulates; inside a sector the pair's EMF, hence the torque per ampere,
     ripples with the rotor angle (the 2016 motor under its 1 N m load: about +-2.5 % at 76 Hz with a
     PID, which no 1 kHz speed law removes).  The design's verification judges the same mean."""
-    from picdrive.verify import sector_mean
+    from picdrive.design.verify import sector_mean
     t = data["t"]
     ts = float(np.median(np.diff(t))) if t.size > 1 else 1.0 / prof.control.speed_loop_hz
     return sector_mean(prof, data["speed"].astype(float), ts, target)
@@ -178,7 +178,7 @@ class FirmwareCache:
     def get(self, profile_name: str, method: str) -> Path:
         key = (profile_name, method)
         if key not in self.dirs:
-            from picdrive import codegen
+            from picdrive.firmware import codegen
             prof = profile(profile_name)
             fw = codegen.generate(prof, str(design_path(profile_name, method)))
             self.dirs[key] = codegen.write_firmware(fw, self.root / f"{profile_name}.{method}", check=False)

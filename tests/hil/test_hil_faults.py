@@ -3,8 +3,8 @@ Each latches its fault code with the outputs off, and only the fault-clear
 command releases it."""
 import time
 
-from picdrive import protocol as P
-from picdrive.link import Link
+from picdrive.link import protocol as P
+from picdrive.link.client import Link
 
 
 def _running(b):

@@ -3,8 +3,8 @@ says, its table round-trips values, and out-of-range or read-only writes are
 NACKed without changing anything."""
 import pytest
 
-from picdrive import protocol as P
-from picdrive.link import NackError
+from picdrive.link import protocol as P
+from picdrive.link.client import NackError
 
 
 def test_handshake_identifies_the_profile_and_table(open_bench):

@@ -1,7 +1,7 @@
 """Reversal, stop and brake through the link."""
 import numpy as np
 
-from picdrive import protocol as P
+from picdrive.link import protocol as P
 
 from hilbench import step_of
 

@@ -5,7 +5,7 @@ summary; the limits come from the profile and the design's verification."""
 import numpy as np
 import pytest
 
-from picdrive import protocol as P
+from picdrive.link import protocol as P
 
 from hilbench import METHODS, PROFILES, sector_speed, step_of
 

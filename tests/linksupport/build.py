@@ -13,7 +13,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-from picdrive import protocol as P
+from picdrive.link import protocol as P
 
 HERE = Path(__file__).resolve().parent
 CACHE = Path(tempfile.gettempdir()) / f"picdrive_linksupport_{os.getuid()}"
@@ -130,7 +130,7 @@ SDCC_FLAGS = ["-mpic16", "-p18f4431", "--std-c99", "--no-warn-non-free", "--oban
 def sdcc_asm(files: dict[str, str], d: Path) -> str:
     """Compile link_fw.c for the PIC18F4431 with SDCC's pic16 port (scripts/pic_toolchain.sh installs
     it); returns the generated assembly."""
-    from picdrive.p18f4431 import render_sdcc_device
+    from picdrive.firmware.p18f4431 import render_sdcc_device
     sdcc = SDCC_HOME / "bin" / "sdcc"
     if not sdcc.exists():
         raise RuntimeError(f"SDCC pic16 not found at {sdcc}: run scripts/pic_toolchain.sh")

@@ -23,7 +23,7 @@ import threading
 import time
 from pathlib import Path
 
-from picdrive import protocol as P
+from picdrive.link import protocol as P
 
 from . import build
 

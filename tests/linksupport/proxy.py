@@ -7,7 +7,7 @@ import socket
 import threading
 from typing import Callable
 
-from picdrive import codec
+from picdrive.link import codec
 
 # hook(frame) -> bytes to send instead (b"" drops it, None keeps it)
 Hook = Callable[[codec.Frame], "bytes | None"]

@@ -1,6 +1,6 @@
 /* BLDC plant: three-phase wye winding, back-EMF, six-switch inverter with
  * body diodes, rotor mechanics.  docs/twin.md "Plant" gives the equations;
- * hil/picdrive_hil/reference.py is the scipy model of the same equations
+ * tests/support/plant_reference.py is the scipy model of the same equations
  * that the tests compare this against.
  *
  * Phase x (a, b, c):   L di_x/dt = v_x - v_n - e_x - R i_x,   sum i_x = 0
@@ -370,7 +370,7 @@ static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3
             /* the step is the PWM-period average; the switched current of a PWM'd high side rises
                above it inside the period: the periodic RL solution of the pair (Vbus for d h, 0 for
                the rest, tau = L/R) peaks (Vbus/2R) ((1-a)/(1-ab) - d) above its mean
-               (picdrive.simulate.pwm_ripple_peak_a); the comparator sees that peak */
+               (picdrive.models.simulate.pwm_ripple_peak_a); the comparator sees that peak */
             double tau = p->l_phase_h / p->r_phase_ohm;
             double a = exp(-hi * h / tau), b = exp(-(1.0 - hi) * h / tau);
             double pk = i1[x] + vbus / (2.0 * p->r_phase_ohm) * ((1.0 - a) / (1.0 - a * b) - hi);

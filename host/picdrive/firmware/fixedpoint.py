@@ -1,0 +1,1221 @@
+"""Fixed-point plan of the firmware and a bit-exact Python model of its arithmetic.
+
+The firmware runs :mod:`picdrive.control_law` (the float reference) in
+integers.  :func:`plan_fixed_point` chooses every Q format from the design's
+numbers with headroom, quantises every coefficient and reports its error,
+and refuses what cannot be represented.  The functions below the plan
+(:func:`law_step`, :func:`core_step`, :func:`speed_encoder`...) are the
+Python model of the C in ``firmware_templates/drive_core.c.j2``, operation
+for operation: the tests run both on the same random vectors and require 0
+LSB difference.
+
+Formats (``Q n`` = integer with LSB 2^-n of the unit):
+
+======================  =======  ======================================================
+quantity                type     format
+======================  =======  ======================================================
+speed, setpoint, premise int16   Q ``qs`` rad/s (mechanical)
+output u, limits, P, D   int16 / int32  Q ``qu`` V
+integrator               int32   Q ``qi`` = ``qu`` + 16 V (less when +-I_lim needs it)
+current                  int16   ADC counts (10 bit, 5 V reference), signed by direction
+kp                       int16   Q ``q_kp`` V/(rad/s)
+ki Ts                    int16   Q ``q_kits`` V/(rad/s)  (ki times the sample time)
+kd / Ts                  int16   Q ``q_kdts`` V/(rad/s)  (kd over the sample time)
+kc                       int16   Q ``q_kc`` V per ADC count
+setpoint weight b        int16   Q14 (0 .. 2)
+D filter coefficient     uint16  Q15, ``Ts / (Ts + 1/(2 pi f))``
+memberships              int16   Q12 (4096 = 1)
+======================  =======  ======================================================
+
+Arithmetic rules (both in C and here): products of two 16-bit values are
+formed in 32 bits; right shifts are floor divisions by powers of two
+(``asr32``: correct for negative numbers without relying on
+implementation-defined ``>>``); left shifts saturate; 32-bit sums saturate;
+16-bit results saturate.  Gain Q formats leave a factor 2 of headroom above
+the largest design gain so that gains can be raised at run time.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from ..errors import PicdriveError
+
+__all__ = ["FixedPointError", "Coef", "FixedPointPlan", "plan_fixed_point", "ParamSpec",
+           "param_specs", "signal_specs", "INT16_MIN", "INT16_MAX", "INT32_MIN", "INT32_MAX",
+           "sat16", "sat32", "asr32", "shl_sat32", "shift32", "mul_q15", "premise_k",
+           "law_step", "LawState", "LawParams", "speed_encoder", "speed_hall", "duty_counts",
+           "CoreState", "core_control", "core_reset", "commutate", "law_params_from_plan"]
+
+INT16_MIN, INT16_MAX = -32768, 32767
+INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
+FCY_HZ = 10_000_000
+ADC_COUNTS = 1024          # 10-bit converter, code = Vin / Vref * 1024
+ADC_VREF_V = 5.0
+MU_ONE = 4096              # Q12 membership
+REL_ERR_LIMIT = 0.01       # largest accepted quantisation error of a coefficient
+GAIN_HEADROOM = 2.0
+MT_K_MIN = 65538           # smallest M/T speed constant whose CORE_MT_DMAX = (2^32 - 1) // K is <= 65534
+
+
+class FixedPointError(PicdriveError, ValueError):
+    """A coefficient or range cannot be represented in the firmware's formats."""
+
+
+# ---------------------------------------------------------------------------
+# Integer primitives (mirror of the C helpers in drive_core.c)
+# ---------------------------------------------------------------------------
+def sat16(x: int) -> int:
+    return INT16_MIN if x < INT16_MIN else INT16_MAX if x > INT16_MAX else x
+
+
+def sat32(x: int) -> int:
+    return INT32_MIN if x < INT32_MIN else INT32_MAX if x > INT32_MAX else x
+
+
+def asr32(x: int, n: int) -> int:
+    """floor(x / 2^n)."""
+    return x >> n
+
+
+def shl_sat32(x: int, n: int) -> int:
+    return sat32(x << n)
+
+
+def shift32(x: int, s: int) -> int:
+    """x * 2^-s: floor right shift for s >= 0, saturating left shift for s < 0."""
+    return asr32(x, s) if s >= 0 else shl_sat32(x, -s)
+
+
+def mul_q15(x: int, a: int) -> int:
+    """floor(x * a / 2^15) for int32 x and 0 <= a <= 32768."""
+    return (x * a) >> 15
+
+
+def premise_k(n1: int, n2: int, n_rules: int, mu_sh: int) -> int:
+    """Membership slope: ((r - 1) << (12 + mu_sh)) / (n2 - n1), truncated, at most 65535."""
+    if n_rules <= 1:
+        return 0
+    span = n2 - n1
+    if span <= 0:
+        return 0xFFFF
+    k = ((n_rules - 1) << (12 + mu_sh)) // span
+    return min(k, 0xFFFF)
+
+
+# ---------------------------------------------------------------------------
+# The plan
+# ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Coef:
+    """One quantised coefficient: raw = round(value * 2^q)."""
+
+    name: str
+    value: float
+    q: int
+    raw: int
+    unit: str
+    source: str
+
+    @property
+    def quantised(self) -> float:
+        return self.raw * 2.0 ** -self.q
+
+    @property
+    def rel_error(self) -> float:
+        return 0.0 if self.value == 0 else abs(self.quantised - self.value) / abs(self.value)
+
+
+@dataclass(frozen=True)
+class FixedPointPlan:
+    n_rules: int
+    ts_s: float
+    qs: int
+    qu: int
+    qi: int
+    q_kp: int
+    q_kits: int
+    q_kdts: int
+    q_kc: int
+    shift_p: int
+    shift_i: int
+    shift_d: int
+    shift_c: int
+    mu_sh: int
+    kp: tuple
+    kits: tuple
+    kdts: tuple
+    kc: tuple
+    premise_lo: int
+    premise_hi: int
+    b_q14: int
+    dfilt_a: int                 # 0 = no derivative filter
+    u_min: int
+    u_max: int
+    u_limit: int                 # |u| the bridge can apply (bus x max duty), raw
+    i_lim: int                   # integrator range +-I_lim, Q qi
+    # speed measurement
+    speed_source: str            # "encoder" | "hall"
+    pdec: int                    # QEI velocity postscaler (1: Timer5 restarts at every count)
+    ps5: int
+    k_speed: int
+    ts_ticks: int                # speed-loop period in Timer5 ticks (encoder M/T method)
+    counts_per_rev: int
+    speed_res_at_max: float      # relative resolution at the top speed
+    speed_min_rpm: float         # lowest measurable speed
+    # output
+    kduty: int
+    duty_sh: int
+    pdc_max: int
+    duty_full: int
+    # current
+    counts_per_a: float
+    ilim: int
+    itrip: int
+    cap_step: int
+    kb: int                      # back-EMF constant, Q q_kb V/(rad/s) (current-limit voltage window)
+    q_kb: int
+    shift_kb: int
+    r_cnt: int                   # line resistance per ADC count of current, Q q_r V/count
+    q_r: int
+    shift_r: int
+    # timing
+    t2_pre: int
+    t2_post: int
+    pr2: int
+    loop_div: int
+    tcy_per_tick: int
+    loop_hz: float
+    stall_ms: int
+    link_timeout_ms: int
+    bus_voltage_v: float
+    coefs: tuple = field(default=())
+    notes: tuple = field(default=())
+
+    @property
+    def speed_lsb_rad_s(self) -> float:
+        return 2.0 ** -self.qs
+
+    def to_speed_raw(self, w_rad_s: float) -> int:
+        return sat16(math.floor(w_rad_s * 2 ** self.qs))
+
+    def lines(self) -> list[str]:
+        out = [
+            f"Q formats   speed Q{self.qs} ({2 ** -self.qs:.4g} rad/s, range +-{32768 * 2 ** -self.qs:.0f} rad/s), "
+            f"u Q{self.qu} ({2 ** -self.qu:.3g} V), integrator Q{self.qi}, kp Q{self.q_kp}, ki*Ts Q{self.q_kits}, "
+            f"kd/Ts Q{self.q_kdts}, kc Q{self.q_kc} (V/count)",
+            f"shifts      P {self.shift_p}, I {self.shift_i}, D {self.shift_d}, C {self.shift_c}; memberships Q12, "
+            f"slope shift {self.mu_sh}",
+        ]
+        for c in self.coefs:
+            out.append(f"  {c.name:<18} {c.value:>13.6g} {c.unit:<10} -> {c.raw:>6} x 2^-{c.q:<3} = "
+                       f"{c.quantised:.6g} (error {100 * c.rel_error:.4f} %)  [{c.source}]")
+        if self.speed_source == "encoder":
+            out.append(f"speed       encoder M/T: counts per sample over the edge-to-edge time (QEI x4, "
+                       f"{self.counts_per_rev} counts/rev; Timer5 1:{self.ps5} restarted at every count), "
+                       f"extrapolated half a sample: time resolution {100 * self.speed_res_at_max:.3f} % of a sample, "
+                       f"lowest measurable {self.speed_min_rpm:.1f} rpm")
+        else:
+            out.append(f"speed       hall-edge period, Timer5 1:{self.ps5}: resolution {100 * self.speed_res_at_max:.3f} % "
+                       f"at the top speed, lowest measurable {self.speed_min_rpm:.1f} rpm")
+        out.append(f"speed loop  Timer2 1:{self.t2_pre} x (PR2 {self.pr2} + 1) x 1:{self.t2_post}"
+                   f"{'' if self.loop_div == 1 else f' x {self.loop_div} interrupts'}: {self.loop_hz:.3f} Hz")
+        out.append(f"current     {self.counts_per_a:.2f} counts/A; limit {self.ilim} counts; ADC trip {self.itrip} counts")
+        for n in self.notes:
+            out.append(f"note        {n}")
+        return out
+
+
+def _q_for(max_abs: float, headroom: float) -> int:
+    """Largest q with max_abs * headroom * 2^q <= 32767."""
+    return math.floor(math.log2(INT16_MAX / (max_abs * headroom)))
+
+
+def _quantise_group(name: str, values: list[float], ref: float, unit: str, source: str,
+                    scale_label: str) -> tuple[int, list[Coef]]:
+    m = max(abs(v) for v in values)
+    q = _q_for(m if m > 0 else ref, GAIN_HEADROOM)
+    coefs = []
+    for j, v in enumerate(values, 1):
+        raw = round(v * 2 ** q)
+        c = Coef(f"rule{j}_{name}", v, q, raw, unit, source)
+        if abs(raw) > INT16_MAX:
+            raise FixedPointError(f"rule {j} {scale_label} = {v:.6g} {unit} does not fit int16 in Q{q}")
+        if c.rel_error > REL_ERR_LIMIT:
+            raise FixedPointError(
+                f"rule {j} {scale_label} = {v:.6g} {unit} cannot be represented: next to the largest "
+                f"{scale_label} of the rules ({m:.6g} {unit}) it quantises to {c.quantised:.6g} "
+                f"(error {100 * c.rel_error:.2f} % > {100 * REL_ERR_LIMIT:g} %); the rules' gains differ "
+                "by too much for one int16 format - redesign with closer rule gains or set this one to 0")
+        coefs.append(c)
+    return q, coefs
+
+
+def _timer2(loop_hz: float) -> tuple[int, int, int, int, int, float]:
+    """Timer2 prescale, postscale, PR2 and interrupts per speed-loop sample.
+
+    The fewest interrupts per sample whose period is within 1e-4 of
+    Fcy / loop_hz (exact for rates that divide 10 MHz), else the closest.
+    """
+    target = FCY_HZ / loop_hz
+    overall = None
+    for div in range(1, 257):
+        best = None
+        for pre in (1, 4, 16):
+            for post in range(1, 17):
+                pr = round(target / (div * pre * post)) - 1
+                if not 0 <= pr <= 255:
+                    continue
+                ticks = pre * post * (pr + 1)
+                err = abs(ticks * div - target) / target
+                key = (round(err, 9), -(pr + 1), pre)
+                if best is None or key < best[0]:
+                    best = (key, pre, post, pr, div, ticks)
+        if best is None:
+            continue
+        if best[0][0] <= 1e-4:
+            overall = best
+            break
+        if overall is None or best[0][0] < overall[0][0]:
+            overall = best
+    if overall is None:
+        raise FixedPointError(f"control.speed_loop_hz = {loop_hz:g} Hz cannot be paced by Timer2")
+    _, pre, post, pr, div, ticks = overall
+    achieved = FCY_HZ / (ticks * div)
+    if abs(achieved - loop_hz) / loop_hz > 0.005:
+        raise FixedPointError(f"control.speed_loop_hz = {loop_hz:g} Hz: Timer2 reaches {achieved:.3f} Hz at best "
+                              "(> 0.5 % off); choose a rate that divides 10 MHz")
+    return pre, post, pr, div, ticks, achieved
+
+
+def speed_q(w_max_rad_s: float) -> int:
+    """Q format of the speed: the largest q (at most 14) that holds 1.25 x the top speed in 16 bits."""
+    return min(_q_for(w_max_rad_s, 1.25), 14)
+
+
+def profile_top_speed_rad_s(profile, premise_hi_rad_s: float | None = None) -> float:
+    """The top speed the firmware's speed format must hold, rad/s: the speed range, the reference and the
+    fuzzy premise's upper end (a design's, or the profile's ``design.premise_rpm`` with > 1 rule)."""
+    co, rpm = profile.control, 2 * math.pi / 60
+    if premise_hi_rad_s is None and int(profile.design.get("rules", 1)) > 1:
+        premise_hi_rad_s = float(profile.design["premise_rpm"][1]) * rpm
+    return max(co.speed_max_rpm * rpm, co.reference_rpm * rpm, premise_hi_rad_s or 0.0)
+
+
+def encoder_speed_constant(encoder_lines: int, ts: float, qs: int, w_max_rad_s: float) -> tuple[int, int]:
+    """Timer5 prescaler and the M/T speed constant K (speed Q qs = K x counts / ticks) of an encoder.
+
+    The firmware saturates a count step above CORE_MT_DMAX = (2^32 - 1) // K, held in 16-bit
+    arithmetic: K must be at least 65538 (CORE_MT_DMAX <= 65534), so a fine encoder on a fast
+    motor (x4 counts per revolution, 2^qs LSB per rad/s) is refused here, naming the limit."""
+    cpr = 4 * encoder_lines
+    ps5 = next((c for c in (1, 2, 4, 8) if 65536 * c >= 2 * ts * FCY_HZ), 0)
+    if not ps5:
+        raise FixedPointError(f"speed loop period {ts * 1e3:g} ms is longer than half a Timer5 overflow at 1:8 "
+                              f"({65536 * 8 / FCY_HZ * 1e3 / 2:.1f} ms); raise control.speed_loop_hz")
+    k_speed = round(2 * math.pi * FCY_HZ / (ps5 * cpr) * 2 ** qs)
+    if k_speed < MT_K_MIN:
+        lines_max = math.floor(2 * math.pi * FCY_HZ * 2 ** qs / (ps5 * MT_K_MIN) / 4)
+        rpm_max = 0.0
+        for q in range(qs + 1, 15):       # the top speed whose finer speed format makes K large enough
+            if round(2 * math.pi * FCY_HZ / (ps5 * cpr) * 2 ** q) >= MT_K_MIN:
+                rpm_max = INT16_MAX / (1.25 * 2 ** q) * 60 / (2 * math.pi)
+                break
+        alt = (f", or keep it and bring the top speed (control.speed_max_rpm, reference_rpm, design.premise_rpm) "
+               f"down to {math.floor(rpm_max)} rpm") if rpm_max > 0 else ""
+        raise FixedPointError(
+            f"sensors.encoder_lines = {encoder_lines} at a top speed of {w_max_rad_s * 60 / (2 * math.pi):.0f} rpm "
+            f"is beyond the firmware's 16-bit M/T speed arithmetic (speed constant K = {k_speed} < {MT_K_MIN}, "
+            f"CORE_MT_DMAX = {0xFFFFFFFF // max(k_speed, 1)} > 65534): use an encoder of at most {lines_max} "
+            f"lines{alt}")
+    return ps5, k_speed
+
+
+def check_profile_arithmetic(profile) -> None:
+    """Refuse, before any design work, a profile the firmware's fixed-point plan cannot hold
+    (the encoder's speed arithmetic); :func:`plan_fixed_point` checks the same with the design's law."""
+    se = profile.sensors
+    if se.speed_source == "encoder":
+        w_max = profile_top_speed_rad_s(profile)
+        encoder_speed_constant(se.encoder_lines, 1.0 / profile.control.speed_loop_hz, speed_q(w_max), w_max)
+
+
+def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
+    """Choose the formats, quantise the law, plan speed measurement, duty and timing.
+
+    ``law`` is a :class:`picdrive.control_law.ScheduledLaw`; ``pwm_plan`` a
+    :class:`picdrive.pcpwm.PwmPlan`.  Raises :class:`FixedPointError` naming
+    the coefficient and the fix when something cannot be represented.
+    """
+    inv, se, co, mo = profile.inverter, profile.sensors, profile.control, profile.motor
+    ts = law.sample_time_s
+    loop_hz = co.speed_loop_hz
+    if abs(ts * loop_hz - 1.0) > 1e-6:
+        raise FixedPointError(f"the design samples at {1 / ts:g} Hz but control.speed_loop_hz = {loop_hz:g} Hz: "
+                              "re-run 'picdrive design' on this profile")
+    notes: list[str] = []
+    w_max = profile_top_speed_rad_s(profile, law.premise_rad_s[1] if law.n_rules > 1 else 0.0)
+    qs = speed_q(w_max)
+    u_bridge = inv.bus_voltage_v * pwm_plan.max_duty
+    u_abs = max(abs(law.u_min_v), abs(law.u_max_v), u_bridge)
+    qu = _q_for(u_abs, 2.0)
+    if qu < -8:
+        raise FixedPointError(f"output limits of {u_abs:g} V are too large to represent")
+    # integrator: its own range +-I_lim (ScheduledLaw.i_lim_v), 16 bits finer than u where that fits
+    i_lim_v = law.i_lim_v
+    qi = min(qu + 16, math.floor(math.log2((INT32_MAX - 1) / i_lim_v)))
+    if qi < qu:
+        raise FixedPointError(f"integrator range +-{i_lim_v:g} V (integrator_limit_v) does not fit 32 bits at the "
+                              f"output's resolution {2 ** -qu:g} V; lower integrator_limit_v")
+    counts_per_a = inv.current_sense_v_per_a * ADC_COUNTS / ADC_VREF_V
+    coefs: list[Coef] = []
+
+    rules = law.rules
+    # reference magnitudes for groups that are all zero (their parameter range)
+    q_kp, c_kp = _quantise_group("kp", [r.kp for r in rules], u_abs / w_max, "V/(rad/s)",
+                                 "design law rules[j].kp", "kp")
+    q_kits, c_ki = _quantise_group("ki*Ts", [r.ki * ts for r in rules], u_abs * ts / w_max, "V/(rad/s)",
+                                   "design ki x Ts", "ki x Ts")
+    q_kdts, c_kd = _quantise_group("kd/Ts", [r.kd / ts for r in rules], u_abs / w_max, "V/(rad/s)",
+                                   "design kd / Ts", "kd / Ts")
+    q_kc, c_kc = _quantise_group("kc", [r.kc / counts_per_a for r in rules],
+                                 u_abs / max(1.0, inv.overcurrent_trip_a * counts_per_a), "V/count",
+                                 "design kc / (counts per A)", "kc")
+    coefs += c_kp + c_ki + c_kd + c_kc
+    shift_p = q_kp + qs - qu
+    shift_i = q_kits + qs - qi
+    shift_d = q_kdts + qs - qu
+    shift_c = q_kc - qu
+    for name, s, group in (("kp", shift_p, c_kp), ("ki", shift_i, c_ki), ("kd", shift_d, c_kd),
+                           ("kc", shift_c, c_kc)):
+        nonzero = any(c.raw for c in group)
+        if s > 31:
+            if nonzero:
+                raise FixedPointError(
+                    f"{name} gains ({', '.join(f'{c.value:.3g}' for c in group)}) are too small to act: one "
+                    f"speed LSB times the gain is below 2^-31 of the output LSB; check the design's units")
+        if s < -15:
+            raise FixedPointError(f"{name} gains ({', '.join(f'{c.value:.3g}' for c in group)}) are too large: "
+                                  "any error saturates the output; check the design's units")
+    shift_p, shift_i, shift_d, shift_c = (min(s, 31) for s in (shift_p, shift_i, shift_d, shift_c))
+
+    b = law.setpoint_weight
+    if not 0.0 <= b < 2.0:
+        raise FixedPointError(f"setpoint weight b = {b:g} outside [0, 2): cannot be represented in Q14")
+    b_q14 = min(INT16_MAX, round(b * 16384))
+    coefs.append(Coef("setpoint_weight", b, 14, b_q14, "1", "design law setpoint_weight"))
+    if law.derivative_filter_hz:
+        tf = 1.0 / (2 * math.pi * law.derivative_filter_hz)
+        a = ts / (ts + tf)
+        dfilt_a = max(1, round(a * 32768))
+        coefs.append(Coef("dfilter_a", a, 15, dfilt_a, "1", "Ts / (Ts + 1/(2 pi f_D))"))
+    else:
+        dfilt_a = 0
+
+    n1, n2 = law.premise_rad_s
+    p_lo = sat16(max(0, round(n1 * 2 ** qs)))
+    p_hi = sat16(max(0, round(n2 * 2 ** qs)))
+    mu_sh = 0
+    if law.n_rules > 1:
+        if p_hi - p_lo < 16:
+            raise FixedPointError(f"premise range [{n1:g}, {n2:g}] rad/s is narrower than 16 speed LSBs")
+        # slope k = ((r-1) << (12 + sh)) / span kept <= 4095 for the design's span, so that the
+        # premise can be narrowed 16-fold at run time before k saturates at 65535
+        span = p_hi - p_lo
+        for sh in range(16, -1, -1):
+            if ((law.n_rules - 1) << (12 + sh)) // span <= 4095:
+                mu_sh = sh
+                break
+        coefs.append(Coef("premise_lo", n1, qs, p_lo, "rad/s", "design premise_rad_s[0]"))
+        coefs.append(Coef("premise_hi", n2, qs, p_hi, "rad/s", "design premise_rad_s[1]"))
+    u_limit = min(INT16_MAX, math.floor(u_bridge * 2 ** qu))
+    u_min = max(-u_limit, round(law.u_min_v * 2 ** qu))
+    u_max = min(u_limit, round(law.u_max_v * 2 ** qu))
+    if law.u_max_v > u_bridge * (1 + 1e-9) or law.u_min_v < -u_bridge * (1 + 1e-9):
+        notes.append(f"design output limits [{law.u_min_v:.4g}, {law.u_max_v:.4g}] V exceed the bridge's "
+                     f"+-{u_bridge:.4g} V (bus x max duty): clamped")
+    if not u_min < u_max:
+        raise FixedPointError(f"output limits [{law.u_min_v:g}, {law.u_max_v:g}] V are empty after quantisation")
+    coefs.append(Coef("u_min", law.u_min_v, qu, u_min, "V", "design u_min_v (within bus x max duty)"))
+    coefs.append(Coef("u_max", law.u_max_v, qu, u_max, "V", "design u_max_v (within bus x max duty)"))
+    i_lim = min(INT32_MAX, round(i_lim_v * 2 ** qi))
+    coefs.append(Coef("i_lim", i_lim_v, qi, i_lim, "V", "design integrator_limit_v (or max |u limit|)"))
+
+    # ---- speed measurement ----
+    if se.speed_source == "encoder":
+        # M/T method: speed = counts in the sample / time between the last count edges of this
+        # sample and of the previous one (the average over about one sample), extrapolated half a
+        # sample with the previous average (the speed at the sample instant, which the design's
+        # law assumes).  The QEI in velocity mode with PDEC 1:1 and CAP1REN restarts Timer5 at
+        # every count, so TMR5 read at a sample is the time since the last edge.
+        cpr = 4 * se.encoder_lines
+        pdec = 1
+        ps5, k_speed = encoder_speed_constant(se.encoder_lines, ts, qs, w_max)
+        ts_ticks = round(ts * FCY_HZ / ps5)
+        period_max = ts_ticks
+        speed_min_rpm = FCY_HZ / (ps5 * 65536) * 60 / cpr
+        counts = cpr
+    else:
+        edges = 6 * mo.pole_pairs
+        eps_max = co.speed_max_rpm / 60 * edges
+        pdec = 1
+        ps5 = 8
+        for cand in (1, 2, 4, 8):
+            if FCY_HZ / (cand * 65536) * 60 / edges <= 0.05 * co.speed_max_rpm:
+                ps5 = cand
+                break
+        k_speed = round(2 * math.pi / edges * FCY_HZ / ps5 * 2 ** qs)
+        ts_ticks = round(ts * FCY_HZ / ps5)
+        period_max = FCY_HZ / (ps5 * eps_max)
+        speed_min_rpm = FCY_HZ / (ps5 * 65536) * 60 / edges
+        counts = edges
+    if k_speed >= 1 << 32:
+        raise FixedPointError("speed constant does not fit 32 bits")
+    res = 1.0 / period_max
+
+    # ---- duty ----
+    full = pwm_plan.period.duty_full_counts
+    duty_sh = 0
+    for sh in range(31, -1, -1):
+        k = full * 2.0 ** (sh - qu) / inv.bus_voltage_v
+        if k <= 0xFFFF:
+            duty_sh = sh
+            break
+    kduty = round(full * 2.0 ** (duty_sh - qu) / inv.bus_voltage_v)
+    coefs.append(Coef("kduty", full / inv.bus_voltage_v * 2.0 ** -qu, duty_sh, kduty, "counts/LSB",
+                      "4 (PTPER + 1) / bus_voltage_v"))
+
+    # ---- current ----
+    ilim = min(1023, round(inv.current_limit_a * counts_per_a))
+    itrip_f = inv.overcurrent_trip_a * counts_per_a
+    itrip = 1024 if itrip_f >= 1023.5 else round(itrip_f)
+    if itrip == 1024:
+        notes.append(f"overcurrent_trip_a = {inv.overcurrent_trip_a:g} A is beyond the ADC range "
+                     f"({1023 / counts_per_a:.3g} A): only FLTA protects above it")
+    cap_step = max(1, round(u_limit * ts / 0.010))
+    # current-limit voltage window: |i| <= I_lim in steady state while u stays within
+    # Kb w -+ R_line I_lim (the DC-equivalent motor; no overshoot for an RL circuit driven from below)
+    kb_v = mo.kb_v_s_per_rad
+    q_kb = _q_for(kb_v, 1.0)
+    kb_raw = round(kb_v * 2 ** q_kb)
+    r_cnt_v = mo.r_line_ohm / counts_per_a
+    q_r = _q_for(r_cnt_v, 1.0)
+    r_raw = round(r_cnt_v * 2 ** q_r)
+    shift_kb, shift_r = q_kb + qs - qu, q_r - qu
+    if not (-15 <= shift_kb <= 31 and -15 <= shift_r <= 31):
+        raise FixedPointError(f"motor constants Kb = {kb_v:g} V s/rad, R = {mo.r_line_ohm:g} ohm cannot be "
+                              "represented for the current-limit window")
+    coefs.append(Coef("kb", kb_v, q_kb, kb_raw, "V/(rad/s)", "motor kb_v_s_per_rad (current-limit window)"))
+    coefs.append(Coef("r_per_count", r_cnt_v, q_r, r_raw, "V/count", "motor r_line_ohm / counts per A"))
+
+    pre, post, pr2, div, ticks, achieved = _timer2(loop_hz)
+    return FixedPointPlan(
+        n_rules=law.n_rules, ts_s=ts, qs=qs, qu=qu, qi=qi, q_kp=q_kp, q_kits=q_kits, q_kdts=q_kdts, q_kc=q_kc,
+        shift_p=shift_p, shift_i=shift_i, shift_d=shift_d, shift_c=shift_c, mu_sh=mu_sh,
+        kp=tuple(c.raw for c in c_kp), kits=tuple(c.raw for c in c_ki), kdts=tuple(c.raw for c in c_kd),
+        kc=tuple(c.raw for c in c_kc), premise_lo=p_lo, premise_hi=p_hi, b_q14=b_q14, dfilt_a=dfilt_a,
+        u_min=u_min, u_max=u_max, u_limit=u_limit, i_lim=i_lim,
+        speed_source=se.speed_source, pdec=pdec, ps5=ps5, k_speed=k_speed, ts_ticks=ts_ticks, counts_per_rev=counts,
+        speed_res_at_max=res, speed_min_rpm=speed_min_rpm,
+        kduty=kduty, duty_sh=duty_sh, pdc_max=pwm_plan.pdc_max, duty_full=full,
+        counts_per_a=counts_per_a, ilim=ilim, itrip=itrip, cap_step=cap_step,
+        kb=kb_raw, q_kb=q_kb, shift_kb=shift_kb, r_cnt=r_raw, q_r=q_r, shift_r=shift_r,
+        t2_pre=pre, t2_post=post, pr2=pr2, loop_div=div, tcy_per_tick=ticks, loop_hz=achieved,
+        stall_ms=int(round(co.stall_timeout_ms)), link_timeout_ms=int(round(profile.uart.link_timeout_ms)),
+        bus_voltage_v=inv.bus_voltage_v, coefs=tuple(coefs), notes=tuple(notes))
+
+
+# ---------------------------------------------------------------------------
+# Protocol-facing: parameter and signal scaling
+# ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ParamSpec:
+    """A parameter or signal as the firmware stores it: engineering = raw x scale."""
+
+    name: str
+    ctype: str
+    scale: float
+    unit: str
+    min_raw: int
+    max_raw: int
+    default_raw: int
+
+    def to_raw(self, value: float) -> int:
+        raw = round(value / self.scale)
+        return min(max(raw, self.min_raw), self.max_raw)
+
+    def to_eng(self, raw: int) -> float:
+        return raw * self.scale
+
+
+def param_specs(plan: FixedPointPlan, profile) -> dict[str, ParamSpec]:
+    """Scales, limits and defaults of the writable parameters (protocol overrides)."""
+    rpm_per_lsb = 2.0 ** -plan.qs * 60 / (2 * math.pi)
+    smax = min(INT16_MAX, round(profile.control.speed_max_rpm / rpm_per_lsb))
+    out: dict[str, ParamSpec] = {
+        "speed_setpoint": ParamSpec("speed_setpoint", "int16", rpm_per_lsb, "rpm", -smax, smax, 0),
+        "controller": ParamSpec("controller", "uint8", 1.0, "enum", 0, 1, 0 if plan.n_rules == 1 else 1),
+    }
+    for j in range(plan.n_rules):
+        out[f"rule{j + 1}_kp"] = ParamSpec(f"rule{j + 1}_kp", "int16", 2.0 ** -plan.q_kp, "V/(rad/s)",
+                                           INT16_MIN, INT16_MAX, plan.kp[j])
+        out[f"rule{j + 1}_ki"] = ParamSpec(f"rule{j + 1}_ki", "int16", 2.0 ** -plan.q_kits / plan.ts_s, "V/rad",
+                                           INT16_MIN, INT16_MAX, plan.kits[j])
+        out[f"rule{j + 1}_kd"] = ParamSpec(f"rule{j + 1}_kd", "int16", 2.0 ** -plan.q_kdts * plan.ts_s,
+                                           "V s^2/rad", INT16_MIN, INT16_MAX, plan.kdts[j])
+        out[f"rule{j + 1}_kc"] = ParamSpec(f"rule{j + 1}_kc", "int16", 2.0 ** -plan.q_kc * plan.counts_per_a,
+                                           "V/A", INT16_MIN, INT16_MAX, plan.kc[j])
+    out["premise_low"] = ParamSpec("premise_low", "int16", rpm_per_lsb, "rpm", 0, INT16_MAX, plan.premise_lo)
+    out["premise_high"] = ParamSpec("premise_high", "int16", rpm_per_lsb, "rpm", 0, INT16_MAX, plan.premise_hi)
+    out["setpoint_weight"] = ParamSpec("setpoint_weight", "int16", 2.0 ** -14, "1", 0, INT16_MAX, plan.b_q14)
+    out["u_min"] = ParamSpec("u_min", "int16", 2.0 ** -plan.qu, "V", -plan.u_limit, 0, plan.u_min)
+    out["u_max"] = ParamSpec("u_max", "int16", 2.0 ** -plan.qu, "V", 0, plan.u_limit, plan.u_max)
+    out["current_limit"] = ParamSpec("current_limit", "int16", 1.0 / plan.counts_per_a, "A", 0, 1023, plan.ilim)
+    out["accel_limit"] = ParamSpec("accel_limit", "uint16", rpm_per_lsb / plan.ts_s, "rpm/s", 0, 65535, 0)
+    out["link_timeout"] = ParamSpec("link_timeout", "uint16", 1.0, "ms", 20, 60000, plan.link_timeout_ms)
+    out["stall_timeout"] = ParamSpec("stall_timeout", "uint16", 1.0, "ms", 10, 60000, plan.stall_ms)
+    return out
+
+
+def signal_specs(plan: FixedPointPlan) -> dict[str, ParamSpec]:
+    """Scales of the telemetry signals (read-only)."""
+    rpm_per_lsb = 2.0 ** -plan.qs * 60 / (2 * math.pi)
+    v = 2.0 ** -plan.qu
+    return {
+        "speed": ParamSpec("speed", "int16", rpm_per_lsb, "rpm", INT16_MIN, INT16_MAX, 0),
+        "setpoint": ParamSpec("setpoint", "int16", rpm_per_lsb, "rpm", INT16_MIN, INT16_MAX, 0),
+        "voltage": ParamSpec("voltage", "int16", v, "V", INT16_MIN, INT16_MAX, 0),
+        "current": ParamSpec("current", "int16", 1.0 / plan.counts_per_a, "A", -1023, 1023, 0),
+        "integrator": ParamSpec("integrator", "int16", v, "V", INT16_MIN, INT16_MAX, 0),
+        "duty": ParamSpec("duty", "int16", 1.0, "counts", -plan.duty_full, plan.duty_full, 0),
+        "hall": ParamSpec("hall", "uint8", 1.0, "", 0, 7, 0),
+        "state": ParamSpec("state", "uint8", 1.0, "", 0, 255, 0),
+        "fault": ParamSpec("fault", "uint8", 1.0, "", 0, 255, 0),
+        "mu1": ParamSpec("mu1", "int16", 1.0 / MU_ONE, "1", 0, MU_ONE, MU_ONE),
+        "position": ParamSpec("position", "int16", 1.0, "counts", INT16_MIN, INT16_MAX, 0),
+    }
+
+
+# ---------------------------------------------------------------------------
+# The model of drive_core.c (names as in the C)
+# ---------------------------------------------------------------------------
+@dataclass
+class LawParams:
+    """core_params_t of the C (raw values, copied from the parameter store)."""
+
+    kp: list
+    kits: list
+    kdts: list
+    kc: list
+    premise_lo: int
+    premise_hi: int
+    mu_k: int
+    b_q14: int
+    u_min: int
+    u_max: int
+    controller: int = 1          # 0 = rule 1 only (PID), 1 = memberships blend all rules
+    ilim: int = 1023
+    accel_step: int = 0          # speed LSB per sample, 0 = no ramp
+
+
+@dataclass
+class LawState:
+    """core_law_t of the C."""
+
+    integ: int = 0
+    d_filt: int = 0
+    y_prev: int = 0
+    primed: int = 0
+    mu1: int = MU_ONE
+
+
+def law_params_from_plan(plan: FixedPointPlan) -> LawParams:
+    return LawParams(kp=list(plan.kp), kits=list(plan.kits), kdts=list(plan.kdts), kc=list(plan.kc),
+                     premise_lo=plan.premise_lo, premise_hi=plan.premise_hi,
+                     mu_k=premise_k(plan.premise_lo, plan.premise_hi, plan.n_rules, plan.mu_sh),
+                     b_q14=plan.b_q14, u_min=plan.u_min, u_max=plan.u_max,
+                     controller=0 if plan.n_rules == 1 else 1, ilim=plan.ilim)
+
+
+def _blend(g: list, j: int, frac: int) -> int:
+    return asr32(g[j] * (MU_ONE - frac) + g[j + 1] * frac, 12)
+
+
+def law_step(plan: FixedPointPlan, p: LawParams, st: LawState, r: int, y: int, i: int,
+             umin: int, umax: int) -> int:
+    """One sample of the fixed-point law (C: core_law).  Returns u (Q qu)."""
+    nr = plan.n_rules
+    if nr == 1 or p.controller == 0:
+        kp, kits, kdts, kc = p.kp[0], p.kits[0], p.kdts[0], p.kc[0]
+        st.mu1 = MU_ONE
+    else:
+        s = -y if y < 0 else y
+        lo, hi = p.premise_lo, p.premise_hi
+        if s > hi:
+            s = hi
+        if s < lo:
+            s = lo
+        pos = ((s - lo) * p.mu_k) >> plan.mu_sh
+        top = (nr - 1) << 12
+        if pos > top:
+            pos = top
+        j = pos >> 12
+        if j >= nr - 1:
+            j, frac = nr - 2, MU_ONE
+        else:
+            frac = pos & (MU_ONE - 1)
+        kp = _blend(p.kp, j, frac)
+        kits = _blend(p.kits, j, frac)
+        kdts = _blend(p.kdts, j, frac)
+        kc = _blend(p.kc, j, frac)
+        st.mu1 = (MU_ONE - frac) if j == 0 else 0
+    br = asr32(p.b_q14 * r, 14)
+    ey = sat16(br - y)
+    e = sat16(r - y)
+    P = shift32(kp * ey, plan.shift_p)
+    if st.primed:
+        dy = sat16(st.y_prev - y)
+    else:
+        dy = 0
+        st.primed = 1
+    d_raw = shift32(kdts * dy, plan.shift_d)
+    if plan.dfilt_a:
+        st.d_filt = sat32(st.d_filt + mul_q15(sat32(d_raw - st.d_filt), plan.dfilt_a))
+    else:
+        st.d_filt = d_raw
+    C = shift32(kc * i, plan.shift_c)
+    di = plan.qi - plan.qu
+    q = sat32(sat32(P + st.d_filt) - C)           # everything but the integral
+    inc = shift32(kits * e, plan.shift_i)
+    i_new = sat32(st.integ + inc)
+    if inc > 0:                                    # integrate only into the output headroom
+        head = shl_sat32(sat32(umax - q), di) if di else sat32(umax - q)
+        st.integ = min(i_new, max(st.integ, head))
+    elif inc < 0:
+        head = shl_sat32(sat32(umin - q), di) if di else sat32(umin - q)
+        st.integ = max(i_new, min(st.integ, head))
+    if st.integ > plan.i_lim:
+        st.integ = plan.i_lim
+    elif st.integ < -plan.i_lim:
+        st.integ = -plan.i_lim
+    st.y_prev = y
+    u = sat32(q + asr32(st.integ, di))
+    return umin if u < umin else umax if u > umax else u
+
+
+@dataclass
+class CoreState:
+    """core_state_t of the C."""
+
+    law: LawState = field(default_factory=LawState)
+    speed_valid: int = 0
+    pos_prev: int = 0
+    t5_prev: int = 0
+    w_avg: int = 0
+    r_applied: int = 0
+    cap: int = 0
+    speed: int = 0
+    current: int = 0
+    u: int = 0
+    dir: int = 0
+    hold: int = 0
+    pdc: int = 0
+
+
+def core_reset(plan: FixedPointPlan, st: CoreState) -> None:
+    """C: core_reset (start of RUN): law memory cleared, limits opened, direction kept."""
+    st.law = LawState()
+    st.r_applied = 0
+    st.cap = plan.u_limit
+    st.u = 0
+    st.hold = 0
+    st.pdc = 0
+
+
+def _s16(x: int) -> int:
+    """uint16 -> int16 (two's complement, as the C cast on gcc and XC8)."""
+    x &= 0xFFFF
+    return x - 0x10000 if x & 0x8000 else x
+
+
+def speed_encoder(plan: FixedPointPlan, st: CoreState, pos: int, t5: int, ovf: int) -> int:
+    """Speed (Q qs) from the QEI position and Timer5 (C: core_speed_encoder).
+
+    M/T average ``w_avg`` = counts since the last sample x K / ticks between
+    the last count edges; output ``w_avg + (w_avg - previous w_avg) / 2``
+    (half a sample of extrapolation).  ``pos``: POSCNT; ``t5``: Timer5 ticks
+    since the last count edge; ``ovf``: Timer5 overflowed (no edge for 65536
+    ticks).  Without a count in the sample the average may only fall, to one
+    count over the time since the last edge.
+    """
+    d = _s16(pos - st.pos_prev)
+    st.pos_prev = pos & 0xFFFF
+    prev = st.w_avg
+    if ovf:
+        st.speed_valid = 0
+    if d != 0:
+        dt = plan.ts_ticks - t5 + st.t5_prev if st.speed_valid else plan.ts_ticks
+        if dt < 1:
+            dt = 1
+        mag = -d if d < 0 else d
+        if mag > (0xFFFFFFFF // plan.k_speed):     # the 32-bit product would overflow: saturate
+            w = INT16_MAX
+        else:
+            w = (mag * plan.k_speed) // dt
+        if w > INT16_MAX:
+            w = INT16_MAX
+        st.w_avg = -w if d < 0 else w
+        if not st.speed_valid:
+            prev = st.w_avg                         # no history: no extrapolation
+        st.speed_valid = 1
+    elif st.speed_valid and t5 != 0:
+        bound = plan.k_speed // t5                  # at most one count in the time since the last edge
+        mag = -st.w_avg if st.w_avg < 0 else st.w_avg
+        if bound < mag:
+            st.w_avg = -bound if st.w_avg < 0 else bound
+    else:
+        st.w_avg = 0
+        prev = 0
+    st.t5_prev = t5
+    st.speed = sat16(st.w_avg + asr32(st.w_avg - prev, 1))
+    return st.speed
+
+
+def speed_hall(plan: FixedPointPlan, st: CoreState, period: int, elapsed: int, valid: int, forward: int) -> int:
+    """Speed (Q qs) from the hall-edge period (C: core_speed_hall)."""
+    p = period if period > elapsed else elapsed
+    w = 0
+    if valid and p:
+        w = plan.k_speed // p
+        if w > INT16_MAX:
+            w = INT16_MAX
+        if not forward:
+            w = -w
+    st.speed = w
+    return w
+
+
+def duty_counts(plan: FixedPointPlan, u: int) -> int:
+    mag = -u if u < 0 else u
+    d = (mag * plan.kduty) >> plan.duty_sh
+    return plan.pdc_max if d > plan.pdc_max else d
+
+
+def core_control(plan: FixedPointPlan, p: LawParams, st: CoreState, target: int, adc: int) -> int:
+    """C: core_control: current limits, setpoint ramp, law, duty and direction.  Returns u.
+
+    Current limits: the output window ``Kb y -+ R_line I_lim`` (in steady state
+    the current stays within +-I_lim; I_lim = the ``current_limit`` parameter)
+    and, as a backup on the measured bus current, a cap on |u| walked down
+    while the current exceeds I_lim and back up when it does not.
+    """
+    i = -adc if st.dir else adc
+    st.current = i
+    if adc > p.ilim:
+        st.cap = st.cap - plan.cap_step if st.cap > plan.cap_step else 0
+    else:
+        st.cap = st.cap + plan.cap_step if st.cap < plan.u_limit - plan.cap_step else plan.u_limit
+    # voltage window that keeps |i| <= I_lim at the present speed: Kb w -+ R I_lim
+    emf = shift32(plan.kb * st.speed, plan.shift_kb)
+    ri = shift32(plan.r_cnt * p.ilim, plan.shift_r)
+    hi = sat16(sat32(emf + ri))
+    lo = sat16(sat32(emf - ri))
+    umax = min(p.u_max, st.cap, max(hi, p.u_min))
+    umin = max(p.u_min, -st.cap, min(lo, p.u_max))
+    if umin > umax:
+        umin = umax
+    t = target
+    if p.accel_step > 0:
+        d = t - st.r_applied
+        if d > p.accel_step:
+            t = st.r_applied + p.accel_step
+        elif d < -p.accel_step:
+            t = st.r_applied - p.accel_step
+    st.r_applied = t
+    u = law_step(plan, p, st.law, t, st.speed, i, umin, umax)
+    st.u = u
+    newdir = 1 if u < 0 else 0
+    st.hold = 0
+    if u != 0 and newdir != st.dir:
+        st.dir = newdir
+        st.hold = 1
+    st.pdc = duty_counts(plan, u)
+    return u
+
+
+def commutate(table, code: int, direction: int) -> tuple[int, int, int]:
+    """(valid, OVDCOND, OVDCONS) for a hall code (C: core_commutate)."""
+    valid = table.valid_mask >> (code & 7) & 1
+    return valid, table.ovdcond[direction & 1][code & 7], table.ovdcons[direction & 1][code & 7]
+
+
+# ---------------------------------------------------------------------------
+# Bit-exact comparison with the compiled C (tests and bench/firmware.py)
+# ---------------------------------------------------------------------------
+def core_structs(n_rules: int):
+    """ctypes mirrors of core_params_t, core_law_t, core_state_t for ``n_rules`` rules."""
+    import ctypes as C
+
+    class Params(C.Structure):
+        _fields_ = [("kp", C.c_int16 * n_rules), ("kits", C.c_int16 * n_rules), ("kdts", C.c_int16 * n_rules),
+                    ("kc", C.c_int16 * n_rules), ("premise_lo", C.c_int16), ("premise_hi", C.c_int16),
+                    ("mu_k", C.c_uint16), ("b_q14", C.c_int16), ("u_min", C.c_int16), ("u_max", C.c_int16),
+                    ("controller", C.c_uint8), ("ilim", C.c_int16), ("accel_step", C.c_uint16)]
+
+    class Law(C.Structure):
+        _fields_ = [("integ", C.c_int32), ("d_filt", C.c_int32), ("y_prev", C.c_int16), ("primed", C.c_uint8),
+                    ("mu1", C.c_int16)]
+
+    class State(C.Structure):
+        _fields_ = [("law", Law), ("speed_valid", C.c_uint8), ("pos_prev", C.c_uint16), ("t5_prev", C.c_uint16),
+                    ("w_avg", C.c_int16), ("r_applied", C.c_int16), ("cap", C.c_int16),
+                    ("speed", C.c_int16), ("current", C.c_int16), ("u", C.c_int16), ("dir", C.c_uint8),
+                    ("hold", C.c_uint8), ("pdc", C.c_uint16)]
+
+    return Params, Law, State
+
+
+def build_core_lib(folder, out_dir=None, cc: str = "gcc"):
+    """Compile a generated folder's drive_core.c into a shared library and load it (ctypes)."""
+    import ctypes as C
+    import subprocess
+    import tempfile
+    from pathlib import Path
+    folder = Path(folder)
+    out = Path(out_dir or tempfile.mkdtemp(prefix="picdrive-core-"))
+    out.mkdir(parents=True, exist_ok=True)
+    lib = out / "libdrive_core.so"
+    cmd = [cc, "-std=c99", "-Wall", "-Wextra", "-Werror", "-Wconversion", "-O1", "-shared", "-fPIC",
+           f"-I{folder}", str(folder / "drive_core.c"), "-o", str(lib)]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise FixedPointError(f"drive_core.c does not compile: {r.stderr.strip()}")
+    d = C.CDLL(str(lib))
+    Params, Law, State = core_structs(_n_rules_of(folder))
+    d.core_law.restype = C.c_int16
+    d.core_law.argtypes = [C.POINTER(Law), C.POINTER(Params), C.c_int16, C.c_int16, C.c_int16, C.c_int16,
+                           C.c_int16]
+    d.core_control.restype = C.c_int16
+    d.core_control.argtypes = [C.POINTER(State), C.POINTER(Params), C.c_int16, C.c_uint16]
+    d.core_speed_encoder.restype = C.c_int16
+    d.core_speed_encoder.argtypes = [C.POINTER(State), C.c_uint16, C.c_uint16, C.c_uint8]
+    d.core_speed_hall.restype = C.c_int16
+    d.core_speed_hall.argtypes = [C.POINTER(State), C.c_uint16, C.c_uint16, C.c_uint8, C.c_uint8]
+    d.core_duty.restype = C.c_uint16
+    d.core_duty.argtypes = [C.c_int16]
+    d.core_premise_k.restype = C.c_uint16
+    d.core_premise_k.argtypes = [C.c_int16, C.c_int16]
+    d.core_reset.restype = None
+    d.core_reset.argtypes = [C.POINTER(State)]
+    d.structs = (Params, Law, State)
+    return d
+
+
+def _n_rules_of(folder) -> int:
+    import re
+    from pathlib import Path
+    m = re.search(r"#define CORE_N_RULES (\d+)u", (Path(folder) / "drive_params.h").read_text())
+    if not m:
+        raise FixedPointError(f"{folder}/drive_params.h has no CORE_N_RULES")
+    return int(m.group(1))
+
+
+def _rand_params(plan: FixedPointPlan, rng, wide: bool) -> LawParams:
+    nr = plan.n_rules
+
+    def g(base):
+        if wide:
+            return [int(rng.integers(INT16_MIN, INT16_MAX + 1)) for _ in range(nr)]
+        return [sat16(int(b * rng.uniform(0.0, 2.0)) + int(rng.integers(-3, 4))) for b in base]
+    lo = int(rng.integers(0, 2000)) if not wide else int(rng.integers(0, INT16_MAX + 1))
+    hi = int(rng.integers(lo, INT16_MAX + 1)) if rng.random() < 0.95 else int(rng.integers(0, INT16_MAX + 1))
+    lim = plan.u_limit
+    return LawParams(kp=g(plan.kp), kits=g(plan.kits), kdts=g(plan.kdts), kc=g(plan.kc),
+                     premise_lo=lo, premise_hi=hi, mu_k=premise_k(lo, hi, nr, plan.mu_sh),
+                     b_q14=int(rng.integers(0, INT16_MAX + 1)) if rng.random() < 0.5 else plan.b_q14,
+                     u_min=int(rng.integers(-lim, 1)), u_max=int(rng.integers(0, lim + 1)),
+                     controller=int(rng.integers(0, 2)), ilim=int(rng.integers(0, 1024)),
+                     accel_step=int(rng.integers(0, 65536)) if rng.random() < 0.3 else 0)
+
+
+def _rand_law_state(rng, i_lim: int) -> LawState:
+    if rng.random() < 0.7:
+        integ = int(rng.integers(-i_lim, i_lim + 1))
+    else:
+        integ = int(rng.integers(INT32_MIN, INT32_MAX + 1))
+    d = int(rng.integers(INT32_MIN, INT32_MAX + 1)) if rng.random() < 0.3 else int(rng.integers(-(1 << 20), 1 << 20))
+    return LawState(integ=integ, d_filt=d, y_prev=int(rng.integers(INT16_MIN, INT16_MAX + 1)),
+                    primed=int(rng.integers(0, 2)), mu1=0)
+
+
+def _i16(rng, wide_p=0.3, span=None):
+    if span is None or rng.random() < wide_p:
+        return int(rng.integers(INT16_MIN, INT16_MAX + 1))
+    return int(rng.integers(-span, span + 1))
+
+
+def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
+    """Run ``n`` random vectors of each core function through the Python model and the C.
+
+    Returns ``{"vectors": total, "mismatches": count, "first": description or None}``
+    per function and in total.  The vectors mix full-range values (every
+    saturation path) with values around the design's own numbers.
+    """
+    import numpy as np
+    Params, Law, State = lib.structs
+    rng = np.random.default_rng(seed)
+    span_y = plan.to_speed_raw(1.5 * max(abs(plan.premise_hi) * 2.0 ** -plan.qs, 1.0))
+    res = {"law": [0, 0, None], "control": [0, 0, None], "speed": [0, 0, None], "duty": [0, 0, None],
+           "premise_k": [0, 0, None]}
+
+    def fill_params(cp, p: LawParams):
+        for j in range(plan.n_rules):
+            cp.kp[j], cp.kits[j], cp.kdts[j], cp.kc[j] = p.kp[j], p.kits[j], p.kdts[j], p.kc[j]
+        cp.premise_lo, cp.premise_hi, cp.mu_k, cp.b_q14 = p.premise_lo, p.premise_hi, p.mu_k, p.b_q14
+        cp.u_min, cp.u_max, cp.controller, cp.ilim, cp.accel_step = p.u_min, p.u_max, p.controller, p.ilim, p.accel_step
+
+    def law_to_c(cl, s: LawState):
+        cl.integ, cl.d_filt, cl.y_prev, cl.primed, cl.mu1 = s.integ, s.d_filt, s.y_prev, s.primed, s.mu1
+
+    def law_tuple(s):
+        return (s.integ, s.d_filt, s.y_prev, s.primed, s.mu1)
+
+    def note(key, ok, what):
+        r = res[key]
+        r[0] += 1
+        if not ok:
+            r[1] += 1
+            if r[2] is None:
+                r[2] = what
+
+    cp = Params()
+    for k in range(n):
+        wide = rng.random() < 0.3
+        p = _rand_params(plan, rng, wide)
+        fill_params(cp, p)
+        # premise slope
+        note("premise_k", lib.core_premise_k(p.premise_lo, p.premise_hi) == p.mu_k,
+             f"premise_k({p.premise_lo}, {p.premise_hi})")
+        # the law
+        umin, umax = p.u_min, p.u_max
+        s = _rand_law_state(rng, plan.i_lim)
+        cl = Law()
+        law_to_c(cl, s)
+        r_, y_ = _i16(rng, span=span_y), _i16(rng, span=span_y)
+        i_ = _i16(rng, span=1023)
+        uc = lib.core_law(cl, cp, r_, y_, i_, umin, umax)
+        up = law_step(plan, p, s, r_, y_, i_, umin, umax)
+        ok = uc == up and law_tuple(cl) == law_tuple(s)
+        note("law", ok, f"law r={r_} y={y_} i={i_} params={p} -> C {uc} {law_tuple(cl)} Py {up} {law_tuple(s)}")
+        # a whole control step (limiter, ramp, law, duty, direction)
+        st = CoreState(law=_rand_law_state(rng, plan.i_lim), speed_valid=int(rng.integers(0, 2)),
+                       r_applied=_i16(rng, span=span_y), cap=int(rng.integers(0, plan.u_limit + 1)),
+                       speed=_i16(rng, span=span_y), current=0, u=0, dir=int(rng.integers(0, 2)), hold=0, pdc=0)
+        cs = State()
+        law_to_c(cs.law, st.law)
+        cs.speed_valid, cs.r_applied, cs.cap, cs.speed = st.speed_valid, st.r_applied, st.cap, st.speed
+        cs.current, cs.u, cs.dir, cs.hold, cs.pdc = 0, 0, st.dir, 0, 0
+        target = _i16(rng, span=span_y)
+        adc = int(rng.integers(0, 1024))
+        uc = lib.core_control(cs, cp, target, adc)
+        up = core_control(plan, p, st, target, adc)
+        ok = (uc == up and law_tuple(cs.law) == law_tuple(st.law) and
+              (cs.r_applied, cs.cap, cs.current, cs.u, cs.dir, cs.hold, cs.pdc) ==
+              (st.r_applied, st.cap, st.current, st.u, st.dir, st.hold, st.pdc))
+        note("control", ok, f"control target={target} adc={adc} -> C {uc} Py {up}")
+        # speed measurement
+        a16 = int(rng.integers(0, 65536))
+        b16 = int(rng.integers(0, 65536)) if rng.random() < 0.5 else int(rng.integers(0, 200))
+        prev_t5 = int(rng.integers(0, 65536))
+        fl = [int(x) for x in rng.integers(0, 2, size=3)]
+        valid0, wavg0 = int(rng.integers(0, 2)), _i16(rng, span=span_y)
+        pos_prev = int(rng.integers(0, 65536))
+        if rng.random() < 0.6:                      # small count steps, as at a real sample
+            a16 = (pos_prev + int(rng.integers(-200, 201))) & 0xFFFF
+        if rng.random() < 0.2:
+            a16 = pos_prev
+        cs.speed_valid, cs.w_avg, cs.pos_prev, cs.t5_prev = valid0, wavg0, pos_prev, prev_t5
+        st2 = CoreState(speed_valid=valid0, w_avg=wavg0, pos_prev=pos_prev, t5_prev=prev_t5)
+        if plan.speed_source == "encoder":
+            wc = lib.core_speed_encoder(cs, a16, b16, fl[0])
+            wp = speed_encoder(plan, st2, a16, b16, fl[0])
+            ok = (wc == wp and (cs.speed_valid, cs.speed, cs.w_avg, cs.pos_prev, cs.t5_prev) ==
+                  (st2.speed_valid, st2.speed, st2.w_avg, st2.pos_prev, st2.t5_prev))
+            what = f"speed pos={a16} t5={b16} ovf={fl[0]} prev=({valid0},{wavg0},{pos_prev},{prev_t5})"
+        else:
+            wc = lib.core_speed_hall(cs, a16, b16, fl[0], fl[1])
+            wp = speed_hall(plan, st2, a16, b16, fl[0], fl[1])
+            ok = wc == wp and cs.speed == st2.speed
+            what = f"hall speed period={a16} elapsed={b16} flags={fl}"
+        note("speed", ok, f"{what} -> C {wc} Py {wp}")
+        u = _i16(rng, span=plan.u_limit)
+        note("duty", lib.core_duty(u) == duty_counts(plan, u), f"duty u={u}")
+    total = sum(r[0] for r in res.values())
+    bad = sum(r[1] for r in res.values())
+    out = {k: {"vectors": v[0], "mismatches": v[1], "first": v[2]} for k, v in res.items()}
+    out["total"] = {"vectors": total, "mismatches": bad,
+                    "first": next((v[2] for v in res.values() if v[2]), None)}
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Closed loop: the fixed-point loop against the float law on the DC-equivalent plant
+# ---------------------------------------------------------------------------
+def dc_plant_discrete(profile, ts: float):
+    """The six-step DC-equivalent plant (2008 eq 1 constants) discretised with a zero-order
+    hold of ``ts`` s: states [line current A, speed rad/s, angle rad], inputs [voltage V,
+    load torque N m]; returns (Ad, Bd)."""
+    import numpy as np
+    from scipy.linalg import expm
+    m = profile.motor
+    R, L, J, B = m.r_line_ohm, m.l_line_h, m.inertia_kg_m2, m.viscous_friction_n_m_s
+    kt, kb = m.kt_n_m_per_a, m.kb_v_s_per_rad
+    A = np.array([[-R / L, -kb / L, 0.0], [kt / J, -B / J, 0.0], [0.0, 1.0, 0.0]])
+    Bm = np.array([[1 / L, 0.0], [0.0, -1 / J], [0.0, 0.0]])
+    M = np.zeros((5, 5))
+    M[:3, :3], M[:3, 3:] = A, Bm
+    E = expm(M * ts)
+    return E[:3, :3], E[:3, 3:]
+
+
+def closed_loop_compare(profile, law, plan: FixedPointPlan, *, t_end_s: float = 1.0,
+                        setpoint_rpm: float | None = None, load_step_s: float | None = None,
+                        load_n_m: float | None = None, measurement: str = "firmware",
+                        float_measurement: str | None = None) -> dict:
+    """Simulate the speed loop twice on the six-step DC-equivalent plant (2008 eq 1).
+
+    Float: :func:`picdrive.control_law.law_step` on the true current, its
+    output applied as is.  Fixed: :func:`core_control` (the firmware's
+    arithmetic) on the bus current through the 10-bit ADC, its output applied
+    as whole PDC counts of the bus voltage; the current limits are disabled
+    (the float reference has none).  Plant: ``L di/dt = v - R i - Kb w``,
+    ``J dw/dt = Kt i - B w - T_load``, exact zero-order-hold discretisation.
+
+    Speed seen by the loops (``measurement``; the float loop sees the exact
+    version of the same measurement unless ``float_measurement`` says
+    otherwise):
+
+    * ``"firmware"``: what the firmware measures -- speed: encoder by the M/T
+      method on whole counts and Timer5 ticks, extrapolated half a sample
+      (the angle history between samples is interpolated linearly), halls:
+      the speed quantised to Q qs; current:
+      the bus shunt, which sees the line current only in the applied
+      direction (0 when it reverses).  The float loop gets the true speed at
+      the sample and the exact shunt current.
+    * ``"instant"``: the speed at the sample instant (fixed: quantised to Q qs).
+    * ``"average"``: the exact average over the previous sample, for both.
+
+    Returns the time vector, both speeds (rad/s), and the RMS and largest
+    speed deviation as fractions of the setpoint.
+    """
+    import numpy as np
+
+    from ..control_law import LawState, law_step as float_step
+
+    if measurement not in ("firmware", "instant", "average"):
+        raise ValueError(f"measurement {measurement!r}")
+    fmeas = float_measurement or ("average" if measurement == "average" else "instant")
+    ts = law.sample_time_s
+    Ad, Bd = dc_plant_discrete(profile, ts)
+    sp_rpm = profile.speed_step_rpm() if setpoint_rpm is None else setpoint_rpm
+    w_ref = sp_rpm * 2 * math.pi / 60
+    t_load = profile.control.load_torque_n_m if load_n_m is None else load_n_m
+    t_step = 0.5 * t_end_s if load_step_s is None else load_step_s
+    n = int(round(t_end_s / ts))
+    t = np.arange(n) * ts
+    xf = np.zeros(3)
+    xq = np.zeros(3)
+    thf_prev = thq_prev = 0.0
+    dir_f = 1.0
+    wf, wq = np.zeros(n), np.zeros(n)
+    stf = LawState()
+    p = law_params_from_plan(plan)
+    if law.current_limit_a is None:    # the float reference has no window: disable the firmware's
+        p.ilim = INT16_MAX
+    st = CoreState()
+    core_reset(plan, st)
+    target = plan.to_speed_raw(w_ref)
+    vbus = profile.inverter.bus_voltage_v
+    cpr = plan.counts_per_rev
+    tick_s = plan.ps5 / FCY_HZ
+    enc = measurement == "firmware" and plan.speed_source == "encoder"
+    hist = [(0.0, 0.0)]                     # (t, theta) at past samples, for the edge times
+    for k in range(n):
+        tl = t_load if t[k] >= t_step else 0.0
+        wf[k], wq[k] = xf[1], xq[1]
+        # float loop
+        yf = xf[1] if fmeas == "instant" else (xf[2] - thf_prev) / ts
+        thf_prev = xf[2]
+        if measurement == "firmware":          # the bus shunt: current of the applied direction only
+            i_f = max(0.0, xf[0] * dir_f) * dir_f
+        else:
+            i_f = xf[0]
+        uf = float_step(law, stf, w_ref, yf, i_f)
+        if uf != 0.0:
+            dir_f = -1.0 if uf < 0 else 1.0
+        # fixed loop: what the firmware measures
+        w, th = xq[1], xq[2]
+        t_now = t[k]
+        if enc:
+            # M/T inputs: the count, and Timer5 ticks since the last count edge (angle history
+            # between samples interpolated linearly)
+            c = math.floor(th * cpr / (2 * math.pi))
+            sgn = 1 if th >= hist[-1][1] else -1
+            edge = (c if sgn > 0 else c + 1) * 2 * math.pi / cpr
+            t_edge = _time_at(hist, t_now, th, edge)
+            ticks = 65536 if t_edge is None else math.floor((t_now - t_edge) / tick_s)
+            speed_encoder(plan, st, c & 0xFFFF, min(ticks, 65535), 1 if ticks >= 65536 else 0)
+        else:
+            yq = w if measurement == "instant" else (th - thq_prev) / ts
+            st.speed = sat16(math.floor(yq * 2 ** plan.qs))
+        thq_prev = th
+        hist.append((t_now, th))
+        if len(hist) > 4096:
+            del hist[:2048]
+        i_bus = xq[0] * (-1.0 if st.dir else 1.0)
+        adc = min(1023, max(0, math.floor(i_bus * plan.counts_per_a)))
+        core_control(plan, p, st, target, adc)
+        v = st.pdc / plan.duty_full * vbus * (-1.0 if st.dir else 1.0)
+        if st.hold:
+            v = 0.0
+        xf = Ad @ xf + Bd @ np.array([uf, tl])
+        xq = Ad @ xq + Bd @ np.array([v, tl])
+    dev = (wq - wf) / w_ref
+    return {"t_s": t, "w_float": wf, "w_fixed": wq, "setpoint_rad_s": w_ref,
+            "rms_dev": float(np.sqrt(np.mean(dev ** 2))), "max_dev": float(np.max(np.abs(dev)))}
+
+
+def _time_at(hist, t_now, th_now, target):
+    """When did the angle pass ``target`` (linear interpolation over the sample history)?"""
+    t1, a1 = t_now, th_now
+    for t0, a0 in reversed(hist):
+        if (a0 - target) * (a1 - target) <= 0 and a0 != a1:
+            return t0 + (target - a0) / (a1 - a0) * (t1 - t0)
+        t1, a1 = t0, a0
+    return None
+
+
+def measurement_lag_effect(profile, law, *, t_end_s: float = 1.0) -> dict:
+    """Float law only: the speed with an instantaneous measurement against the
+    speed with the average over the previous sample (what position-based
+    measurement gives).  Not a fixed-point effect: how sensitive the design is
+    to the measurement the firmware can make."""
+    import numpy as np
+    from ..control_law import LawState, law_step as float_step
+    ts = law.sample_time_s
+    Ad, Bd = dc_plant_discrete(profile, ts)
+    w_ref = profile.speed_step_rpm() * 2 * math.pi / 60
+    n = int(round(t_end_s / ts))
+    out = {}
+    for meas in ("instant", "average"):
+        x, th_prev, st, ws = np.zeros(3), 0.0, LawState(), np.zeros(n)
+        for k in range(n):
+            tl = profile.control.load_torque_n_m if k * ts >= 0.5 * t_end_s else 0.0
+            ws[k] = x[1]
+            y = x[1] if meas == "instant" else (x[2] - th_prev) / ts
+            th_prev = x[2]
+            u = float_step(law, st, w_ref, y, x[0])
+            x = Ad @ x + Bd @ np.array([u, tl])
+        out[meas] = ws
+    dev = (out["average"] - out["instant"]) / w_ref
+    return {"rms_dev": float(np.sqrt(np.mean(dev ** 2))), "max_dev": float(np.max(np.abs(dev)))}

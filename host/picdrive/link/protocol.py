@@ -1,0 +1,1178 @@
+"""The serial protocol between host and board: defined once, here.
+
+Everything both ends must agree on lives in this module as plain data:
+
+* the frame (COBS with the :data:`DELIMITER` 0x00, :data:`MAX_PAYLOAD`, CRC-16/CCITT-FALSE);
+* the message types (:data:`COMMANDS` and the board-initiated frames), each
+  with its argument and reply layout (little-endian ``struct`` codes);
+* the NACK, fault, state, event, trigger and controller codes (``IntEnum``);
+* the parameter table: writable parameters and read-only telemetry signals in
+  one id space (:data:`PARAMS`, :data:`RULE_GAINS`, :data:`SIGNALS`).
+
+:func:`build_table` resolves the static definition for one build (``r``
+rules, per-parameter overrides of raw scale, limits, default and C type from
+the firmware's fixed-point plan) into a :class:`Table`, whose
+:attr:`Table.hash` (CRC-32 of a canonical encoding) goes into ``hello``.
+:func:`render_c` renders the C link module (``link_fw.h``/``link_fw.c``, from
+the Jinja2 templates in ``firmware_templates/``) for that table;
+:mod:`picdrive.codec` encodes and decodes frames with the same tables; and
+:func:`render_markdown` writes ``docs/protocol.md``.
+
+Raw values and scales: a parameter's engineering value is ``raw * scale``
+(unit in :attr:`Entry.unit`).  The scale is a float32 constant that the
+firmware only stores and reports (as its IEEE-754 bit pattern) and never
+computes with.  Limits and defaults are raw integers, enforced by the
+firmware.
+
+Regenerate the document with ``python -m picdrive.link.protocol docs/protocol.md``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import struct
+import zlib
+from dataclasses import dataclass
+from functools import cached_property
+from typing import Any, Iterable, Mapping
+
+from ..errors import PicdriveError
+
+__all__ = [
+    "ProtocolError", "PROTOCOL_VERSION", "DELIMITER", "MAX_PAYLOAD", "MAX_BODY", "BODY_OVERHEAD",
+    "MAX_FRAME", "FRAME_OVERHEAD", "HOST_GAP_MS", "RX_RING_BYTES", "REPLAY_BYTES", "CAPTURE_BYTES_DEFAULT", "PARAM_GET_MAX",
+    "NAME_MAX", "EEPROM_BYTES", "EEPROM_LAYOUT_VERSION", "EEPROM_MAGIC", "EEPROM_HEADER_BYTES",
+    "CTYPES", "CType", "UNITS", "FLAG_WRITABLE", "FLAG_PERSISTED", "FLAG_SIGNAL",
+    "Nack", "Fault", "State", "Event", "Trigger", "CaptureState", "Controller", "EepromResult",
+    "NACK_REASONS", "Field", "Command", "COMMANDS", "COMMAND_BY_NAME", "COMMAND_BY_CODE",
+    "MSG_TELEMETRY", "MSG_EVENT", "MSG_NACK", "ACK_BIT", "ack_type",
+    "ParamDef", "PARAMS", "RULE_GAINS", "SIGNALS", "SIGNAL_BASE_ID", "RULE_BASE_ID",
+    "ParamOverride", "Entry", "Table", "static_defs", "build_table", "render_c",
+    "render_markdown", "ram_budget", "DEFAULT_TELEMETRY_SIGNALS", "DEFAULT_SAMPLES_PER_FRAME",
+    "TELEMETRY_HEADER_BYTES", "CAPTURE_READ_HEADER_BYTES", "STATE_BYTES", "float32_bits", "float32_from_bits",
+]
+
+
+class ProtocolError(PicdriveError, ValueError):
+    """A protocol table, override or frame that cannot be built or sent.
+
+    The message names the parameter or field, the value and what is accepted.
+    """
+
+
+# ---------------------------------------------------------------------------
+# Frame
+# ---------------------------------------------------------------------------
+PROTOCOL_VERSION = (2, 0)
+"""(major, minor).  A host refuses a board with another major version.  2.0: COBS framing with
+a 0x00 delimiter (1.x: start byte 0xA5 without stuffing)."""
+
+DELIMITER = 0x00
+"""Frame delimiter.  Frames are COBS-encoded, so it never occurs inside a frame: a receiver
+resynchronises exactly at the next delimiter, and no frame can hide inside another's payload."""
+
+MAX_PAYLOAD = 40
+"""Largest payload (LEN) in bytes.  Sized for the PIC18F4431's 768 B of RAM:
+the largest payloads are ``param_info`` replies (20 B + a name of up to
+:data:`NAME_MAX` characters), ``capture_read`` chunks and four-sample
+telemetry frames of four signals (34 B)."""
+
+BODY_OVERHEAD = 5
+"""LEN, TYPE, SEQ, CRC high, CRC low: the frame body is the payload plus these."""
+
+MAX_BODY = MAX_PAYLOAD + BODY_OVERHEAD
+
+FRAME_OVERHEAD = BODY_OVERHEAD + 2
+"""Bytes on the wire beyond the payload: the body's five, the COBS code byte (one block: a body
+is shorter than 254 bytes) and the delimiter.  The host sends one more delimiter before each
+command."""
+
+MAX_FRAME = MAX_PAYLOAD + FRAME_OVERHEAD
+
+HOST_GAP_MS = 100
+"""The host abandons a partly received frame after this long without bytes (USB-serial adapters
+and the OS deliver bytes in bursts: an FTDI chip holds them up to its 16 ms latency timer).  The
+board needs no timer: the host's delimiter before each command ends any partial frame."""
+
+RX_RING_BYTES = 64
+"""Receive ring of the C module (power of two, holds a whole command frame: the RX interrupt only
+stores bytes, link_poll decodes a frame once its delimiter is in the ring)."""
+
+REPLAY_BYTES = 8
+"""Replies up to this size are stored for duplicate-SEQ replay; every command
+with side effects has a reply no longer than this (checked below)."""
+
+CAPTURE_BYTES_DEFAULT = 128
+"""Default size of the capture buffer in the C module, bytes (64 samples of
+one signal, 32 of two...).  ``render_c(..., capture_bytes=N)`` changes it."""
+
+PARAM_GET_MAX = 10
+"""Most parameter ids one ``param_get`` may ask for (10 x 4 B of reply)."""
+
+NAME_MAX = 15
+"""Longest parameter or signal name, characters (ASCII)."""
+
+EEPROM_BYTES = 256
+EEPROM_LAYOUT_VERSION = 1
+EEPROM_MAGIC = b"PD"
+EEPROM_HEADER_BYTES = 8
+"""EEPROM image: 'P' 'D', layout version, table hash (u32 LE), data length,
+then the persisted parameters in table order (little-endian, C-type width),
+then CRC-16/CCITT-FALSE of everything before it, high byte first."""
+
+STATE_BYTES = 97
+"""Scalar state of the C module (struct S and the value register V in link_fw.c), bytes, as avr-nm measures it;
+checked by tests/test_protocol.py."""
+
+TELEMETRY_HEADER_BYTES = 2            # u16 counter of the frame's first sample
+CAPTURE_READ_HEADER_BYTES = 7         # state u8, total u16, trigger index u16, start u16
+
+DEFAULT_TELEMETRY_SIGNALS = ("speed", "setpoint", "voltage", "current")
+DEFAULT_SAMPLES_PER_FRAME = 4
+"""The default telemetry frame: four signals, four samples (34 B payload,
+41 B on the wire) -- 1 kHz of four signals fits into 115200 baud."""
+
+
+# ---------------------------------------------------------------------------
+# Types, units, flags
+# ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CType:
+    name: str
+    code: int        # on the wire (param_info)
+    size: int        # bytes
+    lo: int
+    hi: int
+
+    @property
+    def c(self) -> str:
+        return f"{self.name}_t"
+
+
+CTYPES: dict[str, CType] = {t.name: t for t in (
+    CType("uint8", 1, 1, 0, 255),
+    CType("int8", 2, 1, -128, 127),
+    CType("uint16", 3, 2, 0, 65535),
+    CType("int16", 4, 2, -32768, 32767),
+    CType("int32", 5, 4, -2**31, 2**31 - 1),
+)}
+CTYPE_BY_CODE = {t.code: t for t in CTYPES.values()}
+SIGNAL_CTYPES = ("int16", "uint16")   # telemetry values travel as 16 bits
+
+UNITS: tuple[str, ...] = (
+    "1", "rpm", "rpm/s", "V", "A", "V/(rad/s)", "V/rad", "V s^2/rad", "V/A",
+    "ms", "counts", "code", "enum",
+)
+"""Units by index (param_info carries the index).  Append only."""
+
+FLAG_WRITABLE = 0x01
+FLAG_PERSISTED = 0x02
+FLAG_SIGNAL = 0x04
+
+
+# ---------------------------------------------------------------------------
+# Codes shared by both ends
+# ---------------------------------------------------------------------------
+class Nack(enum.IntEnum):
+    """Error codes carried by a NACK."""
+    UNKNOWN_COMMAND = 1
+    BAD_CRC = 2
+    MALFORMED = 3
+    OUT_OF_RANGE = 4
+    READ_ONLY = 5
+    WRONG_STATE = 6
+    BUSY = 7
+    UNKNOWN_PARAM = 8
+    FAULT_ACTIVE = 9
+    EEPROM_ERROR = 10
+
+
+NACK_REASONS: dict[Nack, str] = {
+    Nack.UNKNOWN_COMMAND: "the board does not know this command (firmware of another protocol version?)",
+    Nack.BAD_CRC: "the board received a frame with a bad CRC (line noise or wrong baud rate); the command was not executed",
+    Nack.MALFORMED: "the argument length does not fit the command",
+    Nack.OUT_OF_RANGE: "a value is outside the range the board accepts",
+    Nack.READ_ONLY: "the entry is read-only (a telemetry signal or a fixed parameter)",
+    Nack.WRONG_STATE: "not allowed in the board's present state (stop the motor first, or nothing captured yet)",
+    Nack.BUSY: "the board is busy with this resource (capture still recording)",
+    Nack.UNKNOWN_PARAM: "no parameter with this id in the board's table",
+    Nack.FAULT_ACTIVE: "a fault is latched; clear it with fault_clear first",
+    Nack.EEPROM_ERROR: "EEPROM image missing, of another build, or corrupt (bad CRC / out-of-range value), or write verify failed",
+}
+
+
+class Fault(enum.IntEnum):
+    """Fault codes the firmware latches (status, fault events)."""
+    NONE = 0
+    HALL_INVALID = 1       # hall code 000 or 111
+    OVERCURRENT = 2        # FLTA comparator trip
+    STALL = 3              # commanded, no motion for stall_timeout
+    LINK_LOST = 4          # watchdog: no valid frame for link_timeout while running
+    UNDERVOLTAGE = 5       # bus under-voltage
+    OVERVOLTAGE = 6        # bus over-voltage
+    EEPROM_CRC = 7         # EEPROM image corrupt at boot
+    OVERSPEED = 8          # |speed| above the profile-derived trip (1.2 x speed_max_rpm)
+
+
+class State(enum.IntEnum):
+    """Drive state (signal ``state``).  The watchdog is armed only in RUN."""
+    IDLE = 0               # outputs off
+    RUN = 1                # speed loop closed
+    BRAKE = 2              # low sides on, braking
+    FAULT = 3              # outputs off, fault latched
+
+
+class Event(enum.IntEnum):
+    """Board-initiated event frames (payload: event, code)."""
+    BOOT = 1               # code: reset cause (firmware-defined, 0 = unknown)
+    FAULT = 2              # code: Fault
+    WATCHDOG = 3           # code: Fault.LINK_LOST
+
+
+class Trigger(enum.IntEnum):
+    """Capture triggers."""
+    IMMEDIATE = 0          # first sample after arming (pre_trigger must be 0)
+    SETPOINT_CHANGE = 1    # speed_setpoint written (set_speed / param_set)
+    SPEED_RISING = 2       # speed crosses threshold upward (raw, signed)
+    SPEED_FALLING = 3      # speed crosses threshold downward
+
+
+class CaptureState(enum.IntEnum):
+    IDLE = 0
+    ARMED = 1              # recording pre-trigger history, waiting for the trigger
+    TRIGGERED = 2          # recording post-trigger samples
+    DONE = 3               # record complete, readable
+
+
+class Controller(enum.IntEnum):
+    """Values of the ``controller`` parameter."""
+    PID = 0                # rule 1 only
+    FUZZY = 1              # memberships blend all rules
+
+
+class EepromResult(enum.IntEnum):
+    """Return values of the C ``link_eeprom_load()`` (boot-time load)."""
+    OK = 0
+    BLANK = 1              # no image (magic absent): defaults kept
+    OTHER_BUILD = 2        # image of another table (hash/length differ): defaults kept
+    CORRUPT = 3            # bad CRC or a value out of range: defaults kept, firmware latches EEPROM_CRC
+
+
+# ---------------------------------------------------------------------------
+# Messages
+# ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Field:
+    name: str
+    fmt: str          # struct code, little-endian: B b H h I i
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class Command:
+    """One host command.  ``args``/``reply`` are fixed fields; ``args_tail`` /
+    ``reply_tail`` a repeated field (``fmt`` per item; ``'s'`` = ASCII text)."""
+    name: str
+    code: int
+    doc: str
+    args: tuple[Field, ...] = ()
+    reply: tuple[Field, ...] = ()
+    args_tail: Field | None = None
+    reply_tail: Field | None = None
+    side_effects: bool = True
+    app: bool = False             # forwarded to app_command()
+
+    @property
+    def args_size(self) -> int:
+        return struct.calcsize("<" + "".join(f.fmt for f in self.args))
+
+    @property
+    def reply_size(self) -> int:
+        return struct.calcsize("<" + "".join(f.fmt for f in self.reply))
+
+    @property
+    def c_name(self) -> str:
+        return "LINK_CMD_" + self.name.upper()
+
+
+MSG_TELEMETRY = 0x60
+MSG_EVENT = 0x61
+MSG_NACK = 0x7F
+ACK_BIT = 0x80
+
+
+def ack_type(cmd_code: int) -> int:
+    """TYPE of the ACK to a command: the command code with bit 7 set."""
+    return cmd_code | ACK_BIT
+
+
+_F = Field
+COMMANDS: tuple[Command, ...] = (
+    Command("hello", 0x01, "Handshake: versions and identities of the build.",
+            reply=(_F("proto_major", "B"), _F("proto_minor", "B"), _F("build_id", "I", "firmware build id"),
+                   _F("profile_hash", "I", "first 4 bytes of the profile's SHA-256, big-endian"),
+                   _F("table_hash", "I", "CRC-32 of the canonical parameter table"),
+                   _F("n_entries", "B", "entries in the table (param_info index range)"),
+                   _F("max_payload", "B"), _F("capture_words", "H", "capture buffer, 16-bit words"),
+                   _F("sample_hz", "H", "link_sample() rate (speed loop), Hz; 0 = not stated")),
+            side_effects=False),
+    Command("param_info", 0x02, "Describe table entry number `index` (0..n_entries-1, in id order).",
+            args=(_F("index", "B"),),
+            reply=(_F("id", "B"), _F("ctype", "B", "C type code"), _F("flags", "B", "1 writable, 2 persisted, 4 signal"),
+                   _F("unit", "B", "index into UNITS"), _F("scale_bits", "I", "float32 bit pattern"),
+                   _F("min", "i", "raw"), _F("max", "i", "raw"), _F("default", "i", "raw")),
+            reply_tail=_F("name", "s", f"ASCII, up to {NAME_MAX} characters"),
+            side_effects=False),
+    Command("param_get", 0x03, f"Read 1..{PARAM_GET_MAX} entries (parameters or signals), raw.",
+            args_tail=_F("ids", "B", "entry ids"), reply_tail=_F("values", "i", "raw values, same order"),
+            side_effects=False),
+    Command("param_set", 0x04, "Write a parameter (raw).  Range-checked; a rejected set changes nothing.",
+            args=(_F("id", "B"), _F("value", "i", "raw")), reply=(_F("id", "B"), _F("value", "i", "raw, as stored"))),
+    Command("set_speed", 0x05, "Write speed_setpoint (raw, signed: the sign is the direction).",
+            args=(_F("value", "i", "raw"),), reply=(_F("value", "i", "raw, as stored"),)),
+    Command("start", 0x06, "Close the speed loop (state RUN).  Arms the link watchdog.", app=True),
+    Command("stop", 0x07, "Outputs off (state IDLE).", app=True),
+    Command("brake", 0x08, "Brake (state BRAKE).", app=True),
+    Command("select_controller", 0x09, "Write the controller parameter (0 pid, 1 fuzzy).",
+            args=(_F("controller", "B"),), reply=(_F("controller", "B"),)),
+    Command("telem_config", 0x0A,
+            "Configure telemetry: signal mask (bit i = signal i), decimation (0 = off), samples per frame.  "
+            "Restarts the sample counter; the new generation is the SEQ of the telemetry frames that follow.",
+            args=(_F("mask", "H"), _F("decimation", "H"), _F("samples_per_frame", "B")),
+            reply=(_F("generation", "B"), _F("payload_len", "B", "LEN of each telemetry frame"))),
+    Command("capture_arm", 0x0B,
+            "Arm a capture of n_samples samples of the masked signals, pre_trigger of them before the trigger, "
+            "every decimation-th sample.",
+            args=(_F("mask", "H"), _F("n_samples", "H"), _F("pre_trigger", "H"), _F("decimation", "H"),
+                  _F("trigger", "B", "Trigger"), _F("threshold", "h", "raw speed, for SPEED_* triggers"))),
+    Command("capture_read", 0x0C,
+            "Read a finished capture from sample `start` on (oldest first), as many samples as fit.",
+            args=(_F("start", "H"), _F("count", "B", "most samples wanted")),
+            reply=(_F("state", "B", "CaptureState"), _F("total", "H", "samples recorded"),
+                   _F("trigger_index", "H", "index of the trigger sample"), _F("start", "H")),
+            reply_tail=_F("values", "h", "sample-major, signals in mask order"),
+            side_effects=False),
+    Command("eeprom_save", 0x0D, "Save the persisted parameters (motor stopped)."),
+    Command("eeprom_load", 0x0E, "Load the persisted parameters (motor stopped); a bad image changes nothing."),
+    Command("fault_clear", 0x0F, "Clear a latched fault (state FAULT -> IDLE).", app=True),
+    Command("status", 0x10, "Drive and link status.",
+            reply=(_F("state", "B", "State"), _F("fault", "B", "Fault"), _F("capture_state", "B", "CaptureState"),
+                   _F("telem_generation", "B"), _F("crc_errors", "H", "received frames with a bad CRC"),
+                   _F("rx_overflows", "H", "bytes lost to a full receive ring"),
+                   _F("telem_dropped", "H", "telemetry samples not sent (link busy)"),
+                   _F("uptime_ms", "I")),
+            side_effects=False),
+    Command("heartbeat", 0x11, "Keep the link watchdog fed; no effect otherwise.", side_effects=False),
+)
+COMMAND_BY_NAME = {c.name: c for c in COMMANDS}
+COMMAND_BY_CODE = {c.code: c for c in COMMANDS}
+
+BOARD_FRAMES = (
+    ("telemetry", MSG_TELEMETRY, "SEQ = telemetry generation; payload: u16 counter of the first sample, then "
+                                 "samples (sample-major, int16 per signal in mask order)"),
+    ("event", MSG_EVENT, "SEQ = event counter; payload: u8 Event, u8 code"),
+    ("nack", MSG_NACK, "SEQ = the command's SEQ; payload: u8 command TYPE, u8 Nack code"),
+)
+
+
+# ---------------------------------------------------------------------------
+# Parameter table: static definition
+# ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ParamDef:
+    """Static definition of one table entry (defaults; overridable per build)."""
+    id: int
+    name: str
+    unit: str
+    ctype: str
+    scale: float
+    min_raw: int
+    max_raw: int
+    default_raw: int
+    writable: bool
+    persisted: bool
+    doc: str
+    signal: bool = False
+    values: tuple[str, ...] = ()      # enum value names (raw = index)
+
+
+SIGNAL_BASE_ID = 0x20
+RULE_BASE_ID = 0x40
+_RULE_KINDS = ("kp", "ki", "kd", "kc")
+
+# Default scales are placeholders that make a table usable on its own (tests,
+# docs); the firmware's fixed-point plan overrides those of the gains, speeds
+# and voltages.
+_V = 1.0 / 128.0         # V per count: +-256 V in int16
+_A = 1.0 / 1024.0        # A per count: +-32 A in int16
+_GAIN = 1.0 / 256.0
+_Q14 = 1.0 / 16384.0
+
+PARAMS: tuple[ParamDef, ...] = (
+    ParamDef(0x00, "speed_setpoint", "rpm", "int16", 1.0, -30000, 30000, 0, True, False,
+             "commanded speed, mechanical; the sign is the direction"),
+    ParamDef(0x01, "controller", "enum", "uint8", 1.0, 0, 1, 1, True, True,
+             "0 = pid (rule 1 only), 1 = fuzzy (memberships blend all rules)", values=("pid", "fuzzy")),
+    ParamDef(0x02, "premise_low", "rpm", "int16", 1.0, 0, 30000, 0, True, True,
+             "N1 of the fuzzy premise (|speed|)"),
+    ParamDef(0x03, "premise_high", "rpm", "int16", 1.0, 0, 30000, 3000, True, True,
+             "N2 of the fuzzy premise (|speed|)"),
+    ParamDef(0x04, "setpoint_weight", "1", "int16", _Q14, 0, 16384, 16384, True, True,
+             "b of the 2-DOF PID (P acts on b r - y)"),
+    ParamDef(0x05, "u_min", "V", "int16", _V, -32767, 32767, -32767, True, True,
+             "lower output limit of the control law"),
+    ParamDef(0x06, "u_max", "V", "int16", _V, -32767, 32767, 32767, True, True,
+             "upper output limit of the control law"),
+    ParamDef(0x07, "current_limit", "A", "int16", _A, 0, 32767, 2048, True, True,
+             "firmware current limit"),
+    ParamDef(0x08, "accel_limit", "rpm/s", "uint16", 1.0, 0, 65535, 0, True, True,
+             "setpoint ramp; 0 = off"),
+    ParamDef(0x09, "link_timeout", "ms", "uint16", 1.0, 20, 60000, 500, True, True,
+             "link-loss watchdog while running"),
+    ParamDef(0x0A, "stall_timeout", "ms", "uint16", 1.0, 10, 60000, 500, True, True,
+             "commanded with no motion for this long = stall fault"),
+)
+
+RULE_GAINS: tuple[tuple[str, str, str], ...] = (
+    ("kp", "V/(rad/s)", "proportional gain of rule {j} (on b r - y)"),
+    ("ki", "V/rad", "integral gain of rule {j}"),
+    ("kd", "V s^2/rad", "derivative gain of rule {j} (on measurement)"),
+    ("kc", "V/A", "current-feedback gain of rule {j}"),
+)
+"""Per rule j = 1..r: ids RULE_BASE_ID + 4 (j-1) + k, names rule{j}_{kind}."""
+
+SIGNALS: tuple[ParamDef, ...] = tuple(
+    ParamDef(SIGNAL_BASE_ID + i, name, unit, "int16", scale, -32768, 32767, 0, False, False, doc, signal=True,
+             values=values)
+    for i, (name, unit, scale, doc, values) in enumerate((
+        ("speed", "rpm", 1.0, "measured speed, mechanical", ()),
+        ("setpoint", "rpm", 1.0, "setpoint after the ramp", ()),
+        ("voltage", "V", _V, "the law's output u", ()),
+        ("current", "A", _A, "measured bus current", ()),
+        ("integrator", "V", _V, "integral term I", ()),
+        ("duty", "counts", 1.0, "PDC duty, raw counts (sign = direction)", ()),
+        ("hall", "code", 1.0, "hall code 0..7", ()),
+        ("state", "enum", 1.0, "drive state", tuple(s.name.lower() for s in State)),
+        ("fault", "code", 1.0, "latched fault", tuple(f.name.lower() for f in Fault)),
+        ("mu1", "1", _Q14, "membership of rule 1, 0..1", ()),
+        ("position", "counts", 1.0, "encoder position (wraps at 16 bits)", ()),
+    )))
+
+
+def static_defs(rules: int) -> tuple[ParamDef, ...]:
+    """The static definition for ``rules`` rules, in id order."""
+    if not isinstance(rules, int) or isinstance(rules, bool) or not 1 <= rules <= 8:
+        raise ProtocolError(f"rules = {rules!r}: expected an integer in [1, 8] (design.rules of the profile)")
+    gains = []
+    for j in range(1, rules + 1):
+        for k, (kind, unit, doc) in enumerate(RULE_GAINS):
+            gains.append(ParamDef(RULE_BASE_ID + 4 * (j - 1) + k, f"rule{j}_{kind}", unit, "int16", _GAIN,
+                                  -32768, 32767, 0, True, True, doc.format(j=j)))
+    return tuple(sorted(PARAMS + SIGNALS + tuple(gains), key=lambda d: d.id))
+
+
+# ---------------------------------------------------------------------------
+# Resolved table
+# ---------------------------------------------------------------------------
+def float32_bits(x: float) -> int:
+    return struct.unpack("<I", struct.pack("<f", x))[0]
+
+
+def float32_from_bits(b: int) -> float:
+    return struct.unpack("<f", struct.pack("<I", b))[0]
+
+
+@dataclass(frozen=True)
+class ParamOverride:
+    """Per-build change of one entry: raw scale (float, stored as float32),
+    raw limits and default, C type.  ``None`` keeps the static value."""
+    scale: float | None = None
+    min_raw: int | None = None
+    max_raw: int | None = None
+    default_raw: int | None = None
+    ctype: str | None = None
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One resolved table entry."""
+    id: int
+    name: str
+    unit: str
+    ctype: str
+    scale: float          # exactly representable as float32
+    min_raw: int
+    max_raw: int
+    default_raw: int
+    writable: bool
+    persisted: bool
+    signal: bool
+    doc: str = ""
+    values: tuple[str, ...] = ()
+
+    @property
+    def flags(self) -> int:
+        return ((FLAG_WRITABLE if self.writable else 0) | (FLAG_PERSISTED if self.persisted else 0)
+                | (FLAG_SIGNAL if self.signal else 0))
+
+    @property
+    def scale_bits(self) -> int:
+        return float32_bits(self.scale)
+
+    @property
+    def ct(self) -> CType:
+        return CTYPES[self.ctype]
+
+    @property
+    def unit_index(self) -> int:
+        return UNITS.index(self.unit)
+
+    @property
+    def c_id(self) -> str:
+        return "LINK_ID_" + self.name.upper()
+
+    @property
+    def min_value(self) -> float:
+        return self.min_raw * self.scale
+
+    @property
+    def max_value(self) -> float:
+        return self.max_raw * self.scale
+
+    @property
+    def default_value(self) -> float:
+        return self.default_raw * self.scale
+
+    def to_raw(self, value: float) -> int:
+        """Nearest raw integer to an engineering value (no range check)."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ProtocolError(f"{self.name} = {value!r}: expected a finite number in {self.unit}")
+        return int(round(value / self.scale))
+
+    def canonical(self) -> bytes:
+        return struct.pack("<BBBBIiii", self.id, self.ct.code, self.flags, self.unit_index, self.scale_bits,
+                           self.min_raw, self.max_raw, self.default_raw) + self.name.encode("ascii") + b"\0"
+
+
+@dataclass(frozen=True)
+class Table:
+    """The resolved parameter table of one build (entries in id order)."""
+    entries: tuple[Entry, ...]
+    rules: int
+
+    def __post_init__(self):
+        ids = [e.id for e in self.entries]
+        if ids != sorted(set(ids)):
+            raise ProtocolError("table entries must have unique ids in increasing order")
+        if len(self.entries) > 255:
+            raise ProtocolError(f"{len(self.entries)} table entries: at most 255 fit the protocol")
+
+    @cached_property
+    def by_name(self) -> dict[str, Entry]:
+        return {e.name: e for e in self.entries}
+
+    @cached_property
+    def by_id(self) -> dict[int, Entry]:
+        return {e.id: e for e in self.entries}
+
+    def __getitem__(self, name: str) -> Entry:
+        try:
+            return self.by_name[name]
+        except KeyError:
+            raise ProtocolError(f"no table entry named {name!r}; known: {', '.join(self.by_name)}") from None
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.by_name
+
+    def __iter__(self):
+        return iter(self.entries)
+
+    def __len__(self) -> int:
+        return len(self.entries)
+
+    @property
+    def params(self) -> tuple[Entry, ...]:
+        return tuple(e for e in self.entries if not e.signal)
+
+    @property
+    def signals(self) -> tuple[Entry, ...]:
+        """Signals in signal-index order (telemetry mask bit i = signals[i])."""
+        return tuple(e for e in self.entries if e.signal)
+
+    @property
+    def persisted(self) -> tuple[Entry, ...]:
+        return tuple(e for e in self.entries if e.persisted)
+
+    def signal_index(self, name: str) -> int:
+        e = self[name]
+        if not e.signal:
+            raise ProtocolError(f"{name!r} is a parameter, not a telemetry signal; signals: "
+                                f"{', '.join(s.name for s in self.signals)}")
+        return self.signals.index(e)
+
+    def signal_mask(self, names: Iterable[str]) -> int:
+        m = 0
+        for n in names:
+            m |= 1 << self.signal_index(n)
+        return m
+
+    def signals_in_mask(self, mask: int) -> tuple[Entry, ...]:
+        sig = self.signals
+        bad = [i for i in range(16) if mask >> i & 1 and i >= len(sig)]
+        if bad or mask >> 16:
+            raise ProtocolError(f"signal mask 0x{mask:04x} has bits beyond the {len(sig)} signals")
+        return tuple(s for i, s in enumerate(sig) if mask >> i & 1)
+
+    def canonical(self) -> bytes:
+        """The canonical encoding the hash covers (every field of every entry)."""
+        return b"picdrive.table/1\0" + b"".join(e.canonical() for e in self.entries)
+
+    @cached_property
+    def hash(self) -> int:
+        """CRC-32 (zlib) of :meth:`canonical`: the table hash in hello."""
+        return zlib.crc32(self.canonical()) & 0xFFFFFFFF
+
+    @property
+    def eeprom_data_bytes(self) -> int:
+        return sum(e.ct.size for e in self.persisted)
+
+    @property
+    def eeprom_image_bytes(self) -> int:
+        return EEPROM_HEADER_BYTES + self.eeprom_data_bytes + 2
+
+    @property
+    def param_store_bytes(self) -> int:
+        return sum(e.ct.size for e in self.params)
+
+
+def _check_entry(e: Entry) -> None:
+    ct = CTYPES.get(e.ctype)
+    where = f"protocol entry {e.name!r}"
+    if ct is None:
+        raise ProtocolError(f"{where}: ctype {e.ctype!r} is not one of {', '.join(CTYPES)}")
+    if e.signal and e.ctype not in SIGNAL_CTYPES:
+        raise ProtocolError(f"{where}: a telemetry signal travels as 16 bits; ctype must be int16 or uint16, "
+                            f"not {e.ctype!r}")
+    if not (isinstance(e.scale, float) and math.isfinite(e.scale) and e.scale > 0):
+        raise ProtocolError(f"{where}: scale = {e.scale!r}: expected a finite positive number "
+                            "(engineering value = raw x scale)")
+    s32 = float32_from_bits(float32_bits(e.scale))
+    if not (s32 > 0 and math.isfinite(s32)):
+        raise ProtocolError(f"{where}: scale = {e.scale!r} does not fit a float32 (about 1.2e-38 .. 3.4e38)")
+    for what, v in (("min_raw", e.min_raw), ("max_raw", e.max_raw), ("default_raw", e.default_raw)):
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise ProtocolError(f"{where}: {what} = {v!r}: expected an integer (raw counts)")
+        if not ct.lo <= v <= ct.hi:
+            raise ProtocolError(f"{where}: {what} = {v} does not fit {e.ctype} [{ct.lo}, {ct.hi}]; "
+                                "widen the ctype or narrow the limit")
+    if not e.min_raw <= e.default_raw <= e.max_raw:
+        raise ProtocolError(f"{where}: expected min_raw <= default_raw <= max_raw, got "
+                            f"{e.min_raw} <= {e.default_raw} <= {e.max_raw}")
+    if len(e.name) > NAME_MAX or not e.name.isascii():
+        raise ProtocolError(f"{where}: names are ASCII, at most {NAME_MAX} characters")
+
+
+def _pow2_scale(max_abs: float, counts: int = 32767, headroom: float = 1.25) -> float:
+    """Smallest power of two s with counts * s >= headroom * max_abs."""
+    return 2.0 ** math.ceil(math.log2(headroom * max_abs / counts))
+
+
+def _profile_overrides(profile) -> dict[str, ParamOverride]:
+    """Defaults taken from a drive profile (overrides given to build_table win)."""
+    c, inv, u = profile.control, profile.inverter, profile.uart
+    smax = int(math.ceil(c.speed_max_rpm))
+    n1, n2 = profile.design.get("premise_rpm", [0.0, 3000.0])
+    vmax = inv.bus_voltage_v * profile.max_duty()
+    vs = _pow2_scale(inv.bus_voltage_v)
+    as_ = _pow2_scale(max(inv.overcurrent_trip_a, inv.current_limit_a))
+    ov = {
+        "speed_setpoint": ParamOverride(min_raw=-smax, max_raw=smax, default_raw=0),
+        "premise_low": ParamOverride(default_raw=int(round(n1))),
+        "premise_high": ParamOverride(default_raw=int(round(n2))),
+        "u_min": ParamOverride(scale=vs, min_raw=-int(vmax / vs), max_raw=0, default_raw=-int(vmax / vs)),
+        "u_max": ParamOverride(scale=vs, min_raw=0, max_raw=int(vmax / vs), default_raw=int(vmax / vs)),
+        "current_limit": ParamOverride(scale=as_, min_raw=0, max_raw=int(inv.overcurrent_trip_a / as_),
+                                       default_raw=int(round(inv.current_limit_a / as_))),
+        "link_timeout": ParamOverride(default_raw=int(round(u.link_timeout_ms))),
+        "stall_timeout": ParamOverride(default_raw=int(round(c.stall_timeout_ms))),
+        "voltage": ParamOverride(scale=vs), "integrator": ParamOverride(scale=vs),
+        "current": ParamOverride(scale=as_),
+    }
+    if int(profile.design.get("rules", 2)) == 1:
+        ov["controller"] = ParamOverride(default_raw=int(Controller.PID))
+    return ov
+
+
+def build_table(rules: int, overrides: Mapping[str, ParamOverride] | None = None, *, profile=None) -> Table:
+    """Resolve the static definition for one build.
+
+    ``rules``: number of fuzzy rules r (1..8); entries ``rule{j}_*`` exist for
+    j = 1..r.  ``profile``: optional :class:`picdrive.profile.Profile` whose
+    speed range, premise, bus voltage, current limit and timeouts give
+    defaults.  ``overrides``: ``{name: ParamOverride}`` from the firmware's
+    fixed-point plan (they win over the profile).  Raises
+    :class:`ProtocolError` for an unknown name or a limit that does not fit.
+    """
+    defs = static_defs(rules)
+    known = {d.name: d for d in defs}
+    merged: dict[str, dict[str, Any]] = {}
+    layers = []
+    if profile is not None:
+        layers.append(_profile_overrides(profile))
+    if overrides:
+        layers.append(dict(overrides))
+    for layer in layers:
+        for name, ov in layer.items():
+            if name not in known:
+                raise ProtocolError(f"override for unknown entry {name!r} (rules = {rules}); known entries: "
+                                    f"{', '.join(known)}")
+            if not isinstance(ov, ParamOverride):
+                raise ProtocolError(f"override for {name!r} must be a protocol.ParamOverride, got {type(ov).__name__}")
+            merged.setdefault(name, {}).update({k: v for k, v in dataclasses.asdict(ov).items() if v is not None})
+    entries = []
+    for d in defs:
+        kw = dict(scale=d.scale, min_raw=d.min_raw, max_raw=d.max_raw, default_raw=d.default_raw, ctype=d.ctype)
+        ov = merged.get(d.name, {})
+        if d.signal and "ctype" in ov and ov["ctype"] in CTYPES:
+            # a signal's limits are its type's range unless given
+            kw["min_raw"], kw["max_raw"] = CTYPES[ov["ctype"]].lo, CTYPES[ov["ctype"]].hi
+            kw["default_raw"] = max(kw["min_raw"], min(kw["max_raw"], kw["default_raw"]))
+        kw.update(ov)
+        scale = kw["scale"]
+        if isinstance(scale, int) and not isinstance(scale, bool):
+            scale = float(scale)
+        e = Entry(id=d.id, name=d.name, unit=d.unit, ctype=kw["ctype"], scale=scale, min_raw=kw["min_raw"],
+                  max_raw=kw["max_raw"], default_raw=kw["default_raw"], writable=d.writable, persisted=d.persisted,
+                  signal=d.signal, doc=d.doc, values=d.values)
+        _check_entry(e)
+        entries.append(dataclasses.replace(e, scale=float32_from_bits(float32_bits(e.scale))))
+    t = Table(tuple(entries), rules)
+    if t.eeprom_image_bytes > EEPROM_BYTES:
+        raise ProtocolError(f"the persisted parameters need {t.eeprom_image_bytes} B of EEPROM; the PIC18F4431 has "
+                            f"{EEPROM_BYTES} B: use fewer rules or narrower ctypes")
+    return t
+
+
+# ---------------------------------------------------------------------------
+# RAM budget (the C module's buffers; the state is measured from avr-nm)
+# ---------------------------------------------------------------------------
+def ram_budget(table: Table, capture_bytes: int = CAPTURE_BYTES_DEFAULT) -> dict[str, int]:
+    """Bytes of the C module's buffers for a table: RX ring, TX frame buffer,
+    telemetry frame buffer, replay store, parameter store, capture buffer.
+    The scalar state (indices, counters, capture and telemetry settings) is
+    :data:`STATE_BYTES` more; ``bench/link.py`` measures the total from the avr-gcc
+    build (``avr-nm --size-sort -S``)."""
+    return {
+        "rx_ring": RX_RING_BYTES,
+        "tx_frame": MAX_BODY,
+        "telemetry_frame": MAX_PAYLOAD,
+        "replay": REPLAY_BYTES,
+        "param_store": table.param_store_bytes,
+        "capture": capture_bytes,
+    }
+
+
+# ---------------------------------------------------------------------------
+# Rendering
+# ---------------------------------------------------------------------------
+def _env():
+    import jinja2
+    from ..paths import templates_dir
+    return jinja2.Environment(
+        loader=jinja2.FileSystemLoader(str(templates_dir())), undefined=jinja2.StrictUndefined,
+        trim_blocks=True, lstrip_blocks=True, keep_trailing_newline=True, autoescape=False)
+
+
+def _c_int(v: int) -> str:
+    if v == -2**31:
+        return "(-2147483647L - 1L)"
+    return f"{v}L"
+
+
+def _u32(name: str, v: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 0xFFFFFFFF:
+        raise ProtocolError(f"{name} = {v!r}: expected an unsigned 32-bit integer")
+    return v
+
+
+_C_ROW_BYTES = 20       # id, ctype, flags, unit, scale bits, min, max, default: the param_info reply head
+_C_HANDLERS = {"start": "h_app", "stop": "h_app", "brake": "h_app", "fault_clear": "h_app",
+               "heartbeat": "h_none"}
+_C_IDLE_COMMANDS = ("eeprom_save", "eeprom_load")   # refused while the motor runs or brakes
+
+
+def _c_bytes(data: bytes) -> str:
+    return ", ".join(f"0x{b:02X}u" for b in data)
+
+
+def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, capture_words: int) -> dict:
+    """The flash tables of link_fw.c: one row per entry (the param_info reply head, little-endian),
+    store offsets and sizes, names, the hello reply and the EEPROM header."""
+    names, name_offsets = "", [0]
+    for e in table.entries:
+        names += e.name
+        name_offsets.append(len(names))
+
+    def row(e: Entry) -> str:
+        return _c_bytes(struct.pack("<BBBBIiii", e.id, e.ct.code, e.flags, e.unit_index, e.scale_bits,
+                                    e.min_raw, e.max_raw, e.default_raw)) + ","
+
+    def size_code(e: Entry) -> int:     # bytes in the store (signals: 16 bits), bit 7: signed
+        return e.ct.size | (0x80 if e.ctype.startswith("int") else 0)
+
+    def le(macro: str, n: int) -> str:   # the header's macros stay the authority
+        return ", ".join(f"(uint8_t)({macro} >> {8 * k}u)" if k else f"(uint8_t){macro}" for k in range(n))
+
+    hello = ", ".join(["LINK_PROTO_MAJOR", "LINK_PROTO_MINOR", le("LINK_BUILD_ID", 4), le("LINK_PROFILE_HASH", 4),
+                       le("LINK_TABLE_HASH", 4), "LINK_N_ENTRIES", "LINK_MAX_PAYLOAD", le("LINK_HELLO_CAPTURE_WORDS", 2),
+                       le("LINK_SAMPLE_HZ", 2)])
+    ee_head = ", ".join([_c_bytes(EEPROM_MAGIC + bytes((EEPROM_LAYOUT_VERSION,))), le("LINK_TABLE_HASH", 4),
+                         "EE_DATA_BYTES"])
+    index = {e.name: i for i, e in enumerate(table.entries)}
+    index_of = [None] * (max(e.id for e in table.entries) + 1)
+    for i, e in enumerate(table.entries):
+        index_of[e.id] = i
+    return dict(index_of=index_of, row_bytes=_C_ROW_BYTES, row_bytes_of=row, size_code=size_code,
+                name_offsets=name_offsets, names_concat=names,
+                persisted_index=[index[e.name] for e in table.persisted],
+                name_t="uint8_t" if len(names) <= 255 else "uint16_t", hello_bytes=hello, ee_head_bytes=ee_head,
+                handler_of=lambda c: _C_HANDLERS.get(c.name, "h_" + c.name), idle_cmds=_C_IDLE_COMMANDS)
+
+
+def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float | None = None,
+             capture_bytes: int = CAPTURE_BYTES_DEFAULT, critical_begin: str = "",
+             critical_end: str = "", capture: bool = True, eeprom: bool = True) -> dict[str, str]:
+    """Render the C link module for ``table``.
+
+    Returns ``{"link_fw.h": text, "link_fw.c": text}``.  ``build_id`` and
+    ``profile_hash`` (u32) are reported by hello.  ``sample_hz``: rate at
+    which the firmware calls ``link_sample()`` (its speed loop), reported by
+    hello so that the host can time telemetry (None: 0 = not stated).
+    ``capture_bytes``: capture buffer size (even, 16..1024).
+    ``critical_begin``/``critical_end``: C statements that make a
+    parameter-store update atomic against the interrupt that runs the speed
+    loop (e.g. ``"INTCONbits.GIEH = 0;"``); empty when the speed loop reads
+    the store from the main loop only.  Both can also be set with
+    ``-DLINK_CRITICAL_BEGIN()=...`` at compile time.
+    ``capture``/``eeprom``: generate the triggered capture (commands and buffer) and the EEPROM
+    persistence, or leave them out to save flash (``LINK_WITH_CAPTURE``/``LINK_WITH_EEPROM``;
+    a build without capture NACKs its commands UNKNOWN_COMMAND and reports 0 capture words in
+    hello; one without EEPROM refuses eeprom_save and loads nothing).
+    """
+    if not isinstance(table, Table):
+        raise ProtocolError("render_c needs a protocol.Table from build_table()")
+    _u32("build_id", build_id)
+    _u32("profile_hash", profile_hash)
+    if isinstance(capture_bytes, bool) or not isinstance(capture_bytes, int) or capture_bytes % 2 \
+            or not 16 <= capture_bytes <= 1024:
+        raise ProtocolError(f"capture_bytes = {capture_bytes!r}: expected an even number of bytes in [16, 1024]")
+    hz = 0
+    if sample_hz is not None:
+        if not (isinstance(sample_hz, (int, float)) and math.isfinite(sample_hz) and 1 <= sample_hz <= 65535):
+            raise ProtocolError(f"sample_hz = {sample_hz!r}: expected the speed-loop rate in Hz, 1..65535")
+        hz = int(round(sample_hz))
+    for k, (name, code, _doc) in enumerate(BOARD_FRAMES):
+        assert code not in COMMAND_BY_CODE
+    ctx = dict(
+        table=table, entries=table.entries, params=table.params, signals=table.signals,
+        persisted=table.persisted, commands=COMMANDS, version=PROTOCOL_VERSION,
+        build_id=build_id, profile_hash=profile_hash, table_hash=table.hash, sample_hz=hz,
+        capture_words=capture_bytes // 2, capture_bytes=capture_bytes, sig_all=(1 << len(table.signals)) - 1,
+        max_payload=MAX_PAYLOAD, max_frame=MAX_FRAME, max_body=MAX_BODY,
+        rx_ring=RX_RING_BYTES, name_max=NAME_MAX, replay_bytes=REPLAY_BYTES, param_get_max=PARAM_GET_MAX,
+        nacks=list(Nack), faults=list(Fault), states=list(State), events=list(Event),
+        triggers=list(Trigger), capture_states=list(CaptureState), controllers=list(Controller),
+        eeprom_results=list(EepromResult), ctypes=list(CTYPES.values()),
+        msg_telemetry=MSG_TELEMETRY, msg_event=MSG_EVENT, msg_nack=MSG_NACK, ack_bit=ACK_BIT,
+        flag_writable=FLAG_WRITABLE, flag_persisted=FLAG_PERSISTED, flag_signal=FLAG_SIGNAL,
+        ee_magic=EEPROM_MAGIC, ee_version=EEPROM_LAYOUT_VERSION, ee_header=EEPROM_HEADER_BYTES,
+        ee_image=table.eeprom_image_bytes, telem_header=TELEMETRY_HEADER_BYTES,
+        capread_header=CAPTURE_READ_HEADER_BYTES, budget=ram_budget(table, capture_bytes), state_bytes=STATE_BYTES,
+        critical_begin=critical_begin, critical_end=critical_end, c_int=_c_int,
+        with_capture=bool(capture), with_eeprom=bool(eeprom),
+        cmd=COMMAND_BY_NAME, hexu=lambda v: f"0x{v:08X}UL", **_c_tables(table, build_id, profile_hash, hz,
+                                                                          capture_bytes // 2),
+    )
+    env = _env()
+    return {name: env.get_template(name + ".j2").render(**ctx) for name in ("link_fw.h", "link_fw.c")}
+
+
+# -- invariants of the definition (checked at import: a broken table is a bug here) --
+def _check_definition() -> None:
+    codes = [c.code for c in COMMANDS] + [MSG_TELEMETRY, MSG_EVENT, MSG_NACK]
+    assert len(codes) == len(set(codes)) and all(0 < c < ACK_BIT for c in codes)
+    for c in COMMANDS:
+        assert c.args_size <= MAX_PAYLOAD and c.reply_size <= MAX_PAYLOAD
+        if c.side_effects:
+            # replies of commands with side effects fit the replay store
+            assert c.reply_tail is None and c.reply_size <= REPLAY_BYTES, c.name
+    assert COMMAND_BY_NAME["param_info"].reply_size + NAME_MAX <= MAX_PAYLOAD
+    assert 4 * PARAM_GET_MAX <= MAX_PAYLOAD
+    assert TELEMETRY_HEADER_BYTES + 2 * len(DEFAULT_TELEMETRY_SIGNALS) * DEFAULT_SAMPLES_PER_FRAME <= MAX_PAYLOAD
+    assert RX_RING_BYTES & (RX_RING_BYTES - 1) == 0 and RX_RING_BYTES > MAX_FRAME + 1
+    assert MAX_BODY < 254                 # one COBS block per frame
+    assert [c.code for c in COMMANDS] == list(range(1, len(COMMANDS) + 1))   # the C dispatch table
+    assert len(SIGNALS) <= 16
+    for d in static_defs(8):
+        assert len(d.name) <= NAME_MAX and d.unit in UNITS, d.name
+
+
+_check_definition()
+
+
+# ---------------------------------------------------------------------------
+# Markdown
+# ---------------------------------------------------------------------------
+def _fields_md(fields: tuple[Field, ...], tail: Field | None) -> str:
+    parts = [f"{f.name}:{f.fmt}" for f in fields]
+    if tail is not None:
+        parts.append(f"{tail.name}:{tail.fmt}[]")
+    return ", ".join(parts) if parts else "--"
+
+
+def render_markdown(table: Table | None = None) -> str:
+    """``docs/protocol.md``: the whole definition as a document.  ``table``
+    defaults to two rules, no overrides (a build's scales and limits differ:
+    read them with ``picdrive.link`` or from its ``link_fw.h``)."""
+    t = table if table is not None else build_table(2)
+    budget = ram_budget(t)
+    L: list[str] = []
+    a = L.append
+    a("# picdrive serial protocol")
+    a("")
+    a("<!-- generated by `python -m picdrive.link.protocol docs/protocol.md` from host/picdrive/link/protocol.py;"
+      " do not edit -->")
+    a("")
+    a(f"Protocol version {PROTOCOL_VERSION[0]}.{PROTOCOL_VERSION[1]}.  Defined once in "
+      "`host/picdrive/link/protocol.py`; the C module (`link_fw.h`, `link_fw.c`) is rendered from the same "
+      "definition, and `picdrive.link.codec` / `picdrive.link.client` use it on the host.")
+    a("")
+    a("## Frame")
+    a("")
+    a("| byte of the body | field |")
+    a("|---|---|")
+    a(f"| 0 | LEN: payload length, 0..{MAX_PAYLOAD} |")
+    a("| 1 | TYPE |")
+    a("| 2 | SEQ |")
+    a("| 3 .. 3+LEN-1 | payload (little-endian integers) |")
+    a("| last 2 | CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF) over LEN..payload, high byte first |")
+    a("")
+    a(f"On the wire a frame is the body COBS-encoded (consistent overhead byte stuffing: one code byte, as a "
+      f"body is at most {MAX_BODY} B), then the delimiter `0x{DELIMITER:02X}`, which occurs nowhere else.  "
+      f"Largest frame: {MAX_FRAME} bytes.  The host sends a delimiter before each command too, so a partial "
+      "frame before it (a cable plugged in mid-frame, a host restarted mid-write) is dropped at once.")
+    a("")
+    a("A receiver collects the bytes up to each delimiter and accepts them only if they COBS-decode to a body "
+      "of exactly LEN + 5 bytes whose CRC holds; otherwise it drops them whole and starts afresh after the "
+      "delimiter.  Consequences: resynchronisation is exact (the first frame after any garbage is accepted as "
+      "soon as its delimiter arrives, if a delimiter preceded it); a frame carried inside a payload is "
+      "stuffed and can never be taken for a frame; a frame that lost bytes either ends at the next delimiter "
+      "(rejected by its length and CRC) or merges with the next frame (both rejected); a LEN that does not "
+      "match the frame's length is rejected whatever the CRC.  What remains is the CRC's chance rate "
+      "(2^-16 per corrupted frame, less with the length check): `bench/fuzz_link.py` measures it per kind of "
+      "corruption.  The board has no inter-byte timer; the host drops a partial frame after "
+      f"{HOST_GAP_MS} ms without bytes.  Version 1.x framed with a start byte 0xA5 and no stuffing.")
+    a("")
+    a("## Exchanges")
+    a("")
+    a(f"* Every command frame gets exactly one reply echoing its SEQ: an ACK (TYPE = command | 0x{ACK_BIT:02X}, "
+      f"payload = the reply below) or a NACK (TYPE 0x{MSG_NACK:02X}, payload = command TYPE, NACK code).")
+    a("* A command frame identical to the previous one (same TYPE, SEQ and CRC: a retry after a lost reply) is "
+      f"not executed again: its stored reply is sent (replies up to {REPLAY_BYTES} B are stored; all commands "
+      "with side effects have replies that short; the longer replies belong to read-only commands, which are "
+      "answered afresh).")
+    a("* A frame that fails its CRC is answered with one NACK BAD_CRC (TYPE and SEQ as received, possibly "
+      "corrupted) so the host can retry at once; further failures are not reported until a valid frame "
+      "arrives.")
+    a("* The host sends the next command only after the reply to the previous one (or its timeout); it retries "
+      "a timed-out command with the same SEQ a bounded number of times.")
+    a(f"* Board-initiated frames: telemetry (TYPE 0x{MSG_TELEMETRY:02X}, SEQ = telemetry generation, payload "
+      "u16 counter of the frame's first sample then the samples), events (TYPE "
+      f"0x{MSG_EVENT:02X}, SEQ = event counter, payload event, code).")
+    a("* Watchdog: while the drive state is RUN, a board that receives no valid host command for "
+      "`link_timeout` ms switches its outputs off, latches fault LINK_LOST and sends event WATCHDOG.  Idle "
+      "boards never time out.  The host keeps the link alive with heartbeat.")
+    a("* Frames of the board's own types (ACKs, NACK, telemetry, event) arriving at the board are ignored: "
+      "no reply, and they do not feed the watchdog, so a loop-back fault (the board's frames echoed back) "
+      "cannot keep a motor running without a host.")
+    a("* Direction is the sign of the speed setpoint (no separate reverse command).")
+    a("")
+    a("## Commands")
+    a("")
+    a("| TYPE | command | arguments | ACK payload | notes |")
+    a("|---|---|---|---|---|")
+    for c in COMMANDS:
+        note = c.doc + (" Forwarded to `app_command()`." if c.app else "")
+        a(f"| 0x{c.code:02X} | {c.name} | {_fields_md(c.args, c.args_tail)} | "
+          f"{_fields_md(c.reply, c.reply_tail)} | {note} |")
+    a("")
+    a("Field types are Python `struct` codes: B u8, b i8, H u16, h i16, I u32, i i32, s ASCII text; `[]` "
+      "repeats to the end of the payload.")
+    a("")
+    a("Board-initiated frames:")
+    a("")
+    a("| TYPE | frame | payload |")
+    a("|---|---|---|")
+    for name, code, doc in BOARD_FRAMES:
+        a(f"| 0x{code:02X} | {name} | {doc} |")
+    a("")
+    for title, en, extra in (("NACK codes", Nack, NACK_REASONS), ("Fault codes", Fault, None),
+                             ("Drive states", State, None), ("Events", Event, None),
+                             ("Capture triggers", Trigger, None), ("Capture states", CaptureState, None),
+                             ("Controllers", Controller, None), ("EEPROM load results (C)", EepromResult, None)):
+        a(f"### {title}")
+        a("")
+        a("| code | name |" + (" meaning |" if extra else ""))
+        a("|---|---|" + ("---|" if extra else ""))
+        for m in en:
+            a(f"| {int(m)} | {m.name} |" + (f" {extra[m]} |" if extra else ""))
+        a("")
+    a("## Parameter table")
+    a("")
+    a("Parameters and telemetry signals share one id space.  Engineering value = raw x scale.  Scales, limits "
+      "and defaults below are the static defaults (two rules); each build renders its own from the "
+      "firmware's fixed-point plan and the profile, and the host reads them from the board with param_info.  "
+      f"Gains exist for rules j = 1..r (ids 0x{RULE_BASE_ID:02X} + 4 (j-1) + k).  Signal i (id "
+      f"0x{SIGNAL_BASE_ID:02X} + i) is bit i of the telemetry and capture masks.")
+    a("")
+    a("| id | name | unit | type | scale | min | max | default | W | P | meaning |")
+    a("|---|---|---|---|---|---|---|---|---|---|---|")
+    for e in t.entries:
+        a(f"| 0x{e.id:02X} | {e.name} | {e.unit} | {e.ctype} | {e.scale:.9g} | {e.min_raw} | {e.max_raw} | "
+          f"{e.default_raw} | {'x' if e.writable else ''} | {'x' if e.persisted else ''} | {e.doc}"
+          + (f" ({', '.join(f'{i} {v}' for i, v in enumerate(e.values))})" if e.values else "") + " |")
+    a("")
+    a(f"Table hash of this two-rule default table: `0x{t.hash:08X}` (CRC-32 of the canonical encoding: "
+      "`b'picdrive.table/1\\0'`, then per entry in id order `<BBBBIiii` id, ctype code, flags, unit index, "
+      "scale bits, min, max, default, then the name and a NUL).")
+    a("")
+    a("Units by index: " + ", ".join(f"{i} `{u}`" for i, u in enumerate(UNITS)) + ".  C type codes: "
+      + ", ".join(f"{t_.code} {t_.name}" for t_ in CTYPES.values()) + ".")
+    a("")
+    a("## EEPROM image")
+    a("")
+    a(f"At `LINK_EE_BASE` (default 0): `'P' 'D'`, layout version {EEPROM_LAYOUT_VERSION}, table hash (u32 LE), "
+      "data length (u8), the persisted parameters in id order (little-endian, C-type width), CRC-16/CCITT-FALSE "
+      f"of all preceding image bytes (high byte first).  This table's image: {t.eeprom_image_bytes} B of "
+      f"{EEPROM_BYTES}.  An image of another table (hash or length differ) is ignored, a corrupt one (bad CRC, "
+      "value out of range) is rejected: either way the parameters keep their values.")
+    a("")
+    a("## RAM budget of the C module")
+    a("")
+    a("Buffers for this table (the capture buffer is chosen per build with `render_c(..., capture_bytes=)`):")
+    a("")
+    a("| buffer | bytes |")
+    a("|---|---|")
+    for k, v in budget.items():
+        a(f"| {k} | {v} |")
+    a(f"| **buffers total** | **{sum(budget.values())}** |")
+    a("")
+    a(f"Scalar state (indices, counters, telemetry and capture settings) adds {STATE_BYTES} B: "
+      f"**{sum(budget.values()) + STATE_BYTES} B** in all, as `bench/link.py` measures from the avr-gcc build "
+      "(`avr-nm --size-sort -S`).  That leaves the firmware "
+      f"{768 - sum(budget.values()) - STATE_BYTES} B of the PIC18F4431's 768 B for its own state, UART TX queue "
+      "and compiled stack; a smaller capture buffer gives more.")
+    a("")
+    a("## C interface (`link_fw.h`)")
+    a("")
+    a("```c")
+    a("void    link_init(void);                  /* defaults, boot event; then link_eeprom_load() */")
+    a("void    link_rx_byte(uint8_t b);          /* UART RX interrupt */")
+    a("void    link_poll(void);                  /* main loop: dispatch, replies, events, telemetry */")
+    a("void    link_tick_ms(void);               /* 1 kHz: watchdog, uptime */")
+    a("void    link_sample(void);                /* once per speed-loop sample: telemetry + capture */")
+    a("void    link_event(uint8_t event, uint8_t code);   /* report BOOT cause / FAULT latched */")
+    a("int16_t link_param_i16(uint8_t id);       /* raw value, saturated to int16 */")
+    a("int32_t link_param_get(uint8_t id);       /* raw value */")
+    a("uint8_t link_param_set(uint8_t id, int32_t raw);   /* 0 or a NACK code; firmware-side writes */")
+    a("uint8_t link_eeprom_load(void);           /* LINK_EE_OK / BLANK / OTHER_BUILD / CORRUPT */")
+    a("uint8_t link_eeprom_save(void);           /* 0 or LINK_NACK_EEPROM_ERROR */")
+    a("uint16_t link_crc16(const uint8_t *p, uint8_t n);")
+    a("extern link_params_t link_params;         /* typed fields by parameter name; read freely */")
+    a("/* implemented by the application: */")
+    a("uint8_t app_command(uint8_t cmd, const uint8_t *arg, uint8_t n);   /* start/stop/brake/fault_clear */")
+    a("void    app_param_changed(uint8_t id);")
+    a("int16_t app_signal(uint8_t signal);       /* LINK_SIG_* index; raw value */")
+    a("void    app_link_lost(void);              /* from link_tick_ms: outputs off, latch LINK_LOST */")
+    a("uint8_t app_tx_free(void);")
+    a("void    app_tx_byte(uint8_t b);")
+    a("uint8_t app_eeprom_read(uint8_t addr);")
+    a("void    app_eeprom_write(uint8_t addr, uint8_t value);")
+    a("```")
+    a("")
+    a("Contexts: `link_rx_byte`, `link_tick_ms` and `link_sample` may run in interrupts; `link_poll` runs in "
+      "the main loop.  `link_rx_byte` only stores the byte in the ring (8-bit index, power-of-two size) or "
+      "counts an overflow in an 8-bit counter the main loop accumulates: it shares single bytes only, so any "
+      "interrupt priority may call it.  `link_tick_ms` and `link_sample` share 16/32-bit counters (uptime, "
+      "telemetry drops) that `link_poll` reads inside `LINK_CRITICAL_BEGIN()`/`LINK_CRITICAL_END()`, which "
+      "must mask their interrupt.  None of the three calls a compiler helper (no multiplication, division, "
+      "generic pointer or flash-table read), so no non-reentrant helper is shared with the main loop.  "
+      "`app_link_lost` is called from `link_tick_ms`; `app_signal` from `link_sample` and `link_poll`.  "
+      "Parameter-store writes happen in `link_poll` inside the same critical section.")
+    a("")
+    a("## Decisions (where the architecture leaves the choice open)")
+    a("")
+    for item in (
+        "ACK TYPE = command | 0x80, so a reply names the command it answers; the host matches TYPE and SEQ.",
+        "Duplicate detection compares TYPE, SEQ and the frame CRC of the previous command (an identical frame is "
+        "a retry).  The host starts each session at a random SEQ, so a new session does not collide with the "
+        "last command of an old one.",
+        "BAD_CRC: the board answers the first CRC failure after a valid frame with one NACK, so a host whose "
+        "command was corrupted resends at once instead of waiting for its timeout; garbage does not cause a "
+        "NACK storm.",
+        "Telemetry frames carry several samples (`samples_per_frame`, default 4 for the four default signals): "
+        f"34 B of payload in a {34 + FRAME_OVERHEAD} B frame, {34 / (34 + FRAME_OVERHEAD):.0%} payload efficiency, "
+        "so 1 kHz of four signals fits 115200 baud.  "
+        "The frame's SEQ is the telemetry generation (incremented by each telem_config) so a host never decodes "
+        "a frame with the wrong signal layout; the u16 counter of the first sample lets it count drops.",
+        "The board double-buffers telemetry (one frame filling, one in the TX frame buffer) and streams a frame "
+        "into the UART queue byte by byte as `app_tx_free()` allows, so a small firmware TX queue (16 B) is "
+        "enough; a sample that finds both buffers full is dropped and counted (status telem_dropped).",
+        "Replies go out before events, events before telemetry; a command waits at most one telemetry frame "
+        "(3.5 ms at 115200 baud).",
+        "Direction is the sign of the speed setpoint; there is no reverse command.",
+        "The watchdog is armed while app_signal(LINK_SIG_STATE) is RUN (not in BRAKE, IDLE or FAULT): it fires "
+        "once more than link_timeout ms have passed since the last valid host command (a frame that passes its "
+        "checks and carries a command TYPE, NACKed or not; not the board's own frame types).  link_timeout has "
+        "a floor of 20 ms, so it cannot be switched off.",
+        "Capture triggers: immediate (pre_trigger must be 0), setpoint change (speed_setpoint written through "
+        "the link or link_param_set), speed crossing a threshold upwards or downwards.  A record holds up to "
+        "pre_trigger samples before the trigger (fewer if the trigger came before the history filled) and "
+        "n_samples - pre_trigger from the trigger on.",
+        "EEPROM: saving and loading are refused while the motor runs or brakes (a PIC18 EEPROM write takes "
+        "about 4 ms per byte).  The image carries the table hash, so a board reflashed with another design "
+        "ignores the old image (OTHER_BUILD) instead of loading numbers of other scales.",
+        "Signals are 16-bit on the wire (int16 or uint16); position wraps at 16 bits.",
+        f"The host abandons a partial frame after {HOST_GAP_MS} ms without bytes: USB-serial adapters deliver "
+        "bytes in bursts (an FTDI chip holds them up to its 16 ms latency timer).  The board needs no timer.",
+        "The C module is table-driven for an 8-bit core: one flash row per table entry (the param_info reply "
+        "itself), store access by byte offset and size, commands dispatched through a table of handlers with "
+        "their argument lengths, no run-time multiplication or division.",
+    ):
+        a(f"* {item}")
+    a("")
+    a("## Host library")
+    a("")
+    a("`picdrive.link.Link.open(url)` (any pyserial URL) handshakes and reads the table; then `get`/`set` in "
+      "engineering units (checked against the board's limits before sending; the board checks again), "
+      "`set_speed`, `start`, `stop`, `brake`, `select_controller`, `fault_clear`, `status`, `save_eeprom`, "
+      "`load_eeprom`, `configure_telemetry` + `read_samples(n | seconds=)` (numpy structured array: index, t, "
+      "signals) or `samples()`, `capture_arm` + `capture_read`, `events()`.  Errors: `LinkError`, `LinkTimeout`, "
+      "`NackError` (command, code, reason), `HandshakeMismatch` (differences), `ParamError` (refused on the "
+      "host).  Tests run it against the rendered C module with a fake application behind a local socket "
+      "(`tests/linksupport/`); `bench/link.py` measures the telemetry rate and RAM, `bench/fuzz_link.py` "
+      "fuzzes the receiver under ASan/UBSan, `bench/link_pic18.py` measures flash, RAM and cycles of the C "
+      "module compiled by SDCC for the PIC18F4431 and run in gpsim (`--rev` for an older build, `--features` "
+      "for the flash the capture and EEPROM options cost).")
+    a("")
+    return "\n".join(L)
+
+
+if __name__ == "__main__":     # python -m picdrive.link.protocol docs/protocol.md
+    import sys
+    from ..fileio import atomic_write_text
+    if len(sys.argv) != 2:
+        print("usage: python -m picdrive.link.protocol docs/protocol.md", file=sys.stderr)
+        raise SystemExit(2)
+    atomic_write_text(sys.argv[1], render_markdown())

@@ -1,0 +1,2 @@
+"""The papers' claims beside what picdrive computes: ``repro2016``,
+``repro2008`` and ``picdrive report`` (``report``)."""
