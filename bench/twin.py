@@ -325,7 +325,7 @@ def bench_physical_limit(tmp: Path) -> None:
 
 def pil_hex(fw: Path, tmp: Path) -> tuple[Path, bool]:
     """The firmware folder's HEX (picdrive.target.build_measured) and whether it fits the 18F4431."""
-    from picdrive import target
+    from picdrive.firmware import target
     b = target.build_measured(fw, tmp / f"{fw.name}.hex")
     return b.hex_path, b.on_chip
 
@@ -333,7 +333,7 @@ def pil_hex(fw: Path, tmp: Path) -> tuple[Path, bool]:
 def step_and_load(tw, prof, target: float, step_s: float = 1.0, load_s: float = 1.0) -> dict:
     """The HIL's two scenarios on one twin: a step from rest to the target (no load), then the
     profile's load torque applied as a step; the true rotor speed every 100 us."""
-    from picdrive.metrics import step_metrics
+    from picdrive.analysis.metrics import step_metrics
     configure(tw, target)
     tw.set_load_torque(0.0)
     tw.run(0.01)

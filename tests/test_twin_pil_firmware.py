@@ -2,7 +2,7 @@
 processor's measurements agree with the build's static figures, and issue 9's timing hazards
 are checked on the compiled code at the cycle they happen (all in simulated time).
 
-The HEX is firmware_build/duy2008 built by picdrive.target.build_measured.  While that
+The HEX is firmware_build/duy2008 built by picdrive.firmware.target.build_measured.  While that
 firmware does not fit the 18F4431 (Build.on_chip False: linked with the enlarged measurement
 script), the twin runs it with its explicit enlarged-memory option; the tests then say so in
 their output and are otherwise the same."""
@@ -12,7 +12,8 @@ import re
 
 import pytest
 
-from picdrive import codec, target
+from picdrive.firmware import target
+from picdrive.link import codec
 from picdrive.paths import firmware_build_dir
 from picdrive_hil.twin import Twin
 

@@ -178,7 +178,7 @@ def twin_group(gen_dir: Path) -> Group:
 
 PIL_UNITY = "twin_pil_all.c"
 # the processor twin's memories when the firmware does not fit the 18F4431: the enlarged
-# linker script's (picdrive.target.enlarged_lkr: 128 KB flash, GPRs to 0x5FF).  Only on request.
+# linker script's (picdrive.firmware.target.enlarged_lkr: 128 KB flash, GPRs to 0x5FF).  Only on request.
 ENLARGED_FLASH_BYTES = 0x20000
 ENLARGED_RAM_END = 0x600
 

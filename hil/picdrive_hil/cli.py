@@ -27,7 +27,7 @@ def register(sub) -> None:
     p.add_argument("--hex", help="processor twin: run this Intel HEX on the PIC18 simulator instead of the C "
                                  "(board wiring from --firmware's or the HEX folder's board.json)")
     p.add_argument("--enlarged-memory", action="store_true",
-                   help="with --hex: simulate 128 KB of flash and 1.5 KB of RAM (picdrive.target's enlarged "
+                   help="with --hex: simulate 128 KB of flash and 1.5 KB of RAM (picdrive.firmware.target's enlarged "
                         "measurement memory) for a HEX that does not fit the 18F4431; reports say so")
     p.add_argument("--port", type=port, default=0, help="TCP port to listen on (default: any free port)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")

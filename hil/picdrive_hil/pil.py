@@ -7,7 +7,7 @@ peripheral model depends on, the C library, and what only a processor can report
 
 Program memory: the 18F4431's 16 KB of flash and 768 B of GPRs; a HEX that does not fit
 is refused (ihex.HexError).  ``enlarged=True`` builds the core with 128 KB of flash and
-1.5 KB of GPRs -- the memories of picdrive.target.enlarged_lkr, the linker script the
+1.5 KB of GPRs -- the memories of picdrive.firmware.target.enlarged_lkr, the linker script the
 project measures a firmware with when it does not fit -- and every report then says so.
 """
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """HIL suite fixtures (see hilbench.py for the bench and the limits).
 
 ``--target twin`` (default), ``pil`` (the processor twin: the bundled firmware's HEX,
-built with picdrive.target, on the PIC18 simulator), ``pil:FILE`` (a HEX of your own on
+built with picdrive.firmware.target, on the PIC18 simulator), ``pil:FILE`` (a HEX of your own on
 the processor twin; needs ``--profile``) or a serial URL of a real board (root conftest);
 ``--profile`` names the real board's profile (required with a serial URL) or,
 with the twin, selects that profile's tests (the twin runs it with firmware

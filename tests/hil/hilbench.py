@@ -158,7 +158,7 @@ def step_of(data: np.ndarray, target: float, prof=None):
 
 class FirmwareCache:
     """Firmware of each (profile, method), generated once per session with codegen (and its
-    HEX, built once with picdrive.target, for the processor twin)."""
+    HEX, built once with picdrive.firmware.target, for the processor twin)."""
 
     def __init__(self, root: Path):
         self.root = root
@@ -170,7 +170,7 @@ class FirmwareCache:
         script when the firmware does not fit (the processor twin then says so)."""
         key = (profile_name, method)
         if key not in self.hexes:
-            from picdrive import target
+            from picdrive.firmware import target
             b = target.build_measured(self.get(profile_name, method), self.root / f"{profile_name}.{method}.hex")
             self.hexes[key] = (b.hex_path, b.on_chip)
         return self.hexes[key]
