@@ -26,7 +26,7 @@
    ratio <= 1.25 with <= 1 % overshoot and <= 0.2 % steady error.
 
 4. SIL beside PIL: each bundled profile's fuzzy-hinf firmware as C on this machine (SIL) and
-   as the SDCC HEX (picdrive.target.build_measured) on the PIC18 simulator (PIL), the same step
+   as the SDCC HEX (picdrive.firmware.target.build_measured) on the PIC18 simulator (PIL), the same step
    from rest and load step (true rotor speed every 100 us), metrics side by side with the PIL's
    interrupt durations, stack and RAM, and each twin's real-time factor (PIL goal >= 20) and the
    PIL's simulated instructions per CPU second (with the plant and peripherals; the core alone:
@@ -324,7 +324,7 @@ def bench_physical_limit(tmp: Path) -> None:
 
 
 def pil_hex(fw: Path, tmp: Path) -> tuple[Path, bool]:
-    """The firmware folder's HEX (picdrive.target.build_measured) and whether it fits the 18F4431."""
+    """The firmware folder's HEX (picdrive.firmware.target.build_measured) and whether it fits the 18F4431."""
     from picdrive.firmware import target
     b = target.build_measured(fw, tmp / f"{fw.name}.hex")
     return b.hex_path, b.on_chip
