@@ -127,6 +127,13 @@ def test_hex_without_board_wiring_is_refused(tmp_path):
         Twin("duy2008", hex_file=p)
 
 
+def test_hex_with_another_profiles_firmware_folder_is_refused(tmp_path):
+    from picdrive.paths import firmware_build_dir
+    p = write(tmp_path, hex_text({0: words(*goto(0))}))
+    with pytest.raises(TwinError, match="generated from another profile"):
+        Twin("assawinchaichote2016", firmware_build_dir() / "duy2008", hex_file=p)
+
+
 def test_cli_serves_the_hex_and_reports_the_processor_at_exit(tmp_path):
     """picdrive twin --hex: the socket URL, then (SIGTERM) the processor's report on stderr."""
     import signal
