@@ -18,7 +18,7 @@
  * PWM periods) keep their exact period.
  */
 #include "pic18cpu.h"
-#ifdef PIL_TRACE
+#ifdef PIL_TRACE            /* -DPIL_TRACE: log every SFR write (cycle, PC, address, value) on stderr */
 #include <stdio.h>
 #endif
 
