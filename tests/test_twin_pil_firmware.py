@@ -171,3 +171,17 @@ def test_hazard_f_current_sampled_in_the_on_time(build):
           f"{st.adc_phase_min_ppm / 1e4:.1f} .. {st.adc_phase_max_ppm / 1e4:.1f} % of the period")
     assert st.adc_pwm_starts > 500
     assert st.adc_in_on_time == st.adc_pwm_starts
+
+
+def test_eeprom_save_runs_the_unlock_sequence_on_the_core(build):
+    """eeprom_save: the compiled EECON2 0x55/0xAA + WR sequence, each write at its cycle; every
+    byte is accepted (none refused for a broken sequence) and lands in the EEPROM image."""
+    tw = pil(build)
+    tw.run(0.01)
+    before = tw.eeprom()
+    command(tw, "eeprom_save", 7, limit_s=2.0)
+    tw.run(0.05)
+    s = tw.state()
+    changed = sum(a != b for a, b in zip(before, tw.eeprom()))
+    assert s["eeprom_rejected"] == 0
+    assert s["eeprom_writes"] >= changed > 10
