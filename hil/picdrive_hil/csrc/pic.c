@@ -992,6 +992,30 @@ static const irq_src_t core_src[] = {
     {R_INTCON3, B_INTCON3_INT2IF, R_INTCON3, B_INTCON3_INT2IE, R_INTCON3, B_INTCON3_INT2IP},
 };
 
+/* request lines (IRQ_LINE_HIGH | IRQ_LINE_LOW) from the flags, enables and priorities
+   (DS39616 Fig. 10-1), before GIEH/GIEL: with IPEN = 0 every source is high and the
+   peripherals need PEIE (GIEL) */
+unsigned pic_irq_lines(void)
+{
+    int ipen = (picsim_sfr[R_RCON] >> B_RCON_IPEN) & 1;
+    unsigned lines = 0;
+    for (unsigned k = 0; k < sizeof core_src / sizeof core_src[0]; k++) {
+        const irq_src_t *s = &core_src[k];
+        if (!(((picsim_sfr[s->fr] >> s->fb) & 1) && ((picsim_sfr[s->er] >> s->eb) & 1))) continue;
+        lines |= (!ipen || s->pr == 0 || ((picsim_sfr[s->pr] >> s->pb) & 1)) ? IRQ_LINE_HIGH : IRQ_LINE_LOW;
+    }
+    static const uint8_t pir[3] = {R_PIR1, R_PIR2, R_PIR3}, pie[3] = {R_PIE1, R_PIE2, R_PIE3},
+                         ipr[3] = {R_IPR1, R_IPR2, R_IPR3};
+    for (int k = 0; k < 3; k++) {
+        uint8_t act = (uint8_t)(picsim_sfr[pir[k]] & picsim_sfr[pie[k]]);
+        if (!act) continue;
+        if (!ipen) { if ((picsim_sfr[R_INTCON] >> B_INTCON_GIEL) & 1) lines |= IRQ_LINE_HIGH; continue; }
+        if (act & picsim_sfr[ipr[k]]) lines |= IRQ_LINE_HIGH;
+        if (act & (uint8_t)~picsim_sfr[ipr[k]]) lines |= IRQ_LINE_LOW;
+    }
+    return lines;
+}
+
 /* 0: nothing to take; 1: the high vector; 2: the low vector */
 int pic_irq_pending(void)
 {
@@ -999,24 +1023,8 @@ int pic_irq_pending(void)
     int gieh = (picsim_sfr[R_INTCON] >> B_INTCON_GIEH) & 1;
     int giel = (picsim_sfr[R_INTCON] >> B_INTCON_GIEL) & 1;
     if (!gieh) return 0;
-    int want_low = 0;
-    for (unsigned k = 0; k < sizeof core_src / sizeof core_src[0]; k++) {
-        const irq_src_t *s = &core_src[k];
-        if (!(((picsim_sfr[s->fr] >> s->fb) & 1) && ((picsim_sfr[s->er] >> s->eb) & 1))) continue;
-        int high = !ipen || s->pr == 0 || ((picsim_sfr[s->pr] >> s->pb) & 1);
-        if (high) return 1;
-        want_low = 1;
-    }
-    /* peripheral interrupts: PIRn & PIEn, priority IPRn; with IPEN = 0 they need PEIE */
-    static const uint8_t pir[3] = {R_PIR1, R_PIR2, R_PIR3}, pie[3] = {R_PIE1, R_PIE2, R_PIE3},
-                         ipr[3] = {R_IPR1, R_IPR2, R_IPR3};
-    for (int k = 0; k < 3; k++) {
-        uint8_t act = (uint8_t)(picsim_sfr[pir[k]] & picsim_sfr[pie[k]]);
-        if (!act) continue;
-        if (!ipen) { if (giel) return 1; continue; }
-        if (act & picsim_sfr[ipr[k]]) return 1;
-        want_low = 1;
-    }
-    if (want_low && ipen && giel) return 2;
+    unsigned lines = pic_irq_lines();
+    if (lines & IRQ_LINE_HIGH) return 1;
+    if ((lines & IRQ_LINE_LOW) && ipen && giel) return 2;
     return 0;
 }

@@ -170,6 +170,9 @@ int64_t pic_next_event(void);
 void pic_events_due(void);
 void pic_after_plant_step(int64_t t_prev, double theta_meas);
 int pic_irq_pending(void);            /* 0 none, 1 high, 2 low */
+#define IRQ_LINE_HIGH 1u                 /* = PIC18_IRQ_HIGH / _LOW (pic18cpu.h) */
+#define IRQ_LINE_LOW 2u
+unsigned pic_irq_lines(void);
 void pic_set_pins_from_plant(void);
 void pic_uart_rx_schedule(void);
 double pic_board_baud(void);

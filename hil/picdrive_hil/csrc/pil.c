@@ -23,6 +23,9 @@
 #endif
 
 #define PIL_NEST 8
+#if IRQ_LINE_HIGH != PIC18_IRQ_HIGH || IRQ_LINE_LOW != PIC18_IRQ_LOW
+#error "the model's request lines and the core's differ"
+#endif
 
 typedef struct {
     pic18_t cpu;
@@ -43,34 +46,11 @@ static pil_t P;
 
 static inline void pil_clock(void) { g.now = P.t0 + (int64_t)P.cpu.cycles * g.tcy_ps; }
 
-/* request lines from flags, enables and priorities (DS39616 Fig. 10-1); the core gates
-   them with GIEH/GIEL (GIE/PEIE with IPEN = 0) */
-static unsigned pil_irq_lines(void)
-{
-    int ipen = sfr_bit(R_RCON, B_RCON_IPEN);
-    unsigned lines = 0;
-    for (unsigned k = 0; k < sizeof core_src / sizeof core_src[0]; k++) {
-        const irq_src_t *s = &core_src[k];
-        if (!(((picsim_sfr[s->fr] >> s->fb) & 1) && ((picsim_sfr[s->er] >> s->eb) & 1))) continue;
-        lines |= (!ipen || s->pr == 0 || ((picsim_sfr[s->pr] >> s->pb) & 1)) ? PIC18_IRQ_HIGH : PIC18_IRQ_LOW;
-    }
-    static const uint8_t pir[3] = {R_PIR1, R_PIR2, R_PIR3}, pie[3] = {R_PIE1, R_PIE2, R_PIE3},
-                         ipr[3] = {R_IPR1, R_IPR2, R_IPR3};
-    for (int k = 0; k < 3; k++) {
-        uint8_t act = (uint8_t)(picsim_sfr[pir[k]] & picsim_sfr[pie[k]]);
-        if (!act) continue;
-        if (!ipen) { if (sfr_bit(R_INTCON, B_INTCON_GIEL)) lines |= PIC18_IRQ_HIGH; continue; }
-        if (act & picsim_sfr[ipr[k]]) lines |= PIC18_IRQ_HIGH;
-        if (act & (uint8_t)~picsim_sfr[ipr[k]]) lines |= PIC18_IRQ_LOW;
-    }
-    return lines;
-}
-
 static void pil_update_irq(void)
 {
     if (!g.irq_dirty) return;
     g.irq_dirty = 0;
-    unsigned l = pil_irq_lines();
+    unsigned l = pic_irq_lines();
     if (l != P.lines) {
         P.lines = (uint8_t)l;
         pic18_set_irq(&P.cpu, l);
