@@ -142,7 +142,7 @@ def twin_table(profiles) -> None:
 
     from picdrive.result import load_design
     from picdrive.analysis.steptest import run_sim, sim_plan, step_figures
-    from picdrive.gate import speed_measurement, twin_run
+    from picdrive.gate import speed_measurement, three_phase_plant, twin_run
     try:
         import picdrive_hil.twin  # noqa: F401
     except ImportError as e:
@@ -167,7 +167,8 @@ def twin_table(profiles) -> None:
             t0 = time.perf_counter()
             tw = step_figures(twin_run(p, path, plan), plan, p)
             t1 = time.perf_counter()
-            mo = step_figures(run_sim(p, d.law, plan, measurement=speed_measurement(p, d.law), disturbances=False), plan, p)
+            mo = step_figures(run_sim(p, d.law, plan, measurement=speed_measurement(p, d.law), disturbances=False,
+                                     three_phase=three_phase_plant), plan, p)
             t2 = time.perf_counter()
             cells = " ".join(f"{tw[k] * f:8.3g}|{mo[k] * f:<8.3g}" for k, _, f in keys)
             print(f"  {name + ' ' + method:34s} {cells}  {t1 - t0:.2f} s, {t2 - t1:.2f} s")

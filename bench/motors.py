@@ -57,7 +57,7 @@ def run_case(profile_path: str, method: str) -> dict:
     from picdrive.profile import load_profile
     from picdrive.result import save_design
     from picdrive.analysis.steptest import run_sim, sim_plan, step_figures
-    from picdrive.gate import speed_measurement, twin_run
+    from picdrive.gate import speed_measurement, three_phase_plant, twin_run
 
     warnings.simplefilter("ignore")
     import tomllib
@@ -87,7 +87,8 @@ def run_case(profile_path: str, method: str) -> dict:
             return {**out, "outcome": "refused", "stage": "firmware", "reason": str(e),
                     "wall_s": time.perf_counter() - t0}
     twin = step_figures(tw, plan, prof)
-    model = step_figures(run_sim(prof, res.law, plan, measurement=speed_measurement(prof, res.law), disturbances=False), plan, prof)
+    model = step_figures(run_sim(prof, res.law, plan, measurement=speed_measurement(prof, res.law), disturbances=False,
+                               three_phase=three_phase_plant), plan, prof)
     keys = ("rise_s", "settling_s", "overshoot_pct", "final_error_rpm", "load_recovery_s", "load_dip_rpm",
             "peak_current_a", "t_reach_s")
     return {**out, "outcome": "verified", "target_rpm": plan["target_rpm"], "t_load_s": plan["t_load_s"],

@@ -30,7 +30,7 @@ from picdrive.paths import repo_root
 from picdrive.profile import ProfileWarning, load_profile
 from picdrive.result import load_design
 from picdrive.analysis.steptest import VerifyConfig, run_sim, sim_plan, step_figures
-from picdrive.gate import speed_measurement, twin_run
+from picdrive.gate import speed_measurement, three_phase_plant, twin_run
 
 CASES = [(p, m) for p in ("duy2008", "assawinchaichote2016") for m in ("fuzzy-hinf", "mixed-pid", "zn")]
 
@@ -53,7 +53,8 @@ def test_verification_model_predicts_the_twin(profile_name, method, tmp_path):
     design = load_design(path, require_usable=True, profile=prof)
     plan = sim_plan(prof)
     twin = step_figures(twin_run(prof, path, plan, workdir=tmp_path), plan, prof)
-    model = step_figures(run_sim(prof, design.law, plan, measurement=speed_measurement(prof, design.law), disturbances=False), plan, prof)
+    model = step_figures(run_sim(prof, design.law, plan, measurement=speed_measurement(prof, design.law), disturbances=False,
+                                 three_phase=three_phase_plant), plan, prof)
     tgt = plan["target_rpm"]
     why = "twin " + ", ".join(f"{k} {twin[k]:.4g}" for k in ("rise_s", "overshoot_pct", "final_error_rpm",
                                                              "load_dip_rpm")) + \

@@ -36,7 +36,7 @@ from .design.dispatch import METHOD_MODULES
 from .errors import PicdriveError
 from .result import SCHEMA_ID, DesignResult, default_design_path, save_design
 
-__all__ = ["BuiltDrive", "speed_measurement", "bridge_hold_torque", "twin_run", "run_design", "output_path",
+__all__ = ["BuiltDrive", "speed_measurement", "bridge_hold_torque", "three_phase_plant", "twin_run", "run_design", "output_path",
            "summary_lines", "register"]
 
 
@@ -50,6 +50,19 @@ class BuiltDrive:
 
     def hold_torque(self, profile, rpm: float, *, r_factor: float = 1.0) -> tuple[float, float]:
         return bridge_hold_torque(profile, rpm, r_factor=r_factor)
+
+    def three_phase_plant(self, profile, r_factor: float = 1.0):
+        return three_phase_plant(profile, r_factor)
+
+
+def three_phase_plant(profile, r_factor: float = 1.0):
+    """The motor twin's three-phase plant of a profile (``picdrive_hil.plant.CPlant``), at rest, R x
+    ``r_factor``, the load applied as a signed torque (:func:`picdrive.models.simulate.simulate_six_step`
+    applies the passive rule): the verification simulates the winding the twin and the motor have,
+    with the current transfer at every commutation, not only its DC equivalent."""
+    from picdrive_hil.plant import CPlant, plant_from_profile
+    return CPlant(plant_from_profile(profile, {"resistance": r_factor} if r_factor != 1.0 else None,
+                                     load_mode="active"))
 
 
 def speed_measurement(profile, law) -> dict:

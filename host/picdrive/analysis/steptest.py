@@ -57,15 +57,17 @@ def sim_plan(profile) -> dict:
 
 
 def run_sim(profile, law, plan=None, *, measurement: dict, disturbances: bool = True, r_factor: float = 1.0,
-            commutated: bool | None = None):
+            commutated: bool | None = None, three_phase=None):
     """The verification run on the six-step drive: step from rest to the target (the 2016 load-torque
     disturbance w3 on [0, 0.2] s when ``disturbances``), then the load step, R x ``r_factor``.
 
     ``measurement``: the firmware's speed measurement as
     :func:`picdrive.models.simulate.simulate_six_step` takes it: ``{"measurement": "firmware"}``
     (encoder M/T) or ``{"measurement": "hall", "hall": meter}``; the built drive gives it
-    (:meth:`picdrive.gate.BuiltDrive.speed_measurement`).  Returns
-    :class:`picdrive.models.simulate.SixStepResult`."""
+    (:meth:`picdrive.gate.BuiltDrive.speed_measurement`).  ``three_phase``: a factory
+    ``(profile, r_factor) -> plant`` of the motor's three-phase winding to simulate instead of the
+    DC equivalent (:meth:`picdrive.gate.BuiltDrive.three_phase_plant`, what the verification
+    uses).  Returns :class:`picdrive.models.simulate.SixStepResult`."""
     from ..models.simulate import disturbances_2016, simulate_six_step
     plan = plan or sim_plan(profile)
     load = plan["load_n_m"]
@@ -76,7 +78,8 @@ def run_sim(profile, law, plan=None, *, measurement: dict, disturbances: bool = 
     return simulate_six_step(profile, law, t_end=plan["t_end_s"], ref_rpm=plan["target_rpm"],
                              load=lambda t: load if t >= tl - 1e-12 else 0.0, torque_disturbance=w3,
                              r_factor=r_factor, **measurement,
-                             commutated=VerifyConfig.commutated if commutated is None else commutated)
+                             commutated=VerifyConfig.commutated if commutated is None else commutated,
+                             three_phase=None if three_phase is None else three_phase(profile, r_factor))
 
 
 def sector_period_s(profile, rpm: float) -> float:

@@ -302,12 +302,40 @@ class SixStepResult:
         return self.i
 
 
+def _three_phase_step(cp, tab, legs_off, d_dir: int, d_duty: float, tl: float, td: float, w: float,
+                      h: float) -> tuple[float, float, float, float, float]:
+    """One PWM period of the three-phase plant under the firmware's bridge rule (high-side PWM on the
+    hall table's source, low side on at its sink; ``d_dir`` 0: all off); the passive load ``tl``
+    (opposes motion, holds a standing rotor, never reverses it) plus the signed torque ``td``.
+    Returns (line current in the forward sense, speed, angle, torque, peak switched current)."""
+    legs = legs_off
+    if d_dir != 0:
+        pair = (tab.forward if d_dir > 0 else tab.reverse)[cp.hall_code()]
+        if pair is not None:
+            legs = [(0.0, 0.0)] * 3
+            legs[pair[0]] = (d_duty, 0.0)
+            legs[pair[1]] = (0.0, 1.0)
+    if w > 0.0:
+        tload = tl
+    elif w < 0.0:
+        tload = -tl
+    else:
+        te0 = cp.state.torque_e_n_m - td
+        tload = te0 if abs(te0) <= tl else math.copysign(tl, te0)
+    cp.step(legs, tload + td, h)
+    w1 = cp.state.w_rad_s
+    if w != 0.0 and tl > 0.0 and (w1 > 0.0) != (w > 0.0) and (tload > 0.0) == (w > 0.0):
+        w1 = cp.state.w_rad_s = 0.0
+    i_link = cp.state.i_link_on_a
+    return (i_link if d_dir >= 0 else -i_link), w1, cp.state.theta_rad, cp.state.torque_e_n_m, cp.state.i_peak_a
+
+
 def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[float], float],
                       load: float | Callable[[float], float] = 0.0, r_factor: float = 1.0,
                       measurement: str = "firmware", commutated: bool = False,
                       torque_disturbance: Callable[[float], float] | None = None,
                       plant: SixStepPlant | None = None, x0=(0.0, 0.0), integrator0_v: float = 0.0,
-                      hall: HallSpeedMeter | None = None) -> SixStepResult:
+                      hall: HallSpeedMeter | None = None, three_phase=None) -> SixStepResult:
     """The six-step drive under the firmware's law, averaged over each PWM period.
 
     Plant (DC equivalent, 2008 eq 1, the profile's ``r_line_ohm``, ``l_line_h``,
@@ -349,6 +377,18 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     current exceeds the current limit.  Each PWM period: the current exactly
     (exponential, speed held at its start), a current zero inside the period
     located on that exponential, then the speed by the trapezoidal rule.
+
+    ``three_phase``: a three-phase plant to use instead (the motor twin's
+    winding, ``picdrive_hil.plant.CPlant``, built by the caller for this
+    profile with R x ``r_factor`` and an active load, at rest: per-phase
+    currents, the floating phase and its body diode, the current transfer at
+    every commutation), driven through the profile's hall table (high-side
+    PWM, low side on) by the same firmware rules, one PWM period per step;
+    the law then sees the current of the switch that carries the line
+    current (the twin's ``link_on`` signal).  A drive whose hall sector is
+    short against L/R loses torque at each commutation, which the DC
+    equivalent does not have.  ``plant`` and ``commutated`` then do not
+    apply and ``x0`` must be at rest.
     """
     if measurement not in ("firmware", "instant", "hall"):
         raise ValueError(f"measurement {measurement!r}: 'firmware', 'instant' or 'hall'")
@@ -396,6 +436,14 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
         h_last = h_period = 0
         h_fwd, h_count, h_age = True, 0, 0
         w_lsb = 2.0 ** -hall.qs
+    cp = three_phase
+    if cp is not None:
+        from ..commutation import hall_table
+        if x0[0] != 0.0 or x0[1] != 0.0 or cp.state.w_rad_s != 0.0:
+            raise ValueError("a three-phase run starts at rest (x0 = (0, 0))")
+        ctab = hall_table(profile.sensors.hall_spacing_deg, profile.sensors.hall_offset_deg,
+                          profile.motor.back_emf_shape)
+        legs_off = [(0.0, 0.0)] * 3
     for k in range(n):
         t = k * ts
         # ---- measurements at the sample
@@ -457,7 +505,9 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
                 v_pos, v_neg = -vbus, -d_duty * vbus
             else:
                 v_pos, v_neg = -vbus, vbus
-            if n_tab:
+            if cp is not None:
+                i1, w1, th1, te, pk3 = _three_phase_step(cp, ctab, legs_off, d_dir, d_duty, tl, td, w, h)
+            elif n_tab:
                 # the current and voltage here are in the forward sense (u < 0: -d Vbus); the reverse
                 # table drives its own pair source -> sink with +d Vbus, so in the forward sense its
                 # EMF constant is minus that pair's (plugging brakes a forward-turning rotor)
@@ -466,39 +516,40 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
                     ke = -ke
             else:
                 ke = kb
-            e = ke * w
-            if i > 0.0 or (i == 0.0 and e < v_pos):
-                v = v_pos
-            elif i < 0.0 or (i == 0.0 and e > v_neg):
-                v = v_neg
-            else:
-                v = None
-            if v is None:
-                i1, hc = 0.0, 0.0
-            else:
-                i_inf = (v - e) / R
-                i1 = i_inf + (i - i_inf) * g_h
-                hc = h
-                if (i > 0.0 and i1 < 0.0) or (i < 0.0 and i1 > 0.0):
-                    hc = tau * math.log((i - i_inf) / (0.0 - i_inf))      # the current zero
-                    i1 = 0.0
-            # torque: mean over the conducting part (exact mean of the exponential)
-            if hc > 0.0 and v is not None:
-                gc = math.exp(-hc / tau)
-                i_mean = (i_inf * hc + (i - i_inf) * tau * (1.0 - gc)) / h
-            else:
-                i_mean = 0.0
-            te = ke * i_mean - td
-            if w > 0.0:
-                tload = tl
-            elif w < 0.0:
-                tload = -tl
-            else:                                        # passive load holds a standing rotor
-                tload = te if abs(te) <= tl else math.copysign(tl, te)
-            w1 = (w * (1.0 - 0.5 * h * B / J) + h / J * (te - tload)) / (1.0 + 0.5 * h * B / J)
-            if w != 0.0 and tl > 0.0 and (w1 > 0.0) != (w > 0.0) and (tload > 0.0) == (w > 0.0):
-                w1 = 0.0                                 # a passive load stops the rotor, never reverses it
-            th1 = th + 0.5 * h * (w + w1)
+            if cp is None:
+                e = ke * w
+                if i > 0.0 or (i == 0.0 and e < v_pos):
+                    v = v_pos
+                elif i < 0.0 or (i == 0.0 and e > v_neg):
+                    v = v_neg
+                else:
+                    v = None
+                if v is None:
+                    i1, hc = 0.0, 0.0
+                else:
+                    i_inf = (v - e) / R
+                    i1 = i_inf + (i - i_inf) * g_h
+                    hc = h
+                    if (i > 0.0 and i1 < 0.0) or (i < 0.0 and i1 > 0.0):
+                        hc = tau * math.log((i - i_inf) / (0.0 - i_inf))      # the current zero
+                        i1 = 0.0
+                # torque: mean over the conducting part (exact mean of the exponential)
+                if hc > 0.0 and v is not None:
+                    gc = math.exp(-hc / tau)
+                    i_mean = (i_inf * hc + (i - i_inf) * tau * (1.0 - gc)) / h
+                else:
+                    i_mean = 0.0
+                te = ke * i_mean - td
+                if w > 0.0:
+                    tload = tl
+                elif w < 0.0:
+                    tload = -tl
+                else:                                        # passive load holds a standing rotor
+                    tload = te if abs(te) <= tl else math.copysign(tl, te)
+                w1 = (w * (1.0 - 0.5 * h * B / J) + h / J * (te - tload)) / (1.0 + 0.5 * h * B / J)
+                if w != 0.0 and tl > 0.0 and (w1 > 0.0) != (w > 0.0) and (tload > 0.0) == (w > 0.0):
+                    w1 = 0.0                                 # a passive load stops the rotor, never reverses it
+                th1 = th + 0.5 * h * (w + w1)
             if measurement == "hall":
                 idx = math.floor(th1 * e_per_rad - e_off)
                 while idx != h_idx:                       # the edges crossed in this period, in order
@@ -513,7 +564,9 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
             i, w = i1, w1
             tf[kf], wf[kf], jf[kf] = t + (s + 1) * h, w, i
             pk = abs(i)
-            if v is not None and d_dir != 0 and (v == v_pos if d_dir > 0 else v == v_neg) and 0.0 < d_duty < 1.0:
+            if cp is not None:
+                pk = pk3
+            elif v is not None and d_dir != 0 and (v == v_pos if d_dir > 0 else v == v_neg) and 0.0 < d_duty < 1.0:
                 ex = ripple.get(d_duty)
                 if ex is None:
                     ex = ripple[d_duty] = pwm_ripple_peak_a(vbus, R, L, d_duty, pl.pwm_period_s)

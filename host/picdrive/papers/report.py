@@ -26,7 +26,7 @@ def compare_designs(profile, outdir: Path, *, progress: bool = True) -> str:
     import matplotlib.pyplot as plt
     from ..analysis.metrics import step_metrics
     from ..analysis.steptest import run_sim, sim_plan
-    from ..gate import run_design, speed_measurement
+    from ..gate import run_design, speed_measurement, three_phase_plant
     plan = sim_plan(profile)
     rows, sims = [], {}
     it = METHODS
@@ -42,7 +42,7 @@ def compare_designs(profile, outdir: Path, *, progress: bool = True) -> str:
         if r.law is None:
             rows.append(f"| {m} | no law ({r.status}) | | | | | |")
             continue
-        s = run_sim(profile, r.law, plan, measurement=speed_measurement(profile, r.law))
+        s = run_sim(profile, r.law, plan, measurement=speed_measurement(profile, r.law), three_phase=three_phase_plant)
         sims[m] = s
         a = s.t < plan["t_load_s"]
         if not np.all(np.isfinite(s.omega)):
@@ -65,7 +65,7 @@ def compare_designs(profile, outdir: Path, *, progress: bool = True) -> str:
     head = [f"### {profile.name}", "",
             f"Step from rest to {plan['target_rpm']:.0f} rpm, the 2016 load-torque disturbance w3, load step of "
             f"{plan['load_n_m']:g} N m at {plan['t_load_s']:g} s; the verification's six-step drive model "
-            "(DC equivalent with the commutated pair's EMF, the bridge's conduction rule, the firmware's "
+            "(the motor's three-phase winding driven through the hall table, the bridge's conduction rule, the firmware's "
             "measurement and current window), sampled law.", "",
             "| design | rise [ms] | settling [ms] | overshoot [%] | steady error [rpm] | peak u [V] | peak i_line [A] |",
             "|---|---|---|---|---|---|---|"]
