@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from picdrive.link import protocol as P
-from picdrive.console.session import Console, ConsoleError
+from picdrive.console.commands import ConsoleError
+from picdrive.console.session import Console
 from picdrive.console.record import read_recording
 from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.analysis.metrics import step_metrics
@@ -308,7 +309,7 @@ def test_unknown_command_and_usage_errors(con):
         run(con, 'set "x')
     assert con.run_line("frobnicate") is False and con.lines[-1].startswith("error: unknown command")
     out = run(con, "help")
-    assert len(out) == len(__import__("picdrive.console.session", fromlist=["COMMANDS"]).COMMANDS)
+    assert len(out) == len(__import__("picdrive.console.commands", fromlist=["COMMANDS"]).COMMANDS)
     assert run(con, "help step")[0].startswith("step <from> <to>")
 
 
@@ -329,7 +330,7 @@ def test_link_lost_and_regained(board, con):
 
 
 def test_complete(con):
-    assert con.complete("", "") == sorted(c + " " for c in __import__("picdrive.console.session", fromlist=["x"]).COMMANDS)
+    assert con.complete("", "") == sorted(c + " " for c in __import__("picdrive.console.commands", fromlist=["x"]).COMMANDS)
     assert con.complete("st", "st") == ["start ", "status ", "step ", "stop "]
     assert con.complete("get rule1_k", "rule1_k") == ["rule1_kc", "rule1_kd", "rule1_ki", "rule1_kp"]
     assert "speed" not in con.complete("set sp", "sp") and con.complete("set sp", "sp") == ["speed_setpoint"]

@@ -25,7 +25,8 @@ import numpy as np
 import pytest
 
 from picdrive.link import protocol as P
-from picdrive.console.session import Console, ConsoleError
+from picdrive.console.commands import ConsoleError
+from picdrive.console.session import Console
 from picdrive.console.files import written_by_picdrive
 from picdrive.console.record import read_recording
 from picdrive.link.client import Link
