@@ -182,7 +182,7 @@ def report(tree: Tree, layers=LAYERS) -> str:
     for name, (_, allowed) in layers.items():
         mods = sorted(m for m in tree.modules if layer_of(m, layers) == name)
         used = sorted({layer_of(d, layers) for m in mods for d in tree.imports[m]} - {name, None})
-        lines.append(f"  {name:<9} may import {', '.join(allowed) or '-':<62} uses {', '.join(used) or '-'}")
+        lines.append(f"  {name:<9} may import: {', '.join(allowed) or '-'}; imports: {', '.join(used) or '-'}")
         short = [m.removesuffix(".__init__") for m in mods]
         lines.append(f"  {'':<9} {len(mods)} modules: {', '.join(short)}")
     return "\n".join(lines)

@@ -48,8 +48,8 @@ Checks:
   achieved H-inf norm against the certified bound.
 * ``bridge_hold_torque_n_m`` -- the torque the bridge delivers at the step
   target through the hall table at the firmware's largest duty, in the twin's
-  three-phase plant (:func:`picdrive.gate.bridge_hold_torque` through ``drive``: commutation transfers, which
-  the DC equivalent has not), against the load and friction there; R nominal
+  three-phase plant (``drive.hold_torque``, :func:`picdrive.gate.bridge_hold_torque`: commutation
+  transfers, which the DC equivalent has not), against the load and friction there; R nominal
   and +``design.resistance_uncertainty``.
 * ``dq_hold_rpm`` (sinusoidal motors only) -- steady-state reachability on the
   dq model (v_d = 0): the step target within what it holds under the load.
