@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from . import build, ihex
-from .twin import TwinError
+from .build import TwinError
 
 TCY_PER_S_40MHZ = 10_000_000
 
