@@ -23,7 +23,12 @@ def profiles():
 
 def pytest_addoption(parser):
     parser.addoption("--target", default="twin",
-                     help="HIL target: 'twin' (default) or a serial URL of a real board")
+                     help="HIL target: 'twin' (default), 'pil' (the bundled firmware's HEX on the processor "
+                          "twin), 'pil:FILE' (a HEX on the processor twin; needs --profile) or a serial URL "
+                          "of a real board")
+    parser.addoption("--enlarged-memory", action="store_true", default=False,
+                     help="HIL with --target pil:FILE: simulate 128 KB flash / 1.5 KB RAM for a HEX that does "
+                          "not fit the 18F4431 (picdrive.target's enlarged measurement memory)")
     parser.addoption("--profile", default=None,
                      help="HIL: the bundled profile to test: required with a serial --target (the board's "
                           "profile); with the twin, only that profile's tests run (default: all)")

@@ -181,6 +181,25 @@ def twin_group(gen_dir: Path) -> Group:
                  tuple(CSRC / s for s in TWIN_SOURCES) + (CSRC / "twin.h", CSRC / "pic_internal.h"))
 
 
+PIL_UNITY = "twin_pil_all.c"
+# the processor twin's memories when the firmware does not fit the 18F4431: the enlarged
+# linker script's (picdrive.firmware.target.enlarged_lkr: 128 KB flash, GPRs to 0x5FF).  Only on request.
+ENLARGED_FLASH_BYTES = 0x20000
+ENLARGED_RAM_END = 0x600
+
+
+def pil_group(gen_dir: Path, *, enlarged: bool = False) -> Group:
+    """The processor twin's C: the PIC18 core, plant, peripheral model, event loop (no firmware
+    C: the core runs the HEX).  ``enlarged``: 128 KB of flash and 1.5 KB of GPRs instead of
+    the 18F4431's 16 KB and 768 B, for a HEX linked with the enlarged measurement script."""
+    flags = twin_cflags() + ("-DTWIN_PIL", "-DPIC18_TRACK_RAM")
+    if enlarged:
+        flags += (f"-DPIC18_FLASH_BYTES=0x{ENLARGED_FLASH_BYTES:X}u", f"-DPIC18_RAM_END=0x{ENLARGED_RAM_END:X}u")
+    return Group((CSRC / PIL_UNITY,), (CSRC, Path(gen_dir)), flags,
+                 tuple(CSRC / s for s in TWIN_SOURCES) +
+                 tuple(CSRC / s for s in ("pil.c", "pic18cpu.c", "pic18cpu.h", "twin.h", "pic_internal.h")))
+
+
 def plant_library() -> Path:
     """The plant alone (no firmware, no peripheral model): for the cross-checks."""
     return build_library([Group(tuple(CSRC / s for s in PLANT_SOURCES), (CSRC,), twin_cflags())],

@@ -1,6 +1,7 @@
 """``picdrive twin``: start a virtual board and serve its UART.
 
     picdrive twin --profile duy2008 --firmware firmware_build/duy2008/ [--port N] [--pty]
+    picdrive twin --profile duy2008 --hex firmware.hex [--firmware DIR] [--enlarged-memory]
 
 prints ``socket://127.0.0.1:<port>`` (and the pty path) and runs in real time
 until Ctrl-C; ``picdrive console``, ``picdrive.link`` or any pyserial
@@ -21,7 +22,13 @@ def register(sub) -> None:
         description="Run the generated firmware against a PIC18F4431 peripheral model and a BLDC plant, "
                     "in real time, behind socket://127.0.0.1:<port> (and a pty with --pty).")
     p.add_argument("--profile", required=True, help="profile .toml, or a bundled profile name")
-    p.add_argument("--firmware", required=True, help="generated firmware folder (picdrive firmware -o ...)")
+    p.add_argument("--firmware", help="generated firmware folder (picdrive firmware -o ...): its C runs "
+                                      "compiled for this machine (SIL); with --hex only its board.json is read")
+    p.add_argument("--hex", help="processor twin: run this Intel HEX on the PIC18 simulator instead of the C "
+                                 "(board wiring from --firmware's or the HEX folder's board.json)")
+    p.add_argument("--enlarged-memory", action="store_true",
+                   help="with --hex: simulate 128 KB of flash and 1.5 KB of RAM (picdrive.firmware.target's enlarged "
+                        "measurement memory) for a HEX that does not fit the 18F4431; reports say so")
     p.add_argument("--port", type=port, default=0, help="TCP port to listen on (default: any free port)")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     p.add_argument("--pty", action="store_true", help="also offer a pseudo-terminal path")
@@ -57,6 +64,10 @@ def _cmd(args: argparse.Namespace) -> int:
         raise PicdriveError(f"--port {args.port}: expected 0..65535 (0 = any free port)")
     if args.noise_rpm is not None and not (args.noise_rpm >= 0):
         raise PicdriveError(f"--noise-rpm {args.noise_rpm}: must be >= 0")
+    if args.hex is None and args.firmware is None:
+        raise PicdriveError("give --firmware DIR (the generated C) or --hex FILE (the processor twin)")
+    if args.enlarged_memory and args.hex is None:
+        raise PicdriveError("--enlarged-memory applies to the processor twin only: add --hex FILE")
     from picdrive.profile import load_profile
     profile = load_profile(args.profile)
     perturb = parse_perturb(args.perturb, profile)
@@ -81,7 +92,8 @@ def _cmd(args: argparse.Namespace) -> int:
         from .twin import read_load_file
         load = read_load_file(args.load_file)      # a bad file is refused before the twin is built
     tw = Twin(profile, args.firmware, perturb=perturb, seed=args.seed, load_mode=args.load_mode,
-              speed_noise_rpm=args.noise_rpm, eeprom=eeprom)
+              speed_noise_rpm=args.noise_rpm, eeprom=eeprom, hex_file=args.hex,
+              enlarged_memory=args.enlarged_memory)
     if load is not None:
         tw.set_load_profile(*load, relative=True)
     elif args.load_torque is not None:
@@ -90,8 +102,10 @@ def _cmd(args: argparse.Namespace) -> int:
     srv.speed = args.speed
     srv.log = lambda msg: print(f"picdrive twin: {msg}", file=sys.stderr, flush=True)
     pert = ", ".join(f"{k} x{v:g}" for k, v in perturb.items()) or "none"
-    print(f"picdrive twin: profile {tw.profile.name}, firmware {args.firmware}, perturbation {pert}",
-          file=sys.stderr)
+    what = (f"HEX {args.hex} on the PIC18 simulator" + (" (ENLARGED memory: does not fit the 18F4431)"
+                                                          if args.enlarged_memory else "")
+            if args.hex else f"firmware {args.firmware}")
+    print(f"picdrive twin: profile {tw.profile.name}, {what}, perturbation {pert}", file=sys.stderr)
     print(srv.url, flush=True)
     if srv.pty_path:
         print(srv.pty_path, flush=True)
@@ -110,6 +124,9 @@ def _cmd(args: argparse.Namespace) -> int:
         raise
     finally:
         srv.stop()
+        if tw.processor:
+            for line in tw.processor_report().lines():
+                print(f"picdrive twin: {line}", file=sys.stderr, flush=True)
         if ee_path is not None:
             from picdrive.outputs import write_bytes
             write_bytes(ee_path, tw.eeprom(), what="EEPROM image")

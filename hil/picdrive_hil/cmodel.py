@@ -17,7 +17,9 @@ TWIN_ERRORS = {
     1 << 1: "the firmware configured an ADC mode the twin does not model (see docs/twin.md)",
     1 << 2: "the board's EUSART baud rate differs from the host's by more than 2.5 %: bytes arrive garbled",
     1 << 3: "twin not initialised",
+    1 << 4: "the processor stopped (fault)",
 }
+TWIN_ERR_CPU = 1 << 4
 
 
 class PlantParams(C.Structure):

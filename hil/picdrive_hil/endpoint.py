@@ -167,9 +167,13 @@ class TwinServer:
     def status(self) -> dict:
         """Counters of the endpoint: bytes in/out, lag events and the simulated time they gave up,
         bytes dropped on a client's disconnect, bytes waiting for room in the twin's input queue."""
-        return {"bytes_in": self.bytes_in, "bytes_out": self.bytes_out, "lag_events": self.lag_events,
-                "lag_s": self.lag_s, "dropped_on_disconnect": self.dropped_on_disconnect,
-                "input_waiting": len(self._pend_sock) + len(self._pend_pty)}
+        d = {"bytes_in": self.bytes_in, "bytes_out": self.bytes_out, "lag_events": self.lag_events,
+             "lag_s": self.lag_s, "dropped_on_disconnect": self.dropped_on_disconnect,
+             "input_waiting": len(self._pend_sock) + len(self._pend_pty)}
+        if getattr(self.twin, "processor", False):
+            # the processor twin: interrupt durations, missed periods, stack and memory (pil.Report)
+            d["processor"] = self.twin.processor_report().as_dict()
+        return d
 
     def _feed(self, data: bytes) -> bytes:
         """Give bytes to the twin's UART input; returns what did not fit (kept for later)."""

@@ -61,9 +61,11 @@ def _where(name: str, lineno: int) -> str:
     return f"{name}:{lineno}"
 
 
-def parse_hex(text: str, name: str = "<hex>") -> HexImage:
-    """Parse and validate the text of a HEX file; returns its image or raises HexError."""
-    img = HexImage()
+def parse_hex(text: str, name: str = "<hex>", *, flash_bytes: int = FLASH_BYTES) -> HexImage:
+    """Parse and validate the text of a HEX file; returns its image or raises HexError.
+    ``flash_bytes``: the program memory (the 18F4431's 16 KB; larger only for the processor
+    twin's explicit enlarged-memory option)."""
+    img = HexImage(flash=bytearray(b"\xff" * flash_bytes))
     base = 0
     seen: dict[int, int] = {}          # byte address -> line that defined it
     ended = False
@@ -104,7 +106,7 @@ def parse_hex(text: str, name: str = "<hex>") -> HexImage:
                     raise HexError(f"{at}: address 0x{a:06X} already defined on line {seen[a]} "
                                    "(overlapping records); the HEX was merged badly: rebuild it")
                 seen[a] = lineno
-                _place(img, a, b, at)
+                _place(img, a, b, at, flash_bytes)
         elif rtype == 0x01:
             if n:
                 raise HexError(f"{at}: end-of-file record with {n} data bytes (must have none)")
@@ -135,11 +137,14 @@ def parse_hex(text: str, name: str = "<hex>") -> HexImage:
     return img
 
 
-def _place(img: HexImage, a: int, b: int, at: str) -> None:
-    if a < FLASH_BYTES:
+def _place(img: HexImage, a: int, b: int, at: str, flash_bytes: int = FLASH_BYTES) -> None:
+    if a < flash_bytes:
         img.flash[a] = b
         img.flash_used += 1
         img.flash_top = max(img.flash_top, a + 1)
+    elif a < 0x200000 and flash_bytes != FLASH_BYTES:
+        raise HexError(f"{at}: program address 0x{a:06X} is beyond the enlarged program memory "
+                       f"(0x0000-0x{flash_bytes - 1:05X})")
     elif a < 0x200000:
         raise HexError(f"{at}: program address 0x{a:06X} is beyond the 18F4431's 16 KB flash "
                        "(0x0000-0x3FFF): this HEX is for a larger device (e.g. 18F4520/18F4550); "
@@ -164,7 +169,7 @@ def _place(img: HexImage, a: int, b: int, at: str) -> None:
                        "ID 0x200000-7, config 0x300000-D, EEPROM 0xF00000-FF); is this a HEX for this chip?")
 
 
-def load_hex(path: str | Path) -> HexImage:
+def load_hex(path: str | Path, *, flash_bytes: int = FLASH_BYTES) -> HexImage:
     """Read and validate a HEX file (HexError on any problem, also a missing/unreadable file)."""
     p = Path(path)
     try:
@@ -175,4 +180,4 @@ def load_hex(path: str | Path) -> HexImage:
         text = raw.decode("ascii")
     except UnicodeDecodeError:
         raise HexError(f"{p}: not a text file (non-ASCII bytes); give the Intel HEX, not the binary/ELF/COF") from None
-    return parse_hex(text, str(p))
+    return parse_hex(text, str(p), flash_bytes=flash_bytes)

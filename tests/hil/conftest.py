@@ -1,6 +1,8 @@
 """HIL suite fixtures (see hilbench.py for the bench and the limits).
 
-``--target twin`` (default) or a serial URL of a real board (root conftest);
+``--target twin`` (default), ``pil`` (the processor twin: the bundled firmware's HEX,
+built with picdrive.firmware.target, on the PIC18 simulator), ``pil:FILE`` (a HEX of your own on
+the processor twin; needs ``--profile``) or a serial URL of a real board (root conftest);
 ``--profile`` names the real board's profile (required with a serial URL) or,
 with the twin, selects that profile's tests (the twin runs it with firmware
 generated from its committed design).  A profile the suite has no firmware
@@ -19,10 +21,12 @@ from picdrive.result import load_design
 from hilbench import PROFILES, Bench, FirmwareCache, design_path, match_design, profile
 
 _REPORT = pytest.StashKey[list]()
+_PIL = pytest.StashKey[list]()
 
 
 def pytest_configure(config):
     config.stash[_REPORT] = []
+    config.stash[_PIL] = []
 
 
 def pytest_collection_modifyitems(config, items):
@@ -36,16 +40,30 @@ def pytest_collection_modifyitems(config, items):
         check_options(config.getoption("--target"), config.getoption("--profile"))
 
 
+def is_generated(target: str) -> bool:
+    """The suite generates the firmware itself: the SIL twin, or the processor twin with its HEX."""
+    return target in ("twin", "pil")
+
+
+def pil_hex_file(target: str) -> str | None:
+    return target[4:] if target.startswith("pil:") else None
+
+
 def check_options(target: str, prof: str | None) -> None:
     """Refuse a --profile the suite cannot test, and a serial target without --profile."""
+    if target.startswith("pil:"):
+        f = Path(pil_hex_file(target))
+        if not f.is_file():
+            raise pytest.UsageError(f"--target {target}: {f} is not a file; give the processor twin a HEX "
+                                    "(--target pil:firmware.hex) or 'pil' for the bundled firmware")
     if prof is not None and prof not in PROFILES:
-        where = ("the twin target has no firmware for it" if target == "twin"
+        where = ("the twin target has no firmware for it" if is_generated(target)
                  else "the suite has no tests or design for a board of that profile")
         raise pytest.UsageError(
             f"--profile {prof}: {where}; the HIL suite generates firmware and tests only the bundled profiles "
             f"with committed designs ({', '.join(PROFILES)}).  Choose one of them (or run 'picdrive twin' with "
             "your profile and firmware and use the console)")
-    if target != "twin" and prof is None:
+    if not is_generated(target) and prof is None:
         raise pytest.UsageError(f"--target {target}: name the board's profile with --profile "
                                 f"({' or '.join(PROFILES)})")
 
@@ -54,7 +72,7 @@ def check_options(target: str, prof: str | None) -> None:
 def target_answers(request):
     """A serial target must answer (and run the named profile); else the run fails, it does not skip."""
     target = request.config.getoption("--target")
-    if target == "twin":
+    if is_generated(target) or target.startswith("pil:"):
         return
     prof = profile(request.config.getoption("--profile"))
     from picdrive.link.client import LinkError
@@ -67,6 +85,24 @@ def target_answers(request):
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    pil_rows = config.stash.get(_PIL, [])
+    if pil_rows:
+        # what only the processor twin measures, per firmware: the worst test of each
+        tr = terminalreporter
+        tr.section("processor twin (PIC18 simulator): interrupts, stack, memory")
+        worst: dict = {}
+        for name, tw in pil_rows:
+            try:
+                r = tw.processor_report()
+            except Exception as e:                  # a twin that stopped on a fault says why
+                tr.write_line(f"{name}: no report ({e})")
+                continue
+            if name not in worst or r.speed_max > worst[name].speed_max:
+                worst[name] = r
+        for name, r in worst.items():
+            tr.write_line(f"{name}:")
+            for line in r.lines():
+                tr.write_line(f"  {line}")
     rows = config.stash.get(_REPORT, [])
     if not rows:
         return
@@ -97,21 +133,53 @@ def open_bench(request, target, firmware_cache):
         prof = profile(profile_name)
         phash = prof.hash32
         selected = request.config.getoption("--profile")
-        if target == "twin" and selected is not None and profile_name != selected:
+        if is_generated(target) and selected is not None and profile_name != selected:
             pytest.skip(f"--profile {selected} selects that profile's tests")
-        if target == "twin":
+        if is_generated(target):
             from picdrive_hil.twin import Twin
             method = method or "fuzzy-hinf"
             dp = design_path(profile_name, method)
             if not dp.exists():
                 pytest.skip(f"no committed design {dp.name}")
             design = load_design(dp, require_usable=True, profile=prof)
-            tw = Twin(prof, firmware_cache.get(profile_name, method), perturb=perturb)
+            fw_dir = firmware_cache.get(profile_name, method)
+            kind = "twin"
+            if target == "pil":
+                hex_path, on_chip = firmware_cache.hex(profile_name, method)
+                tw = Twin(prof, fw_dir, perturb=perturb, hex_file=hex_path, enlarged_memory=not on_chip)
+                kind = "pil" if on_chip else "pil(enlarged memory)"
+                request.config.stash[_PIL].append((f"{profile_name} {method}", tw))
+            else:
+                tw = Twin(prof, fw_dir, perturb=perturb)
             srv = tw.serve(port=0, realtime=True)
             link = Link.open(srv.url, expect_profile_hash=phash)
             pert = ",".join(f"{k}x{v:g}" for k, v in tw.model.perturb.items())
-            b = Bench(link, prof, design, method, f"twin {profile_name} {method}{' ' + pert if pert else ''}",
+            b = Bench(link, prof, design, method, f"{kind} {profile_name} {method}{' ' + pert if pert else ''}",
                       tw, srv, request.config.stash[_REPORT])
+        elif target.startswith("pil:"):
+            from picdrive_hil.twin import Twin
+            board_profile = request.config.getoption("--profile")
+            if profile_name != board_profile:
+                pytest.skip(f"the HEX under test runs profile {board_profile!r}")
+            tw = Twin(prof, perturb=perturb, hex_file=pil_hex_file(target),
+                      enlarged_memory=request.config.getoption("--enlarged-memory"))
+            srv = tw.serve(port=0, realtime=True)
+            link = Link.open(srv.url, expect_profile_hash=phash)
+            link.stop()
+            try:
+                m, design = match_design(link, prof)
+            except BaseException:
+                link.close()
+                srv.stop()
+                tw.close()
+                raise
+            if method is not None and method != m:
+                link.close()
+                srv.stop()
+                tw.close()
+                pytest.skip(f"the HEX runs the {m} design, not {method}")
+            request.config.stash[_PIL].append((f"{profile_name} {m} ({pil_hex_file(target)})", tw))
+            b = Bench(link, prof, design, m, f"pil {profile_name} {m}", tw, srv, request.config.stash[_REPORT])
         else:
             board_profile = request.config.getoption("--profile")
             if profile_name != board_profile:

@@ -157,11 +157,23 @@ def step_of(data: np.ndarray, target: float, prof=None):
 
 
 class FirmwareCache:
-    """Firmware of each (profile, method), generated once per session with codegen."""
+    """Firmware of each (profile, method), generated once per session with codegen (and its
+    HEX, built once with picdrive.firmware.target, for the processor twin)."""
 
     def __init__(self, root: Path):
         self.root = root
         self.dirs: dict[tuple[str, str], Path] = {}
+        self.hexes: dict[tuple[str, str], tuple[Path, bool]] = {}
+
+    def hex(self, profile_name: str, method: str) -> tuple[Path, bool]:
+        """(HEX path, fits the 18F4431): build_measured links with the enlarged measurement
+        script when the firmware does not fit (the processor twin then says so)."""
+        key = (profile_name, method)
+        if key not in self.hexes:
+            from picdrive.firmware import target
+            b = target.build_measured(self.get(profile_name, method), self.root / f"{profile_name}.{method}.hex")
+            self.hexes[key] = (b.hex_path, b.on_chip)
+        return self.hexes[key]
 
     def get(self, profile_name: str, method: str) -> Path:
         key = (profile_name, method)

@@ -160,16 +160,22 @@ static void t5_config(void)
 
 static void timer_event(timer_t_ *t, int which)
 {
-    /* wrap/match at t->next == g.now */
-    t->t_ref = g.now;
+    /* wrap/match at t->next (== g.now in the SIL twin; the processor twin reaches it at the end
+       of the instruction that crosses it, so the period is anchored on the exact time) */
+    int64_t at = t->next;
+    t->t_ref = at;
     t->cnt_ref = 0;
-    t->next = g.now + (int64_t)t->modulus * t->tick_ps;
+    t->next = at + (int64_t)t->modulus * t->tick_ps;
     switch (which) {
     case 0: hw_setbit(R_INTCON, B_INTCON_TMR0IF); break;
     case 1: hw_setbit(R_PIR1, B_PIR1_TMR1IF); break;
     case 2: {
         uint32_t post = ((picsim_sfr[R_T2CON] >> B_T2CON_T2OUTPS0) & 15) + 1;
-        if (++t->post >= post) { t->post = 0; hw_setbit(R_PIR1, B_PIR1_TMR2IF); }
+        if (++t->post >= post) {
+            t->post = 0;
+            PIL_TIMER2_FIRED(sfr_bit(R_PIR1, B_PIR1_TMR2IF));
+            hw_setbit(R_PIR1, B_PIR1_TMR2IF);
+        }
         break;
     }
     case 5: hw_setbit(R_PIR3, B_PIR3_TMR5IF); break;
@@ -214,7 +220,7 @@ static void pwm_load_buffers(void)
         }
 }
 
-static void pwm_start_period(void)
+static void pwm_start_period(int64_t at)
 {
     pwm_load_buffers();
     if ((picsim_sfr[R_PWMCON1] >> B_PWMCON1_OSYNC) & 1 &&
@@ -223,7 +229,7 @@ static void pwm_start_period(void)
         g.ovs_act = picsim_sfr[R_OVDCONS];
         g.legs_dirty = 1;
     }
-    g.pwm_start = g.now;
+    g.pwm_start = at;
     int64_t per;
     if (g.per_key_valid && g.per_key_ptper == g.ptper_act && g.per_key_ptcon0 == picsim_sfr[R_PTCON0]) {
         per = g.per_key_ps;                  /* same PTPER and PTCON0 as the last period */
@@ -237,7 +243,7 @@ static void pwm_start_period(void)
     }
     if (per != g.pwm_period) g.legs_dirty = 1;
     g.pwm_period = per;
-    g.pwm_next = g.now + g.pwm_period;
+    g.pwm_next = at + g.pwm_period;
     if (g.flt_cbc && !g.flta_asserted) {
         g.flt_cbc = 0;
         g.legs_dirty = 1;
@@ -253,7 +259,7 @@ static void pwm_time_base(void)
     if (on && !g.pwm_on) {
         g.pwm_on = 1;
         g.pwm_post = 0;
-        pwm_start_period();
+        pwm_start_period(g.now);
     } else if (!on && g.pwm_on) {
         g.pwm_on = 0;
         g.pwm_next = NEVER;
@@ -272,7 +278,7 @@ static void pwm_boundary(void)
         g.pwm_next = NEVER;
         return;
     }
-    pwm_start_period();
+    pwm_start_period(g.pwm_next);   /* the exact boundary (== g.now in the SIL twin) */
 }
 
 /* PWMEN<2:0> -> outputs driven by the module (DS39616D register 18-3) */
@@ -986,6 +992,30 @@ static const irq_src_t core_src[] = {
     {R_INTCON3, B_INTCON3_INT2IF, R_INTCON3, B_INTCON3_INT2IE, R_INTCON3, B_INTCON3_INT2IP},
 };
 
+/* request lines (IRQ_LINE_HIGH | IRQ_LINE_LOW) from the flags, enables and priorities
+   (DS39616 Fig. 10-1), before GIEH/GIEL: with IPEN = 0 every source is high and the
+   peripherals need PEIE (GIEL) */
+unsigned pic_irq_lines(void)
+{
+    int ipen = (picsim_sfr[R_RCON] >> B_RCON_IPEN) & 1;
+    unsigned lines = 0;
+    for (unsigned k = 0; k < sizeof core_src / sizeof core_src[0]; k++) {
+        const irq_src_t *s = &core_src[k];
+        if (!(((picsim_sfr[s->fr] >> s->fb) & 1) && ((picsim_sfr[s->er] >> s->eb) & 1))) continue;
+        lines |= (!ipen || s->pr == 0 || ((picsim_sfr[s->pr] >> s->pb) & 1)) ? IRQ_LINE_HIGH : IRQ_LINE_LOW;
+    }
+    static const uint8_t pir[3] = {R_PIR1, R_PIR2, R_PIR3}, pie[3] = {R_PIE1, R_PIE2, R_PIE3},
+                         ipr[3] = {R_IPR1, R_IPR2, R_IPR3};
+    for (int k = 0; k < 3; k++) {
+        uint8_t act = (uint8_t)(picsim_sfr[pir[k]] & picsim_sfr[pie[k]]);
+        if (!act) continue;
+        if (!ipen) { if ((picsim_sfr[R_INTCON] >> B_INTCON_GIEL) & 1) lines |= IRQ_LINE_HIGH; continue; }
+        if (act & picsim_sfr[ipr[k]]) lines |= IRQ_LINE_HIGH;
+        if (act & (uint8_t)~picsim_sfr[ipr[k]]) lines |= IRQ_LINE_LOW;
+    }
+    return lines;
+}
+
 /* 0: nothing to take; 1: the high vector; 2: the low vector */
 int pic_irq_pending(void)
 {
@@ -993,24 +1023,8 @@ int pic_irq_pending(void)
     int gieh = (picsim_sfr[R_INTCON] >> B_INTCON_GIEH) & 1;
     int giel = (picsim_sfr[R_INTCON] >> B_INTCON_GIEL) & 1;
     if (!gieh) return 0;
-    int want_low = 0;
-    for (unsigned k = 0; k < sizeof core_src / sizeof core_src[0]; k++) {
-        const irq_src_t *s = &core_src[k];
-        if (!(((picsim_sfr[s->fr] >> s->fb) & 1) && ((picsim_sfr[s->er] >> s->eb) & 1))) continue;
-        int high = !ipen || s->pr == 0 || ((picsim_sfr[s->pr] >> s->pb) & 1);
-        if (high) return 1;
-        want_low = 1;
-    }
-    /* peripheral interrupts: PIRn & PIEn, priority IPRn; with IPEN = 0 they need PEIE */
-    static const uint8_t pir[3] = {R_PIR1, R_PIR2, R_PIR3}, pie[3] = {R_PIE1, R_PIE2, R_PIE3},
-                         ipr[3] = {R_IPR1, R_IPR2, R_IPR3};
-    for (int k = 0; k < 3; k++) {
-        uint8_t act = (uint8_t)(picsim_sfr[pir[k]] & picsim_sfr[pie[k]]);
-        if (!act) continue;
-        if (!ipen) { if (giel) return 1; continue; }
-        if (act & picsim_sfr[ipr[k]]) return 1;
-        want_low = 1;
-    }
-    if (want_low && ipen && giel) return 2;
+    unsigned lines = pic_irq_lines();
+    if (lines & IRQ_LINE_HIGH) return 1;
+    if ((lines & IRQ_LINE_LOW) && ipen && giel) return 2;
     return 0;
 }

@@ -54,7 +54,7 @@ static void decode(pic18_t *c, uint32_t w)
     memset(o, 0, sizeof *o);
     o->code = O_ILL;
     unsigned a = (iw >> 8) & 1, d = (iw >> 9) & 1;
-    uint16_t fabs = a ? lo : (lo < 0x80 ? lo : (uint16_t)(0xF00 | lo));
+    uint16_t fabs = a ? lo : (lo < PIC18_ACCESS_SPLIT ? lo : (uint16_t)(0xF00 | lo));
 #define FILEOP(code_, hasd) do { o->code = (code_); o->f = fabs; \
         o->flags = (uint8_t)((a ? F_BANKED : 0) | ((hasd) && d ? F_DEST : 0)); } while (0)
     switch (iw >> 10) {  /* top six bits */
@@ -199,6 +199,10 @@ static unsigned resolve(pic18_t *c, unsigned a)
     case 2: ea = fsr; fsr_set(c, n, (fsr - 1) & 0xFFF); break;           /* POSTDEC */
     case 3: ea = (fsr + 1) & 0xFFF; fsr_set(c, n, ea); break;            /* PREINC */
     default: ea = (fsr + (unsigned)(int8_t)c->ram[A_WREG]) & 0xFFF; break; /* PLUSW */
+    }
+    if (n == 1) {             /* the software stack's reach (SDCC: FSR1 is the stack pointer) */
+        if (ea < c->fsr1_lo) c->fsr1_lo = (uint16_t)ea;
+        if (k == 2 && ea > c->fsr1_hi) c->fsr1_hi = (uint16_t)ea;
     }
     return is_indf(ea) ? A_NULL : ea;
 }
@@ -386,6 +390,9 @@ static void do_reset(pic18_t *c, int por)
 void pic18_power_on(pic18_t *c)
 {
     do_reset(c, 1);
+    c->fsr1_lo = 0xFFFF;
+    c->fsr1_hi = 0;
+    memset(c->ram_written, 0, sizeof c->ram_written);
     c->cycles = 0;
     c->insns = 0;
     c->status = PIC18_OK;
@@ -455,6 +462,15 @@ void pic18_attach(pic18_t *c, void *ctx, pic18_sfr_read_fn rd, pic18_sfr_write_f
     for (int i = 0; i < 256; i++) c->owned[i] = owned ? (owned[i] != 0) : 0;
     c->irq_builtin = 0;
     c->event |= EV_IRQ;
+}
+
+void pic18_set_irq_hook(pic18_t *c, pic18_irq_hook_fn fn) { c->irq_hook = fn; }
+void pic18_request_stop(pic18_t *c) { c->event |= EV_STOP; }
+unsigned pic18_ram_written(const pic18_t *c)
+{
+    unsigned n = 0;
+    for (unsigned a = 0; a < PIC18_RAM_END; a++) n += (c->ram_written[a >> 3] >> (a & 7)) & 1;
+    return n;
 }
 
 void pic18_set_irq(pic18_t *c, unsigned lines)
@@ -541,6 +557,7 @@ static int irq_check(pic18_t *c)
     push(c, c->pc, c->pc);
     c->pc = vec;
     c->cycles += c->irq_vector_cycles;
+    if (c->irq_hook) c->irq_hook(c->ctx, vec == 0x08 ? PIC18_HOOK_HIGH : PIC18_HOOK_LOW);
     return 1;
 }
 
@@ -637,9 +654,14 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 #define RESOLVE(a) do { if ((a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve(c, (a)); } while (0)
 #define SYNC() (c->pc = pc, c->cycles = cyc, c->insn_pc = ipc)
 #define RD(a) ((a) < PIC18_RAM_END ? ram[a] : (SYNC(), sfr_rd(c, (a))))
-#define WR(a, v) do { if ((a) < PIC18_RAM_END) ram[a] = (uint8_t)(v); \
+#ifdef PIC18_TRACK_RAM
+#define NOTE_WR(a) (c->ram_written[(a) >> 3] |= (uint8_t)(1u << ((a) & 7)))
+#else
+#define NOTE_WR(a) ((void)0)
+#endif
+#define WR(a, v) do { if ((a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a); } \
                       else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 0); } } while (0)
-#define WR_ALU(a, v) do { if ((a) < PIC18_RAM_END) ram[a] = (uint8_t)(v); \
+#define WR_ALU(a, v) do { if ((a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a); } \
                       else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 1); } } while (0)
 #define DEST_ALU(a, v) do { if (o->flags & F_DEST) WR_ALU(a, v); else ram[A_WREG] = (uint8_t)(v); } while (0)
 #define DEST(a, v) do { if (o->flags & F_DEST) WR(a, v); else ram[A_WREG] = (uint8_t)(v); } while (0)
@@ -707,12 +729,14 @@ L_ILL:
     goto out;
 L_PCFAULT:
     pc = ipc;
+    c->insn_pc = ipc;               /* execution ran past the end of the flash */
     ins--;
     c->status = PIC18_FAULT_PC;
     c->fault_pc = pc;
     c->fault_word = 0xFFFF;
     goto out;
 pc_fault_jump:
+    c->insn_pc = ipc;               /* the instruction that jumped */
     c->status = PIC18_FAULT_PC;
     c->fault_pc = pc;               /* the target outside flash */
     c->fault_word = 0xFFFF;
@@ -773,6 +797,7 @@ L_RETFIE: {
         reg_set(c, A_INTCON, ic);
         c->event |= EV_IRQ;
     }
+    if (c->irq_hook) c->irq_hook(c->ctx, PIC18_HOOK_RETFIE);
     JUMP(t);
     NEXT;
 }

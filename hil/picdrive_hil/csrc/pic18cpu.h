@@ -27,10 +27,24 @@
 
 #include <stdint.h>
 
-#define PIC18_FLASH_BYTES  0x4000u     /* 16 KB */
+#ifndef PIC18_FLASH_BYTES
+#define PIC18_FLASH_BYTES  0x4000u     /* 16 KB; a build may enlarge it explicitly (-D, the twin's
+                                          measurement option for a firmware that does not fit) */
+#endif
 #define PIC18_FLASH_WORDS  (PIC18_FLASH_BYTES / 2)
-#define PIC18_RAM_END      0x300u      /* GPRs 0x000-0x2FF */
+#ifndef PIC18_RAM_END
+#define PIC18_RAM_END      0x300u      /* GPRs 0x000-0x2FF (enlargeable like the flash) */
+#endif
 #define PIC18_SFR_BASE     0xF60u      /* first SFR */
+/* access bank: 0x00-0x5F are GPRs 0x000-0x05F, 0x60-0xFF the SFRs 0xF60-0xFFF on the 18F4431
+ * (DS39616 Fig. 5-6).  The gpsim build compares with gpsim's p18f4520, which splits at 0x80. */
+#ifndef PIC18_ACCESS_SPLIT
+#ifdef PIC18_GPSIM_COMPAT
+#define PIC18_ACCESS_SPLIT 0x80u
+#else
+#define PIC18_ACCESS_SPLIT 0x60u
+#endif
+#endif
 #define PIC18_CONFIG_BASE  0x300000u   /* CONFIG1L .. CONFIG7H */
 #define PIC18_CONFIG_N     14u
 #define PIC18_IDLOC_BASE   0x200000u   /* user ID words */
@@ -68,6 +82,12 @@ struct pic18;
 #endif
 typedef uint8_t (*pic18_sfr_read_fn)(void *ctx, uint16_t addr);
 typedef void (*pic18_sfr_write_fn)(void *ctx, uint16_t addr, uint8_t value);
+/* interrupt bookkeeping for the twin: called after the core vectored (what = 1 high, 2 low;
+ * cycles already include the vectoring) and after a RETFIE completed (what = 3) */
+typedef void (*pic18_irq_hook_fn)(void *ctx, int what);
+#define PIC18_HOOK_HIGH 1
+#define PIC18_HOOK_LOW 2
+#define PIC18_HOOK_RETFIE 3
 
 typedef struct {
     uint8_t code, flags;  /* handler; a/d/bit/s fields */
@@ -113,6 +133,11 @@ typedef struct pic18 {
     void *ctx;
     pic18_sfr_read_fn sfr_read;
     pic18_sfr_write_fn sfr_write;
+    pic18_irq_hook_fn irq_hook;
+    /* --- measurements (not architectural) --- */
+    uint16_t fsr1_lo;          /* lowest data address reached through FSR1 (INDF1/POSTDEC1/...): 0xFFFF none */
+    uint16_t fsr1_hi;          /* highest address written through POSTDEC1 (the software stack's top) */
+    uint8_t ram_written[0x1000 / 8];   /* GPR bytes written since power-on (PIC18_TRACK_RAM builds) */
 } pic18_t;
 
 /* All functions are safe on any input: addresses are bounded, nothing allocates. */
@@ -128,6 +153,11 @@ PIC18_API void pic18_flash_write_block(pic18_t *c, uint32_t addr); /* 8 holding 
 PIC18_API void pic18_attach(pic18_t *c, void *ctx, pic18_sfr_read_fn rd, pic18_sfr_write_fn wr,
                   const uint8_t owned[256]);
 PIC18_API void pic18_set_irq(pic18_t *c, unsigned lines);
+PIC18_API void pic18_set_irq_hook(pic18_t *c, pic18_irq_hook_fn fn);
+/* from a peripheral hook: return from pic18_run after the present instruction (status OK) */
+PIC18_API void pic18_request_stop(pic18_t *c);
+/* GPR bytes written since power-on (PIC18_TRACK_RAM builds; 0 otherwise) */
+PIC18_API unsigned pic18_ram_written(const pic18_t *c);
 
 /* Run until `max_cycles` more cycles have elapsed (the instruction that crosses
  * the limit completes), `max_insns` instructions ran, PC == break_pc (checked

@@ -149,6 +149,14 @@ typedef struct {
     uint32_t isr_high_calls, isr_low_calls, poll_calls;
 } twin_t;
 
+/* the processor twin counts speed-loop periods its interrupt missed (pil.c) */
+#ifdef TWIN_PIL
+static void pil_timer2_fired(int flag_was_set);
+#define PIL_TIMER2_FIRED(was) pil_timer2_fired(was)
+#else
+#define PIL_TIMER2_FIRED(was) ((void)0)
+#endif
+
 /* one twin per loaded copy of the library; prefixed names keep clear of the firmware's */
 #define g picsim_twin
 extern twin_t g;
@@ -162,6 +170,9 @@ int64_t pic_next_event(void);
 void pic_events_due(void);
 void pic_after_plant_step(int64_t t_prev, double theta_meas);
 int pic_irq_pending(void);            /* 0 none, 1 high, 2 low */
+#define IRQ_LINE_HIGH 1u                 /* = PIC18_IRQ_HIGH / _LOW (pic18cpu.h) */
+#define IRQ_LINE_LOW 2u
+unsigned pic_irq_lines(void);
 void pic_set_pins_from_plant(void);
 void pic_uart_rx_schedule(void);
 double pic_board_baud(void);

@@ -51,6 +51,7 @@ static double theta_measured(void)
 }
 
 /* ------------------------------------------------------------ firmware calls */
+#ifndef TWIN_PIL
 
 static void fw_call(void (*fn)(void))
 {
@@ -89,6 +90,8 @@ static int service_irqs(void)
         }
     }
 }
+
+#endif
 
 /* ------------------------------------------------------------ load */
 
@@ -210,6 +213,7 @@ int twin_init(const twin_config_t *cfg)
     return 0;
 }
 
+#ifndef TWIN_PIL
 /* reset the chip and run fw_init (the motor keeps its state) */
 int twin_power_on(void)
 {
@@ -276,6 +280,7 @@ int twin_run_until(int64_t t_end)
     }
     return (int)g.errors;
 }
+#endif
 
 void twin_get_state(twin_state_t *o)
 {
@@ -407,4 +412,16 @@ void twin_set_plant_state(double w_rad_s, double theta_rad)
     g.ps.te_valid = 0;
     g.edge_dir = 0;
     pic_set_pins_from_plant();
+}
+
+#ifdef TWIN_PIL
+#include "pil.c"
+#endif
+int pil_sizeof(void)
+{
+#ifdef TWIN_PIL
+    return (int)sizeof(pil_stats_t);
+#else
+    return 0;
+#endif
 }

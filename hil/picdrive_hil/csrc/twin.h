@@ -159,7 +159,35 @@ enum {
     TWIN_ERR_ADC_MODE   = 1 << 1,  /* ADC mode the model does not implement */
     TWIN_ERR_BAUD       = 1 << 2,  /* board and host baud differ by more than 2.5 % */
     TWIN_ERR_NOT_INIT   = 1 << 3,
+    TWIN_ERR_CPU        = 1 << 4,  /* processor twin: the core stopped (fault PC, illegal opcode, stack) */
 };
+
+/* The processor twin's measurements (pil.c); cycles are instruction cycles (Tcy). */
+typedef struct {
+    uint64_t cycles, insns;
+    uint64_t cpu_status;           /* PIC18_* of the stop that ended the run (0: running) */
+    uint64_t fault_pc, fault_word, insn_pc;   /* insn_pc: the instruction that stopped the core */
+    uint64_t pc, stkptr, stack_high;   /* return stack: STKPTR and its high-water mark (levels) */
+    uint64_t fsr1_lo, fsr1_hi;     /* software stack: lowest address reached through FSR1, top (POSTDEC1) */
+    uint64_t ram_written;          /* GPR bytes written since power-on */
+    uint64_t speed_n, speed_min, speed_max, speed_sum, speed_last;   /* speed-loop interrupt, entry to RETFIE */
+    uint64_t speed_overrun;        /* Timer2 fired while the speed-loop interrupt still ran */
+    uint64_t speed_lost;           /* Timer2 fired while its flag was still set (a period lost) */
+    uint64_t high_n, high_min, high_max, high_sum;   /* every high-priority interrupt */
+    uint64_t low_n, low_min, low_max, low_sum;       /* every low-priority interrupt */
+    uint64_t retfie_outside;       /* RETFIE without an interrupt in progress */
+    uint64_t in_isr;               /* interrupts in progress now */
+    uint64_t resets, sleep_runs, adc_starts, rcreg_reads;
+    /* issue 9's timing hazards, measured on the running code */
+    uint64_t speed_preempted;      /* high-priority interrupts taken inside the speed-loop interrupt */
+    uint64_t overrun_first_cycle;  /* cycle of the first overrun (0: none) */
+    uint64_t pos_reads, pos_delay_min, pos_delay_max;  /* speed ISR entry -> its first POSCNT/TMR5 read, cycles */
+    uint64_t pos_read_unmasked;    /* ... with GIEH set (a hall/UART interrupt could split the capture) */
+    uint64_t pos_read_after_adc;   /* ... after an ADC start in the same interrupt */
+    uint64_t adc_pwm_starts;       /* ADC starts while the PWM time base runs with a duty > 0 */
+    uint64_t adc_in_on_time;       /* ... of them inside the PWM'd switch's on-time */
+    uint64_t adc_phase_min_ppm, adc_phase_max_ppm;    /* PWM phase of those starts, 1e-6 of the period */
+} pil_stats_t;
 
 enum { INJ_HALL = 1, INJ_OVERCURRENT = 2, INJ_LOCK_ROTOR = 3, INJ_ENCODER = 4,
        INJ_BUS_VOLTAGE = 5 };
@@ -189,6 +217,13 @@ int  twin_trace_count(void);
 uint8_t twin_sfr_get(uint16_t idx);
 void twin_set_plant_state(double w_rad_s, double theta_rad);
 int  twin_sizeof(int which);
+/* processor twin only (-DTWIN_PIL) */
+int  pil_load(const uint8_t *flash, uint32_t n, const uint8_t *config14);
+uint32_t pil_flash_bytes(void);
+uint32_t pil_ram_end(void);
+void pil_get_stats(pil_stats_t *out);
+uint8_t pil_peek(uint16_t addr);
+int  pil_sizeof(void);
 #pragma GCC visibility pop
 
 #endif

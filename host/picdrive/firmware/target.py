@@ -435,6 +435,28 @@ def _vector_target(mem, addr, addr_name) -> str | None:
     return None
 
 
+def _write_device_table(tc: Toolchain, work: Path) -> None:
+    """SDCC's device table with the 18F4431's access split at 0x80, into the build folder
+    (SDCC reads pic16devices.txt from its include path, ``-I.`` first).  SDCC's own entry
+    says 0x60 (right: 0xF60-0xF7F, the PCPWM/QEI/capture SFRs, are in the access bank) and
+    then emits their accesses with no BANKSEL; gpasm 1.4 assembles any SFR below 0xF80 as
+    BANKED, so on the chip those writes went to the GPR bank BSR selected and the PCPWM was
+    never configured (found by the processor twin, issue 10).  With 0x80 SDCC emits a
+    BANKSEL (MOVLB 0xF) before them, which is what gpasm encodes."""
+    src = tc.sdcc.parent.parent / "share" / "sdcc" / "include" / "pic16" / "pic16devices.txt"
+    if not src.is_file():
+        return
+    lines, in_dev = [], False
+    for line in src.read_text().splitlines():
+        f = line.split()
+        if f and f[0] == "name":
+            in_dev = len(f) > 1 and f[1] == "18f4431"
+        elif in_dev and f and f[0] == "split":
+            line = "split       0x80"
+        lines.append(line)
+    (work / "pic16devices.txt").write_text("\n".join(lines) + "\n")
+
+
 def build_hex(folder, out_dir, *, name: str = "firmware", linker_script=None, sources=TARGET_SOURCES,
               extra_c: dict | None = None, device: tuple[str, str] | None = None) -> Build:
     """Compile and link a generated firmware folder for the PIC18F4431; returns the ``Build``.
@@ -460,6 +482,7 @@ def build_hex(folder, out_dir, *, name: str = "firmware", linker_script=None, so
         if p.is_file() and p.suffix in (".c", ".h"):
             shutil.copyfile(p, work / p.name)
     hdr, sfr = device or render_sdcc_device()
+    _write_device_table(tc, work)
     (work / "xc.h").write_text(hdr)
     (work / "xc_sfr.c").write_text(sfr)
     for fn, text in (extra_c or {}).items():

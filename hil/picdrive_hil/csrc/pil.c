@@ -1,0 +1,421 @@
+/* The processor-in-the-loop twin (issue 10): the PIC18 instruction-set simulator
+ * (pic18cpu.c) runs the HEX against the same peripheral model (pic.c) and plant
+ * (plant.c) as the software-in-the-loop twin; only the event loop differs.
+ *
+ * Included at the end of twin.c when the library is built with -DTWIN_PIL (twin_pil_all.c),
+ * so it shares the event loop's helpers (next_hall_edge, load_at, trace_record, ...).
+ *
+ * Time.  g.now is the processor's time, P.t0 + cycles x Tcy.  One loop iteration: find the
+ * next event as the SIL loop does (PWM boundary, timer wrap, UART frame, ADC/EEPROM done,
+ * hall edge, load knot, trace sample, injection end; at most one PWM period); take the
+ * inverter state the peripherals show now; run the core until the cycle that reaches the
+ * event, or earlier when an SFR write moved an event earlier or changed the inverter state;
+ * step the plant over the same interval with the inverter state of its start; update the
+ * pins and process the due events; drive the interrupt lines.  Every SFR access of the
+ * program reaches the model at the cycle it happens (pil_sfr_read / pil_sfr_write): timers,
+ * PTMR and the ports are read as they are at that cycle.  Events are processed at the end
+ * of the instruction that crosses them (at most 3 Tcy late); periodic ones (timer wraps,
+ * PWM periods) keep their exact period.
+ */
+#include "pic18cpu.h"
+#ifdef PIL_TRACE            /* -DPIL_TRACE: log every SFR write (cycle, PC, address, value) on stderr */
+#include <stdio.h>
+#endif
+
+#define PIL_NEST 8
+#if IRQ_LINE_HIGH != PIC18_IRQ_HIGH || IRQ_LINE_LOW != PIC18_IRQ_LOW
+#error "the model's request lines and the core's differ"
+#endif
+
+typedef struct {
+    pic18_t cpu;
+    int loaded;
+    int64_t t0;               /* time of cycle 0 */
+    int64_t target;           /* time the present run is heading for */
+    int64_t t_plant;          /* the plant's time (<= g.now) */
+    leg_t run_leg[3];         /* inverter state over the present run (the plant step's) */
+    uint8_t lines;            /* interrupt request lines driven */
+    int dead;                 /* the core stopped on a fault: outputs off until power-on */
+    /* interrupts in progress (nesting: low, then high) */
+    int nest_n;
+    struct { uint8_t what, speed, pos_read, adc_started; uint64_t start; } nest[PIL_NEST];
+    pil_stats_t st;
+} pil_t;
+
+static pil_t P;
+
+static inline void pil_clock(void) { g.now = P.t0 + (int64_t)P.cpu.cycles * g.tcy_ps; }
+
+static void pil_update_irq(void)
+{
+    if (!g.irq_dirty) return;
+    g.irq_dirty = 0;
+    unsigned l = pic_irq_lines();
+    if (l != P.lines) {
+        P.lines = (uint8_t)l;
+        pic18_set_irq(&P.cpu, l);
+    }
+}
+
+/* ------------------------------------------------------------ plant */
+
+/* the plant (and the pins and QEI it drives) up to g.now, with the inverter state of the
+   present run: before the program reads an input the plant sets (ports, POSCNT, TMR5 with its
+   capture resets), so that what it reads is the state at that cycle */
+static void pil_plant_to_now(void)
+{
+    if (g.now <= P.t_plant) return;
+    int64_t t_prev = P.t_plant;
+    double h = (double)(g.now - t_prev) / PS_PER_S;
+    double tmid = ((double)t_prev + 0.5 * (double)(g.now - t_prev)) / PS_PER_S;
+    plant_step_cached(&g.pp, &g.ps, P.run_leg, load_at(tmid), h, &g.pcache);
+    P.t_plant = g.now;
+    pic_after_plant_step(t_prev, theta_measured());
+}
+
+/* ------------------------------------------------------------ hazard measurements */
+
+/* the interrupt now executing, if it is the speed-loop interrupt */
+static int speed_top(void)
+{
+    int k = P.nest_n - 1;
+    return k >= 0 && k < PIL_NEST && P.nest[k].speed ? k : -1;
+}
+
+static void note_pos_read(void)
+{
+    int k = speed_top();
+    if (k < 0 || P.nest[k].pos_read) return;
+    P.nest[k].pos_read = 1;
+    uint64_t d = P.cpu.cycles - P.nest[k].start;
+    if (P.st.pos_reads == 0 || d < P.st.pos_delay_min) P.st.pos_delay_min = d;
+    if (d > P.st.pos_delay_max) P.st.pos_delay_max = d;
+    P.st.pos_reads++;
+    if (sfr_bit(R_INTCON, B_INTCON_GIEH)) P.st.pos_read_unmasked++;
+    if (P.nest[k].adc_started) P.st.pos_read_after_adc++;
+}
+
+static void note_adc_start(void)
+{
+    P.st.adc_starts++;
+    int k = speed_top();
+    if (k >= 0) P.nest[k].adc_started = 1;
+    if (!g.pwm_on || g.pwm_period <= 0) return;
+    double dmax = 0.0;
+    for (int x = 0; x < 4; x++) if (g.duty[x] > dmax) dmax = g.duty[x];
+    if (!(dmax > 0.0)) return;
+    /* edge-aligned: the PWM'd switch conducts from the period start for duty x period */
+    double ph = (double)(g.now - g.pwm_start) / (double)g.pwm_period;
+    uint64_t ppm = (uint64_t)(ph * 1e6);
+    if (P.st.adc_pwm_starts == 0 || ppm < P.st.adc_phase_min_ppm) P.st.adc_phase_min_ppm = ppm;
+    if (ppm > P.st.adc_phase_max_ppm) P.st.adc_phase_max_ppm = ppm;
+    P.st.adc_pwm_starts++;
+    if (ph < dmax) P.st.adc_in_on_time++;
+}
+
+/* ------------------------------------------------------------ SFR hooks */
+
+static uint8_t pil_sfr_read(void *ctx, uint16_t addr)
+{
+    (void)ctx;
+    uint8_t idx = (uint8_t)addr;
+    pil_clock();
+    uint32_t c;
+    switch (idx) {
+    case R_PORTA: case R_PORTB: case R_PORTC: case R_PORTD: case R_PORTE:
+    case R_POSCNTL: case R_POSCNTH: case R_TMR5L: case R_VELRL: case R_VELRH:
+        if (idx != R_VELRL && idx != R_VELRH) note_pos_read();
+        pil_plant_to_now();
+        if (pic_next_event() < P.target) pic18_request_stop(&P.cpu);
+        pil_update_irq();
+        break;
+    default:
+        break;
+    }
+    switch (idx) {
+    case R_PORTA: return picsim_sfr[idx] = port_value(0);
+    case R_PORTB: return picsim_sfr[idx] = port_value(1);
+    case R_PORTC: return picsim_sfr[idx] = port_value(2);
+    case R_PORTD: return picsim_sfr[idx] = port_value(3);
+    case R_PORTE: return picsim_sfr[idx] = port_value(4);
+    case R_TMR0L:
+        /* 16-bit mode: reading TMR0L latches TMR0H into its buffer */
+        if (!g.t0.on) return picsim_sfr[idx];
+        c = timer_count(&g.t0);
+        if (g.t0.modulus > 256) picsim_sfr[R_TMR0H] = (uint8_t)(c >> 8);
+        return picsim_sfr[idx] = (uint8_t)c;
+    case R_TMR1L:
+        if (!g.t1.on) return picsim_sfr[idx];
+        c = timer_count(&g.t1);
+        if (sfr_bit(R_T1CON, B_T1CON_RD16)) picsim_sfr[R_TMR1H] = (uint8_t)(c >> 8);
+        return picsim_sfr[idx] = (uint8_t)c;
+    case R_TMR1H:
+        if (g.t1.on && !sfr_bit(R_T1CON, B_T1CON_RD16)) picsim_sfr[idx] = (uint8_t)(timer_count(&g.t1) >> 8);
+        return picsim_sfr[idx];
+    case R_TMR2:
+        if (g.t2.on) picsim_sfr[idx] = (uint8_t)timer_count(&g.t2);
+        return picsim_sfr[idx];
+    case R_TMR5L:
+        /* Timer5's 16-bit reads are buffered: TMR5L latches TMR5H */
+        if (!g.t5.on) return picsim_sfr[idx];
+        c = timer_count(&g.t5);
+        picsim_sfr[R_TMR5H] = (uint8_t)(c >> 8);
+        return picsim_sfr[idx] = (uint8_t)c;
+    case R_POSCNTL: case R_POSCNTH:
+        if (qei_mode()) {
+            picsim_sfr[R_POSCNTL] = (uint8_t)g.poscnt;
+            picsim_sfr[R_POSCNTH] = (uint8_t)(g.poscnt >> 8);
+        }
+        return picsim_sfr[idx];
+    case R_PTMRL: case R_PTMRH: case R_PTCON1:
+        if (g.pwm_on && g.pwm_period > 0) {
+            int64_t tick = tcy(ptckps());
+            int64_t n = (g.now - g.pwm_start) / tick;
+            if (ptmod() >= 2) {
+                int64_t half = g.ptper_act;
+                int down = n > half;
+                n = n <= half ? n : 2 * half - n;
+                picsim_sfr[R_PTCON1] = (uint8_t)((picsim_sfr[R_PTCON1] & ~(1u << B_PTCON1_PTDIR)) | (down << B_PTCON1_PTDIR));
+            }
+            picsim_sfr[R_PTMRL] = (uint8_t)n;
+            picsim_sfr[R_PTMRH] = (uint8_t)((n >> 8) & 0x0F);
+        }
+        return picsim_sfr[idx];
+    case R_RCREG:
+        rcreg_read();
+        P.st.rcreg_reads++;
+        g.irq_dirty = 1;
+        pil_update_irq();
+        return picsim_sfr[idx];
+    default:
+        return picsim_sfr[idx];
+    }
+}
+
+static void pil_sfr_write(void *ctx, uint16_t addr, uint8_t v)
+{
+    (void)ctx;
+    uint8_t idx = (uint8_t)addr;
+    pil_clock();
+#ifdef PIL_TRACE
+    fprintf(stderr, "W %llu pc=%05X %03X=%02X\n", (unsigned long long)P.cpu.cycles, P.cpu.insn_pc, addr, v);
+#endif
+    picsim_sfr[idx] = v;
+    g.shadow[idx] = v;
+    /* high bytes of the buffered 16-bit timers: written to the buffer, loaded with the low byte */
+    if ((idx == R_TMR0H && g.t0.modulus > 256) || (idx == R_TMR1H && sfr_bit(R_T1CON, B_T1CON_RD16)) ||
+        idx == R_TMR5H)
+        return;
+    if (idx == R_ADCON0 && sfr_bit(R_ADCON0, B_ADCON0_GO) && g.adc_done == NEVER) note_adc_start();
+    reg_written(idx);
+    if (idx == R_PIR1 || idx == R_TXSTA || idx == R_TXREG || idx == R_RCSTA) enforce_readonly();
+    g.irq_dirty = 1;
+    pil_update_irq();
+    /* the run stops here when the write moved an event before its end or changed the inverter
+       state: the plant steps to this cycle with the state that held until it */
+    if (pic_next_event() < P.target) { pic18_request_stop(&P.cpu); return; }
+    if (g.legs_dirty) {
+        pic_compute_legs();
+        if (memcmp(g.leg, P.run_leg, sizeof P.run_leg) != 0) pic18_request_stop(&P.cpu);
+    }
+}
+
+/* ------------------------------------------------------------ interrupt statistics */
+
+static int speed_source_pending(int what)
+{
+    if (!(sfr_bit(R_PIR1, B_PIR1_TMR2IF) && sfr_bit(R_PIE1, B_PIE1_TMR2IE))) return 0;
+    if (!sfr_bit(R_RCON, B_RCON_IPEN)) return 1;
+    return (sfr_bit(R_IPR1, B_IPR1_TMR2IP) ? PIC18_HOOK_HIGH : PIC18_HOOK_LOW) == what;
+}
+
+static void stat_add(uint64_t d, uint64_t *n, uint64_t *mn, uint64_t *mx, uint64_t *sum)
+{
+    if (*n == 0 || d < *mn) *mn = d;
+    if (d > *mx) *mx = d;
+    *sum += d;
+    (*n)++;
+}
+
+static void pil_irq_hook(void *ctx, int what)
+{
+    (void)ctx;
+    pil_clock();
+    if (what == PIC18_HOOK_HIGH || what == PIC18_HOOK_LOW) {
+        if (what == PIC18_HOOK_HIGH) g.isr_high_calls++; else g.isr_low_calls++;   /* state()'s counters */
+        if (what == PIC18_HOOK_HIGH)
+            for (int k = 0; k < P.nest_n && k < PIL_NEST; k++)
+                if (P.nest[k].speed) { P.st.speed_preempted++; break; }
+        if (P.nest_n < PIL_NEST) {
+            P.nest[P.nest_n].what = (uint8_t)what;
+            P.nest[P.nest_n].pos_read = P.nest[P.nest_n].adc_started = 0;
+            P.nest[P.nest_n].speed = (uint8_t)speed_source_pending(what);
+            P.nest[P.nest_n].start = P.cpu.cycles - P.cpu.irq_vector_cycles;
+        }
+        P.nest_n++;
+        return;
+    }
+    if (P.nest_n == 0) { P.st.retfie_outside++; return; }   /* RETFIE with no interrupt taken */
+    P.nest_n--;
+    if (P.nest_n >= PIL_NEST) return;
+    uint64_t d = P.cpu.cycles - P.nest[P.nest_n].start;
+    if (P.nest[P.nest_n].what == PIC18_HOOK_HIGH)
+        stat_add(d, &P.st.high_n, &P.st.high_min, &P.st.high_max, &P.st.high_sum);
+    else
+        stat_add(d, &P.st.low_n, &P.st.low_min, &P.st.low_max, &P.st.low_sum);
+    if (P.nest[P.nest_n].speed) {
+        stat_add(d, &P.st.speed_n, &P.st.speed_min, &P.st.speed_max, &P.st.speed_sum);
+        P.st.speed_last = d;
+    }
+}
+
+/* Timer2 (the speed-loop timer) set TMR2IF: a period is missed when its interrupt is still
+   running (it will be re-entered late) or the previous flag was never taken (lost) */
+static void pil_timer2_fired(int flag_was_set)
+{
+    if (!P.loaded) return;
+    if (flag_was_set) { P.st.speed_lost++; return; }
+    for (int k = 0; k < P.nest_n && k < PIL_NEST; k++)
+        if (P.nest[k].speed) {
+            if (!P.st.speed_overrun) P.st.overrun_first_cycle = P.cpu.cycles;
+            P.st.speed_overrun++;
+            return;
+        }
+}
+
+/* ------------------------------------------------------------ faults */
+
+static void pil_fault(int st)
+{
+    P.dead = 1;
+    P.st.cpu_status = (uint64_t)st;
+    P.st.fault_pc = P.cpu.fault_pc;
+    P.st.fault_word = P.cpu.fault_word;
+    P.st.insn_pc = st == PIC18_FAULT_PC || st == PIC18_FAULT_ILLEGAL ? P.cpu.insn_pc : P.cpu.fault_pc;
+    g.errors |= TWIN_ERR_CPU;
+    /* outputs off: the peripherals go to their reset state (PWM time base and pins off) */
+    pic_reset();
+    g.legs_dirty = 1;
+    pic_compute_legs();
+}
+
+/* ------------------------------------------------------------ API */
+
+int pil_load(const uint8_t *flash, uint32_t n, const uint8_t *config)
+{
+    if (n > PIC18_FLASH_BYTES) return -1;
+    pic18_init(&P.cpu);
+    pic18_load_flash(&P.cpu, 0, flash, n);
+    pic18_set_config(&P.cpu, config);
+    uint8_t owned[256];
+    memset(owned, 0, sizeof owned);
+    for (int i = 0x60; i < 0x100; i++) owned[i] = 1;     /* the core keeps its own registers anyway */
+    pic18_attach(&P.cpu, NULL, pil_sfr_read, pil_sfr_write, owned);
+    pic18_set_irq_hook(&P.cpu, pil_irq_hook);
+    P.loaded = 1;
+    return 0;
+}
+
+uint32_t pil_flash_bytes(void) { return PIC18_FLASH_BYTES; }
+uint32_t pil_ram_end(void) { return PIC18_RAM_END; }
+
+void pil_get_stats(pil_stats_t *o)
+{
+    P.st.cycles = P.cpu.cycles;
+    P.st.insns = P.cpu.insns;
+    P.st.stack_high = P.cpu.stack_high;
+    P.st.stkptr = P.cpu.stkptr;
+    P.st.pc = P.cpu.pc;
+    P.st.fsr1_lo = P.cpu.fsr1_lo;
+    P.st.fsr1_hi = P.cpu.fsr1_hi;
+    P.st.ram_written = pic18_ram_written(&P.cpu);
+    P.st.in_isr = (uint64_t)P.nest_n;
+    *o = P.st;
+}
+
+uint8_t pil_peek(uint16_t addr) { return pic18_peek(&P.cpu, addr); }
+
+int twin_power_on(void)
+{
+    if (!g.initialised || !P.loaded) return TWIN_ERR_NOT_INIT;
+    pic_reset();
+    g.errors &= ~(uint32_t)TWIN_ERR_CPU;
+    g.legs_dirty = 1;
+    g.hall_pins = (uint8_t)plant_hall_code(&g.pp, g.ps.theta_rad);
+    pic_set_pins_from_plant();
+    if (g.pp.encoder_lines > 0) {
+        g.enc_count = (int64_t)floor(theta_measured() * 4.0 * g.pp.encoder_lines / (2.0 * M_PI));
+        g.enc_index_count = g.enc_count;
+    }
+    g.th_meas_prev = theta_measured();
+    pic_after_plant_step(g.now, theta_measured());
+    pic_compute_legs();
+    pic18_power_on(&P.cpu);
+    P.t0 = g.now;
+    P.t_plant = g.now;
+    P.dead = 0;
+    P.nest_n = 0;
+    P.lines = 0;
+    memset(&P.st, 0, sizeof P.st);
+    pic18_set_irq(&P.cpu, 0);
+    g.irq_dirty = 1;
+    pil_update_irq();
+    return (int)g.errors;
+}
+
+int twin_run_until(int64_t t_end)
+{
+    if (!g.initialised || !P.loaded) return TWIN_ERR_NOT_INIT;
+    int64_t max_off = (int64_t)llround((g.cfg.max_step_s > 0 ? g.cfg.max_step_s : 50e-6) * PS_PER_S);
+    g.irq_dirty = 1;
+    while (g.now < t_end && !g.errors) {
+        int64_t tn = pic_next_event();
+        int64_t cap = g.now + (g.pwm_on && g.pwm_period > 0 && g.pwm_period < max_off ? g.pwm_period : max_off);
+        if (cap < tn) tn = cap;
+        int64_t e = next_hall_edge();
+        if (e < tn) tn = e;
+        e = next_load_knot();
+        if (e < tn) tn = e;
+        if (g.trace_next < tn) tn = g.trace_next;
+        if (g.hall_override >= 0 && g.hall_override_until < tn) tn = g.hall_override_until;
+        if (g.oc_until > g.now && g.oc_until < tn) tn = g.oc_until;
+        if (t_end < tn) tn = t_end;
+        if (tn <= g.now) tn = g.now + 1;
+
+        pic_compute_legs();
+        memcpy(P.run_leg, g.leg, sizeof P.run_leg);
+        int64_t t_prev = g.now;
+        /* the processor, up to the first cycle boundary at or after tn */
+        uint64_t cyc_target = (uint64_t)((tn - P.t0 + g.tcy_ps - 1) / g.tcy_ps);
+        if (!P.dead && P.cpu.cycles < cyc_target) {
+            P.target = tn;
+            pil_update_irq();
+            int st = pic18_run(&P.cpu, cyc_target - P.cpu.cycles, UINT64_MAX, ~0u);
+            if (st == PIC18_SLEEP) {
+                P.cpu.cycles = cyc_target;           /* asleep until an interrupt request */
+                P.st.sleep_runs++;
+            } else if (st == PIC18_RESET_INSN) {
+                P.st.resets++;
+                pic_reset();                          /* the whole chip resets */
+                g.irq_dirty = 1;
+            } else if (st != PIC18_OK) {
+                pil_clock();
+                pil_fault(st);
+            }
+        } else if (P.dead) {
+            P.cpu.cycles = cyc_target;
+        }
+        pil_clock();
+        (void)t_prev;
+        /* the plant over the same interval (or what a read left of it), with the inverter
+           state of its start */
+        pil_plant_to_now();
+        pic_events_due();
+        if (g.trace_next <= g.now) {
+            trace_record();
+            g.trace_next += g.trace_period;
+        }
+        pil_update_irq();
+    }
+    return (int)g.errors;
+}

@@ -1,0 +1,255 @@
+"""The processor-in-the-loop twin's Python side: the HEX, the configuration words the
+peripheral model depends on, the C library, and what only a processor can report.
+
+``Twin(profile, hex_file="firmware.hex")`` (twin.py) runs the HEX on the PIC18 core
+(csrc/pic18cpu.c) inside the same peripheral model and plant as the SIL twin
+(csrc/pil.c has the event loop); this module is what that needs besides.
+
+Program memory: the 18F4431's 16 KB of flash and 768 B of GPRs; a HEX that does not fit
+is refused (ihex.HexError).  ``enlarged=True`` builds the core with 128 KB of flash and
+1.5 KB of GPRs -- the memories of picdrive.firmware.target.enlarged_lkr, the linker script the
+project measures a firmware with when it does not fit -- and every report then says so.
+"""
+from __future__ import annotations
+
+import ctypes as C
+from dataclasses import dataclass
+from pathlib import Path
+
+from . import build, ihex
+from .build import TwinError
+
+TCY_PER_S_40MHZ = 10_000_000
+
+
+class PilError(TwinError):
+    """The HEX cannot run on the processor twin as configured."""
+
+
+class PilStats(C.Structure):
+    """ctypes mirror of ``pil_stats_t`` (csrc/twin.h)."""
+
+    _fields_ = [(n, C.c_uint64) for n in (
+        "cycles", "insns", "cpu_status", "fault_pc", "fault_word", "insn_pc", "pc", "stkptr", "stack_high",
+        "fsr1_lo", "fsr1_hi", "ram_written",
+        "speed_n", "speed_min", "speed_max", "speed_sum", "speed_last", "speed_overrun", "speed_lost",
+        "high_n", "high_min", "high_max", "high_sum", "low_n", "low_min", "low_max", "low_sum",
+        "retfie_outside", "in_isr", "resets", "sleep_runs", "adc_starts", "rcreg_reads",
+        "speed_preempted", "overrun_first_cycle", "pos_reads", "pos_delay_min", "pos_delay_max",
+        "pos_read_unmasked", "pos_read_after_adc", "adc_pwm_starts", "adc_in_on_time",
+        "adc_phase_min_ppm", "adc_phase_max_ppm")]
+
+
+def bind(lib: C.CDLL) -> C.CDLL:
+    lib.pil_load.argtypes = [C.c_char_p, C.c_uint32, C.c_char_p]
+    lib.pil_load.restype = C.c_int
+    lib.pil_flash_bytes.argtypes = []
+    lib.pil_flash_bytes.restype = C.c_uint32
+    lib.pil_ram_end.argtypes = []
+    lib.pil_ram_end.restype = C.c_uint32
+    lib.pil_get_stats.argtypes = [C.POINTER(PilStats)]
+    lib.pil_get_stats.restype = None
+    lib.pil_peek.argtypes = [C.c_uint16]
+    lib.pil_peek.restype = C.c_uint8
+    lib.pil_sizeof.argtypes = []
+    lib.pil_sizeof.restype = C.c_int
+    return lib
+
+
+def library(gen_dir: Path, enlarged: bool = False) -> Path:
+    return build.build_library([build.pil_group(gen_dir, enlarged=enlarged)],
+                               name="libpil-enlarged" if enlarged else "libpil")
+
+
+def load_image(path, enlarged: bool = False) -> ihex.HexImage:
+    """The HEX, validated for the 18F4431 (or the enlarged measurement memory)."""
+    return ihex.load_hex(path, flash_bytes=build.ENLARGED_FLASH_BYTES if enlarged else ihex.FLASH_BYTES)
+
+
+# configuration bits (DS39616 section 23; names as in gputils' p18f4431.inc)
+_FOSC_NAMES = {0x0: "LP", 0x1: "XT", 0x2: "HS", 0x3: "RC2", 0x4: "EC", 0x5: "ECIO", 0x6: "HSPLL",
+               0x7: "RCIO", 0x8: "IRCIO", 0x9: "IRC", 0xC: "RC", 0xD: "RC1"}
+_FOSC_MAX_HZ = {"LP": 200e3, "XT": 4e6, "HS": 25e6, "HSPLL": 40e6, "EC": 40e6, "ECIO": 40e6, "RC": 4e6,
+                "RC1": 4e6, "RC2": 4e6, "RCIO": 4e6, "IRCIO": 8e6, "IRC": 8e6}
+
+
+def check_config(img: ihex.HexImage, board, name: str) -> list[str]:
+    """Refuse configuration words the peripheral model does not follow (PilError, naming the
+    word, its value and the fix); returns notes on the ones it honours."""
+    cfg = img.config
+    fosc = cfg[1] & 0x0F
+    mode = _FOSC_NAMES.get(fosc, f"0x{fosc:X}")
+    limit = _FOSC_MAX_HZ.get(mode)
+    if limit is None or board.fosc_hz > limit:
+        raise PilError(f"{name}: CONFIG1H (0x300001) = 0x{cfg[1]:02X} selects oscillator {mode}, which cannot run "
+                       f"the board's Fosc {board.fosc_hz / 1e6:g} MHz (board.json fosc_hz); build with "
+                       "OSC=HSPLL (10 MHz crystal x 4) or fix board.json")
+    if cfg[3] & 0x01:
+        raise PilError(f"{name}: CONFIG2H (0x300003) = 0x{cfg[3]:02X} enables the watchdog (WDTEN=ON); the twin "
+                       "does not model the watchdog timer: build with WDTEN=OFF")
+    if not cfg[4] & 0x04:
+        raise PilError(f"{name}: CONFIG3L (0x300004) = 0x{cfg[4]:02X} sets PWMPIN=ON (PWM outputs active at reset); "
+                       "the twin models PWMPIN=OFF only: build with PWMPIN=OFF")
+    if (cfg[4] & 0x18) != 0x18:
+        raise PilError(f"{name}: CONFIG3L (0x300004) = 0x{cfg[4]:02X} makes PWM outputs active-low (LPOL/HPOL=LOW); "
+                       "the twin's inverter is driven active-high: build with LPOL=HIGH, HPOL=HIGH")
+    flta_rc1 = bool(cfg[5] & 0x01)
+    if board.flta_pin is not None and tuple(board.flta_pin) != (("C", 1) if flta_rc1 else ("D", 4)):
+        raise PilError(f"{name}: CONFIG3H (0x300005) = 0x{cfg[5]:02X} puts FLTA on {'RC1' if flta_rc1 else 'RD4'} "
+                       f"but the board wires the comparator to R{board.flta_pin[0]}{board.flta_pin[1]}: "
+                       "build with FLTAMX matching board.json's flta_pin")
+    return [f"oscillator {mode}", f"STVREN {'on' if img.stvren else 'off'} (stack overflow/underflow "
+            f"{'resets' if img.stvren else 'does not reset'} the core; the twin stops either way)"]
+
+
+_BRANCH = {0xE0: "BZ", 0xE1: "BNZ", 0xE2: "BC", 0xE3: "BNC", 0xE4: "BOV", 0xE5: "BNOV", 0xE6: "BN", 0xE7: "BNN"}
+
+
+def mnemonic(flash: bytes, addr: int) -> str:
+    """The instruction at ``addr`` in words a reader recognises: control flow by name, anything
+    else by its opcode word(s) (no full disassembler: gpdasm does that)."""
+    def word(a):
+        return flash[a] | (flash[a + 1] << 8) if 0 <= a < len(flash) - 1 else None
+    w, w2 = word(addr), word(addr + 2)
+    if w is None:
+        return f"(no instruction: 0x{addr:06X} is outside the flash)"
+    two = f"0x{w:04X} 0x{w2:04X}" if w2 is not None else f"0x{w:04X}"
+    if (w & 0xFF00) == 0xEF00 and w2 is not None:
+        return f"GOTO 0x{((w & 0xFF) | ((w2 & 0xFFF) << 8)) << 1:06X} ({two})"
+    if (w & 0xFE00) == 0xEC00 and w2 is not None:
+        return f"CALL 0x{((w & 0xFF) | ((w2 & 0xFFF) << 8)) << 1:06X}{', FAST' if w & 0x100 else ''} ({two})"
+    if (w & 0xF000) == 0xD000:
+        n = w & 0x7FF
+        n = n - 0x800 if n & 0x400 else n
+        return f"{'RCALL' if w & 0x800 else 'BRA'} 0x{addr + 2 + 2 * n:06X} (0x{w:04X})"
+    if (w >> 8) in _BRANCH:
+        n = w & 0xFF
+        n = n - 0x100 if n & 0x80 else n
+        return f"{_BRANCH[w >> 8]} 0x{addr + 2 + 2 * n:06X} (0x{w:04X})"
+    named = {0x0012: "RETURN", 0x0013: "RETURN FAST", 0x0010: "RETFIE", 0x0011: "RETFIE FAST",
+             0x0005: "PUSH", 0x0006: "POP", 0x00FF: "RESET", 0x0003: "SLEEP"}
+    if w in named:
+        return f"{named[w]} (0x{w:04X})"
+    if (w & 0xFF00) == 0x0C00:
+        return f"RETLW 0x{w & 0xFF:02X} (0x{w:04X})"
+    if (w & 0xFF00) == 0x6E00 and (w & 0xFF) == 0xF9:
+        return f"MOVWF PCL (0x{w:04X}, a computed jump)"
+    return f"opcode 0x{w:04X}"
+
+
+def cpu_stop_message(st: PilStats, img: ihex.HexImage, hex_name: str) -> str:
+    """The core's stop in one line, naming the address and the instruction."""
+    code, ipc, target = int(st.cpu_status), int(st.insn_pc), int(st.fault_pc)
+    insn = mnemonic(bytes(img.flash), ipc)
+    top = len(img.flash) - 1
+    if code == 16:
+        if ipc == target:
+            what = f"execution ran off the end of the flash at 0x{target:06X} (0x0000-0x{top:04X})"
+        else:
+            what = (f"jump outside the flash: {insn} at 0x{ipc:06X} sent the PC to 0x{target:06X} "
+                    f"(flash 0x0000-0x{top:04X})")
+    elif code == 17:
+        what = (f"illegal or unimplemented opcode 0x{int(st.fault_word):04X} at 0x{ipc:06X} (an extended-set "
+                "or undefined instruction, or data executed as code)")
+    elif code == 3:
+        what = f"return-stack overflow (31st push) by {insn} at 0x{ipc:06X}"
+    elif code == 4:
+        what = f"return-stack underflow (pop of an empty stack) by {insn} at 0x{ipc:06X}"
+    else:
+        what = f"core stop {code} at 0x{ipc:06X} ({insn})"
+    return (f"processor twin stopped running {hex_name}: {what}; PWM outputs off (peripherals reset). "
+            "Fix the firmware (its .map names the function at that address) and power the twin on again")
+
+
+@dataclass(frozen=True)
+class Report:
+    """What the processor twin measured (cycles at Fosc/4)."""
+
+    cycles: int
+    insns: int
+    fosc_hz: float
+    speed_n: int
+    speed_min: int
+    speed_mean: float
+    speed_max: int
+    speed_overrun: int
+    speed_lost: int
+    high_n: int
+    high_max: int
+    high_mean: float
+    low_n: int
+    low_max: int
+    stack_levels: int
+    soft_stack_bytes: int | None
+    soft_stack_top: int | None
+    ram_written: int
+    flash_used: int
+    flash_top: int
+    enlarged: bool
+    speed_loop_hz: float
+
+    @property
+    def tcy_s(self) -> float:
+        return 4.0 / self.fosc_hz
+
+    def as_dict(self) -> dict:
+        us = self.tcy_s * 1e6
+        per = (1.0 / self.speed_loop_hz / self.tcy_s) if self.speed_loop_hz else 0.0
+        return {
+            "cycles": self.cycles, "instructions": self.insns,
+            "speed_isr_periods": self.speed_n,
+            "speed_isr_cycles": {"min": self.speed_min, "mean": round(self.speed_mean, 1), "max": self.speed_max},
+            "speed_isr_us": {"min": round(self.speed_min * us, 2), "mean": round(self.speed_mean * us, 2),
+                             "max": round(self.speed_max * us, 2)},
+            "speed_isr_max_fraction": round(self.speed_max / per, 4) if per else None,
+            "speed_periods_missed": self.speed_overrun + self.speed_lost,
+            "speed_periods_overrun": self.speed_overrun, "speed_periods_lost": self.speed_lost,
+            "high_isr": {"n": self.high_n, "mean_cycles": round(self.high_mean, 1), "max_cycles": self.high_max},
+            "low_isr": {"n": self.low_n, "max_cycles": self.low_max},
+            "return_stack_high_water": self.stack_levels,
+            "software_stack_bytes": self.soft_stack_bytes,
+            "ram_bytes_written": self.ram_written,
+            "flash_bytes": self.flash_used, "flash_top": self.flash_top,
+            "program_memory": "enlarged (128 KB flash, 1.5 KB RAM: does NOT fit the 18F4431)" if self.enlarged
+                              else "PIC18F4431 (16 KB flash, 768 B RAM)",
+        }
+
+    def lines(self) -> list[str]:
+        us = self.tcy_s * 1e6
+        d = self.as_dict()
+        out = [f"processor: {self.insns:,} instructions, {self.cycles:,} cycles"
+               + ("  [ENLARGED program memory: this HEX does not fit the 18F4431]" if self.enlarged else "")]
+        if self.speed_n:
+            out.append(f"speed-loop interrupt: {self.speed_n} periods, {self.speed_min} / {self.speed_mean:.0f} / "
+                       f"{self.speed_max} cycles min/mean/max ({self.speed_min * us:.1f} / {self.speed_mean * us:.1f} / "
+                       f"{self.speed_max * us:.1f} us), {100 * (d['speed_isr_max_fraction'] or 0):.1f} % of its period "
+                       f"at worst; periods missed {self.speed_overrun + self.speed_lost} "
+                       f"(overran {self.speed_overrun}, lost {self.speed_lost})")
+        else:
+            out.append("speed-loop interrupt: not run yet")
+        if self.high_n:
+            out.append(f"high-priority interrupts: {self.high_n}, mean {self.high_mean:.0f}, max {self.high_max} cycles")
+        ss = f"{self.soft_stack_bytes} B below 0x{self.soft_stack_top:03X}" if self.soft_stack_bytes is not None else "unused"
+        out.append(f"stack high-water: return stack {self.stack_levels} of 31 levels, software stack (FSR1) {ss}")
+        out.append(f"memory: flash {self.flash_used:,} B programmed (top 0x{self.flash_top:05X}), "
+                   f"RAM {self.ram_written} B written")
+        return out
+
+
+def report(st: PilStats, img: ihex.HexImage, fosc_hz: float, enlarged: bool, speed_loop_hz: float) -> Report:
+    soft = None
+    top = None
+    if st.fsr1_lo != 0xFFFF and st.fsr1_hi:
+        top = int(st.fsr1_hi)
+        soft = max(0, int(st.fsr1_hi) - int(st.fsr1_lo) + 1)
+    return Report(
+        cycles=int(st.cycles), insns=int(st.insns), fosc_hz=fosc_hz,
+        speed_n=int(st.speed_n), speed_min=int(st.speed_min),
+        speed_mean=(st.speed_sum / st.speed_n) if st.speed_n else 0.0, speed_max=int(st.speed_max),
+        speed_overrun=int(st.speed_overrun), speed_lost=int(st.speed_lost),
+        high_n=int(st.high_n), high_max=int(st.high_max),
+        high_mean=(st.high_sum / st.high_n) if st.high_n else 0.0,
+        low_n=int(st.low_n), low_max=int(st.low_max),
+        stack_levels=int(st.stack_high), soft_stack_bytes=soft, soft_stack_top=top,
+        ram_written=int(st.ram_written), flash_used=img.flash_used, flash_top=img.flash_top,
+        enlarged=enlarged, speed_loop_hz=speed_loop_hz)

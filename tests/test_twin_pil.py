@@ -1,0 +1,293 @@
+"""The processor twin (issue 10): bad input, faults, the peripheral model at the cycle, and the
+measurements only a processor gives.  Programs here are hand-assembled (the encodings of
+DS39616 Table 25-2) into Intel HEX text, so these tests need no toolchain; the bundled
+firmware's HEX is tested in tests/test_twin_pil_firmware.py and the HIL suite (--target pil)."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from picdrive_hil.ihex import HexError
+from picdrive_hil.twin import BoardConfig, Twin, TwinError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# configuration the twin accepts: HSPLL, watchdog off, PWMPIN off, active-high, FLTA on RC1, STVREN on
+CONFIG_OK = {0x300001: 0x06, 0x300003: 0x1E}
+
+
+def _rec(addr16: int, rtype: int, data: bytes) -> str:
+    b = bytes([len(data), addr16 >> 8, addr16 & 0xFF, rtype]) + data
+    return ":" + (b + bytes([(-sum(b)) & 0xFF])).hex().upper()
+
+
+def hex_text(code: dict[int, bytes], config: dict[int, int] | None = None, extra: list[str] = ()) -> str:
+    """Intel HEX of byte blocks {address: bytes} (flash, config, EEPROM), 16-byte records."""
+    lines, upper = [], None
+    blocks = dict(code)
+    for a, v in (CONFIG_OK if config is None else config).items():
+        blocks[a] = bytes([v])
+    for base in sorted(blocks):
+        data = blocks[base]
+        for k in range(0, len(data), 16):
+            a = base + k
+            if a >> 16 != upper:
+                upper = a >> 16
+                lines.append(_rec(0, 4, bytes([upper >> 8, upper & 0xFF])))
+            lines.append(_rec(a & 0xFFFF, 0, data[k:k + 16]))
+    lines += list(extra)
+    lines.append(":00000001FF")
+    return "\n".join(lines) + "\n"
+
+
+def words(*ws: int) -> bytes:
+    return b"".join(bytes([w & 0xFF, w >> 8]) for w in ws)
+
+
+# hand-assembled instructions (a = 0: access bank; 0x60-0xFF are the SFRs 0xF60-0xFFF)
+def movlw(k): return 0x0E00 | k
+def movwf(f): return 0x6E00 | (f & 0xFF)
+def clrf(f): return 0x6A00 | (f & 0xFF)
+def decfsz(f): return 0x2E00 | 0x0200 | (f & 0xFF)      # to f, access
+def bra(frm, to): return 0xD000 | (((to - frm - 2) >> 1) & 0x7FF)
+def rcall(frm, to): return 0xD800 | (((to - frm - 2) >> 1) & 0x7FF)
+def goto(k): return (0xEF00 | ((k >> 1) & 0xFF), 0xF000 | ((k >> 9) & 0xFFF))
+
+
+RETURN, NOP = 0x0012, 0x0000
+PWMCON0, OVDCOND, OVDCONS = 0x6F, 0x6B, 0x6A        # 0xF6F, 0xF6B, 0xF6A: below the 4520's split
+
+
+def outputs_on_then(tail: list[int]) -> bytes:
+    """Phase a's high switch on through the override (PWMEN = all, OVDCOND = 0, OVDCONS = PWM1),
+    a ~60 us delay loop, then ``tail``."""
+    prog = [movlw(0x50), movwf(PWMCON0), clrf(OVDCOND), movlw(0x02), movwf(OVDCONS),
+            movlw(200), movwf(0x10)]
+    loop = 2 * len(prog)
+    prog += [decfsz(0x10), bra(loop + 2, loop)]
+    return words(*prog, *tail)
+
+
+def write(tmp_path, text: str, name="prog.hex") -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def twin_for(path, **kw) -> Twin:
+    return Twin("duy2008", hex_file=path, seed=0, board=BoardConfig(), **kw)
+
+
+# ---------------------------------------------------------------- bad HEX files
+
+@pytest.mark.parametrize("blocks,extra,needle", [
+    ({0x4000: words(NOP)}, [], "0x004000 is beyond the 18F4431's 16 KB"),           # a bigger device's code
+    ({0x30000E: b"\x00"}, [], "0x30000E does not exist on the 18F4431"),              # another device's config
+    ({0xF00100: b"\x00"}, [], "beyond the 18F4431's 256 bytes"),                      # EEPROM out of range
+    ({0x0000: words(NOP, NOP)}, [":020002000000FC"], "overlapping records"),           # 0x0002 twice
+    ({0x300006: b"\xC5"}, [], "XINST"),                                               # extended set on
+])
+def test_bad_hex_is_refused_naming_the_record(tmp_path, blocks, extra, needle):
+    p = write(tmp_path, hex_text(blocks, {}, extra))
+    with pytest.raises(HexError) as e:
+        twin_for(p)
+    assert needle in str(e.value)
+    assert "prog.hex:" in str(e.value)                # the line of the record
+
+
+@pytest.mark.parametrize("config,needle", [
+    ({0x300001: 0x06}, "WDTEN"),                                   # erased CONFIG2H: watchdog on
+    ({0x300001: 0x02, 0x300003: 0x1E}, "oscillator HS"),           # HS cannot give 40 MHz
+    ({**CONFIG_OK, 0x300004: 0x38}, "PWMPIN"),
+    ({**CONFIG_OK, 0x300004: 0x2C}, "active-low"),
+    ({**CONFIG_OK, 0x300005: 0x9C}, "FLTA on RD4"),
+])
+def test_configuration_words_the_model_does_not_follow_are_refused(tmp_path, config, needle):
+    p = write(tmp_path, hex_text({0: words(*goto(0))}, config))
+    with pytest.raises(TwinError) as e:
+        twin_for(p)
+    assert needle in str(e.value)
+
+
+def test_cli_bad_hex_exit_2_one_line(tmp_path):
+    p = write(tmp_path, hex_text({0x5000: words(NOP)}))
+    r = subprocess.run([sys.executable, "-m", "picdrive", "twin", "--profile", "duy2008", "--hex", str(p)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr
+    assert "0x005000" in r.stderr and "16 KB" in r.stderr
+
+
+def test_hex_without_board_wiring_is_refused(tmp_path):
+    p = write(tmp_path, hex_text({0: words(*goto(0))}))
+    with pytest.raises(TwinError, match="no board.json beside .*prog.hex"):
+        Twin("duy2008", hex_file=p)
+
+
+def test_hex_with_another_profiles_firmware_folder_is_refused(tmp_path):
+    from picdrive.paths import firmware_build_dir
+    p = write(tmp_path, hex_text({0: words(*goto(0))}))
+    with pytest.raises(TwinError, match="generated from another profile"):
+        Twin("assawinchaichote2016", firmware_build_dir() / "duy2008", hex_file=p)
+
+
+def test_cli_serves_the_hex_and_reports_the_processor_at_exit(tmp_path):
+    """picdrive twin --hex: the socket URL, then (SIGTERM) the processor's report on stderr."""
+    import signal
+    from picdrive.paths import firmware_build_dir
+    p = write(tmp_path, hex_text({0: outputs_on_then([*goto(0x12)])}))
+    (tmp_path / "board.json").write_text((firmware_build_dir() / "duy2008" / "board.json").read_text())
+    proc = subprocess.Popen([sys.executable, "-m", "picdrive", "twin", "--profile", "duy2008", "--hex", str(p)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = proc.stdout.readline().strip()
+        assert url.startswith("socket://127.0.0.1:")
+        head = []
+        while not head or "Ctrl-C stops" not in head[-1]:      # SIGTERM is handled from here on
+            line = proc.stderr.readline()
+            assert line, "".join(head)
+            head.append(line)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    err = "".join(head) + err
+    assert proc.returncode == 0, err
+    assert "on the PIC18 simulator" in err
+    assert "picdrive twin: processor:" in err and "stack high-water: return stack 0 of 31" in err
+    assert "RAM 1 B written" in err
+
+
+def test_enlarged_memory_takes_a_big_hex_and_says_so(tmp_path):
+    p = write(tmp_path, hex_text({0: words(*goto(0x8000)), 0x8000: words(*goto(0x8000))}))
+    with pytest.raises(HexError):
+        twin_for(p)
+    tw = twin_for(p, enlarged_memory=True)
+    tw.run(1e-4)
+    r = tw.processor_report()
+    assert r.enlarged and "ENLARGED" in r.lines()[0]
+    assert "does NOT fit" in r.as_dict()["program_memory"]
+    assert tw.pil_stats().pc == 0x8000
+
+
+# ---------------------------------------------------------------- faults at run time
+
+def _fault(tmp_path, tail, run_s=2e-3):
+    p = write(tmp_path, hex_text({0: outputs_on_then(tail)}))
+    tw = twin_for(p)
+    tw.run(2e-5)
+    assert tw.state()["outputs_active"]               # the override drives phase a
+    assert tw.state()["legs"][0] == (1.0, 0.0)
+    with pytest.raises(TwinError) as e:
+        tw.run(run_s)
+    s = tw.state()
+    assert not s["outputs_active"] and s["legs"] == ((0.0, 0.0),) * 3     # outputs off
+    t_stop = s["t_s"]
+    with pytest.raises(TwinError):                   # stopped: it stays stopped
+        tw.run(1e-3)
+    assert tw.state()["t_s"] == t_stop
+    return tw, str(e.value)
+
+
+def test_jump_outside_flash_stops_with_the_instruction(tmp_path):
+    tw, msg = _fault(tmp_path, [*goto(0x6000)])
+    assert "GOTO 0x006000 (0xEF00 0xF030) at 0x000012" in msg
+    assert "outside the flash" in msg and "outputs off" in msg
+
+
+def test_illegal_opcode_stops_naming_it(tmp_path):
+    tw, msg = _fault(tmp_path, [NOP, 0xE805])          # ADDFSR: extended set, not on the 18F4431
+    assert "illegal or unimplemented opcode 0xE805 at 0x000014" in msg
+
+
+def test_stack_overflow_stops_naming_the_call(tmp_path):
+    # RCALL to itself: the 31st push overflows
+    tw, msg = _fault(tmp_path, [rcall(0x12, 0x12)])
+    assert "return-stack overflow" in msg and "RCALL 0x000012 (0xDFFF) at 0x000012" in msg
+    assert tw.pil_stats().stack_high == 31
+
+
+def test_stack_underflow_stops_naming_the_return(tmp_path):
+    tw, msg = _fault(tmp_path, [RETURN])
+    assert "return-stack underflow" in msg and "RETURN (0x0012) at 0x000012" in msg
+
+
+def test_power_on_after_a_fault_restarts(tmp_path):
+    tw, _ = _fault(tmp_path, [RETURN])
+    tw.power_on()
+    tw.run(2e-5)
+    assert tw.state()["outputs_active"]
+
+
+def test_running_off_the_end_of_flash(tmp_path):
+    # the last word of flash is a NOP: execution walks off 0x3FFF
+    p = write(tmp_path, hex_text({0: words(*goto(0x3FFE)), 0x3FFE: words(NOP)}))
+    tw = twin_for(p)
+    with pytest.raises(TwinError, match="ran off the end of the flash at 0x004000"):
+        tw.run(1e-4)
+
+
+# ---------------------------------------------------------------- the model at the cycle
+
+def test_timer_read_at_the_cycle_and_interrupt_latency(tmp_path):
+    """TMR2 read by the program is the count at that cycle; Timer2's interrupt enters the low
+    vector and its duration is measured from the request to the end of RETFIE."""
+    T2CON, PR2, TMR2, PIE1, IPR1, RCON, INTCON = 0xCA, 0xCB, 0xCC, 0x9D, 0x9F, 0xD0, 0xF2
+    main = [movlw(0x80), movwf(RCON),                  # IPEN
+            clrf(IPR1),                                # Timer2 low priority
+            movlw(0x02), movwf(PIE1),                  # TMR2IE
+            movlw(99), movwf(PR2),                     # 100 Tcy per period, no pre/postscaler
+            movlw(0xC0), movwf(INTCON),                # GIEH, GIEL
+            movlw(0x04), movwf(T2CON),                 # TMR2ON
+            0x5000 | TMR2, movwf(0x20),                # MOVF TMR2, W ; MOVWF 0x20
+            0x5000 | TMR2, movwf(0x21)]
+    n = len(main)
+    main += [bra(0x40 + 2 * n, 0x40 + 2 * n)]          # spin
+    isr = [0x9200 | 0x9E,                              # BCF PIR1, TMR2IF (0xF9E bit 1)
+           NOP, NOP, NOP, NOP, NOP, 0x0010]            # ..., RETFIE
+    p = write(tmp_path, hex_text({0: words(*goto(0x40)), 0x18: words(*isr), 0x40: words(*main)}))
+    tw = twin_for(p)
+    tw.run(2e-4)
+    a, b = tw.peek(0x20), tw.peek(0x21)
+    # TMR2 counts from the end of MOVWF T2CON's cycle; the first read is the next cycle, the second
+    # two cycles later
+    assert (a, b) == (1, 3)
+    st = tw.pil_stats()
+    # vectoring 2 + BCF 1 + 5 NOP + RETFIE 2 = 10 cycles, every period
+    assert st.low_n >= 15 and st.low_min == st.low_max == 10
+    assert st.speed_n == st.low_n and st.speed_max == 10 and st.speed_overrun == 0 and st.speed_lost == 0
+
+
+def test_missed_speed_loop_periods_are_counted(tmp_path):
+    """An interrupt longer than Timer2's period: each period fires while it still runs."""
+    T2CON, PR2, PIE1, IPR1, RCON, INTCON = 0xCA, 0xCB, 0x9D, 0x9F, 0xD0, 0xF2
+    main = [movlw(0x80), movwf(RCON), clrf(IPR1), movlw(0x02), movwf(PIE1),
+            movlw(49), movwf(PR2), movlw(0xC0), movwf(INTCON), movlw(0x04), movwf(T2CON)]
+    n = len(main)
+    main += [bra(2 * n, 2 * n)]
+    isr = [0x9200 | 0x9E, movlw(40), movwf(0x10), decfsz(0x10), bra(0x18 + 8, 0x18 + 6), 0x0010]
+    p = write(tmp_path, hex_text({0: words(*main), 0x18: words(*isr)}))
+    tw = twin_for(p)
+    tw.run(1e-3)
+    st = tw.pil_stats()
+    assert st.speed_min > 50                           # longer than the 50-cycle period
+    # every interrupt is overrun by the next period; the one after finds its flag still set (lost)
+    assert st.speed_overrun >= st.speed_n - 1 > 10 and st.speed_lost >= st.speed_n - 1
+    d = tw.processor_report().as_dict()
+    assert d["speed_periods_missed"] == st.speed_overrun + st.speed_lost
+
+
+def test_status_reports_the_processor(tmp_path):
+    p = write(tmp_path, hex_text({0: outputs_on_then([*goto(0x12)])}))
+    tw = twin_for(p)
+    srv = tw.serve(port=0, realtime=False)
+    try:
+        tw.run(1e-3)
+        d = srv.status()["processor"]
+        assert d["instructions"] > 1000 and d["return_stack_high_water"] == 0
+        assert d["flash_bytes"] == len(outputs_on_then([*goto(0x12)]))
+        assert d["ram_bytes_written"] == 1             # the delay counter at 0x010
+    finally:
+        srv.stop()

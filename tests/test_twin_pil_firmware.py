@@ -1,0 +1,187 @@
+"""The bundled firmware's HEX on the processor twin (issue 10): it runs the drive, the
+processor's measurements agree with the build's static figures, and issue 9's timing hazards
+are checked on the compiled code at the cycle they happen (all in simulated time).
+
+The HEX is firmware_build/duy2008 built by picdrive.firmware.target.build_measured.  While that
+firmware does not fit the 18F4431 (Build.on_chip False: linked with the enlarged measurement
+script), the twin runs it with its explicit enlarged-memory option; the tests then say so in
+their output and are otherwise the same."""
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from picdrive.firmware import target
+from picdrive.link import codec
+from picdrive.paths import firmware_build_dir
+from picdrive_hil.twin import Twin
+
+FW = firmware_build_dir() / "duy2008"
+
+
+@pytest.fixture(scope="module")
+def build(tmp_path_factory):
+    b = target.build_measured(FW, tmp_path_factory.mktemp("pil-hex"))
+    if not b.on_chip:
+        print(f"\n{b.hex_path}: {b.flash_bytes} B of flash does NOT fit the 18F4431: the processor twin runs "
+              "it with enlarged memory (128 KB flash, 1.5 KB RAM)")
+    return b
+
+
+def pil(build, **kw) -> Twin:
+    return Twin("duy2008", FW, hex_file=build.hex_path, enlarged_memory=not build.on_chip, seed=0, **kw)
+
+
+def link_id_scale(name: str) -> tuple[int, float]:
+    h = (FW / "link_fw.h").read_text()
+    m = re.search(rf"#define\s+LINK_ID_{name.upper()}\s+0x([0-9A-Fa-f]+)u\s+/\*[^*]*?scale ([-+0-9.eE]+)", h)
+    assert m, f"link_fw.h has no LINK_ID_{name.upper()}"
+    return int(m.group(1), 16), float(m.group(2))
+
+
+def command(tw, name, seq, args=None, limit_s=0.1):
+    """One command through the UART in simulated time; returns the decoded reply."""
+    tw.uart_write(codec.encode_command(name, seq, args))
+    dec, t_end = codec.StreamDecoder(), tw.t + limit_s
+    while tw.t < t_end:
+        tw.run(1e-3)
+        for f in dec.feed(tw.uart_read()):
+            if f.is_reply and f.seq == seq:
+                assert f.is_ack, (name, f.payload)
+                return codec.decode_reply(name, f.payload)
+    raise AssertionError(f"no reply to {name} within {limit_s} s of simulated time")
+
+
+def run_at(tw, rpm: float, load: float, warm_s: float = 0.6) -> None:
+    lt_id, _ = link_id_scale("link_timeout")
+    sp_id, sp_scale = link_id_scale("speed_setpoint")
+    tw.run(0.01)
+    command(tw, "param_set", 1, {"id": lt_id, "value": 60000})
+    command(tw, "set_speed", 2, {"value": int(round(rpm / sp_scale))})
+    tw.set_load_torque(load)
+    command(tw, "start", 3)
+    tw.run(warm_s)
+
+
+def no_late_period_after_startup(st) -> bool:
+    # the first speed-loop interrupt enters ~2 ms after power-on, when fw_init enables the
+    # interrupts; Timer2, started earlier, fires again while it runs (measured: cycle ~20,245)
+    return st.speed_lost == 0 and (st.speed_overrun == 0 or (st.speed_overrun == 1 and st.overrun_first_cycle < 50_000))
+
+
+def test_bundled_hex_drives_the_motor_and_reports_the_processor(build):
+    tw = pil(build)
+    prof = tw.profile
+    target_rpm = prof.speed_step_rpm()
+    run_at(tw, target_rpm, prof.control.load_torque_n_m)
+    tw.run(0.4)
+    s = tw.state()
+    assert abs(s["speed_rpm"] - target_rpm) < 0.03 * target_rpm
+    assert s["shoot_through"] == 0
+    st = tw.pil_stats()
+    r = tw.processor_report()
+    # one speed-loop interrupt per Timer2 period (1 kHz) since fw_init enabled the interrupts
+    assert abs(r.speed_n - 1000 * s["t_s"]) <= 4
+    assert 0 < r.speed_min <= r.speed_mean <= r.speed_max < 10_000          # cycles, inside its period
+    assert no_late_period_after_startup(st)
+    assert r.high_n > 100                                                  # halls and the UART
+    # the measurements against the build's static figures
+    assert r.flash_used == build.flash_bytes
+    assert 1 <= r.stack_levels <= 30
+    assert 0 < r.soft_stack_bytes <= build.stack_bytes                     # the call-graph bound holds
+    assert 0 < r.ram_written <= build.ram_bytes + build.stack_bytes
+    lines = "\n".join(r.lines())
+    print(lines)
+    assert "speed-loop interrupt:" in lines and ("ENLARGED" in lines) == (not build.on_chip)
+
+
+def test_hazard_d_commutation_override_never_shorts_a_leg(build):
+    """Issue 9 d): OVDCOND/OVDCONS change with the override synchronised to the PWM period; a
+    period boundary between the two writes applies a mixed pair.  Forced two-sector hall jumps
+    at 150 phases against the PWM period: no period with both switches of a leg on."""
+    tw = pil(build)
+    run_at(tw, 1500.0, 0.0)
+    before = tw.pil_stats().high_n
+    jumps = {1: 3, 3: 2, 2: 6, 6: 4, 4: 5, 5: 1}
+    for k in range(150):
+        code = tw.state()["hall"]
+        two = jumps.get(jumps.get(code, 1), 1)          # two sectors ahead
+        tw.inject("hall", code=two, duration_s=3.7e-4)
+        tw.run(1.37e-3 + k * 1.3e-6)                     # the edge lands at a new PWM phase each time
+    assert tw.pil_stats().high_n - before > 150          # the hall interrupt commutated each time
+    assert tw.state()["shoot_through"] == 0
+
+
+def _with_uart_traffic(tw, seconds: float) -> None:
+    """Status requests every 2 ms: receive interrupts that preempt the speed loop."""
+    seq = 10
+    t_end = tw.t + seconds
+    while tw.t < t_end:
+        tw.uart_write(codec.encode_command("status", seq & 0xFF))
+        seq += 1
+        tw.run(2e-3)
+        tw.uart_read()
+
+
+def test_hazard_e_speed_sample_first_and_masked(build):
+    """Issue 9 e): the speed loop reads POSCNT/Timer5 before its ADC conversions, with the high
+    priority masked, in every period, under hall and UART interrupts."""
+    tw = pil(build)
+    run_at(tw, 2000.0, tw.profile.control.load_torque_n_m)
+    _with_uart_traffic(tw, 0.5)
+    st = tw.pil_stats()
+    assert st.speed_preempted > 20                       # hall/UART interrupts did preempt the speed loop
+    assert st.pos_reads >= st.speed_n - 1
+    assert st.pos_read_unmasked == 0
+    assert st.pos_read_after_adc == 0
+    # the sample instant after the interrupt's entry (the prologue; preemption before the mask)
+    print(f"speed sample {st.pos_delay_min}..{st.pos_delay_max} cycles after the speed-loop interrupt's entry")
+    assert st.pos_delay_max < 1000
+
+
+@pytest.mark.xfail(strict=True, reason="measured on firmware_build/duy2008 as of bc6feca: with a status "
+                                       "request every 2 ms the receive interrupts preempt the speed loop ~2,000 "
+                                       "times in 0.5 s and it overruns its 1 ms period 17 times (worst 10,030 "
+                                       "cycles); issue 9's budget is 4,000")
+def test_preempted_speed_loop_keeps_its_period_and_the_drive_its_speed(build):
+    """The speed-loop interrupt preempted by the hall and UART interrupts (which read const
+    tables through TBLPTR: hazard a) completes within its period and the drive holds speed."""
+    tw = pil(build)
+    rpm = 2000.0
+    run_at(tw, rpm, tw.profile.control.load_torque_n_m)
+    _with_uart_traffic(tw, 0.5)
+    st = tw.pil_stats()
+    assert st.speed_preempted > 20
+    assert no_late_period_after_startup(st)
+    assert st.speed_max < 10_000
+    assert abs(tw.state()["speed_rpm"] - rpm) < 0.03 * rpm
+    assert not tw.state()["pwm_fault_latched"]
+
+
+@pytest.mark.xfail(strict=True, reason="issue 9 f) not done: the current is converted by a software start "
+                                       "at whatever PWM phase the speed-loop interrupt reaches (docs/firmware.md)")
+def test_hazard_f_current_sampled_in_the_on_time(build):
+    """Every current conversion should start inside the PWM'd switch's on-time (a bus shunt reads
+    zero in the off-time).  Measured on the running code: the PWM phase of every ADC start."""
+    tw = pil(build)
+    run_at(tw, 2000.0, tw.profile.control.load_torque_n_m)
+    st = tw.pil_stats()
+    print(f"ADC starts {st.adc_pwm_starts}, {st.adc_in_on_time} in the on-time, PWM phase "
+          f"{st.adc_phase_min_ppm / 1e4:.1f} .. {st.adc_phase_max_ppm / 1e4:.1f} % of the period")
+    assert st.adc_pwm_starts > 500
+    assert st.adc_in_on_time == st.adc_pwm_starts
+
+
+def test_eeprom_save_runs_the_unlock_sequence_on_the_core(build):
+    """eeprom_save: the compiled EECON2 0x55/0xAA + WR sequence, each write at its cycle; every
+    byte is accepted (none refused for a broken sequence) and lands in the EEPROM image."""
+    tw = pil(build)
+    tw.run(0.01)
+    before = tw.eeprom()
+    command(tw, "eeprom_save", 7, limit_s=2.0)
+    tw.run(0.05)
+    s = tw.state()
+    changed = sum(a != b for a, b in zip(before, tw.eeprom()))
+    assert s["eeprom_rejected"] == 0
+    assert s["eeprom_writes"] >= changed > 10
