@@ -608,18 +608,24 @@ def test_capture_arm_out_of_range(peer, args):
 
 
 def test_rx_overflow_counted_and_recovered(peer):
-    for _ in range(100):
-        peer.b.lib.link_rx_byte(0x01)          # no poll in between: the ring fills
-    peer.b.lib.link_poll()
-    assert peer.ok("status")["rx_overflows"] == 100 - (P.RX_RING_BYTES - 1)
-    # a frame cut by an overflow is dropped, not executed
-    frame = codec.encode_command("heartbeat", 0x33)
-    for _ in range(P.RX_RING_BYTES):
-        peer.b.lib.link_rx_byte(0x01)
-    for x in frame[1:]:
+    """One receive buffer: bytes arriving while a complete frame waits for the main loop are
+    lost and counted; the waiting frame is still executed, the frame the lost bytes belonged to
+    is dropped whole, and the next one after a delimiter is accepted."""
+    first = codec.encode_command("heartbeat", 0x31)
+    cut = codec.encode_command("heartbeat", 0x32)
+    for x in first + cut:                      # no poll in between
+        peer.b.lib.link_rx_byte(x)
+    lost = len(cut)                            # all of it, its leading delimiter too
+    assert [f.seq for f in peer.frames() if f.is_ack] == [0x31]
+    for x in cut[1:]:                          # the rest of a frame whose start was lost: dropped
         peer.b.lib.link_rx_byte(x)
     assert peer.frames() == []
-    assert peer.ok("status")["rx_overflows"] == 100 - (P.RX_RING_BYTES - 1) + len(frame) - 1 + 1
+    assert peer.ok("status")["rx_overflows"] == lost
+    # garbage longer than any frame is dropped at the next delimiter, without a NACK
+    for _ in range(3 * P.MAX_FRAME):
+        peer.b.lib.link_rx_byte(0x01)
+    assert peer.frames() == []
+    assert peer.ok("status")["rx_overflows"] == lost
 
 
 def test_modelled_uart_small_tx_queue_carries_whole_frames():
