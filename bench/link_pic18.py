@@ -232,6 +232,8 @@ def measure(c_text: str, h_text: str) -> dict:
     ov = d_[0]                                      # marker to marker, nothing between
     isr = [x - ov - 4 for x in d_[2:4]]            # minus BSF INT0IF and the loop's increment and test
     samples = [x - ov - 4 for x in d_[12:27]]      # minus the loop (the first sample follows the feeds)
+    if os.environ.get("LINK_BENCH_SAMPLES"):
+        print("samples", samples)
     return dict(flash=flash, funcs=funcs, ram=ram, lib=lib, helpers=helpers, overhead=ov,
                 rx_isr=max(isr), poll_max=d_[5] - ov, poll_get=d_[7] - ov, poll_info=d_[9] - ov,
                 crc_per_byte=(d_[10] - ov) / 40.0,

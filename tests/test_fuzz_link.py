@@ -73,7 +73,7 @@ def test_harness_catches_a_buffer_overflow():
 
 def test_harness_catches_a_crc_check_hole():
     """A receiver that skips the CRC of empty frames is caught by the reference comparison."""
-    exe = _mutant("== o && (crc_hi | crc_lo) == 0u) {", "== o && ((crc_hi | crc_lo) == 0u || rx_buf[0] == 0u)) {")
+    exe = _mutant("== n && (crc_hi | crc_lo) == 0u) {", "== n && ((crc_hi | crc_lo) == 0u || rx_buf[0] == 0u)) {")
     r, f = run_fuzz(exe, 200_000, 1)
     assert r.returncode == 1 and "FAIL" in f
 
@@ -81,7 +81,7 @@ def test_harness_catches_a_crc_check_hole():
 def test_harness_catches_a_missing_length_check():
     """A receiver that ignores LEN against the decoded length is caught (by the reference
     comparison, or by a sanitizer when a handler trusts the wrong LEN)."""
-    exe = _mutant("(uint8_t)(rx_buf[0] + BODY_OVERHEAD) == o && ", "")
+    exe = _mutant("(uint8_t)(rx_buf[0] + BODY_OVERHEAD) == n && ", "")
     r, f = run_fuzz(exe, 200_000, 1)
     assert r.returncode != 0 and ("FAIL" in f or "ERROR: AddressSanitizer" in r.stderr or "runtime error" in r.stderr)
 

@@ -557,6 +557,31 @@ def test_capture_immediate_and_chunked_read(peer):
     assert peer.nack("capture_read", {"start": 31, "count": 1}) == Nack.OUT_OF_RANGE
 
 
+@pytest.mark.parametrize("cap_names", [["speed", "setpoint", "position", "state"], ["position", "state"]])
+def test_capture_with_telemetry_records_the_same_values(peer, cap_names):
+    """Telemetry and a capture in the same samples: with the same mask the capture copies the
+    values the telemetry sample just read (one read per signal), with another mask it reads its
+    own; either way each captured sample equals the telemetry sample of the same instant."""
+    tel_names = ["speed", "setpoint", "position", "state"]
+    tmask, cmask = TABLE.signal_mask(tel_names), TABLE.signal_mask(cap_names)
+    peer.ok("set_speed", {"value": 3000})
+    peer.ok("start")
+    peer.ok("telem_config", {"mask": tmask, "decimation": 1, "samples_per_frame": 1})
+    peer.ok("capture_arm", {"mask": cmask, "n_samples": 12, "pre_trigger": 0, "decimation": 1,
+                            "trigger": P.Trigger.IMMEDIATE, "threshold": 0})
+    tel = []
+    for _ in range(12):
+        peer.b.tick(1)
+        peer.b.sample(1)
+        tel += [f for f in peer.frames() if f.type == P.MSG_TELEMETRY]
+    rows = np.concatenate([codec.decode_telemetry(f.payload, 4)[1] for f in tel])
+    total, tidx, vals = _read_capture(peer, len(cap_names))
+    order = [s.name for s in TABLE.signals_in_mask(tmask)]
+    cols = [order.index(s.name) for s in TABLE.signals_in_mask(cmask)]
+    assert total == 12 and len(rows) == 12 and np.diff(rows[:, order.index("position")]).any()
+    assert (vals == rows[:, cols]).all()
+
+
 def test_capture_setpoint_trigger_with_pre_trigger(peer):
     mask = TABLE.signal_mask(["setpoint"])
     peer.ok("capture_arm", {"mask": mask, "n_samples": 50, "pre_trigger": 10, "decimation": 2,

@@ -183,6 +183,8 @@ static struct link_state {
     uint8_t nack_type;
     uint8_t nack_seq;
     uint8_t n;                         /* argument bytes of the command, then reply bytes */
+    uint8_t c;                         /* command code - 1 */
+    uint8_t tseq;                      /* SEQ of the frame being sealed */
     uint8_t crc_hi;                    /* CRC state (main loop) */
     uint8_t crc_lo;
     uint8_t crc_x;
@@ -200,6 +202,8 @@ static struct link_state {
     uint8_t rp_len;                    /* NONE: reply too long to store (read-only command) */
     uint8_t rp_crc0;
     uint8_t rp_crc1;
+    uint8_t fc0;                       /* CRC bytes of the frame being dispatched */
+    uint8_t fc1;
     /* watchdog */
     volatile uint8_t wd_armed;
     uint16_t wd_ms;
@@ -253,24 +257,30 @@ typedef char link_status_layout[(offsetof(struct link_state, uptime_ms) == 8u) ?
 #define put16(o, v) do { uint16_t v_ = (v); A(o) = (uint8_t)v_; A((o) + 1u) = (uint8_t)(v_ >> 8); } while (0)
 #define arg16(o) ((uint16_t)((uint16_t)R(o) | (uint16_t)((uint16_t)R((o) + 1u) << 8)))
 
-static void mcopy(LINK_DATA uint8_t *d, const LINK_DATA uint8_t *src, uint8_t n)   /* RAM to RAM */
-{
-    while (n != 0u) {
-        *d = *src;
-        d++;
-        src++;
-        n--;
-    }
-}
+/* copies and loops walk static data-space pointers: no arguments on the software stack */
+static LINK_DATA uint8_t *cp_d;
+static LINK_DATA uint8_t *cp_s;
 
-static void mzero(LINK_DATA uint8_t *d, uint8_t n)
+static void mcopy_n(uint8_t n) LINK_WPARAM         /* cp_d[0..n-1] = cp_s[0..n-1] (RAM to RAM) */
 {
     while (n != 0u) {
-        *d = 0u;
-        d++;
+        *cp_d = *cp_s;
+        cp_d++;
+        cp_s++;
         n--;
     }
 }
+#define mcopy(d, src, n) do { cp_d = (d); cp_s = (src); mcopy_n(n); } while (0)
+
+static void mzero_n(uint8_t n) LINK_WPARAM
+{
+    while (n != 0u) {
+        *cp_d = 0u;
+        cp_d++;
+        n--;
+    }
+}
+#define mzero(d, n) do { cp_d = (d); mzero_n(n); } while (0)
 
 static uint8_t rom_next(void)          /* link_rom[S.ro++]: the module's only flash read */
 {
@@ -279,10 +289,7 @@ static uint8_t rom_next(void)          /* link_rom[S.ro++]: the module's only fl
     return b;
 }
 
-static void rom_at(uint16_t o)
-{
-    S.ro = o;
-}
+#define rom_at(o) (S.ro = (uint16_t)(o))
 
 static uint8_t popcount16(uint16_t m)
 {
@@ -311,16 +318,17 @@ static void crc_byte(uint8_t b) LINK_WPARAM
     crc_lo = (uint8_t)(crc_x ^ (uint8_t)(crc_x << 5));
 }
 
-/* CRC of p[0..n-1] into crc_hi, crc_lo */
-static void crc_buf(const LINK_DATA uint8_t *p, uint8_t n)
+/* CRC of cp_s[0..n-1] into crc_hi, crc_lo */
+static void crc_n(uint8_t n) LINK_WPARAM
 {
     CRC_INIT();
     while (n != 0u) {
-        crc_byte(*p);
-        p++;
+        crc_byte(*cp_s);
+        cp_s++;
         n--;
     }
 }
+#define crc_buf(p, n) do { cp_s = (p); crc_n(n); } while (0)
 
 uint16_t link_crc16(const uint8_t *p, uint8_t n)
 {
@@ -348,11 +356,12 @@ static uint8_t entry_index(uint8_t id) LINK_WPARAM
     return NONE;
 }
 
-static void row_at(uint8_t idx, uint8_t k)  /* S.ro = byte k of the entry's row (idx * 20 + k, by shifts) */
+static void row_of(uint8_t idx) LINK_WPARAM        /* S.ro = the entry's row (idx * 20, by shifts) */
 {
     uint16_t o = (uint16_t)((uint16_t)idx << 2);
-    S.ro = (uint16_t)(o + (uint16_t)(o << 2) + k);
+    S.ro = (uint16_t)(o + (uint16_t)(o << 2));
 }
+#define row_at(idx, k) do { row_of(idx); S.ro = (uint16_t)(S.ro + (k)); } while (0)
 
 static void entry_load(uint8_t idx) LINK_WPARAM   /* S.e_off, S.e_sz */
 {
@@ -400,29 +409,25 @@ static void value_at(uint8_t idx) LINK_WPARAM      /* V = parameter or signal */
     }
 }
 
-static uint8_t cmp_row(uint8_t idx, uint8_t k)     /* V against the int32 at row byte k: 0 <, 1 =, 2 > */
+static union { int32_t l; uint8_t b[4]; } X;   /* a limit read from the table */
+
+static void rom_x(void)                /* X = the next 4 table bytes (little-endian int32) */
 {
-    uint8_t j = 4u, a, b;
-    row_at(idx, (uint8_t)(k + 3u));
-    while (j != 0u) {
-        j--;
-        a = V.b[j];
-        b = rom_next();
-        S.ro = (uint16_t)(S.ro - 2u);
-        if (j == 3u) {                 /* signed: compare the top bytes offset by 0x80 */
-            a = (uint8_t)(a ^ 0x80u);
-            b = (uint8_t)(b ^ 0x80u);
-        }
-        if (a != b) {
-            return (a < b) ? 0u : 2u;
-        }
-    }
-    return 1u;
+    X.b[0] = rom_next();
+    X.b[1] = rom_next();
+    X.b[2] = rom_next();
+    X.b[3] = rom_next();
 }
 
 static uint8_t in_range(uint8_t idx) LINK_WPARAM   /* V within the entry's [min, max] */
 {
-    return (uint8_t)(cmp_row(idx, 8u) != 0u && cmp_row(idx, 12u) != 2u);
+    row_at(idx, 8u);
+    rom_x();
+    if (V.l < X.l) {
+        return 0u;
+    }
+    rom_x();
+    return (uint8_t)(V.l <= X.l);
 }
 
 int32_t link_param_get(uint8_t id)
@@ -660,35 +665,41 @@ void link_rx_byte(uint8_t b) LINK_WPARAM
     }
 }
 
-/* The complete frame in rx_buf, COBS-decoded in place (the output never overtakes the input):
- * its body length if it passes the length and CRC checks, else 0 */
+/* The complete frame in rx_buf, COBS-decoded in place (each byte moves one place down, the code
+ * bytes become the zeros they stand for): its body length if it passes the length and CRC checks,
+ * else 0.  The frame's CRC bytes are kept in S.fc0, S.fc1 (duplicate detection). */
 static uint8_t rx_frame(void)
 {
-    uint8_t i, o = 0u, run = 0u, b, n = rx_n;
-    for (i = 0u; i < n; i++) {
-        b = rx_buf[i];
-        if (run == 0u) {               /* a code byte: the implied zero of the block before */
-            if (i != 0u) {
-                rx_buf[o] = 0u;
-                o++;
-            }
-            run = b;
-        } else {
-            rx_buf[o] = b;
-            o++;
-        }
+    uint8_t n = (uint8_t)(rx_n - 1u), run = rx_buf[0], b;
+    cp_s = &rx_buf[1];
+    cp_d = rx_buf;
+    while (n != 0u) {
+        b = *cp_s;
+        cp_s++;
         run--;
+        if (run == 0u) {               /* a code byte: the zero it stands for */
+            run = b;
+            b = 0u;
+        }
+        *cp_d = b;
+        cp_d++;
+        n--;
     }
-    if (run == 0u && o >= BODY_OVERHEAD) {
-        crc_buf(rx_buf, o);            /* over the CRC too: a good frame leaves 0 */
-        if ((uint8_t)(rx_buf[0] + BODY_OVERHEAD) == o && (crc_hi | crc_lo) == 0u) {
-            return o;
+    n = (uint8_t)(rx_n - 1u);          /* the body length */
+    if (run == 1u && n >= BODY_OVERHEAD) {
+        crc_buf(rx_buf, n);            /* over the CRC too: a good frame leaves 0 */
+        if ((uint8_t)(rx_buf[0] + BODY_OVERHEAD) == n && (crc_hi | crc_lo) == 0u) {
+            cp_s--;
+            S.fc1 = *cp_s;
+            cp_s--;
+            S.fc0 = *cp_s;
+            return n;
         }
     }
     if (S.crc_errors != 0xFFFFu) {
         S.crc_errors++;
     }
-    if (S.nack_armed != 0u && o >= PL) {
+    if (S.nack_armed != 0u && n >= PL) {
         S.nack_armed = 0u;
         S.nack_pending = 1u;
         S.nack_type = rx_buf[1];
@@ -713,27 +724,33 @@ static void rx_release(void)           /* rx_buf back to the interrupt */
 }
 
 /* ---- transmit: body in tx_buf[1..], COBS-encoded in place, sent as the UART queue has room ---- */
-static void tx_seal(uint8_t type, uint8_t seq, uint8_t len)
+static void tx_seal(uint8_t type) LINK_WPARAM   /* payload A(0..S.n-1), SEQ S.tseq */
 {
-    uint8_t i, c = 0u;
-    tx_buf[1] = len;
+    uint8_t run = 1u, len;
     tx_buf[2] = type;
-    tx_buf[3] = seq;
-    len = (uint8_t)(len + 1u + PL);
-    crc_buf(&tx_buf[1], (uint8_t)(len - 1u));
-    tx_buf[len] = crc_hi;
-    len++;
-    tx_buf[len] = crc_lo;
-    len++;
-    for (i = 1u; i < len; i++) {       /* each zero becomes the distance to the next one */
-        if (tx_buf[i] == 0u) {
-            tx_buf[c] = (uint8_t)(i - c);
-            c = i;
-        }
-    }
-    tx_buf[c] = (uint8_t)(len - c);
-    S.tx_len = (uint8_t)(len + 1u);    /* and the delimiter */
+    tx_buf[1] = S.n;
+    tx_buf[3] = S.tseq;
+    len = (uint8_t)(S.n + PL);
+    crc_buf(&tx_buf[1], len);          /* cp_s ends on the CRC's place */
+    *cp_s = crc_hi;
+    cp_s++;
+    *cp_s = crc_lo;
+    len = (uint8_t)(len + 2u);         /* body bytes */
+    S.tx_len = (uint8_t)(len + 2u);    /* with the COBS code and the delimiter */
     S.tx_pos = 0u;
+    cp_d = tx_buf;                     /* each zero becomes the distance to the next one */
+    cp_s = &tx_buf[1];
+    while (len != 0u) {
+        if (*cp_s == 0u) {
+            *cp_d = run;
+            cp_d = cp_s;
+            run = 0u;
+        }
+        run++;
+        cp_s++;
+        len--;
+    }
+    *cp_d = run;
 }
 
 static void tx_drain(void)
@@ -1036,57 +1053,64 @@ static const link_handler_t cmd_fn[N_CMDS] = {
     h_none,
 };
 
-static void dispatch(uint8_t blen) LINK_WPARAM
+static uint8_t run_command(void)       /* the handler of command S.c: 0 or a NACK code */
 {
-    uint8_t type = rx_buf[1], seq = rx_buf[2], c, code, rtype, spec;
+    uint8_t spec;
+    if (S.c >= N_CMDS) {
+        return LINK_NACK_UNKNOWN_COMMAND;
+    }
+    rom_at((uint16_t)(ROM_CMD + S.c));
+    spec = rom_next();
+    if ((uint8_t)(spec & CMD_ANY_LEN) != CMD_ANY_LEN && (uint8_t)(spec & CMD_ANY_LEN) != S.n) {
+        return LINK_NACK_MALFORMED;
+    }
+    if ((spec & CMD_IDLE) != 0u && drive_busy()) {
+        return LINK_NACK_WRONG_STATE;
+    }
+    return cmd_fn[S.c]();
+}
+
+static void dispatch(void)
+{
+    uint8_t type = rx_buf[1], code;
     if ((type & LINK_ACK_BIT) != 0u || type == LINK_MSG_NACK || type == LINK_MSG_EVENT
         || type == LINK_MSG_TELEMETRY) {
         return;                        /* a board frame (an echo, a loop-back): not for us, no reply */
     }
+    S.tseq = rx_buf[2];
     S.n = rx_buf[0];
-    c = (uint8_t)(type - 1u);
-    if (c < N_CMDS) {
+    S.c = (uint8_t)(type - 1u);
+    if (S.c < N_CMDS) {
         S.rx_valid = 1u;               /* only a host command feeds the watchdog */
     }
     S.nack_armed = 1u;
-    LINK_HOOK_FRAME(type, seq, &R(0), S.n);
-    blen = (uint8_t)(blen - 2u);
-    if (type == S.rp_type && seq == S.rp_seq && rx_buf[blen] == S.rp_crc0
-        && rx_buf[(uint8_t)(blen + 1u)] == S.rp_crc1 && S.rp_len != NONE) {
-        mcopy(&A(0), rp_data, S.rp_len);
-        tx_seal(S.rp_rtype, seq, S.rp_len);
+    LINK_HOOK_FRAME(type, S.tseq, &R(0), S.n);
+    if (type == S.rp_type && S.tseq == S.rp_seq && S.fc0 == S.rp_crc0 && S.fc1 == S.rp_crc1
+        && S.rp_len != NONE) {
+        S.n = S.rp_len;
+        mcopy(&A(0), rp_data, S.n);
+        tx_seal(S.rp_rtype);
         return;
     }
-    S.rp_crc0 = rx_buf[blen];
-    S.rp_crc1 = rx_buf[(uint8_t)(blen + 1u)];
-    code = LINK_NACK_UNKNOWN_COMMAND;
-    if (c < N_CMDS) {
-        rom_at((uint16_t)(ROM_CMD + c));
-        spec = rom_next();
-        if ((uint8_t)(spec & CMD_ANY_LEN) != CMD_ANY_LEN && (uint8_t)(spec & CMD_ANY_LEN) != S.n) {
-            code = LINK_NACK_MALFORMED;
-        } else if ((spec & CMD_IDLE) != 0u && drive_busy()) {
-            code = LINK_NACK_WRONG_STATE;
-        } else {
-            code = cmd_fn[c]();
-        }
-    }
-    rtype = (uint8_t)(type | LINK_ACK_BIT);
+    S.rp_crc0 = S.fc0;
+    S.rp_crc1 = S.fc1;
+    S.rp_type = type;
+    S.rp_seq = S.tseq;
+    code = run_command();
+    type = (uint8_t)(type | LINK_ACK_BIT);
     if (code != 0u) {
-        A(0) = type;
+        A(0) = S.rp_type;
         A(1) = code;
         S.n = 2u;
-        rtype = LINK_MSG_NACK;
+        type = LINK_MSG_NACK;
     }
-    S.rp_type = type;
-    S.rp_seq = seq;
-    S.rp_rtype = rtype;
+    S.rp_rtype = type;
     S.rp_len = NONE;
     if (S.n <= LINK_REPLAY_BYTES) {
         mcopy(rp_data, &A(0), S.n);
         S.rp_len = S.n;
     }
-    tx_seal(rtype, seq, S.n);
+    tx_seal(type);
 }
 
 /* ---- board-initiated frames ---- */
@@ -1110,7 +1134,9 @@ static uint8_t send_event(void)
     }
     A(0) = ev;
     A(1) = code;
-    tx_seal(LINK_MSG_EVENT, S.ev_counter, 2u);
+    S.n = 2u;
+    S.tseq = S.ev_counter;
+    tx_seal(LINK_MSG_EVENT);
     S.ev_counter++;
     return 1u;
 }
@@ -1122,7 +1148,7 @@ static void wd_arm(void)
 
 void link_poll(void)
 {
-    uint8_t k, n;
+    uint8_t k;
     for (k = 0u; k < 8u; k++) {
         wd_arm();
         tx_drain();
@@ -1133,13 +1159,14 @@ void link_poll(void)
             S.nack_pending = 0u;
             A(0) = S.nack_type;
             A(1) = LINK_NACK_BAD_CRC;
-            tx_seal(LINK_MSG_NACK, S.nack_seq, 2u);
+            S.n = 2u;
+            S.tseq = S.nack_seq;
+            tx_seal(LINK_MSG_NACK);
             continue;
         }
         if (rx_ready != 0u) {
-            n = rx_frame();
-            if (n != 0u) {
-                dispatch(n);
+            if (rx_frame() != 0u) {
+                dispatch();
             }
             rx_release();
             continue;
@@ -1148,8 +1175,10 @@ void link_poll(void)
             continue;
         }
         if (S.tm_ready != 0u) {
-            mcopy(&A(0), tm_buf, S.tr.len);
-            tx_seal(LINK_MSG_TELEMETRY, S.tm_gen, S.tr.len);
+            S.n = S.tr.len;
+            mcopy(&A(0), tm_buf, S.n);
+            S.tseq = S.tm_gen;
+            tx_seal(LINK_MSG_TELEMETRY);
             S.tr.nsamp = 0u;
             S.tr.len = 0u;
             S.tm_ready = 0u;
@@ -1184,20 +1213,24 @@ void link_tick_ms(void)
 }
 
 /* ---- per speed-loop sample: telemetry and capture ---- */
-/* the masked signals' values, int16 little-endian, from p on */
-static void put_signals(LINK_DATA uint8_t *p, uint16_t m)
+/* the masked signals' values, int16 little-endian, from sg_p on (speed-loop interrupt only) */
+static LINK_DATA uint8_t *sg_p;
+static LINK_DATA uint8_t *sg_tm;      /* this sample's telemetry values, or 0 */
+static uint16_t sg_m;
+
+static void put_signals(void)
 {
     uint8_t j = 0u;
     uint16_t v;
-    while (m != 0u) {
-        if (((uint8_t)m & 1u) != 0u) {
+    while (sg_m != 0u) {
+        if (((uint8_t)sg_m & 1u) != 0u) {
             v = (uint16_t)app_signal(j);
-            *p = (uint8_t)v;
-            p++;
-            *p = (uint8_t)(v >> 8);
-            p++;
+            *sg_p = (uint8_t)v;
+            sg_p++;
+            *sg_p = (uint8_t)(v >> 8);
+            sg_p++;
         }
-        m = (uint16_t)(m >> 1);
+        sg_m = (uint16_t)(sg_m >> 1);
         j++;
     }
 }
@@ -1234,7 +1267,19 @@ static void capture_sample(void)
         }
     }
     wi = S.cr.wi;
-    put_signals(&cap_buf[wi], S.cap_mask);
+    sg_p = &cap_buf[wi];
+    if (sg_tm != 0 && S.cap_mask == S.tm_mask) {   /* the same signals at the same instant: copy */
+        trig = S.cap_nb;
+        while (trig != 0u) {
+            *sg_p = *sg_tm;
+            sg_p++;
+            sg_tm++;
+            trig--;
+        }
+    } else {
+        sg_m = S.cap_mask;
+        put_signals();
+    }
     wi = (uint8_t)(wi + S.cap_nb);
     S.cr.w++;
     if (S.cr.w == S.cap_n) {
@@ -1263,6 +1308,7 @@ static void capture_sample(void)
 void link_sample(void)
 {
     uint8_t len;
+    sg_tm = 0;
     if (S.tm_dec != 0u) {
         S.tr.div++;
         if (S.tr.div >= S.tm_dec) {
@@ -1278,7 +1324,10 @@ void link_sample(void)
                     tm_buf[1] = (uint8_t)(S.tr.counter >> 8);
                     len = TELEM_HEADER;
                 }
-                put_signals(&tm_buf[len], S.tm_mask);
+                sg_p = &tm_buf[len];
+                sg_tm = sg_p;
+                sg_m = S.tm_mask;
+                put_signals();
                 S.tr.len = (uint8_t)(len + S.tm_nb);
                 S.tr.nsamp++;
                 if (S.tr.nsamp >= S.tm_spf) {
