@@ -185,9 +185,6 @@ static struct link_state {
     uint8_t n;                         /* argument bytes of the command, then reply bytes */
     uint8_t c;                         /* command code - 1 */
     uint8_t tseq;                      /* SEQ of the frame being sealed */
-    uint8_t crc_hi;                    /* CRC state (main loop) */
-    uint8_t crc_lo;
-    uint8_t crc_x;
     uint16_t ro;                       /* next link_rom byte */
     uint8_t e_off;                     /* entry_load(): store offset (NONE: a signal), size code */
     uint8_t e_sz;
@@ -305,18 +302,50 @@ static uint8_t popcount16(uint16_t m)
 
 /* CRC-16/CCITT-FALSE (poly 0x1021) byte-wise without a table, on two bytes of state: 8-bit
  * shifts and XORs only (a shift form needs no 512 B table and no 16-bit arithmetic) */
-#define crc_hi S.crc_hi
-#define crc_lo S.crc_lo
-#define crc_x S.crc_x
+static uint8_t crc_hi, crc_lo;         /* CRC state (main loop) */
 #define CRC_INIT() do { crc_hi = 0xFFu; crc_lo = 0xFFu; } while (0)
 
+#if defined(__SDCC_pic16)
+/* the same steps in PIC18 assembly (20 cycles instead of 70; x in PRODL (0xFF3), a rotation in PRODH (0xFF4):
+ * scratch registers the compiler does not keep values in across a call) */
+static void crc_byte(uint8_t b) LINK_WPARAM __naked
+{
+    (void)b;
+    __asm
+    BANKSEL _crc_hi
+    XORWF   _crc_hi, W, B       ; x = hi ^ b
+    MOVWF   0xFF3, A
+    SWAPF   0xFF3, W, A
+    ANDLW   0x0F
+    XORWF   0xFF3, F, A        ; x ^= x >> 4
+    SWAPF   0xFF3, W, A
+    ANDLW   0xF0                ; x << 4
+    BANKSEL _crc_lo
+    XORWF   _crc_lo, W, B
+    BANKSEL _crc_hi
+    MOVWF   _crc_hi, B          ; hi = lo ^ (x << 4)
+    SWAPF   0xFF3, W, A
+    RLNCF   0xFE8, W, A          ; x rotated right by 3
+    MOVWF   0xFF4, A
+    ANDLW   0x1F                ; x >> 3
+    XORWF   _crc_hi, F, B       ; hi ^= x >> 3
+    MOVF    0xFF4, W, A
+    ANDLW   0xE0                ; x << 5
+    XORWF   0xFF3, W, A
+    BANKSEL _crc_lo
+    MOVWF   _crc_lo, B          ; lo = x ^ (x << 5)
+    RETURN
+    __endasm;
+}
+#else
 static void crc_byte(uint8_t b) LINK_WPARAM
 {
-    crc_x = (uint8_t)(crc_hi ^ b);
-    crc_x = (uint8_t)(crc_x ^ (uint8_t)(crc_x >> 4));
-    crc_hi = (uint8_t)(crc_lo ^ (uint8_t)(crc_x >> 3) ^ (uint8_t)(crc_x << 4));
-    crc_lo = (uint8_t)(crc_x ^ (uint8_t)(crc_x << 5));
+    uint8_t x = (uint8_t)(crc_hi ^ b);
+    x = (uint8_t)(x ^ (uint8_t)(x >> 4));
+    crc_hi = (uint8_t)(crc_lo ^ (uint8_t)(x >> 3) ^ (uint8_t)(x << 4));
+    crc_lo = (uint8_t)(x ^ (uint8_t)(x << 5));
 }
+#endif
 
 /* CRC of cp_s[0..n-1] into crc_hi, crc_lo */
 static void crc_n(uint8_t n) LINK_WPARAM
@@ -647,6 +676,51 @@ void link_event(uint8_t event, uint8_t code)
 }
 
 /* ---- receive: the interrupt only stores the byte and marks the frame complete ---- */
+#if defined(__SDCC_pic16)
+/* the C below in PIC18 assembly: about 20 cycles a byte, no register saved (b in W, kept in PRODL
+ * (0xFF3), stored through FSR0 + W (PLUSW0, 0xFEB);
+ * FSR0 and PROD are saved by the interrupt's prologue) */
+void link_rx_byte(uint8_t b) LINK_WPARAM __naked
+{
+    (void)b;
+    __asm
+    MOVWF   0xFF3, A
+    BANKSEL _rx_ready
+    MOVF    _rx_ready, W, B
+    BNZ     _lrx_lost           ; a frame waits: the byte is lost
+    BANKSEL _rx_n
+    MOVF    0xFF3, F, A
+    BZ      _lrx_delim
+    MOVLW   46          ; LINK_RX_BYTES
+    CPFSLT  _rx_n, B
+    BRA     _lrx_long
+    MOVF    _rx_n, W, B
+    LFSR    0, _rx_buf
+    MOVFF   0xFF3, 0xFEB
+    INCF    _rx_n, F, B         ; rx_buf[rx_n++] = b
+    RETURN
+_lrx_long:
+    SETF    _rx_n, B            ; longer than any frame: RX_SKIP
+    RETURN
+_lrx_delim:
+    INCF    _rx_n, W, B
+    BZ      _lrx_clear          ; RX_SKIP: the garbage ends here
+    MOVF    _rx_n, F, B
+    BZ      _lrx_done           ; nothing since the last delimiter
+    BANKSEL _rx_ready
+    INCF    _rx_ready, F, B     ; 0 -> 1: the frame is complete
+_lrx_done:
+    RETURN
+_lrx_clear:
+    CLRF    _rx_n, B
+    RETURN
+_lrx_lost:
+    BANKSEL _rx_ovf
+    INCF    _rx_ovf, F, B
+    RETURN
+    __endasm;
+}
+#else
 void link_rx_byte(uint8_t b) LINK_WPARAM
 {
     if (rx_ready != 0u) {              /* a frame waits for the main loop: this byte is lost */
@@ -664,6 +738,7 @@ void link_rx_byte(uint8_t b) LINK_WPARAM
         rx_n = RX_SKIP;                /* longer than any frame: garbage */
     }
 }
+#endif
 
 /* The complete frame in rx_buf, COBS-decoded in place (each byte moves one place down, the code
  * bytes become the zeros they stand for): its body length if it passes the length and CRC checks,
