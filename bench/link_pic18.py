@@ -172,7 +172,7 @@ def _sections(obj: Path) -> tuple[dict, int]:
         name, size, f = m.group(1), int(m.group(2)), int(m.group(3), 16)
         if f & 0x20:
             secs[re.sub(r"^S_link_fw__", "", name)] = size
-        elif name.startswith(("udata", "idata")):
+        elif name.startswith(("udata", "idata", "ustat")):   # ustat: an __at block (access RAM)
             ram += size
     return secs, ram
 

@@ -162,9 +162,55 @@ static uint8_t cap_buf[2u * LINK_CAPTURE_WORDS]; /* capture ring, sample-major, 
 #endif
 static union { int32_t l; uint8_t b[4]; } V;   /* the value being moved (main loop only) */
 
-/* receive: the RX interrupt owns rx_n and rx_ovf while rx_ready is 0, the main loop rx_buf and
- * rx_n while it is 1; all single bytes */
-static volatile uint8_t rx_n, rx_ready, rx_ovf;
+/* The most used scalars, in the access bank under SDCC (LINK_ACCESS_AT, 32 B at most: no bank
+ * select per access; the chip's access RAM is 0x00-0x5F and SDCC's own registers r0x.. start at
+ * 0x00, so gplink refuses a build whose registers reach this block).  rx_n, rx_ready, rx_ovf and
+ * the CRC come first: the assembly below addresses them by offset. */
+#if defined(__SDCC_pic16)
+#define LINK_FAST_RAM __at(LINK_ACCESS_AT)  /* external linkage: SDCC 4.2 emits a static __at twice */
+#else
+#define LINK_FAST_RAM static
+#endif
+LINK_FAST_RAM struct link_fast {
+    /* receive: the RX interrupt owns rx_n and rx_ovf while rx_ready is 0, the main loop rx_buf and
+     * rx_n while it is 1; all single bytes */
+    volatile uint8_t rx_n;
+    volatile uint8_t rx_ready;
+    volatile uint8_t rx_ovf;
+    uint8_t crc_hi;                    /* CRC state (main loop) */
+    uint8_t crc_lo;
+    uint8_t n;                         /* argument bytes of the command, then reply bytes */
+    uint8_t c;                         /* command code - 1 */
+    uint8_t tseq;                      /* SEQ of the frame being sealed */
+    uint16_t ro;                       /* next link_rom byte */
+    uint8_t e_off;                     /* entry_load(): store offset (NONE: a signal), size code */
+    uint8_t e_sz;
+    uint8_t ee_off;                    /* next EEPROM image byte */
+    uint8_t tx_len;                    /* bytes to send from tx_buf (COBS-encoded in place); 0 = free */
+    uint8_t tx_pos;
+    /* telemetry (speed-loop interrupt) */
+    volatile uint8_t tm_ready;         /* sample fills tm_buf and sets it; poll sends and clears it */
+    uint8_t tm_spf;
+    uint8_t tm_nb;                     /* bytes per sample: 2 x signals */
+    uint16_t tm_dec;
+    struct {                           /* restarted by telem_config */
+        uint16_t div;
+        uint16_t counter;
+        uint8_t nsamp;
+        uint8_t len;
+    } tr;
+#if LINK_WITH_CAPTURE
+    uint8_t cap_n;
+    uint8_t cap_nb;                    /* bytes per sample: 2 x signals */
+    uint16_t cap_dec;
+#endif
+} link_hot;
+typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u && sizeof(struct link_fast) <= 32u) ? 1 : -1];
+#define rx_n link_hot.rx_n
+#define rx_ready link_hot.rx_ready
+#define rx_ovf link_hot.rx_ovf
+#define crc_hi link_hot.crc_hi
+#define crc_lo link_hot.crc_lo
 
 /* ---- scalar state ---- */
 static struct link_state {
@@ -182,16 +228,6 @@ static struct link_state {
     uint8_t nack_pending;
     uint8_t nack_type;
     uint8_t nack_seq;
-    uint8_t n;                         /* argument bytes of the command, then reply bytes */
-    uint8_t c;                         /* command code - 1 */
-    uint8_t tseq;                      /* SEQ of the frame being sealed */
-    uint16_t ro;                       /* next link_rom byte */
-    uint8_t e_off;                     /* entry_load(): store offset (NONE: a signal), size code */
-    uint8_t e_sz;
-    uint8_t ee_off;                    /* next EEPROM image byte */
-    /* transmit: the body in tx_buf, COBS-encoded in place by tx_seal */
-    uint8_t tx_len;                    /* bytes to send; 0 = free */
-    uint8_t tx_pos;
     /* replay */
     uint8_t rp_type;                   /* 0: nothing stored */
     uint8_t rp_seq;
@@ -211,27 +247,14 @@ static struct link_state {
     volatile uint8_t ev_watchdog;
     uint8_t ev_counter;
     /* telemetry */
-    volatile uint8_t tm_ready;         /* sample fills tm_buf and sets it; poll sends and clears it */
     uint16_t tm_mask;
-    uint16_t tm_dec;
-    uint8_t tm_spf;
-    uint8_t tm_nb;                     /* bytes per sample: 2 x signals */
-    struct {                           /* restarted by telem_config */
-        uint16_t div;
-        uint16_t counter;
-        uint8_t nsamp;
-        uint8_t len;
-    } tr;
 #if LINK_WITH_CAPTURE
     /* capture: sample counts and byte indices are bytes (at most 128 samples, 256 B) */
     volatile uint8_t cap_sp_changed;
-    uint8_t cap_nb;                    /* bytes per sample: 2 x signals */
     uint8_t cap_trig;
-    uint8_t cap_n;
     uint8_t cap_bytes;                 /* cap_n cap_nb - 1: the last byte index */
     uint8_t cap_pre;
     uint16_t cap_mask;
-    uint16_t cap_dec;
     int16_t cap_thr;
     struct {                           /* restarted by capture_arm */
         uint16_t div;
@@ -279,14 +302,14 @@ static void mzero_n(uint8_t n) LINK_WPARAM
 }
 #define mzero(d, n) do { cp_d = (d); mzero_n(n); } while (0)
 
-static uint8_t rom_next(void)          /* link_rom[S.ro++]: the module's only flash read */
+static uint8_t rom_next(void)          /* link_rom[link_hot.ro++]: the module's only flash read */
 {
-    uint8_t b = link_rom[S.ro];
-    S.ro++;
+    uint8_t b = link_rom[link_hot.ro];
+    link_hot.ro++;
     return b;
 }
 
-#define rom_at(o) (S.ro = (uint16_t)(o))
+#define rom_at(o) (link_hot.ro = (uint16_t)(o))
 
 static uint8_t popcount16(uint16_t m)
 {
@@ -302,7 +325,6 @@ static uint8_t popcount16(uint16_t m)
 
 /* CRC-16/CCITT-FALSE (poly 0x1021) byte-wise without a table, on two bytes of state: 8-bit
  * shifts and XORs only (a shift form needs no 512 B table and no 16-bit arithmetic) */
-static uint8_t crc_hi, crc_lo;         /* CRC state (main loop) */
 #define CRC_INIT() do { crc_hi = 0xFFu; crc_lo = 0xFFu; } while (0)
 
 #if defined(__SDCC_pic16)
@@ -312,28 +334,24 @@ static void crc_byte(uint8_t b) LINK_WPARAM __naked
 {
     (void)b;
     __asm
-    BANKSEL _crc_hi
-    XORWF   _crc_hi, W, B       ; x = hi ^ b
+    XORWF   (_link_hot + 3), W, A      ; x = hi ^ b
     MOVWF   0xFF3, A
     SWAPF   0xFF3, W, A
     ANDLW   0x0F
-    XORWF   0xFF3, F, A        ; x ^= x >> 4
+    XORWF   0xFF3, F, A         ; x ^= x >> 4
     SWAPF   0xFF3, W, A
     ANDLW   0xF0                ; x << 4
-    BANKSEL _crc_lo
-    XORWF   _crc_lo, W, B
-    BANKSEL _crc_hi
-    MOVWF   _crc_hi, B          ; hi = lo ^ (x << 4)
+    XORWF   (_link_hot + 4), W, A
+    MOVWF   (_link_hot + 3), A         ; hi = lo ^ (x << 4)
     SWAPF   0xFF3, W, A
-    RLNCF   0xFE8, W, A          ; x rotated right by 3
+    RLNCF   0xFE8, W, A         ; x rotated right by 3
     MOVWF   0xFF4, A
     ANDLW   0x1F                ; x >> 3
-    XORWF   _crc_hi, F, B       ; hi ^= x >> 3
+    XORWF   (_link_hot + 3), F, A      ; hi ^= x >> 3
     MOVF    0xFF4, W, A
     ANDLW   0xE0                ; x << 5
     XORWF   0xFF3, W, A
-    BANKSEL _crc_lo
-    MOVWF   _crc_lo, B          ; lo = x ^ (x << 5)
+    MOVWF   (_link_hot + 4), A         ; lo = x ^ (x << 5)
     RETURN
     __endasm;
 }
@@ -385,25 +403,25 @@ static uint8_t entry_index(uint8_t id) LINK_WPARAM
     return NONE;
 }
 
-static void row_of(uint8_t idx) LINK_WPARAM        /* S.ro = the entry's row (idx * 20, by shifts) */
+static void row_of(uint8_t idx) LINK_WPARAM        /* link_hot.ro = the entry's row (idx * 20, by shifts) */
 {
     uint16_t o = (uint16_t)((uint16_t)idx << 2);
-    S.ro = (uint16_t)(o + (uint16_t)(o << 2));
+    link_hot.ro = (uint16_t)(o + (uint16_t)(o << 2));
 }
-#define row_at(idx, k) do { row_of(idx); S.ro = (uint16_t)(S.ro + (k)); } while (0)
+#define row_at(idx, k) do { row_of(idx); link_hot.ro = (uint16_t)(link_hot.ro + (k)); } while (0)
 
-static void entry_load(uint8_t idx) LINK_WPARAM   /* S.e_off, S.e_sz */
+static void entry_load(uint8_t idx) LINK_WPARAM   /* link_hot.e_off, link_hot.e_sz */
 {
     rom_at((uint16_t)(ROM_OFF + idx));
-    S.e_off = rom_next();
+    link_hot.e_off = rom_next();
     rom_at((uint16_t)(ROM_SIZE + idx));
-    S.e_sz = rom_next();
+    link_hot.e_sz = rom_next();
 }
 
-static void sign_extend(void)          /* V.b[0..n-1] hold a value of size code S.e_sz */
+static void sign_extend(void)          /* V.b[0..n-1] hold a value of size code link_hot.e_sz */
 {
-    uint8_t k = (uint8_t)(S.e_sz & 0x7Fu), fill = 0u;
-    if ((S.e_sz & 0x80u) != 0u && (V.b[k - 1u] & 0x80u) != 0u) {
+    uint8_t k = (uint8_t)(link_hot.e_sz & 0x7Fu), fill = 0u;
+    if ((link_hot.e_sz & 0x80u) != 0u && (V.b[k - 1u] & 0x80u) != 0u) {
         fill = 0xFFu;
     }
     while (k < 4u) {
@@ -412,23 +430,23 @@ static void sign_extend(void)          /* V.b[0..n-1] hold a value of size code 
     }
 }
 
-static void store_get(void)            /* V = the parameter at S.e_off */
+static void store_get(void)            /* V = the parameter at link_hot.e_off */
 {
-    mcopy(V.b, (LINK_DATA uint8_t *)&link_params + S.e_off, (uint8_t)(S.e_sz & 0x7Fu));
+    mcopy(V.b, (LINK_DATA uint8_t *)&link_params + link_hot.e_off, (uint8_t)(link_hot.e_sz & 0x7Fu));
     sign_extend();
 }
 
-static void store_put(void)            /* the parameter at S.e_off = V (already range-checked) */
+static void store_put(void)            /* the parameter at link_hot.e_off = V (already range-checked) */
 {
     LINK_CRITICAL_BEGIN();
-    mcopy((LINK_DATA uint8_t *)&link_params + S.e_off, V.b, (uint8_t)(S.e_sz & 0x7Fu));
+    mcopy((LINK_DATA uint8_t *)&link_params + link_hot.e_off, V.b, (uint8_t)(link_hot.e_sz & 0x7Fu));
     LINK_CRITICAL_END();
 }
 
 static void value_at(uint8_t idx) LINK_WPARAM      /* V = parameter or signal */
 {
     entry_load(idx);
-    if (S.e_off == NONE) {
+    if (link_hot.e_off == NONE) {
         int16_t v = app_signal((uint8_t)(idx - SIG_INDEX));
         V.b[0] = (uint8_t)v;
         V.b[1] = (uint8_t)((uint16_t)v >> 8);
@@ -513,7 +531,7 @@ uint8_t link_param_set(uint8_t id, int32_t raw)
 
 /* ---- EEPROM image ---- */
 #if LINK_WITH_EEPROM
-#define ee_off S.ee_off
+#define ee_off link_hot.ee_off
 
 static uint8_t id_of(uint8_t idx) LINK_WPARAM
 {
@@ -562,7 +580,7 @@ uint8_t link_eeprom_save(void)
     for (i = 0u; i < LINK_N_PERSISTED; i++) {
         (void)persisted(i);
         store_get();
-        for (k = 0u; k < (uint8_t)(S.e_sz & 0x7Fu); k++) {
+        for (k = 0u; k < (uint8_t)(link_hot.e_sz & 0x7Fu); k++) {
             ee_put(V.b[k]);
         }
     }
@@ -609,7 +627,7 @@ uint8_t link_eeprom_load(void)
         ee_off = EE_HEADER;
         for (i = 0u; i < LINK_N_PERSISTED; i++) {
             uint8_t idx = persisted(i);
-            for (k = 0u; k < (uint8_t)(S.e_sz & 0x7Fu); k++) {
+            for (k = 0u; k < (uint8_t)(link_hot.e_sz & 0x7Fu); k++) {
                 V.b[k] = ee_next();
             }
             sign_extend();
@@ -644,9 +662,10 @@ void link_init(void)
 {
     uint8_t i;
     mzero((LINK_DATA uint8_t *)&S, (uint8_t)sizeof S);
+    mzero((LINK_DATA uint8_t *)&link_hot, (uint8_t)sizeof link_hot);
     for (i = 0u; i < LINK_N_ENTRIES; i++) {   /* the parameters' defaults */
         entry_load(i);
-        if (S.e_off != NONE) {
+        if (link_hot.e_off != NONE) {
             uint8_t k;
             row_at(i, 16u);
             for (k = 0u; k < 4u; k++) {
@@ -655,9 +674,6 @@ void link_init(void)
             store_put();
         }
     }
-    rx_n = 0u;
-    rx_ready = 0u;
-    rx_ovf = 0u;
     S.rp_len = NONE;
     S.nack_armed = 1u;
     S.ev_boot = 1u;
@@ -685,38 +701,34 @@ void link_rx_byte(uint8_t b) LINK_WPARAM __naked
     (void)b;
     __asm
     MOVWF   0xFF3, A
-    BANKSEL _rx_ready
-    MOVF    _rx_ready, W, B
+    MOVF    (_link_hot + 1), W, A      ; rx_ready
     BNZ     _lrx_lost           ; a frame waits: the byte is lost
-    BANKSEL _rx_n
     MOVF    0xFF3, F, A
     BZ      _lrx_delim
     MOVLW   46          ; LINK_RX_BYTES
-    CPFSLT  _rx_n, B
+    CPFSLT  (_link_hot + 0), A         ; rx_n
     BRA     _lrx_long
-    MOVF    _rx_n, W, B
+    MOVF    (_link_hot + 0), W, A
     LFSR    0, _rx_buf
     MOVFF   0xFF3, 0xFEB
-    INCF    _rx_n, F, B         ; rx_buf[rx_n++] = b
+    INCF    (_link_hot + 0), F, A      ; rx_buf[rx_n++] = b
     RETURN
 _lrx_long:
-    SETF    _rx_n, B            ; longer than any frame: RX_SKIP
+    SETF    (_link_hot + 0), A         ; longer than any frame: RX_SKIP
     RETURN
 _lrx_delim:
-    INCF    _rx_n, W, B
+    INCF    (_link_hot + 0), W, A
     BZ      _lrx_clear          ; RX_SKIP: the garbage ends here
-    MOVF    _rx_n, F, B
+    MOVF    (_link_hot + 0), F, A
     BZ      _lrx_done           ; nothing since the last delimiter
-    BANKSEL _rx_ready
-    INCF    _rx_ready, F, B     ; 0 -> 1: the frame is complete
+    INCF    (_link_hot + 1), F, A      ; 0 -> 1: the frame is complete
 _lrx_done:
     RETURN
 _lrx_clear:
-    CLRF    _rx_n, B
+    CLRF    (_link_hot + 0), A
     RETURN
 _lrx_lost:
-    BANKSEL _rx_ovf
-    INCF    _rx_ovf, F, B
+    INCF    (_link_hot + 2), F, A      ; rx_ovf
     RETURN
     __endasm;
 }
@@ -799,20 +811,20 @@ static void rx_release(void)           /* rx_buf back to the interrupt */
 }
 
 /* ---- transmit: body in tx_buf[1..], COBS-encoded in place, sent as the UART queue has room ---- */
-static void tx_seal(uint8_t type) LINK_WPARAM   /* payload A(0..S.n-1), SEQ S.tseq */
+static void tx_seal(uint8_t type) LINK_WPARAM   /* payload A(0..link_hot.n-1), SEQ link_hot.tseq */
 {
     uint8_t run = 1u, len;
     tx_buf[2] = type;
-    tx_buf[1] = S.n;
-    tx_buf[3] = S.tseq;
-    len = (uint8_t)(S.n + PL);
+    tx_buf[1] = link_hot.n;
+    tx_buf[3] = link_hot.tseq;
+    len = (uint8_t)(link_hot.n + PL);
     crc_buf(&tx_buf[1], len);          /* cp_s ends on the CRC's place */
     *cp_s = crc_hi;
     cp_s++;
     *cp_s = crc_lo;
     len = (uint8_t)(len + 2u);         /* body bytes */
-    S.tx_len = (uint8_t)(len + 2u);    /* with the COBS code and the delimiter */
-    S.tx_pos = 0u;
+    link_hot.tx_len = (uint8_t)(len + 2u);    /* with the COBS code and the delimiter */
+    link_hot.tx_pos = 0u;
     cp_d = tx_buf;                     /* each zero becomes the distance to the next one */
     cp_s = &tx_buf[1];
     while (len != 0u) {
@@ -831,23 +843,23 @@ static void tx_seal(uint8_t type) LINK_WPARAM   /* payload A(0..S.n-1), SEQ S.ts
 static void tx_drain(void)
 {
     uint8_t room;
-    if (S.tx_len == 0u) {
+    if (link_hot.tx_len == 0u) {
         return;
     }
     room = app_tx_free();
     while (room != 0u) {
-        if (S.tx_pos == (uint8_t)(S.tx_len - 1u)) {
+        if (link_hot.tx_pos == (uint8_t)(link_hot.tx_len - 1u)) {
             app_tx_byte(0u);           /* delimiter */
-            S.tx_len = 0u;
+            link_hot.tx_len = 0u;
             return;
         }
-        app_tx_byte(tx_buf[S.tx_pos]);
-        S.tx_pos++;
+        app_tx_byte(tx_buf[link_hot.tx_pos]);
+        link_hot.tx_pos++;
         room--;
     }
 }
 
-/* ---- command handlers: arguments in R(0..S.n-1), reply in A(..), its length in S.n ---- */
+/* ---- command handlers: arguments in R(0..link_hot.n-1), reply in A(..), its length in link_hot.n ---- */
 static uint8_t drive_busy(void)
 {
     int16_t st = app_signal(LINK_SIG_STATE);
@@ -859,18 +871,18 @@ static uint8_t mask_ok(uint16_t mask)
     return (uint8_t)(mask != 0u && (mask & (uint16_t)~SIG_ALL) == 0u);
 }
 
-static void rom_copy(uint8_t n) LINK_WPARAM        /* A(S.n..) = n flash bytes from S.ro on */
+static void rom_copy(uint8_t n) LINK_WPARAM        /* A(link_hot.n..) = n flash bytes from link_hot.ro on */
 {
     while (n != 0u) {
-        A(S.n) = rom_next();
-        S.n++;
+        A(link_hot.n) = rom_next();
+        link_hot.n++;
         n--;
     }
 }
 
 static uint8_t h_hello(void)
 {
-    S.n = 0u;
+    link_hot.n = 0u;
     rom_at(ROM_HELLO);
     rom_copy(20u);
     return 0u;
@@ -888,7 +900,7 @@ static uint8_t h_param_info(void)
         a = (uint16_t)(a + rom_next());
     }
     i = rom_next();
-    S.n = 0u;
+    link_hot.n = 0u;
     row_at(idx, 0u);
     rom_copy(ROW);
     rom_at(a);
@@ -898,7 +910,7 @@ static uint8_t h_param_info(void)
 
 static uint8_t h_param_get(void)
 {
-    uint8_t n = S.n, i, o = 0u;
+    uint8_t n = link_hot.n, i, o = 0u;
     if (n == 0u || n > LINK_PARAM_GET_MAX) {
         return LINK_NACK_MALFORMED;
     }
@@ -912,7 +924,7 @@ static uint8_t h_param_get(void)
         mcopy(&A(o), V.b, 4u);
         o = (uint8_t)(o + 4u);
     }
-    S.n = o;
+    link_hot.n = o;
     return 0u;
 }
 
@@ -931,14 +943,14 @@ static uint8_t h_param_set(void)
 {
     mcopy(V.b, &R(1), 4u);
     A(0) = R(0);
-    S.n = 5u;
+    link_hot.n = 5u;
     return set_reply(R(0), 1u);
 }
 
 static uint8_t h_set_speed(void)
 {
     mcopy(V.b, &R(0), 4u);
-    S.n = 4u;
+    link_hot.n = 4u;
     return set_reply(LINK_ID_SPEED_SETPOINT, 0u);
 }
 
@@ -949,14 +961,14 @@ static uint8_t h_select_controller(void)
     V.b[0] = R(0);
     code = set_v(LINK_ID_CONTROLLER);
     A(0) = (uint8_t)link_params.controller;
-    S.n = 1u;
+    link_hot.n = 1u;
     return code;
 }
 
 static uint8_t h_app(void)
 {
     uint8_t code = app_command(rx_buf[1], &R(0), 0u);
-    S.n = 0u;
+    link_hot.n = 0u;
     return code;
 }
 
@@ -976,18 +988,18 @@ static uint8_t h_telem_config(void)
         }
     }
     LINK_CRITICAL_BEGIN();
-    S.tm_dec = 0u;
+    link_hot.tm_dec = 0u;
     S.tm_mask = mask;
-    S.tm_spf = spf;
-    S.tm_nb = nb;
-    mzero((LINK_DATA uint8_t *)&S.tr, (uint8_t)sizeof S.tr);
-    S.tm_ready = 0u;
+    link_hot.tm_spf = spf;
+    link_hot.tm_nb = nb;
+    mzero((LINK_DATA uint8_t *)&link_hot.tr, (uint8_t)sizeof link_hot.tr);
+    link_hot.tm_ready = 0u;
     S.tm_gen++;
-    S.tm_dec = dec;
+    link_hot.tm_dec = dec;
     LINK_CRITICAL_END();
     A(0) = S.tm_gen;
     A(1) = (uint8_t)(dec != 0u ? len : 0u);
-    S.n = 2u;
+    link_hot.n = 2u;
     return 0u;
 }
 
@@ -996,7 +1008,7 @@ static uint8_t h_capture_arm(void)
 {
     uint16_t mask = arg16(0), dec = arg16(6u);
     uint8_t n = R(2), pre = R(4), trig = R(8), nsig = popcount16(mask), k, bytes = 0u, words = 0u;
-    S.n = 0u;
+    link_hot.n = 0u;
     if (!mask_ok(mask) || R(3) != 0u || R(5) != 0u || n == 0u || n > LINK_CAPTURE_WORDS || dec == 0u
         || trig > LINK_TRIG_SPEED_FALLING || pre >= n || (trig == LINK_TRIG_IMMEDIATE && pre != 0u)) {
         return LINK_NACK_OUT_OF_RANGE;
@@ -1011,11 +1023,11 @@ static uint8_t h_capture_arm(void)
     LINK_CRITICAL_BEGIN();
     S.cap_state = LINK_CAP_IDLE;
     S.cap_mask = mask;
-    S.cap_nb = (uint8_t)(nsig << 1);
-    S.cap_n = n;
+    link_hot.cap_nb = (uint8_t)(nsig << 1);
+    link_hot.cap_n = n;
     S.cap_bytes = bytes;
     S.cap_pre = pre;
-    S.cap_dec = dec;
+    link_hot.cap_dec = dec;
     S.cap_trig = trig;
     S.cap_thr = (int16_t)arg16(9u);
     mzero((LINK_DATA uint8_t *)&S.cr, (uint8_t)sizeof S.cr);
@@ -1027,7 +1039,7 @@ static uint8_t h_capture_arm(void)
 
 static uint8_t h_capture_read(void)
 {
-    uint8_t start = R(0), want = R(2), nb = S.cap_nb, st = S.cap_state, p, wi = 0u, j, o;
+    uint8_t start = R(0), want = R(2), nb = link_hot.cap_nb, st = S.cap_state, p, wi = 0u, j, o;
     if (st == LINK_CAP_ARMED || st == LINK_CAP_TRIGGERED) {
         return LINK_NACK_BUSY;
     }
@@ -1045,8 +1057,8 @@ static uint8_t h_capture_read(void)
     A(5) = start;
     A(6) = 0u;
     p = (uint8_t)(S.cr.start + start);  /* < 2 cap_n <= 256 */
-    if (p >= S.cap_n) {
-        p = (uint8_t)(p - S.cap_n);
+    if (p >= link_hot.cap_n) {
+        p = (uint8_t)(p - link_hot.cap_n);
     }
     for (j = 0u; j < nb; j++) {        /* byte index p nb, by additions */
         wi = (uint8_t)(wi + p);
@@ -1063,20 +1075,20 @@ static uint8_t h_capture_read(void)
         want--;
         p--;
     }
-    S.n = o;
+    link_hot.n = o;
     return 0u;
 }
 #endif
 
 static uint8_t h_eeprom_save(void)
 {
-    S.n = 0u;
+    link_hot.n = 0u;
     return link_eeprom_save();
 }
 
 static uint8_t h_eeprom_load(void)
 {
-    S.n = 0u;
+    link_hot.n = 0u;
     return (link_eeprom_load() != LINK_EE_OK) ? LINK_NACK_EEPROM_ERROR : 0u;
 }
 
@@ -1087,13 +1099,13 @@ static uint8_t h_status(void)
     LINK_CRITICAL_BEGIN();
     mcopy(&A(2), (LINK_DATA uint8_t *)&S, 12u);   /* capture state .. uptime, in reply order */
     LINK_CRITICAL_END();
-    S.n = 14u;
+    link_hot.n = 14u;
     return 0u;
 }
 
 static uint8_t h_none(void)
 {
-    S.n = 0u;
+    link_hot.n = 0u;
     return 0u;
 }
 
@@ -1128,21 +1140,21 @@ static const link_handler_t cmd_fn[N_CMDS] = {
     h_none,
 };
 
-static uint8_t run_command(void)       /* the handler of command S.c: 0 or a NACK code */
+static uint8_t run_command(void)       /* the handler of command link_hot.c: 0 or a NACK code */
 {
     uint8_t spec;
-    if (S.c >= N_CMDS) {
+    if (link_hot.c >= N_CMDS) {
         return LINK_NACK_UNKNOWN_COMMAND;
     }
-    rom_at((uint16_t)(ROM_CMD + S.c));
+    rom_at((uint16_t)(ROM_CMD + link_hot.c));
     spec = rom_next();
-    if ((uint8_t)(spec & CMD_ANY_LEN) != CMD_ANY_LEN && (uint8_t)(spec & CMD_ANY_LEN) != S.n) {
+    if ((uint8_t)(spec & CMD_ANY_LEN) != CMD_ANY_LEN && (uint8_t)(spec & CMD_ANY_LEN) != link_hot.n) {
         return LINK_NACK_MALFORMED;
     }
     if ((spec & CMD_IDLE) != 0u && drive_busy()) {
         return LINK_NACK_WRONG_STATE;
     }
-    return cmd_fn[S.c]();
+    return cmd_fn[link_hot.c]();
 }
 
 static void dispatch(void)
@@ -1152,38 +1164,38 @@ static void dispatch(void)
         || type == LINK_MSG_TELEMETRY) {
         return;                        /* a board frame (an echo, a loop-back): not for us, no reply */
     }
-    S.tseq = rx_buf[2];
-    S.n = rx_buf[0];
-    S.c = (uint8_t)(type - 1u);
-    if (S.c < N_CMDS) {
+    link_hot.tseq = rx_buf[2];
+    link_hot.n = rx_buf[0];
+    link_hot.c = (uint8_t)(type - 1u);
+    if (link_hot.c < N_CMDS) {
         S.rx_valid = 1u;               /* only a host command feeds the watchdog */
     }
     S.nack_armed = 1u;
-    LINK_HOOK_FRAME(type, S.tseq, &R(0), S.n);
-    if (type == S.rp_type && S.tseq == S.rp_seq && S.fc0 == S.rp_crc0 && S.fc1 == S.rp_crc1
+    LINK_HOOK_FRAME(type, link_hot.tseq, &R(0), link_hot.n);
+    if (type == S.rp_type && link_hot.tseq == S.rp_seq && S.fc0 == S.rp_crc0 && S.fc1 == S.rp_crc1
         && S.rp_len != NONE) {
-        S.n = S.rp_len;
-        mcopy(&A(0), rp_data, S.n);
+        link_hot.n = S.rp_len;
+        mcopy(&A(0), rp_data, link_hot.n);
         tx_seal(S.rp_rtype);
         return;
     }
     S.rp_crc0 = S.fc0;
     S.rp_crc1 = S.fc1;
     S.rp_type = type;
-    S.rp_seq = S.tseq;
+    S.rp_seq = link_hot.tseq;
     code = run_command();
     type = (uint8_t)(type | LINK_ACK_BIT);
     if (code != 0u) {
         A(0) = S.rp_type;
         A(1) = code;
-        S.n = 2u;
+        link_hot.n = 2u;
         type = LINK_MSG_NACK;
     }
     S.rp_rtype = type;
     S.rp_len = NONE;
-    if (S.n <= LINK_REPLAY_BYTES) {
-        mcopy(rp_data, &A(0), S.n);
-        S.rp_len = S.n;
+    if (link_hot.n <= LINK_REPLAY_BYTES) {
+        mcopy(rp_data, &A(0), link_hot.n);
+        S.rp_len = link_hot.n;
     }
     tx_seal(type);
 }
@@ -1209,8 +1221,8 @@ static uint8_t send_event(void)
     }
     A(0) = ev;
     A(1) = code;
-    S.n = 2u;
-    S.tseq = S.ev_counter;
+    link_hot.n = 2u;
+    link_hot.tseq = S.ev_counter;
     tx_seal(LINK_MSG_EVENT);
     S.ev_counter++;
     return 1u;
@@ -1227,15 +1239,15 @@ void link_poll(void)
     for (k = 0u; k < 8u; k++) {
         wd_arm();
         tx_drain();
-        if (S.tx_len != 0u) {
+        if (link_hot.tx_len != 0u) {
             break;
         }
         if (S.nack_pending != 0u) {
             S.nack_pending = 0u;
             A(0) = S.nack_type;
             A(1) = LINK_NACK_BAD_CRC;
-            S.n = 2u;
-            S.tseq = S.nack_seq;
+            link_hot.n = 2u;
+            link_hot.tseq = S.nack_seq;
             tx_seal(LINK_MSG_NACK);
             continue;
         }
@@ -1249,14 +1261,14 @@ void link_poll(void)
         if (send_event() != 0u) {
             continue;
         }
-        if (S.tm_ready != 0u) {
-            S.n = S.tr.len;
-            mcopy(&A(0), tm_buf, S.n);
-            S.tseq = S.tm_gen;
+        if (link_hot.tm_ready != 0u) {
+            link_hot.n = link_hot.tr.len;
+            mcopy(&A(0), tm_buf, link_hot.n);
+            link_hot.tseq = S.tm_gen;
             tx_seal(LINK_MSG_TELEMETRY);
-            S.tr.nsamp = 0u;
-            S.tr.len = 0u;
-            S.tm_ready = 0u;
+            link_hot.tr.nsamp = 0u;
+            link_hot.tr.len = 0u;
+            link_hot.tm_ready = 0u;
             continue;
         }
         break;
@@ -1316,7 +1328,7 @@ static void capture_sample(void)
     uint8_t fire = 0u, trig = S.cap_trig, wi;
     int16_t sp, thr = S.cap_thr;
     S.cr.div++;
-    if (S.cr.div < S.cap_dec) {
+    if (S.cr.div < link_hot.cap_dec) {
         return;
     }
     S.cr.div = 0u;
@@ -1344,7 +1356,7 @@ static void capture_sample(void)
     wi = S.cr.wi;
     sg_p = &cap_buf[wi];
     if (sg_tm != 0 && S.cap_mask == S.tm_mask) {   /* the same signals at the same instant: copy */
-        trig = S.cap_nb;
+        trig = link_hot.cap_nb;
         while (trig != 0u) {
             *sg_p = *sg_tm;
             sg_p++;
@@ -1355,23 +1367,23 @@ static void capture_sample(void)
         sg_m = S.cap_mask;
         put_signals();
     }
-    wi = (uint8_t)(wi + S.cap_nb);
+    wi = (uint8_t)(wi + link_hot.cap_nb);
     S.cr.w++;
-    if (S.cr.w == S.cap_n) {
+    if (S.cr.w == link_hot.cap_n) {
         S.cr.w = 0u;
         wi = 0u;
     }
     S.cr.wi = wi;
-    if (S.cr.filled != S.cap_n) {
+    if (S.cr.filled != link_hot.cap_n) {
         S.cr.filled++;
     }
     if (S.cap_state == LINK_CAP_TRIGGERED) {
         S.cr.post++;
-        if (S.cr.post == (uint8_t)(S.cap_n - S.cap_pre)) {
+        if (S.cr.post == (uint8_t)(link_hot.cap_n - S.cap_pre)) {
             S.cr.total = (uint8_t)(S.cr.tidx + S.cr.post);
             wi = (uint8_t)(S.cr.w - S.cr.total);   /* (w - total) mod n */
             if (S.cr.w < S.cr.total) {
-                wi = (uint8_t)(wi + S.cap_n);
+                wi = (uint8_t)(wi + link_hot.cap_n);
             }
             S.cr.start = wi;
             S.cap_state = LINK_CAP_DONE;
@@ -1384,32 +1396,32 @@ void link_sample(void)
 {
     uint8_t len;
     sg_tm = 0;
-    if (S.tm_dec != 0u) {
-        S.tr.div++;
-        if (S.tr.div >= S.tm_dec) {
-            S.tr.div = 0u;
-            if (S.tm_ready != 0u) {
+    if (link_hot.tm_dec != 0u) {
+        link_hot.tr.div++;
+        if (link_hot.tr.div >= link_hot.tm_dec) {
+            link_hot.tr.div = 0u;
+            if (link_hot.tm_ready != 0u) {
                 if (S.tm_dropped != 0xFFFFu) {
                     S.tm_dropped++;
                 }
             } else {
-                len = S.tr.len;
-                if (S.tr.nsamp == 0u) {
-                    tm_buf[0] = (uint8_t)S.tr.counter;
-                    tm_buf[1] = (uint8_t)(S.tr.counter >> 8);
+                len = link_hot.tr.len;
+                if (link_hot.tr.nsamp == 0u) {
+                    tm_buf[0] = (uint8_t)link_hot.tr.counter;
+                    tm_buf[1] = (uint8_t)(link_hot.tr.counter >> 8);
                     len = TELEM_HEADER;
                 }
                 sg_p = &tm_buf[len];
                 sg_tm = sg_p;
                 sg_m = S.tm_mask;
                 put_signals();
-                S.tr.len = (uint8_t)(len + S.tm_nb);
-                S.tr.nsamp++;
-                if (S.tr.nsamp >= S.tm_spf) {
-                    S.tm_ready = 1u;
+                link_hot.tr.len = (uint8_t)(len + link_hot.tm_nb);
+                link_hot.tr.nsamp++;
+                if (link_hot.tr.nsamp >= link_hot.tm_spf) {
+                    link_hot.tm_ready = 1u;
                 }
             }
-            S.tr.counter++;
+            link_hot.tr.counter++;
         }
     }
 #if LINK_WITH_CAPTURE
