@@ -266,11 +266,18 @@ void main(void)
 {
     uint8_t i;
     uint16_t k;
+    for (i = 0; i < 7; i++) {                   /* the first seven signals; state, fault... 0 */
+        sig[i] = (int16_t)(0x0101 * i - 0x3000);
+    }
     link_init();
     link_poll();
     for (i = 0; i < N_FRAMES; i++) {
         for (k = f_start[i]; k < f_start[i + 1]; k++) {
             link_rx_byte(f_bytes[k]);
+            link_poll();
+        }
+        for (k = 0; k < f_samples[i]; k++) {
+            link_sample();
             link_poll();
         }
     }
@@ -281,10 +288,12 @@ void main(void)
 """
 
 
-def chip_exchange(c_text: str, h_text: str, frames: list[bytes]) -> bytes:
+def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[int] | None = None) -> bytes:
     """Run the link module on the PIC18 core in gpsim: link_init, link_poll, then every byte of
     ``frames`` through link_rx_byte with a link_poll after each (as tests/linksupport's direct
-    mode does on the host); returns the bytes it sent to the UART (at most 240)."""
+    mode does on the host), and after frame i ``samples[i]`` times link_sample and link_poll
+    (app_signal(s) = 0x0101 s - 0x3000 for s < 7, else 0); returns the bytes it sent to the UART (at most 240)."""
+    samples = samples or [0] * len(frames)
     from picdrive.gpsim import _dump
     data = b"".join(frames)
     starts = [0]
@@ -292,7 +301,8 @@ def chip_exchange(c_text: str, h_text: str, frames: list[bytes]) -> bytes:
         starts.append(starts[-1] + len(f))
     decl = (f"#define N_FRAMES {len(frames)}u\n"
             f"static const uint8_t f_bytes[{max(1, len(data))}] = {{ {', '.join(str(b) for b in data) or '0'} }};\n"
-            f"static const uint16_t f_start[{len(starts)}] = {{ {', '.join(map(str, starts))} }};")
+            f"static const uint16_t f_start[{len(starts)}] = {{ {', '.join(map(str, starts))} }};\n"
+            f"static const uint8_t f_samples[{len(frames)}] = {{ {', '.join(map(str, samples))} }};")
     with tempfile.TemporaryDirectory() as td:
         d = Path(td)
         xc_h, xc_sfr = render_sdcc_device()

@@ -37,7 +37,7 @@ def test_interrupt_paths_call_no_compiler_helper(asm):
     assert set(ISR_ENTRIES) <= isr
     helpers = sorted(f for f in isr if f.startswith("__"))
     assert helpers == [], f"runtime-library helpers reachable from an interrupt: {helpers}"
-    assert "_capture_sample" in isr and "_app_signal" in isr   # the graph follows the calls
+    assert {"_capture_due", "_capture_done", "_put_signals", "_app_signal"} <= isr   # the graph follows the calls
     # and the main loop's products are gone too: no multiply or divide helper anywhere
     assert not re.search(r"CALL\s+__(mul|div|mod)\w+", asm)
 
@@ -96,7 +96,7 @@ def test_the_chip_answers_byte_for_byte_like_the_host_build():
     from linksupport.fakeboard import FakeBoard
     files = build.render()
     cmd = codec.encode_command
-    frames = [cmd("hello", 1), cmd("param_get", 2, {"ids": [0x00, 0x04, 0x07, 0x20, 0x41]}),
+    frames = [cmd("hello", 1), cmd("param_get", 2, {"ids": [0x00, 0x04, 0x07, 0x41]}),
               cmd("param_info", 3, {"index": 6}), cmd("param_set", 4, {"id": 0x07, "value": 1000}),
               cmd("param_set", 4, {"id": 0x07, "value": 1000}),                      # duplicate: replayed
               cmd("param_set", 5, {"id": 0x07, "value": 70000}),                     # out of range
@@ -121,3 +121,39 @@ def test_the_chip_answers_byte_for_byte_like_the_host_build():
     assert dec_chip[1:] == dec_host[1:] and dec_chip[0].type == P.MSG_EVENT
     status_chip, status_host = (codec.decode_reply("status", d[-1].payload) for d in (dec_chip, dec_host))
     assert status_chip["crc_errors"] == 1 and status_chip == status_host
+
+
+def _signal(i: int) -> int:
+    """app_signal(i) of bench/link_pic18.py's chip harness."""
+    return ((0x0101 * i - 0x3000 + 0x8000) & 0xFFFF) - 0x8000 if i < 7 else 0
+
+
+@pytest.mark.parametrize("cap_mask", [0b1011, 0b10110])
+def test_telemetry_and_capture_on_the_chip(cap_mask):
+    """link_sample on the PIC18 core: telemetry frames and a capture recorded in the same samples
+    (the same mask as the telemetry, or another), each signal value where the protocol puts it."""
+    from picdrive import codec
+    files = build.render()
+    cmd = codec.encode_command
+    tel_mask = 0b1011
+    frames = [cmd("telem_config", 1, {"mask": tel_mask, "decimation": 1, "samples_per_frame": 2}),
+              cmd("capture_arm", 2, {"mask": cap_mask, "n_samples": 5, "pre_trigger": 0, "decimation": 2,
+                                     "trigger": P.Trigger.IMMEDIATE, "threshold": 0}),
+              cmd("capture_read", 3, {"start": 1, "count": 10}), cmd("param_get", 4, {"ids": [0x20, 0x23]})]
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames, [0, 12, 0, 0])
+    got = codec.StreamDecoder().feed(chip)
+    tel = [f for f in got if f.type == P.MSG_TELEMETRY]
+    nt = bin(tel_mask).count("1")
+    want = [_signal(i) for i in range(16) if tel_mask >> i & 1]
+    counters = []
+    for f in tel:
+        counter, vals = codec.decode_telemetry(f.payload, nt)
+        counters.append(counter)
+        assert vals.shape == (2, nt) and (vals == want).all()
+    assert counters == list(range(0, 12, 2))
+    r = codec.decode_reply("capture_read", [f for f in got if f.is_reply and f.seq == 3][0].payload)
+    cap = [_signal(i) for i in range(16) if cap_mask >> i & 1]
+    assert r["state"] == P.CaptureState.DONE and r["total"] == 5 and r["start"] == 1
+    assert r["values"] == cap * 4
+    r = codec.decode_reply("param_get", [f for f in got if f.is_reply and f.seq == 4][0].payload)
+    assert r["values"] == [_signal(0), _signal(3)]            # signals through app_signal, sign-extended

@@ -180,17 +180,12 @@ LINK_FAST_RAM struct link_fast {
     uint8_t crc_hi;                    /* CRC state (main loop) */
     uint8_t crc_lo;
     uint8_t n;                         /* argument bytes of the command, then reply bytes */
-    uint8_t c;                         /* command code - 1 */
-    uint8_t tseq;                      /* SEQ of the frame being sealed */
     uint16_t ro;                       /* next link_rom byte */
     uint8_t e_off;                     /* entry_load(): store offset (NONE: a signal), size code */
     uint8_t e_sz;
-    uint8_t ee_off;                    /* next EEPROM image byte */
     uint8_t tx_len;                    /* bytes to send from tx_buf (COBS-encoded in place); 0 = free */
-    uint8_t tx_pos;
     /* telemetry (speed-loop interrupt) */
     volatile uint8_t tm_ready;         /* sample fills tm_buf and sets it; poll sends and clears it */
-    uint8_t tm_spf;
     uint8_t tm_nb;                     /* bytes per sample: 2 x signals */
     uint16_t tm_dec;
     struct {                           /* restarted by telem_config */
@@ -203,8 +198,18 @@ LINK_FAST_RAM struct link_fast {
     uint8_t cap_n;
     uint8_t cap_nb;                    /* bytes per sample: 2 x signals */
     uint16_t cap_dec;
+    uint16_t cr_div;                   /* capture decimation counter, restarted by capture_arm */
 #endif
 } link_hot;
+
+/* the sample being written (speed-loop interrupt only): telemetry and capture destinations and
+ * the masks still to write */
+static struct {
+    LINK_DATA uint8_t *p;
+    LINK_DATA uint8_t *q;              /* 0: no capture sample */
+    uint16_t tm;
+    uint16_t cm;
+} sg;
 typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u && sizeof(struct link_fast) <= 32u) ? 1 : -1];
 #define rx_n link_hot.rx_n
 #define rx_ready link_hot.rx_ready
@@ -229,6 +234,11 @@ static struct link_state {
     uint8_t nack_type;
     uint8_t nack_seq;
     /* replay */
+    uint8_t c;                         /* command code - 1 */
+    uint8_t tseq;                      /* SEQ of the frame being sealed */
+    uint8_t ee_off;                    /* next EEPROM image byte */
+    uint8_t tx_pos;
+    uint8_t tm_spf;
     uint8_t rp_type;                   /* 0: nothing stored */
     uint8_t rp_seq;
     uint8_t rp_rtype;
@@ -256,8 +266,7 @@ static struct link_state {
     uint8_t cap_pre;
     uint16_t cap_mask;
     int16_t cap_thr;
-    struct {                           /* restarted by capture_arm */
-        uint16_t div;
+    struct {                           /* restarted by capture_arm (and link_hot.cr_div) */
         uint8_t w;                     /* next sample slot */
         uint8_t wi;                    /* its byte index in cap_buf */
         uint8_t filled;
@@ -531,7 +540,7 @@ uint8_t link_param_set(uint8_t id, int32_t raw)
 
 /* ---- EEPROM image ---- */
 #if LINK_WITH_EEPROM
-#define ee_off link_hot.ee_off
+#define ee_off S.ee_off
 
 static uint8_t id_of(uint8_t idx) LINK_WPARAM
 {
@@ -811,12 +820,12 @@ static void rx_release(void)           /* rx_buf back to the interrupt */
 }
 
 /* ---- transmit: body in tx_buf[1..], COBS-encoded in place, sent as the UART queue has room ---- */
-static void tx_seal(uint8_t type) LINK_WPARAM   /* payload A(0..link_hot.n-1), SEQ link_hot.tseq */
+static void tx_seal(uint8_t type) LINK_WPARAM   /* payload A(0..link_hot.n-1), SEQ S.tseq */
 {
     uint8_t run = 1u, len;
     tx_buf[2] = type;
     tx_buf[1] = link_hot.n;
-    tx_buf[3] = link_hot.tseq;
+    tx_buf[3] = S.tseq;
     len = (uint8_t)(link_hot.n + PL);
     crc_buf(&tx_buf[1], len);          /* cp_s ends on the CRC's place */
     *cp_s = crc_hi;
@@ -824,7 +833,7 @@ static void tx_seal(uint8_t type) LINK_WPARAM   /* payload A(0..link_hot.n-1), S
     *cp_s = crc_lo;
     len = (uint8_t)(len + 2u);         /* body bytes */
     link_hot.tx_len = (uint8_t)(len + 2u);    /* with the COBS code and the delimiter */
-    link_hot.tx_pos = 0u;
+    S.tx_pos = 0u;
     cp_d = tx_buf;                     /* each zero becomes the distance to the next one */
     cp_s = &tx_buf[1];
     while (len != 0u) {
@@ -848,13 +857,13 @@ static void tx_drain(void)
     }
     room = app_tx_free();
     while (room != 0u) {
-        if (link_hot.tx_pos == (uint8_t)(link_hot.tx_len - 1u)) {
+        if (S.tx_pos == (uint8_t)(link_hot.tx_len - 1u)) {
             app_tx_byte(0u);           /* delimiter */
             link_hot.tx_len = 0u;
             return;
         }
-        app_tx_byte(tx_buf[link_hot.tx_pos]);
-        link_hot.tx_pos++;
+        app_tx_byte(tx_buf[S.tx_pos]);
+        S.tx_pos++;
         room--;
     }
 }
@@ -990,7 +999,7 @@ static uint8_t h_telem_config(void)
     LINK_CRITICAL_BEGIN();
     link_hot.tm_dec = 0u;
     S.tm_mask = mask;
-    link_hot.tm_spf = spf;
+    S.tm_spf = spf;
     link_hot.tm_nb = nb;
     mzero((LINK_DATA uint8_t *)&link_hot.tr, (uint8_t)sizeof link_hot.tr);
     link_hot.tm_ready = 0u;
@@ -1031,6 +1040,7 @@ static uint8_t h_capture_arm(void)
     S.cap_trig = trig;
     S.cap_thr = (int16_t)arg16(9u);
     mzero((LINK_DATA uint8_t *)&S.cr, (uint8_t)sizeof S.cr);
+    link_hot.cr_div = 0u;
     S.cap_sp_changed = 0u;
     S.cap_state = LINK_CAP_ARMED;
     LINK_CRITICAL_END();
@@ -1140,13 +1150,13 @@ static const link_handler_t cmd_fn[N_CMDS] = {
     h_none,
 };
 
-static uint8_t run_command(void)       /* the handler of command link_hot.c: 0 or a NACK code */
+static uint8_t run_command(void)       /* the handler of command S.c: 0 or a NACK code */
 {
     uint8_t spec;
-    if (link_hot.c >= N_CMDS) {
+    if (S.c >= N_CMDS) {
         return LINK_NACK_UNKNOWN_COMMAND;
     }
-    rom_at((uint16_t)(ROM_CMD + link_hot.c));
+    rom_at((uint16_t)(ROM_CMD + S.c));
     spec = rom_next();
     if ((uint8_t)(spec & CMD_ANY_LEN) != CMD_ANY_LEN && (uint8_t)(spec & CMD_ANY_LEN) != link_hot.n) {
         return LINK_NACK_MALFORMED;
@@ -1154,7 +1164,7 @@ static uint8_t run_command(void)       /* the handler of command link_hot.c: 0 o
     if ((spec & CMD_IDLE) != 0u && drive_busy()) {
         return LINK_NACK_WRONG_STATE;
     }
-    return cmd_fn[link_hot.c]();
+    return cmd_fn[S.c]();
 }
 
 static void dispatch(void)
@@ -1164,15 +1174,15 @@ static void dispatch(void)
         || type == LINK_MSG_TELEMETRY) {
         return;                        /* a board frame (an echo, a loop-back): not for us, no reply */
     }
-    link_hot.tseq = rx_buf[2];
+    S.tseq = rx_buf[2];
     link_hot.n = rx_buf[0];
-    link_hot.c = (uint8_t)(type - 1u);
-    if (link_hot.c < N_CMDS) {
+    S.c = (uint8_t)(type - 1u);
+    if (S.c < N_CMDS) {
         S.rx_valid = 1u;               /* only a host command feeds the watchdog */
     }
     S.nack_armed = 1u;
-    LINK_HOOK_FRAME(type, link_hot.tseq, &R(0), link_hot.n);
-    if (type == S.rp_type && link_hot.tseq == S.rp_seq && S.fc0 == S.rp_crc0 && S.fc1 == S.rp_crc1
+    LINK_HOOK_FRAME(type, S.tseq, &R(0), link_hot.n);
+    if (type == S.rp_type && S.tseq == S.rp_seq && S.fc0 == S.rp_crc0 && S.fc1 == S.rp_crc1
         && S.rp_len != NONE) {
         link_hot.n = S.rp_len;
         mcopy(&A(0), rp_data, link_hot.n);
@@ -1182,7 +1192,7 @@ static void dispatch(void)
     S.rp_crc0 = S.fc0;
     S.rp_crc1 = S.fc1;
     S.rp_type = type;
-    S.rp_seq = link_hot.tseq;
+    S.rp_seq = S.tseq;
     code = run_command();
     type = (uint8_t)(type | LINK_ACK_BIT);
     if (code != 0u) {
@@ -1222,7 +1232,7 @@ static uint8_t send_event(void)
     A(0) = ev;
     A(1) = code;
     link_hot.n = 2u;
-    link_hot.tseq = S.ev_counter;
+    S.tseq = S.ev_counter;
     tx_seal(LINK_MSG_EVENT);
     S.ev_counter++;
     return 1u;
@@ -1247,7 +1257,7 @@ void link_poll(void)
             A(0) = S.nack_type;
             A(1) = LINK_NACK_BAD_CRC;
             link_hot.n = 2u;
-            link_hot.tseq = S.nack_seq;
+            S.tseq = S.nack_seq;
             tx_seal(LINK_MSG_NACK);
             continue;
         }
@@ -1264,7 +1274,7 @@ void link_poll(void)
         if (link_hot.tm_ready != 0u) {
             link_hot.n = link_hot.tr.len;
             mcopy(&A(0), tm_buf, link_hot.n);
-            link_hot.tseq = S.tm_gen;
+            S.tseq = S.tm_gen;
             tx_seal(LINK_MSG_TELEMETRY);
             link_hot.tr.nsamp = 0u;
             link_hot.tr.len = 0u;
@@ -1300,38 +1310,56 @@ void link_tick_ms(void)
 }
 
 /* ---- per speed-loop sample: telemetry and capture ---- */
-/* the masked signals' values, int16 little-endian, from sg_p on (speed-loop interrupt only) */
-static LINK_DATA uint8_t *sg_p;
-static LINK_DATA uint8_t *sg_tm;      /* this sample's telemetry values, or 0 */
-static uint16_t sg_m;
-
+/* One sample's signals, read once each: those of sg.tm (telemetry) to sg.p, those of sg.cm (capture)
+ * to sg.q, int16 little-endian (speed-loop interrupt only) */
 static void put_signals(void)
 {
-    uint8_t j = 0u;
+    /* locals: the compiler keeps them in its access-bank registers (no bank select in the loop) */
+    LINK_DATA uint8_t *p = sg.p, *q = sg.q;
+    uint8_t tl = (uint8_t)sg.tm, th = (uint8_t)(sg.tm >> 8), cl = (uint8_t)sg.cm, ch = (uint8_t)(sg.cm >> 8);
+    uint8_t j = 0u, hi = 0u;
     uint16_t v;
-    while (sg_m != 0u) {
-        if (((uint8_t)sg_m & 1u) != 0u) {
-            v = (uint16_t)app_signal(j);
-            *sg_p = (uint8_t)v;
-            sg_p++;
-            *sg_p = (uint8_t)(v >> 8);
-            sg_p++;
+    for (;;) {
+        if ((uint8_t)(tl | cl) == 0u) {         /* the low byte done: the high byte's signals, from 8 on */
+            if (hi != 0u || (uint8_t)(th | ch) == 0u) {
+                return;
+            }
+            hi = 1u;
+            tl = th;
+            cl = ch;
+            j = 8u;
         }
-        sg_m = (uint16_t)(sg_m >> 1);
+        if ((uint8_t)((uint8_t)(tl | cl) & 1u) != 0u) {
+            v = (uint16_t)app_signal(j);
+            if ((tl & 1u) != 0u) {
+                *p = (uint8_t)v;
+                p++;
+                *p = (uint8_t)(v >> 8);
+                p++;
+            }
+            if ((cl & 1u) != 0u) {
+                *q = (uint8_t)v;
+                q++;
+                *q = (uint8_t)(v >> 8);
+                q++;
+            }
+        }
+        tl = (uint8_t)(tl >> 1);
+        cl = (uint8_t)(cl >> 1);
         j++;
     }
 }
 
 #if LINK_WITH_CAPTURE
-static void capture_sample(void)
+static void capture_due(void)          /* decimation and trigger; a sample due: sg.q, sg.cm set */
 {
-    uint8_t fire = 0u, trig = S.cap_trig, wi;
+    uint8_t fire = 0u, trig = S.cap_trig;
     int16_t sp, thr = S.cap_thr;
-    S.cr.div++;
-    if (S.cr.div < link_hot.cap_dec) {
+    link_hot.cr_div++;
+    if (link_hot.cr_div < link_hot.cap_dec) {
         return;
     }
-    S.cr.div = 0u;
+    link_hot.cr_div = 0u;
     if (S.cap_state == LINK_CAP_ARMED) {
         if (trig == LINK_TRIG_IMMEDIATE) {
             fire = 1u;
@@ -1353,21 +1381,13 @@ static void capture_sample(void)
             S.cap_state = LINK_CAP_TRIGGERED;
         }
     }
-    wi = S.cr.wi;
-    sg_p = &cap_buf[wi];
-    if (sg_tm != 0 && S.cap_mask == S.tm_mask) {   /* the same signals at the same instant: copy */
-        trig = link_hot.cap_nb;
-        while (trig != 0u) {
-            *sg_p = *sg_tm;
-            sg_p++;
-            sg_tm++;
-            trig--;
-        }
-    } else {
-        sg_m = S.cap_mask;
-        put_signals();
-    }
-    wi = (uint8_t)(wi + link_hot.cap_nb);
+    sg.q = &cap_buf[S.cr.wi];
+    sg.cm = S.cap_mask;
+}
+
+static void capture_done(void)         /* after a sample was written: the ring and the record */
+{
+    uint8_t wi = (uint8_t)(S.cr.wi + link_hot.cap_nb);
     S.cr.w++;
     if (S.cr.w == link_hot.cap_n) {
         S.cr.w = 0u;
@@ -1394,8 +1414,9 @@ static void capture_sample(void)
 
 void link_sample(void)
 {
-    uint8_t len;
-    sg_tm = 0;
+    uint8_t tel = 0u;
+    sg.tm = 0u;
+    sg.cm = 0u;
     if (link_hot.tm_dec != 0u) {
         link_hot.tr.div++;
         if (link_hot.tr.div >= link_hot.tm_dec) {
@@ -1405,28 +1426,37 @@ void link_sample(void)
                     S.tm_dropped++;
                 }
             } else {
-                len = link_hot.tr.len;
                 if (link_hot.tr.nsamp == 0u) {
                     tm_buf[0] = (uint8_t)link_hot.tr.counter;
                     tm_buf[1] = (uint8_t)(link_hot.tr.counter >> 8);
-                    len = TELEM_HEADER;
+                    link_hot.tr.len = TELEM_HEADER;
                 }
-                sg_p = &tm_buf[len];
-                sg_tm = sg_p;
-                sg_m = S.tm_mask;
-                put_signals();
-                link_hot.tr.len = (uint8_t)(len + link_hot.tm_nb);
-                link_hot.tr.nsamp++;
-                if (link_hot.tr.nsamp >= link_hot.tm_spf) {
-                    link_hot.tm_ready = 1u;
-                }
+                sg.p = &tm_buf[link_hot.tr.len];
+                sg.tm = S.tm_mask;
+                tel = 1u;
             }
             link_hot.tr.counter++;
         }
     }
 #if LINK_WITH_CAPTURE
     if (S.cap_state == LINK_CAP_ARMED || S.cap_state == LINK_CAP_TRIGGERED) {
-        capture_sample();
+        capture_due();
+    }
+#endif
+    if ((sg.tm | sg.cm) != 0u) {
+        put_signals();
+    }
+    if (tel != 0u) {
+        link_hot.tr.len = (uint8_t)(link_hot.tr.len + link_hot.tm_nb);
+        link_hot.tr.nsamp++;
+        if (link_hot.tr.nsamp >= S.tm_spf) {
+            link_hot.tm_ready = 1u;
+        }
+    }
+#if LINK_WITH_CAPTURE
+    if (sg.q != 0) {
+        sg.q = 0;
+        capture_done();
     }
 #endif
 }

@@ -3,7 +3,7 @@
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
  *
  * protocol 2.0, 30 table entries (2 rules),
- * table hash 0x02670AFBUL, build id 0x02D81EEDUL, profile hash 0x4B0E5FBAUL
+ * table hash 0x02670AFBUL, build id 0x236B7272UL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -17,8 +17,8 @@
  *   replay              8
  *   param_store        37
  *   capture           128
- *   state             104
- *   total             409
+ *   state             106
+ *   total             411
  *
  * Contexts: link_rx_byte(), link_tick_ms() and link_sample() may be called from interrupts,
  * link_poll() from the main loop.  link_rx_byte() stores the byte in the frame buffer and marks
@@ -46,7 +46,7 @@
 
 #define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0x02D81EEDUL
+#define LINK_BUILD_ID           0x236B7272UL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
 #define LINK_TABLE_HASH         0x02670AFBUL
 #define LINK_SAMPLE_HZ          1000u
