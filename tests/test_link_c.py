@@ -690,3 +690,26 @@ def test_build_without_capture_and_eeprom():
         assert p.ok("telem_config", {"mask": 3, "decimation": 1, "samples_per_frame": 1})["payload_len"] == 6
     finally:
         b.close()
+
+
+def test_firmware_generation_options_reach_the_link_module():
+    """`picdrive firmware --no-capture --no-eeprom --capture-bytes N`: codegen passes the link's
+    generation options to the renderer, the build id tells the builds apart, and a bad buffer
+    size is refused with a one-line error."""
+    from picdrive import codegen
+    from picdrive.errors import PicdriveError
+    from picdrive.paths import repo_root
+    from picdrive.profile import load_profile
+    prof, design = load_profile("duy2008"), repo_root() / "examples" / "duy2008.fuzzy-hinf.design.json"
+    full = codegen.generate(prof, design)
+    lean = codegen.generate(prof, design, link_capture=False, link_eeprom=False)
+    small = codegen.generate(prof, design, capture_bytes=64)
+    assert "#define LINK_WITH_CAPTURE       1" in full.files["link_fw.h"]
+    assert "#define LINK_WITH_EEPROM        1" in full.files["link_fw.h"]
+    assert "#define LINK_WITH_CAPTURE       0" in lean.files["link_fw.h"]
+    assert "#define LINK_WITH_EEPROM        0" in lean.files["link_fw.h"]
+    assert "#define LINK_CAPTURE_WORDS      32u" in small.files["link_fw.h"]
+    assert len({full.build_id, lean.build_id, small.build_id}) == 3
+    assert any("no capture" in line for line in lean.summary)
+    with pytest.raises(PicdriveError, match="capture buffer of 300 B"):
+        codegen.generate(prof, design, capture_bytes=300)
