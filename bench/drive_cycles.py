@@ -18,6 +18,7 @@ import tempfile
 from pathlib import Path
 
 from picdrive.p18f4431 import render_sdcc_device
+from picdrive.target import SDCC_FLAGS
 
 TC = Path(os.environ.get("PICDRIVE_SDCC", Path.home() / ".cache/picdrive/toolchain/sdcc-4.2.0-pic16"))
 LIB = TC / "share/sdcc/lib/pic16"
@@ -25,11 +26,9 @@ LKR = "/usr/share/gputils/lkr/18f4431_g.lkr"
 #: the arithmetic check's harness (32 constant shifts written out) outgrows the 4431's 16 kB: it is
 #: linked into the 18F4520's 32 kB, the core gpsim runs
 LKR_CHECK = "/usr/share/gputils/lkr/18f4520_g.lkr"
-#: the image's SDCC options (the same as bench/link_pic18.py): banksel and data-flow optimisation
-#: take 0.7 kB off drive_core.c and 0.5 kB off drive.c; --opt-code-size, --pstack-model=small and
-#: --no-peep change nothing here.  PICDRIVE_SDCC_OPTS (space-separated) adds options to compare.
-CFLAGS = ["--obanksel=9", "--optimize-cmp", "--optimize-df"]
-EXTRA = CFLAGS + os.environ.get("PICDRIVE_SDCC_OPTS", "").split()
+#: the image's SDCC options (picdrive.target.SDCC_FLAGS, one place); PICDRIVE_SDCC_OPTS
+#: (space-separated) adds options to compare.
+EXTRA = list(SDCC_FLAGS[2:]) + os.environ.get("PICDRIVE_SDCC_OPTS", "").split()
 
 # (target, adc, speed state) samples: rest, step into the current limit, reversal,
 # saturation, int16 extremes
@@ -40,8 +39,8 @@ HARNESS = r"""
 #include <stdint.h>
 #include "drive_core.h"
 #pragma config WDTEN = OFF
-static core_params_t cp;
-static core_state_t cs;
+#define cp core_p
+#define cs core_s
 volatile int16_t sink;
 static const int16_t vec[][3] = { %(vec)s };
 void mark(void) { }
@@ -64,16 +63,18 @@ void main(void)
     cp.mu_k = core_premise_k(cp.premise_lo, cp.premise_hi);
     cp.b_q14 = FW_SETPOINT_WEIGHT; cp.u_min = FW_U_MIN; cp.u_max = FW_U_MAX;
     cp.controller = %(controller)du; cp.ilim = 500; cp.accel_step = 0u;
-    core_reset(&cs);
+    core_reset();
     for (k = 0u; k < %(n)du; k++) {
         int16_t t = vec[k][0], s = vec[k][2];
         uint16_t a = (uint16_t)vec[k][1];
         cs.speed = s;
         cs.law.integ = (int32_t)s * 3000;
         mark();
-        sink = core_control(&cs, &cp, t, a);
+        core_control(t, a);
+        sink = cs.u;
         mark();
-        sink = core_speed_encoder(&cs, (uint16_t)(cs.pos_prev + (uint16_t)(s >> 6)), (uint16_t)(a * 7u), 0u);
+        core_speed_encoder((uint16_t)(cs.pos_prev + (uint16_t)(s >> 6)), (uint16_t)(a * 7u), 0u);
+        sink = cs.speed;
         mark();
     }
     for (;;) {
@@ -84,7 +85,7 @@ void main(void)
 
 
 def sdcc(args, cwd):
-    r = subprocess.run([str(TC / "bin/sdcc"), "-mpic16", "-p18f4431", "--std-c99", "--no-warn-non-free",
+    r = subprocess.run([str(TC / "bin/sdcc"), *SDCC_FLAGS[:4],
                         "-I.", *EXTRA, *args], cwd=cwd, capture_output=True, text=True)
     if r.returncode != 0:
         raise SystemExit(f"sdcc {' '.join(args)} failed:\n{r.stderr[-2000:]}")
