@@ -13,7 +13,8 @@ core_speed_hall), core_duty.  The law parameters cycle through the design's own 
 (fixedpoint._rand_params, the host comparison's generator).  The mutation tests make sure the
 comparison can fail: a one-LSB change of a constant and a removed 32-bit product cast.
 
-FIXED DEFECT, NAMED: SDCC 4.2 pic16 miscompiled core_law (and so core_control).  In
+FIXED DEFECT, NAMED (history; the law is now assembly on SDCC, see
+test_a_changed_law_instruction_is_caught): SDCC 4.2 pic16 miscompiled core_law (and so core_control).  In
     t = CORE_MULS(kc, i); cterm = CORE_SHIFT_C(t);
     q = add32(pterm, st->d_filt);        /* (sa = pterm, sb = st->d_filt, add32s()) */
     q = sub32(q, cterm);                 /* (sa = q, sb = cterm, sub32s()) */
@@ -439,17 +440,15 @@ def test_pic18_code_matches_the_model(design):
     assert verdict == {f: None for f in CHECKED}, verdict
 
 
-def test_the_operand_pair_is_volatile_against_the_sdcc_miscompile(design):
-    """Without volatile, SDCC 4.2 pic16 coalesces cterm with the global sb past sb = st->d_filt
-    (module docstring) and the chip's core_law disagrees with the model from vector 1 on: the
-    template declares the pair volatile, and a copy without it still shows the fault (so the
-    comparison would catch a regression)."""
+def test_a_changed_law_instruction_is_caught(design):
+    """On SDCC the law is assembly (drive_core.c's core_law_asm, on the accumulator primitives):
+    one changed literal in it (mu1 = 4097 - frac instead of 4096 - frac) must make the chip
+    disagree with the model, so the comparison runs the assembly the HEX holds."""
     plan, folder, tmp = design
-    assert (folder / "drive_core.c").read_text().count("static volatile int32_t sa, sb;") == 1
-    broken = _mutated(folder, tmp, "nonvolatile", "drive_core.c", "static volatile int32_t sa, sb;",
-                      "static int32_t sa, sb;")
-    verdict = compare(broken, tmp / "nonvolatile-run", plan, n=200, funcs=("law", "control"))
-    assert verdict["law"] is not None and verdict["law"].startswith("first failing vector 1: "), verdict
+    old = "    MOVLW   0x10\n    ADDWFC  _core_acc + 1, F, A\n    MOVFF   _core_acc + 0, _core_s + 11\n"
+    bad = _mutated(folder, tmp, "asm", "drive_core.c", old, old.replace("0x10", "0x11"))
+    verdict = compare(bad, tmp / "asm-run", plan, n=200, funcs=("law", "control"))
+    assert verdict["law"] is not None and verdict["law"].startswith("first failing vector"), verdict
     assert verdict["control"] is not None, verdict
 
 
@@ -475,9 +474,8 @@ def test_a_one_lsb_constant_change_is_caught(design):
 
 def test_a_removed_32_bit_cast_is_caught(design):
     plan, folder, tmp = design
-    # mul_u16_k's low partial product as the portable 16x16 product without its (uint32_t) cast:
-    # int is 16 bits on the PIC18, the product is truncated to 16 bits
-    bad = _mutated(folder, tmp, "cast", "drive_core.c", "uint32_t r = CORE_MULU(x, (uint16_t)(k & 0xFFFFu));",
-                   "uint32_t r = x * (uint16_t)(k & 0xFFFFu);")
+    # acc_mul_k (x K for the 32-bit speed constant) without the (uint32_t) cast of the upper
+    # partial product: int is 16 bits on the PIC18, hi << 16 loses it
+    bad = _mutated(folder, tmp, "cast", "drive_core.c", "((uint32_t)hi << 16)", "(hi << 16)")
     verdict = compare(bad, tmp / "cast-run", plan, n=2000)
-    assert verdict["duty"] is not None, verdict
+    assert verdict["speed"] is not None, verdict

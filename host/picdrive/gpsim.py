@@ -53,7 +53,10 @@ TIMING_PROCESSOR = "p18f4620"
 ENTRY_CYCLES = 4             # interrupt latency to the vector (3-4 Tcy) + GOTO (2) - the harness's CALL (2)
 HARNESS_INPUTS = ("INTCON", "INTCON2", "INTCON3", "PIR1", "PIR2", "PIR3", "PIE1", "PIE2", "PIE3",
                   "RCREG", "RCSTA", "TXSTA", "TXREG",
-                  "PORTA", "PORTB", "PORTC", "PORTD", "PORTE", "TMR5L", "TMR5H")
+                  "PORTA", "PORTB", "PORTC", "PORTD", "PORTE", "TMR5L", "TMR5H",
+                  # read in a loop until two reads agree: SDCC may read one with MOVFF (0xF6x, a GPR in
+                  # bank 15 on the timing processor) and the other with a=0 (0x06x): keep them one register
+                  "POSCNTL", "POSCNTH")
 INPUT_BASE = 0x040           # access RAM the inputs move to (0x040-0x05F)
 RESULT_ADDR = 0xB00          # uint16 results, up to 0xEFF
 MAX_RESULTS = 512
