@@ -50,9 +50,10 @@ STACK_MODEL_BYTES = 256      # SDCC's small stack model: the software stack live
 TARGET_SOURCES = ("drive.c", "drive_core.c", "link_fw.c", "main_sdcc.c")
 TOOLCHAIN_SCRIPT = "scripts/pic_toolchain.sh"
 #: SDCC options of every build (the HEX, the timing and the bit-exact builds): bank selection
-#: and data-flow optimisation, no frame pointer where a function needs none, branch chains folded
+#: and data-flow optimisation, no frame pointer where a function needs none (SDCC 4.2 does not
+#: know --optimize-goto: it warns and ignores it, so it is not here)
 SDCC_FLAGS = ("-mpic16", "-p18f4431", "--std-c99", "--no-warn-non-free", "--obanksel=9", "--optimize-cmp",
-              "--optimize-df", "--fomit-frame-pointer", "--optimize-goto")
+              "--optimize-df", "--fomit-frame-pointer")
 
 
 @dataclass(frozen=True)
