@@ -8,7 +8,9 @@ Default folder: firmware_build/duy2008.  For each folder it prints the code
 bytes of drive.c and drive_core.c (gplink map) and, for a corpus of samples
 (rest, a step into the current limit, reversal, saturation, int16 extremes),
 the worst cycles of each measured call.  The harness calls the functions from
-main(); the figures are the function's own cycles (call to return).
+main(); the figures are the function's own cycles (call to return).  It also
+prints the whole speed-loop interrupt over picdrive.gpsim's corpus with and
+without the link's link_sample() (the drive's share of the interrupt budget).
 """
 import os
 import re
@@ -260,9 +262,30 @@ def check_products(folder: Path, n: int = 3000) -> bool:
         return bool(hit) and int(hit[0], 16) == m["_ok"]
 
 
+def speed_loop_without_link(folder: Path) -> dict:
+    """Worst-case speed-loop interrupt (picdrive.gpsim's corpus, each telemetry mode) of the firmware
+    as it is and of a copy whose speed loop does not call link_sample() (the link's telemetry and
+    capture sampling): {mode: (whole, without link_sample)}.  The drive's share of the budget."""
+    import shutil
+    from picdrive import gpsim
+    with tempfile.TemporaryDirectory(prefix="drivenolink-") as td:
+        t = Path(td)
+        cut = t / "fw"
+        shutil.copytree(folder, cut)
+        text = (cut / "drive.c").read_text()
+        if text.count("    link_sample();\n") != 1:
+            raise SystemExit(f"{folder}/drive.c: expected one link_sample() call in the speed loop")
+        (cut / "drive.c").write_text(text.replace("    link_sample();\n", ""))
+        whole = gpsim.measure_modes(folder, t / "whole")
+        drive = gpsim.measure_modes(cut, t / "cut")
+    return {m: (whole[m].worst["speed_loop_isr"], drive[m].worst["speed_loop_isr"]) for m in whole}
+
+
 def main(argv):
     folders = [Path(a) for a in argv] or [Path("firmware_build/duy2008")]
     for f in folders:
+        for mode, (whole, drive) in speed_loop_without_link(f).items():
+            print(f"{f}  speed-loop interrupt, telemetry {mode}: {whole} cycles, {drive} without link_sample()")
         for ctl in (1, 0):
             m = measure(f, ctl)
             print(f"{f}  controller={ctl}")

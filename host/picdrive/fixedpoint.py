@@ -897,10 +897,13 @@ def build_core_lib(folder, out_dir=None, cc: str = "gcc"):
     d.core_law.argtypes = []
     d.core_control.restype = None
     d.core_control.argtypes = [C.c_int16, C.c_uint16]
-    d.core_speed_encoder.restype = None
-    d.core_speed_encoder.argtypes = [C.c_uint16, C.c_uint16, C.c_uint8]
-    d.core_speed_hall.restype = None
-    d.core_speed_hall.argtypes = [C.c_uint16, C.c_uint16, C.c_uint8, C.c_uint8]
+    # the firmware compiles the speed sensor's function only (FW_SPEED_ENCODER)
+    if _speed_encoder_of(folder):
+        d.core_speed_encoder.restype = None
+        d.core_speed_encoder.argtypes = [C.c_uint16, C.c_uint16, C.c_uint8]
+    else:
+        d.core_speed_hall.restype = None
+        d.core_speed_hall.argtypes = [C.c_uint16, C.c_uint16, C.c_uint8, C.c_uint8]
     d.core_duty.restype = C.c_uint16
     d.core_duty.argtypes = [C.c_int16]
     d.core_premise_k.restype = C.c_uint16
@@ -911,6 +914,15 @@ def build_core_lib(folder, out_dir=None, cc: str = "gcc"):
     d.core_s = State.in_dll(d, "core_s")
     d.structs = (Params, Law, State)
     return d
+
+
+def _speed_encoder_of(folder) -> bool:
+    import re
+    from pathlib import Path
+    m = re.search(r"#define FW_SPEED_ENCODER ([01])\n", (Path(folder) / "drive_params.h").read_text())
+    if not m:
+        raise FixedPointError(f"{folder}/drive_params.h has no FW_SPEED_ENCODER")
+    return m.group(1) == "1"
 
 
 def _n_rules_of(folder) -> int:

@@ -227,10 +227,10 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
             drain(TX_BYTES_PER_MS * 4)
             steps.extend([OP_POLL, 0, key("link_poll_frame:" + name), OP_POLL, 0, key("link_poll")])
         elif what == "speed":
-            label, adc, n = arg
+            label, adc, n, step = arg
             steps.extend([OP_ADC, adc >> 8, adc & 0xFF])
             for _ in range(n):
-                steps.extend([OP_SPEED, 0, key("speed_loop_isr:" + label), OP_POLL, 0, key("link_poll")])
+                steps.extend([OP_SPEED, step & 0xFF, key("speed_loop_isr:" + label), OP_POLL, 0, key("link_poll")])
                 drain(TX_BYTES_PER_MS)
         elif what in ("hall", "hall_invalid"):
             codes = hall_codes if what == "hall" else HALL_INVALID
@@ -244,7 +244,7 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
         raise GpsimError("timing corpus has too many keys")
     table = ",\n".join("    " + ", ".join(f"{v}" for v in steps[i:i + 24]) for i in range(0, len(steps), 24))
     regs = ("TMR1L", "TMR1H", "T1CON", "PIR1", "PIR3", "TXSTA", "RCREG", "INTCON", "INTCON3", "PORTC",
-            "ADRESH", "ADRESL", "TMR5L", "TMR5H")
+            "ADRESH", "ADRESL", "TMR5L", "TMR5H", "POSCNTL", "POSCNTH")
     text = f"""/* timing harness (picdrive.gpsim): GENERATED, measurement build only */
 #include <stdint.h>
 #include "drive.h"
@@ -258,6 +258,7 @@ static const uint8_t steps[] = {{
 static volatile uint8_t lo, hi;
 static uint16_t t, i;
 static uint8_t op, a, k, n, adc_h, adc_l;
+static uint16_t pos;
 
 void harness_done(void) {{ for (;;) {{ }} }}
 
@@ -309,6 +310,8 @@ void main(void)
             adc_h = a; adc_l = k;
         }} else if (op == {OP_SPEED}u) {{
             ADRESH = adc_h; ADRESL = adc_l;      /* the bus current the special event converted */
+            pos = (uint16_t)(pos + (uint16_t)(int16_t)(int8_t)a);    /* encoder counts in this sample */
+            POSCNTL = (uint8_t)pos; POSCNTH = (uint8_t)(pos >> 8);
             PIR1 |= 0x12u; TXSTA |= 0x02u;
             TMR1H = 0; TMR1L = 0;
             __asm
@@ -347,8 +350,10 @@ def default_corpus(modes=TELEMETRY_MODES, *, protocol_package: str = __package__
     reversal, saturation (an out-of-range reference), int16 extremes, the
     largest reply and a MAX_PAYLOAD frame, then an overcurrent (ADC at full
     scale: the fault path) and invalid hall codes.  Every state before the
-    overcurrent runs the law (no fault latched).  ``modes``: 'off', '4' (four
-    signals streaming) and/or '4+capture' (and a capture armed).
+    overcurrent runs the law (no fault latched).  Each state moves the
+    encoder by its own count per sample (the M/T quotient; 0 after motion:
+    the one-count bound's division).  ``modes``: 'off', '4' (four signals
+    streaming) and/or '4+capture' (and a capture armed).
     """
     f = _frames(protocol_package)
     high = max(0, min(adc_trip, 0x400) - 1)
@@ -360,19 +365,20 @@ def default_corpus(modes=TELEMETRY_MODES, *, protocol_package: str = __package__
                   ("frame", ("telem_off" if m == "off" else "telem4", f["telem_off" if m == "off" else "telem4"][0]))]
         if m == "4+capture":
             cases.append(("frame", ("capture", f["capture"][0])))
-        cases += [("speed", ("rest", 0x000, 4)), ("hall", None),
+        cases += [("speed", ("rest", 0x000, 4, 0)), ("hall", None),
                   ("frame", ("set_speed_max", f["set_speed_max"][0])), ("frame", ("start", f["start"][0])),
-                  ("speed", ("step", high, 6)), ("hall", None),
-                  ("speed", ("current_limit", high, 4)),
-                  ("frame", ("set_speed_min", f["set_speed_min"][0])), ("speed", ("reversal", 0x000, 6)),
+                  ("speed", ("step", high, 6, 20)), ("hall", None),
+                  ("speed", ("current_limit", high, 4, 40)),
+                  ("frame", ("set_speed_min", f["set_speed_min"][0])), ("speed", ("reversal", 0x000, 6, -25)),
+                  ("speed", ("coast", 0x000, 3, 0)),
                   ("hall", None),
-                  ("frame", ("set_speed_big", f["set_speed_big"][0])), ("speed", ("saturation", high, 4)),
-                  ("speed", ("int16_extremes", high // 2, 4)),
+                  ("frame", ("set_speed_big", f["set_speed_big"][0])), ("speed", ("saturation", high, 4, 127)),
+                  ("speed", ("int16_extremes", high // 2, 4, -128)),
                   ("frame", ("max_reply", f["max_reply"][0])), ("frame", ("max_frame", f["max_frame"][0])),
                   # the fault paths last: full-scale current latches an overcurrent, the invalid
                   # codes a hall fault (cleared at the next mode's start)
-                  ("speed", ("overcurrent", 0x3FF, 2)),
-                  ("hall_invalid", None), ("speed", ("hall_fault", 0x000, 3))]
+                  ("speed", ("overcurrent", 0x3FF, 2, 0)),
+                  ("hall_invalid", None), ("speed", ("hall_fault", 0x000, 3, 0))]
     return cases
 
 
