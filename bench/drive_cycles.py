@@ -25,9 +25,6 @@ from picdrive.target import SDCC_FLAGS
 TC = Path(os.environ.get("PICDRIVE_SDCC", Path.home() / ".cache/picdrive/toolchain/sdcc-4.2.0-pic16"))
 LIB = TC / "share/sdcc/lib/pic16"
 LKR = "/usr/share/gputils/lkr/18f4431_g.lkr"
-#: the arithmetic check's harness (32 constant shifts written out) outgrows the 4431's 16 kB: it is
-#: linked into the 18F4520's 32 kB, the core gpsim runs
-LKR_CHECK = "/usr/share/gputils/lkr/18f4520_g.lkr"
 #: the image's SDCC options (picdrive.target.SDCC_FLAGS, one place); PICDRIVE_SDCC_OPTS
 #: (space-separated) adds options to compare.
 EXTRA = list(SDCC_FLAGS[2:]) + os.environ.get("PICDRIVE_SDCC_OPTS", "").split()
@@ -155,111 +152,6 @@ def measure(folder: Path, controller: int = 1) -> dict:
         law = [cyc[3 * k + 1] - cyc[3 * k] for k in range(len(CORPUS))]
         enc = [cyc[3 * k + 2] - cyc[3 * k + 1] for k in range(len(CORPUS))]
         return {"sizes": sizes, "funcs": funcs, "core_control": law, "core_speed_encoder": enc}
-
-
-PRODUCTS = r"""
-#include <stdint.h>
-#include "drive_core.h"
-#pragma config WDTEN = OFF
-void ok(void) { }
-void bad(void) { }
-%(stubs)s
-void main(void)
-{
-    uint16_t x = 12345u, y = 54321u, k;
-    uint32_t ss = 0u, su = 0u, sr = 0u, sl = 0u;
-    for (k = 0u; k < %(n)du; k++) {
-        x = (uint16_t)(x * 25173u + 13849u);
-        y = (uint16_t)(y * 16807u + 12345u);
-        if (k == 0u) { x = 0x8000u; y = 0x8000u; }
-        if (k == 1u) { x = 0xFFFFu; y = 0x8000u; }
-        if (k == 2u) { x = 0xFFFFu; y = 0xFFFFu; }
-        if (k == 3u) { x = 0x8000u; y = 0u; }
-        ss = ss * 31u + (uint32_t)CORE_MULS((int16_t)x, (int16_t)y);
-        su = su * 31u + CORE_MULU(x, y);
-        core_sh.x = (int32_t)(((uint32_t)x << 16) | y);
-        core_sh.n = (uint8_t)(k & 31u);
-        core_asr_asm();
-        sr = sr * 31u + (uint32_t)core_sh.x;
-        core_sh.x = (k & 32u) ? (int32_t)(int16_t)y : (int32_t)(((uint32_t)x << 16) | y);
-        core_sh.n = (uint8_t)(k & 31u);
-        sl = sl * 31u + (uint32_t)core_shl_sat();
-        {
-            int32_t v = (int32_t)(((uint32_t)x << 16) | y);
-%(asr_consts)s
-        }
-    }
-    if (ss == %(ss)sUL && su == %(su)sUL && sr == %(sr)sUL && sl == %(sl)sUL) { ok(); } else { bad(); }
-    for (;;) { }
-}
-"""
-
-
-def expected_products(n):
-    """The host's checksums of the same product sequence (Python integers)."""
-    x, y, ss, su, sr, sl = 12345, 54321, 0, 0, 0, 0
-    sat = lambda v, b: min(max(v, -2**(b - 1)), 2**(b - 1) - 1)  # noqa: E731
-    for k in range(n):
-        x = (x * 25173 + 13849) & 0xFFFF
-        y = (y * 16807 + 12345) & 0xFFFF
-        x, y = {0: (0x8000, 0x8000), 1: (0xFFFF, 0x8000), 2: (0xFFFF, 0xFFFF), 3: (0x8000, 0)}.get(k, (x, y))
-        sx, sy = x - (x >> 15 << 16), y - (y >> 15 << 16)
-        ss = (ss * 31 + (sx * sy)) & 0xFFFFFFFF
-        su = (su * 31 + x * y) & 0xFFFFFFFF
-        xy = (x << 16) | y
-        xy -= (xy >> 31) << 32
-        sr = (sr * 31 + (xy >> (k & 31))) & 0xFFFFFFFF               # Python >> is floor
-        v = sy if k & 32 else xy
-        sl = (sl * 31 + sat(v << (k & 31), 32)) & 0xFFFFFFFF
-        for c in ASR_COUNTS:
-            sr = (sr * 31 + (xy >> c)) & 0xFFFFFFFF
-    return ss, su, sr, sl
-
-
-#: drive_core.h's portable CORE_ASR (drive.c's form) by each constant count, folded into the same sum
-#: as core_asr_asm.  Count 15 is left out: SDCC 4.2 pic16 miscompiles a 32-bit `>> 15` whose result
-#: reuses the operand's registers (it overwrites byte 1 before taking its bit 7; this check found it,
-#: and it hit CORE_SHIFT_KB in core_control before drive_core.c moved to core_asr_asm); drive.c
-#: shifts by CORE_QI - CORE_QU only.
-ASR_COUNTS = [c for c in range(32) if c != 15]
-ASR_CONSTS = "\n".join(f"            sr = sr * 31u + (uint32_t)CORE_ASR(v, {c});" for c in ASR_COUNTS)
-
-
-def check_products(folder: Path, n: int = 3000) -> bool:
-    """CORE_MULS / CORE_MULU, the shifts core_asr_asm / core_shl_sat and CORE_ASR by the constant
-    counts 0..31 but 15 (ASR_COUNTS) on the PIC18 core (gpsim) against exact results (floor division, saturated
-    product): True if equal."""
-    ss, su, sr, sl = expected_products(n)
-    stubs = "\n".join(f"void __eeprom_gptr{k}(void) {{ }}" for k in
-                      ("get1", "get2", "get4", "put1", "put2", "put4"))
-    with tempfile.TemporaryDirectory(prefix="drivemul-") as td:
-        t = Path(td)
-        h, s = render_sdcc_device()
-        (t / "xc.h").write_text(h)
-        (t / "xc_sfr.c").write_text(s)
-        for f in ("drive_core.c", "drive_core.h", "drive_params.h"):
-            (t / f).write_text((folder / f).read_text())
-        (t / "mc.c").write_text(PRODUCTS % {"n": n, "ss": f"0x{ss:08X}", "su": f"0x{su:08X}", "sr": f"0x{sr:08X}",
-                                     "sl": f"0x{sl:08X}", "stubs": stubs,
-                                     "asr_consts": ASR_CONSTS})
-        for src in ("mc.c", "drive_core.c", "xc_sfr.c"):
-            sdcc(["-c", src], t)
-        subprocess.run(["gplink", "-m", "-w", "-s", LKR_CHECK, "-o", "mc.hex", str(LIB / "crt0i.o"), "mc.o",
-                        "drive_core.o", "xc_sfr.o", str(LIB / "libsdcc.lib")], cwd=t, check=True,
-                       capture_output=True)
-        (t / "s.stc").write_text("processor p18f4520\nload s mc.cod\nbreak e _ok\nbreak e _bad\n"
-                                 "break c 200000000\nrun\nquit\n")
-        with open(t / "out.txt", "wb") as fo:
-            subprocess.run(["gpsim", "-i", "-S", "disable", "-c", "s.stc"], cwd=t, stdout=fo,
-                           stderr=subprocess.STDOUT, timeout=300)
-        txt = (t / "out.txt").read_bytes().decode("latin-1")
-        m = {}
-        for line in (t / "mc.map").read_text().splitlines():
-            p = line.split()
-            if len(p) >= 3 and p[0] in ("_ok", "_bad"):
-                m[p[0]] = int(p[1], 16)
-        hit = re.findall(r"Execution at [^(]*\((0x[0-9a-f]+)\)", txt)
-        return bool(hit) and int(hit[0], 16) == m["_ok"]
 
 
 def speed_loop_without_link(folder: Path) -> dict:
