@@ -3,7 +3,7 @@
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
  *
  * protocol 2.0, 30 table entries (2 rules),
- * table hash 0x02670AFBUL, build id 0x29743C98UL, profile hash 0x4B0E5FBAUL
+ * table hash 0x9E641D7AUL, build id 0x27D1FD74UL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -11,18 +11,19 @@
  * LEN + 5 or whose CRC fails is dropped whole; the receiver resynchronises at the next 0x00.
  *
  * RAM (bytes) of this module: buffers and scalar state (the total is what avr-gcc allocates):
- *   rx_ring            64
- *   tx_frame           45
+ *   rx_frame           46
+ *   tx_frame           46
  *   telemetry_frame    40
  *   replay              8
  *   param_store        37
  *   capture           128
- *   state              97
- *   total             419
+ *   state             106
+ *   total             411
  *
  * Contexts: link_rx_byte(), link_tick_ms() and link_sample() may be called from interrupts,
- * link_poll() from the main loop.  link_rx_byte() shares only single-byte ring indices and an
- * 8-bit overflow count with the main loop; link_tick_ms() and link_sample() share 16/32-bit
+ * link_poll() from the main loop.  link_rx_byte() stores the byte in the frame buffer and marks
+ * the frame complete at its delimiter; it shares only single bytes (the fill count, the ready
+ * flag, an 8-bit count of bytes lost while a frame waits) with the main loop; link_tick_ms() and link_sample() share 16/32-bit
  * counters read by link_poll() inside LINK_CRITICAL_BEGIN()/END(), which must therefore mask
  * the interrupt that calls them.  None of them calls a compiler helper (multiply, divide,
  * generic pointer, flash table read), so none is shared with the main loop.
@@ -45,9 +46,9 @@
 
 #define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0x29743C98UL
+#define LINK_BUILD_ID           0x27D1FD74UL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
-#define LINK_TABLE_HASH         0x02670AFBUL
+#define LINK_TABLE_HASH         0x9E641D7AUL
 #define LINK_SAMPLE_HZ          1000u
 #define LINK_N_RULES            2u
 #define LINK_N_ENTRIES          30u
@@ -57,7 +58,8 @@
 #define LINK_MAX_PAYLOAD        40u
 #define LINK_MAX_BODY           45u   /* LEN, TYPE, SEQ, payload, CRC */
 #define LINK_MAX_FRAME          47u   /* on the wire: COBS code + body + delimiter */
-#define LINK_RX_RING            64u
+#define LINK_RX_BYTES           46u   /* receive buffer: one frame without its delimiter */
+#define LINK_N_PERSISTED        18u
 #define LINK_REPLAY_BYTES       8u
 #define LINK_CAPTURE_WORDS      64u
 #define LINK_PARAM_GET_MAX      10u
@@ -76,6 +78,9 @@
 #define LINK_HELLO_CAPTURE_WORDS LINK_CAPTURE_WORDS
 #else
 #define LINK_HELLO_CAPTURE_WORDS 0u        /* hello: no capture in this build */
+#endif
+#ifndef LINK_ACCESS_AT            /* SDCC: access-bank address of the link's 32 B of hot scalars */
+#define LINK_ACCESS_AT          0x20
 #endif
 #ifndef LINK_EE_BASE
 #define LINK_EE_BASE            0u
@@ -191,14 +196,14 @@
 #define LINK_ID_FAULT                0x28u   /* code, scale 1, read-only signal */
 #define LINK_ID_MU1                  0x29u   /* 1, scale 0.000244140625, read-only signal */
 #define LINK_ID_POSITION             0x2Au   /* counts, scale 1, read-only signal */
-#define LINK_ID_RULE1_KP             0x40u   /* V/(rad/s), scale 0.000244140625 */
-#define LINK_ID_RULE1_KI             0x41u   /* V/rad, scale 0.0305175781 */
+#define LINK_ID_RULE1_KP             0x40u   /* V/(rad/s), scale 6.10351562e-05 */
+#define LINK_ID_RULE1_KI             0x41u   /* V/rad, scale 0.00381469727 */
 #define LINK_ID_RULE1_KD             0x42u   /* V s^2/rad, scale 1.52587898e-08 */
-#define LINK_ID_RULE1_KC             0x43u   /* V/A, scale 0.00312500005 */
-#define LINK_ID_RULE2_KP             0x44u   /* V/(rad/s), scale 0.000244140625 */
-#define LINK_ID_RULE2_KI             0x45u   /* V/rad, scale 0.0305175781 */
+#define LINK_ID_RULE1_KC             0x43u   /* V/A, scale 0.000390625006 */
+#define LINK_ID_RULE2_KP             0x44u   /* V/(rad/s), scale 6.10351562e-05 */
+#define LINK_ID_RULE2_KI             0x45u   /* V/rad, scale 0.00381469727 */
 #define LINK_ID_RULE2_KD             0x46u   /* V s^2/rad, scale 1.52587898e-08 */
-#define LINK_ID_RULE2_KC             0x47u   /* V/A, scale 0.00312500005 */
+#define LINK_ID_RULE2_KC             0x47u   /* V/A, scale 0.000390625006 */
 
 /* ---- signal indices: app_signal() argument, bit of telemetry/capture masks ---- */
 #define LINK_SIG_SPEED                 0u
@@ -219,28 +224,28 @@ typedef struct {
     uint8_t   controller;      /* enum, raw x 1, [0, 1], default 1, persisted */
     int16_t   premise_low;     /* rpm, raw x 0.149207756, [0, 32767], default 0, persisted */
     int16_t   premise_high;    /* rpm, raw x 0.149207756, [0, 32767], default 17425, persisted */
-    int16_t   setpoint_weight; /* 1, raw x 6.10351562e-05, [0, 32767], default 17078, persisted */
+    int16_t   setpoint_weight; /* 1, raw x 6.10351562e-05, [0, 32767], default 20884, persisted */
     int16_t   u_min;           /* V, raw x 0.00390625, [-11304, 0], default -11304, persisted */
     int16_t   u_max;           /* V, raw x 0.00390625, [0, 11304], default 11304, persisted */
     int16_t   current_limit;   /* A, raw x 0.0048828125, [0, 1023], default 307, persisted */
     uint16_t  accel_limit;     /* rpm/s, raw x 149.207764, [0, 65535], default 0, persisted */
     uint16_t  link_timeout;    /* ms, raw x 1, [20, 60000], default 500, persisted */
     uint16_t  stall_timeout;   /* ms, raw x 1, [10, 60000], default 500, persisted */
-    int16_t   rule1_kp;        /* V/(rad/s), raw x 0.000244140625, [-32768, 32767], default 13859, persisted */
-    int16_t   rule1_ki;        /* V/rad, raw x 0.0305175781, [-32768, 32767], default 9644, persisted */
+    int16_t   rule1_kp;        /* V/(rad/s), raw x 6.10351562e-05, [-32768, 32767], default 8548, persisted */
+    int16_t   rule1_ki;        /* V/rad, raw x 0.00381469727, [-32768, 32767], default 10599, persisted */
     int16_t   rule1_kd;        /* V s^2/rad, raw x 1.52587898e-08, [-32768, 32767], default 0, persisted */
-    int16_t   rule1_kc;        /* V/A, raw x 0.00312500005, [-32768, 32767], default 14101, persisted */
-    int16_t   rule2_kp;        /* V/(rad/s), raw x 0.000244140625, [-32768, 32767], default 13859, persisted */
-    int16_t   rule2_ki;        /* V/rad, raw x 0.0305175781, [-32768, 32767], default 9644, persisted */
+    int16_t   rule1_kc;        /* V/A, raw x 0.000390625006, [-32768, 32767], default 13449, persisted */
+    int16_t   rule2_kp;        /* V/(rad/s), raw x 6.10351562e-05, [-32768, 32767], default 8548, persisted */
+    int16_t   rule2_ki;        /* V/rad, raw x 0.00381469727, [-32768, 32767], default 10599, persisted */
     int16_t   rule2_kd;        /* V s^2/rad, raw x 1.52587898e-08, [-32768, 32767], default 0, persisted */
-    int16_t   rule2_kc;        /* V/A, raw x 0.00312500005, [-32768, 32767], default 14101, persisted */
+    int16_t   rule2_kc;        /* V/A, raw x 0.000390625006, [-32768, 32767], default 13449, persisted */
 } link_params_t;
 
 extern link_params_t link_params;
 
 /* ---- the module ---- */
 void     link_init(void);                      /* defaults, queue the BOOT event */
-void     link_rx_byte(uint8_t b) LINK_WPARAM;  /* UART RX interrupt: stores the byte, nothing more */
+void     link_rx_byte(uint8_t b) LINK_WPARAM;  /* UART RX interrupt: stores the byte, marks a complete frame */
 void     link_poll(void);                      /* main loop */
 void     link_tick_ms(void);                   /* 1 kHz time base */
 void     link_sample(void);                    /* once per speed-loop sample */
