@@ -140,10 +140,6 @@ def test_hazard_e_speed_sample_first_and_masked(build):
     assert st.pos_delay_max < 1000
 
 
-@pytest.mark.xfail(strict=True, reason="measured on firmware_build/duy2008 as of bc6feca: with a status "
-                                       "request every 2 ms the receive interrupts preempt the speed loop ~2,000 "
-                                       "times in 0.5 s and it overruns its 1 ms period 17 times (worst 10,030 "
-                                       "cycles); issue 9's budget is 4,000")
 def test_preempted_speed_loop_keeps_its_period_and_the_drive_its_speed(build):
     """The speed-loop interrupt preempted by the hall and UART interrupts (which read const
     tables through TBLPTR: hazard a) completes within its period and the drive holds speed."""

@@ -19,8 +19,6 @@ from pathlib import Path
 from . import build, ihex
 from .build import TwinError
 
-TCY_PER_S_40MHZ = 10_000_000
-
 
 class PilError(TwinError):
     """The HEX cannot run on the processor twin as configured."""
