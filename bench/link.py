@@ -151,7 +151,7 @@ def main() -> int:
               f"; code + const table {text} B (on AVR; XC8 keeps the const table in flash too)")
         b = P.ram_budget(t, cap)
         print(f"    = buffers {sum(b.values())} B ({', '.join(f'{k} {v}' for k, v in b.items())}) + scalar state "
-              f"{sym.get('S', 0)} B; {768 - total} B of the PIC18F4431's 768 B left to the firmware")
+              f"{total - sum(b.values())} B; {768 - total} B of the PIC18F4431's 768 B left to the firmware")
     return 0
 
 

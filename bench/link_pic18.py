@@ -36,12 +36,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "host"))
 from picdrive.link import codec, protocol as P  # noqa: E402
 from picdrive.firmware.p18f4431 import render_sdcc_device  # noqa: E402
+from picdrive.firmware.target import SDCC_FLAGS  # noqa: E402
 
 SDCC = Path(os.environ.get("PICDRIVE_SDCC", Path.home() / ".cache/picdrive/toolchain/sdcc-4.2.0-pic16"))
 LIB = SDCC / "share/sdcc/lib/pic16"
 LKR = "/usr/share/gputils/lkr/18f4520_g.lkr"   # the 4520's memory (gpsim runs it); flash is counted per object
-CFLAGS = ["-mpic16", "-p18f4431", "--std-c99", "--no-warn-non-free", "--obanksel=9", "--optimize-cmp",
-          "--optimize-df"]
+CFLAGS = list(SDCC_FLAGS)   # the image's options (picdrive.target); --obanksel=N miscompiles this module:
+                            # it drops a BANKSEL after a CALL (tests/test_link_target.py catches it)
 
 HARNESS = r"""
 #include <stdint.h>
@@ -171,7 +172,7 @@ def _sections(obj: Path) -> tuple[dict, int]:
         name, size, f = m.group(1), int(m.group(2)), int(m.group(3), 16)
         if f & 0x20:
             secs[re.sub(r"^S_link_fw__", "", name)] = size
-        elif name.startswith(("udata", "idata")):
+        elif name.startswith(("udata", "idata", "ustat")):   # ustat: an __at block (access RAM)
             ram += size
     return secs, ram
 
@@ -232,10 +233,98 @@ def measure(c_text: str, h_text: str) -> dict:
     ov = d_[0]                                      # marker to marker, nothing between
     isr = [x - ov - 4 for x in d_[2:4]]            # minus BSF INT0IF and the loop's increment and test
     samples = [x - ov - 4 for x in d_[12:27]]      # minus the loop (the first sample follows the feeds)
+    if os.environ.get("LINK_BENCH_SAMPLES"):
+        print("samples", samples)
     return dict(flash=flash, funcs=funcs, ram=ram, lib=lib, helpers=helpers, overhead=ov,
                 rx_isr=max(isr), poll_max=d_[5] - ov, poll_get=d_[7] - ov, poll_info=d_[9] - ov,
                 crc_per_byte=(d_[10] - ov) / 40.0,
                 sample_max=max(samples), sample_mean=sum(samples) / len(samples), tick=d_[27] - ov)
+
+
+EXCHANGE = r"""
+#include <stdint.h>
+#include <xc.h>
+#include "link_fw.h"
+__at(0x400) uint8_t txlog[240];
+__at(0x4F0) uint8_t txn;
+__at(0x4F1) uint8_t txn_hi;
+__at(0x500) uint8_t ee[256];
+int16_t sig[16];
+uint8_t app_command(uint8_t cmd, const uint8_t *arg, uint8_t n) { (void)cmd; (void)arg; (void)n; return 0; }
+void app_param_changed(uint8_t id) { (void)id; }
+int16_t app_signal(uint8_t s) { return sig[s]; }
+void app_link_lost(void) {}
+uint8_t app_tx_free(void) { return 255; }
+void app_tx_byte(uint8_t b) { if (txn < sizeof txlog) { txlog[txn] = b; txn++; } else { txn_hi = 1; } }
+uint8_t app_eeprom_read(uint8_t a) { return ee[a]; }
+void app_eeprom_write(uint8_t a, uint8_t v) { ee[a] = v; }
+void fw_lock(void) {}
+void fw_unlock(void) {}
+void done(void) { txn_hi |= 2; }
+%(frames)s
+void main(void)
+{
+    uint8_t i;
+    uint16_t k;
+    for (i = 0; i < 7; i++) {                   /* the first seven signals; state, fault... 0 */
+        sig[i] = (int16_t)(0x0101 * i - 0x3000);
+    }
+    link_init();
+    link_poll();
+    for (i = 0; i < N_FRAMES; i++) {
+        for (k = f_start[i]; k < f_start[i + 1]; k++) {
+            link_rx_byte(f_bytes[k]);
+            link_poll();
+        }
+        for (k = 0; k < f_samples[i]; k++) {
+            link_sample();
+            link_poll();
+        }
+    }
+    done();
+    while (1) {
+    }
+}
+"""
+
+
+def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[int] | None = None) -> bytes:
+    """Run the link module on the PIC18 core in gpsim: link_init, link_poll, then every byte of
+    ``frames`` through link_rx_byte with a link_poll after each (as tests/linksupport's direct
+    mode does on the host), and after frame i ``samples[i]`` times link_sample and link_poll
+    (app_signal(s) = 0x0101 s - 0x3000 for s < 7, else 0); returns the bytes it sent to the UART (at most 240)."""
+    samples = samples or [0] * len(frames)
+    from picdrive.firmware.gpsim import _dump
+    data = b"".join(frames)
+    starts = [0]
+    for f in frames:
+        starts.append(starts[-1] + len(f))
+    decl = (f"#define N_FRAMES {len(frames)}u\n"
+            f"static const uint8_t f_bytes[{max(1, len(data))}] = {{ {', '.join(str(b) for b in data) or '0'} }};\n"
+            f"static const uint16_t f_start[{len(starts)}] = {{ {', '.join(map(str, starts))} }};\n"
+            f"static const uint8_t f_samples[{len(frames)}] = {{ {', '.join(map(str, samples))} }};")
+    with tempfile.TemporaryDirectory() as td:
+        d = Path(td)
+        xc_h, xc_sfr = render_sdcc_device()
+        (d / "xc.h").write_text(xc_h)
+        (d / "xc_sfr.c").write_text(xc_sfr)
+        (d / "link_fw.c").write_text(c_text)
+        (d / "link_fw.h").write_text(h_text)
+        (d / "x.c").write_text(EXCHANGE % {"frames": decl})
+        (d / "eestub.c").write_text(EESTUB)
+        for f in ("link_fw.c", "x.c", "xc_sfr.c", "eestub.c"):
+            _run([str(SDCC / "bin/sdcc"), *CFLAGS, "-I.", "-c", f], d)
+        _run(["gplink", "-m", "-w", "-s", LKR, "-o", "out.hex", str(LIB / "crt0i.o"), "x.o", "link_fw.o",
+              "xc_sfr.o", "eestub.o", str(LIB / "libsdcc.lib")], d)
+        (d / "s.stc").write_text("processor p18f4520\nload out.cod\nbreak e _done\nrun\ndump r\nquit\n")
+        r = subprocess.run(["gpsim", "-i", "-S", "disable", "-c", "s.stc"], cwd=d, capture_output=True, timeout=300)
+        mem = _dump(r.stdout.decode("latin-1") + r.stderr.decode("latin-1"))
+    if 0x4F0 not in mem:
+        raise SystemExit("gpsim printed no register dump")
+    if mem[0x4F1] & 1:
+        raise SystemExit("the exchange sent more than 240 bytes: shorten it")
+    chip_exchange.eeprom = bytes(mem.get(0x500 + i, 0) for i in range(256))
+    return bytes(mem[0x400 + i] for i in range(mem[0x4F0]))
 
 
 def main() -> int:

@@ -61,19 +61,19 @@ def _mutant(old: str, new: str):
 
 
 def test_harness_catches_a_buffer_overflow():
-    """A COBS decoder that lets a long candidate write one byte past the frame buffer: the
+    """A receiver that lets a long candidate write one byte past the frame buffer: the
     sanitizers stop the run (UBSan's bounds check or ASan: they are really on)."""
-    exe = _mutant("if (o >= LINK_MAX_BODY) {\n                return 0u;\n            }\n            tx_buf[o] = b;",
-                  "if (o > LINK_MAX_BODY) {\n                return 0u;\n            }\n            tx_buf[o] = b;")
+    exe = _mutant("} else if (rx_n < LINK_RX_BYTES) {", "} else if (rx_n <= LINK_RX_BYTES) {")
     r, f = run_fuzz(exe, 200_000, 1)
     assert r.returncode != 0 and "FAIL" not in f
-    assert (f"index {P.MAX_BODY} out of bounds for type 'uint8_t [{P.MAX_BODY}]'" in r.stderr
+    n = P.RX_BUFFER_BYTES
+    assert (f"index {n} out of bounds for type 'uint8_t [{n}]'" in r.stderr
             or "global-buffer-overflow" in r.stderr)
 
 
 def test_harness_catches_a_crc_check_hole():
     """A receiver that skips the CRC of empty frames is caught by the reference comparison."""
-    exe = _mutant("|| (crc_hi | crc_lo) != 0u)", "|| ((crc_hi | crc_lo) != 0u && tx_buf[0] != 0u))")
+    exe = _mutant("== n && (crc_hi | crc_lo) == 0u) {", "== n && ((crc_hi | crc_lo) == 0u || rx_buf[0] == 0u)) {")
     r, f = run_fuzz(exe, 200_000, 1)
     assert r.returncode == 1 and "FAIL" in f
 
@@ -81,7 +81,7 @@ def test_harness_catches_a_crc_check_hole():
 def test_harness_catches_a_missing_length_check():
     """A receiver that ignores LEN against the decoded length is caught (by the reference
     comparison, or by a sanitizer when a handler trusts the wrong LEN)."""
-    exe = _mutant("(uint8_t)(tx_buf[0] + BODY_OVERHEAD) != n || ", "")
+    exe = _mutant("(uint8_t)(rx_buf[0] + BODY_OVERHEAD) == n && ", "")
     r, f = run_fuzz(exe, 200_000, 1)
     assert r.returncode != 0 and ("FAIL" in f or "ERROR: AddressSanitizer" in r.stderr or "runtime error" in r.stderr)
 

@@ -557,6 +557,31 @@ def test_capture_immediate_and_chunked_read(peer):
     assert peer.nack("capture_read", {"start": 31, "count": 1}) == Nack.OUT_OF_RANGE
 
 
+@pytest.mark.parametrize("cap_names", [["speed", "setpoint", "position", "state"], ["position", "state"]])
+def test_capture_with_telemetry_records_the_same_values(peer, cap_names):
+    """Telemetry and a capture in the same samples: with the same mask the capture copies the
+    values the telemetry sample just read (one read per signal), with another mask it reads its
+    own; either way each captured sample equals the telemetry sample of the same instant."""
+    tel_names = ["speed", "setpoint", "position", "state"]
+    tmask, cmask = TABLE.signal_mask(tel_names), TABLE.signal_mask(cap_names)
+    peer.ok("set_speed", {"value": 3000})
+    peer.ok("start")
+    peer.ok("telem_config", {"mask": tmask, "decimation": 1, "samples_per_frame": 1})
+    peer.ok("capture_arm", {"mask": cmask, "n_samples": 12, "pre_trigger": 0, "decimation": 1,
+                            "trigger": P.Trigger.IMMEDIATE, "threshold": 0})
+    tel = []
+    for _ in range(12):
+        peer.b.tick(1)
+        peer.b.sample(1)
+        tel += [f for f in peer.frames() if f.type == P.MSG_TELEMETRY]
+    rows = np.concatenate([codec.decode_telemetry(f.payload, 4)[1] for f in tel])
+    total, tidx, vals = _read_capture(peer, len(cap_names))
+    order = [s.name for s in TABLE.signals_in_mask(tmask)]
+    cols = [order.index(s.name) for s in TABLE.signals_in_mask(cmask)]
+    assert total == 12 and len(rows) == 12 and np.diff(rows[:, order.index("position")]).any()
+    assert (vals == rows[:, cols]).all()
+
+
 def test_capture_setpoint_trigger_with_pre_trigger(peer):
     mask = TABLE.signal_mask(["setpoint"])
     peer.ok("capture_arm", {"mask": mask, "n_samples": 50, "pre_trigger": 10, "decimation": 2,
@@ -608,18 +633,24 @@ def test_capture_arm_out_of_range(peer, args):
 
 
 def test_rx_overflow_counted_and_recovered(peer):
-    for _ in range(100):
-        peer.b.lib.link_rx_byte(0x01)          # no poll in between: the ring fills
-    peer.b.lib.link_poll()
-    assert peer.ok("status")["rx_overflows"] == 100 - (P.RX_RING_BYTES - 1)
-    # a frame cut by an overflow is dropped, not executed
-    frame = codec.encode_command("heartbeat", 0x33)
-    for _ in range(P.RX_RING_BYTES):
-        peer.b.lib.link_rx_byte(0x01)
-    for x in frame[1:]:
+    """One receive buffer: bytes arriving while a complete frame waits for the main loop are
+    lost and counted; the waiting frame is still executed, the frame the lost bytes belonged to
+    is dropped whole, and the next one after a delimiter is accepted."""
+    first = codec.encode_command("heartbeat", 0x31)
+    cut = codec.encode_command("heartbeat", 0x32)
+    for x in first + cut:                      # no poll in between
+        peer.b.lib.link_rx_byte(x)
+    lost = len(cut)                            # all of it, its leading delimiter too
+    assert [f.seq for f in peer.frames() if f.is_ack] == [0x31]
+    for x in cut[1:]:                          # the rest of a frame whose start was lost: dropped
         peer.b.lib.link_rx_byte(x)
     assert peer.frames() == []
-    assert peer.ok("status")["rx_overflows"] == 100 - (P.RX_RING_BYTES - 1) + len(frame) - 1 + 1
+    assert peer.ok("status")["rx_overflows"] == lost
+    # garbage longer than any frame is dropped at the next delimiter, without a NACK
+    for _ in range(3 * P.MAX_FRAME):
+        peer.b.lib.link_rx_byte(0x01)
+    assert peer.frames() == []
+    assert peer.ok("status")["rx_overflows"] == lost
 
 
 def test_modelled_uart_small_tx_queue_carries_whole_frames():
@@ -659,3 +690,26 @@ def test_build_without_capture_and_eeprom():
         assert p.ok("telem_config", {"mask": 3, "decimation": 1, "samples_per_frame": 1})["payload_len"] == 6
     finally:
         b.close()
+
+
+def test_firmware_generation_options_reach_the_link_module():
+    """`picdrive firmware --no-capture --no-eeprom --capture-bytes N`: codegen passes the link's
+    generation options to the renderer, the build id tells the builds apart, and a bad buffer
+    size is refused with a one-line error."""
+    from picdrive.firmware import codegen
+    from picdrive.errors import PicdriveError
+    from picdrive.paths import repo_root
+    from picdrive.profile import load_profile
+    prof, design = load_profile("duy2008"), repo_root() / "examples" / "duy2008.fuzzy-hinf.design.json"
+    full = codegen.generate(prof, design)
+    lean = codegen.generate(prof, design, link_capture=False, link_eeprom=False)
+    small = codegen.generate(prof, design, capture_bytes=64)
+    assert "#define LINK_WITH_CAPTURE       1" in full.files["link_fw.h"]
+    assert "#define LINK_WITH_EEPROM        1" in full.files["link_fw.h"]
+    assert "#define LINK_WITH_CAPTURE       0" in lean.files["link_fw.h"]
+    assert "#define LINK_WITH_EEPROM        0" in lean.files["link_fw.h"]
+    assert "#define LINK_CAPTURE_WORDS      32u" in small.files["link_fw.h"]
+    assert len({full.build_id, lean.build_id, small.build_id}) == 3
+    assert any("no capture" in line for line in lean.summary)
+    with pytest.raises(PicdriveError, match="capture buffer of 300 B"):
+        codegen.generate(prof, design, capture_bytes=300)

@@ -37,7 +37,7 @@ def test_interrupt_paths_call_no_compiler_helper(asm):
     assert set(ISR_ENTRIES) <= isr
     helpers = sorted(f for f in isr if f.startswith("__"))
     assert helpers == [], f"runtime-library helpers reachable from an interrupt: {helpers}"
-    assert "_capture_sample" in isr and "_app_signal" in isr   # the graph follows the calls
+    assert {"_capture_due", "_capture_done", "_put_signals", "_app_signal"} <= isr   # the graph follows the calls
     # and the main loop's products are gone too: no multiply or divide helper anywhere
     assert not re.search(r"CALL\s+__(mul|div|mod)\w+", asm)
 
@@ -53,13 +53,107 @@ def test_interrupt_paths_read_no_flash_table(asm):
 
 def test_rx_interrupt_shares_single_bytes_only():
     """Hazard g: state written by link_rx_byte (high-priority interrupt) is read by the main
-    loop under a guard that may mask only the low priority: every field it writes is one byte."""
+    loop under a guard that may mask only the low priority: every variable it writes is one
+    byte (the frame buffer's fill count, the ready flag, the lost-byte count) or a byte of the
+    frame buffer, indexed by a byte."""
     c = build.render()["link_fw.c"]
-    fields = dict((name, t) for t, name in re.findall(r"^\s+(?:volatile )?(u?int\d+_t) (\w+);", c, re.M))
-    body = re.search(r"void link_rx_byte\(uint8_t b\)[^{]*\{(.*?)\n\}", c, re.S).group(1)
-    written = set(re.findall(r"S\.(\w+)\s*(?:=[^=]|\+\+|--|\+=|-=)", body))
-    written |= set(re.findall(r"(?:\+\+|--)S\.(\w+)", body))
-    assert written, body
+    hot = re.search(r"struct link_fast \{(.*?)\n\} link_hot;", c, re.S).group(1)
+    fields = dict((name, t) for t, name in re.findall(r"^\s+(?:volatile )?(u?int\d+_t) (\w+);", hot, re.M))
+    asm, body = re.findall(r"void link_rx_byte\(uint8_t b\)[^{]*\{(.*?)\n\}", c, re.S)
+    written = set(re.findall(r"\b(\w+)\s*(?:=[^=]|\+\+|--|\+=|-=)", body)) - {"rx_buf"}
+    written |= set(re.findall(r"(?:\+\+|--)(\w+)", body))
+    assert written == {"rx_n", "rx_ready", "rx_ovf"}, written
     assert {f: fields[f] for f in written} == {f: "uint8_t" for f in written}
-    # and the ring: one byte per slot, an 8-bit index, a power-of-two size
-    assert re.search(r"rx_ring\[h\] = b;", body) and P.RX_RING_BYTES & (P.RX_RING_BYTES - 1) == 0
+    assert "S." not in body                                  # nothing of the main loop's state
+    assert re.search(r"rx_buf\[rx_n\] = b;", body) and P.RX_BUFFER_BYTES < 256
+    # the PIC18 assembly form (SDCC) writes the same bytes (link_hot + 0, 1, 2: rx_n, rx_ready,
+    # rx_ovf, first in the block), the buffer through FSR0 + W (PLUSW0 = 0xFEB) and PRODL (0xFF3,
+    # saved by the interrupt prologue)
+    assert list(fields)[:3] == ["rx_n", "rx_ready", "rx_ovf"]
+    targets = set(re.findall(r"^\s*(?:MOVWF|CLRF|SETF)\s+(\(_link_hot \+ \d\)|\w+)", asm, re.M))
+    targets |= set(re.findall(r"^\s*(?:INCF|DECF)\s+(\(_link_hot \+ \d\)|\w+),\s*F", asm, re.M))
+    targets |= set(re.findall(r"^\s*MOVFF\s+\w+,\s*(\w+)", asm, re.M))
+    assert targets == {"(_link_hot + 0)", "(_link_hot + 1)", "(_link_hot + 2)", "0xFF3", "0xFEB"}, targets
+    assert re.search(r"LFSR\s+0,\s*_rx_buf", asm) and "__asm" in asm
+
+
+def _bench():
+    import importlib.util
+    from pathlib import Path
+    path = Path(__file__).resolve().parents[1] / "bench" / "link_pic18.py"
+    spec = importlib.util.spec_from_file_location("link_pic18", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_the_chip_answers_byte_for_byte_like_the_host_build():
+    """The module on the PIC18 core (gpsim, with its assembly RX byte path and CRC) and its host
+    build (gcc) get the same frames byte by byte and send the same bytes back: replies, NACKs
+    (malformed, unknown, bad CRC), a duplicate replayed, a frame lost to a waiting one, garbage
+    and the EEPROM image written and read back."""
+    from picdrive.link import codec
+    from linksupport.fakeboard import FakeBoard
+    files = build.render()
+    cmd = codec.encode_command
+    frames = [cmd("hello", 1), cmd("param_get", 2, {"ids": [0x00, 0x04, 0x07, 0x41]}),
+              cmd("param_info", 3, {"index": 6}), cmd("param_set", 4, {"id": 0x07, "value": 1000}),
+              cmd("param_set", 4, {"id": 0x07, "value": 1000}),                      # duplicate: replayed
+              cmd("param_set", 5, {"id": 0x07, "value": 70000}),                     # out of range
+              codec.encode_frame(0x3E, 6, b"", lead=True),                           # unknown command
+              codec.encode_frame(P.COMMAND_BY_NAME["hello"].code, 7, b"\x01", lead=True),   # malformed
+              bytes([0x00, 0x05, 0x11, 0x22, 0x33, 0x44, 0x00]),                     # bad CRC: one NACK
+              cmd("eeprom_save", 8), cmd("param_set", 9, {"id": 0x07, "value": 5}), cmd("eeprom_load", 10),
+              cmd("param_get", 11, {"ids": [0x07]}), bytes([0x01] * 60) + b"\x00", cmd("status", 12)]
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
+    b = FakeBoard(files=files, txq_bytes=4096)
+    try:
+        b.boot()
+        host = b.take_tx()
+        for f in frames:
+            b.feed(f)
+            host += b.take_tx()
+    finally:
+        b.close()
+    dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
+    assert len(dec_chip) == len(frames)                # BOOT, one reply each (the bad CRC: one NACK), garbage silent
+    # the BOOT event's code is the application's (the fake board reports its own reset cause)
+    assert dec_chip[1:] == dec_host[1:] and dec_chip[0].type == P.MSG_EVENT
+    status_chip, status_host = (codec.decode_reply("status", d[-1].payload) for d in (dec_chip, dec_host))
+    assert status_chip["crc_errors"] == 1 and status_chip == status_host
+
+
+def _signal(i: int) -> int:
+    """app_signal(i) of bench/link_pic18.py's chip harness."""
+    return ((0x0101 * i - 0x3000 + 0x8000) & 0xFFFF) - 0x8000 if i < 7 else 0
+
+
+@pytest.mark.parametrize("cap_mask", [0b1011, 0b10110])
+def test_telemetry_and_capture_on_the_chip(cap_mask):
+    """link_sample on the PIC18 core: telemetry frames and a capture recorded in the same samples
+    (the same mask as the telemetry, or another), each signal value where the protocol puts it."""
+    from picdrive.link import codec
+    files = build.render()
+    cmd = codec.encode_command
+    tel_mask = 0b1011
+    frames = [cmd("telem_config", 1, {"mask": tel_mask, "decimation": 1, "samples_per_frame": 2}),
+              cmd("capture_arm", 2, {"mask": cap_mask, "n_samples": 5, "pre_trigger": 0, "decimation": 2,
+                                     "trigger": P.Trigger.IMMEDIATE, "threshold": 0}),
+              cmd("capture_read", 3, {"start": 1, "count": 10}), cmd("param_get", 4, {"ids": [0x20, 0x23]})]
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames, [0, 12, 0, 0])
+    got = codec.StreamDecoder().feed(chip)
+    tel = [f for f in got if f.type == P.MSG_TELEMETRY]
+    nt = bin(tel_mask).count("1")
+    want = [_signal(i) for i in range(16) if tel_mask >> i & 1]
+    counters = []
+    for f in tel:
+        counter, vals = codec.decode_telemetry(f.payload, nt)
+        counters.append(counter)
+        assert vals.shape == (2, nt) and (vals == want).all()
+    assert counters == list(range(0, 12, 2))
+    r = codec.decode_reply("capture_read", [f for f in got if f.is_reply and f.seq == 3][0].payload)
+    cap = [_signal(i) for i in range(16) if cap_mask >> i & 1]
+    assert r["state"] == P.CaptureState.DONE and r["total"] == 5 and r["start"] == 1
+    assert r["values"] == cap * 4
+    r = codec.decode_reply("param_get", [f for f in got if f.is_reply and f.seq == 4][0].payload)
+    assert r["values"] == [_signal(0), _signal(3)]            # signals through app_signal, sign-extended

@@ -3,7 +3,7 @@
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
  *
  * protocol 2.0, 30 table entries (2 rules),
- * table hash 0x9E641D7AUL, build id 0x7E0C51BDUL, profile hash 0x4B0E5FBAUL
+ * table hash 0x9E641D7AUL, build id 0xADAAD003UL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -11,18 +11,19 @@
  * LEN + 5 or whose CRC fails is dropped whole; the receiver resynchronises at the next 0x00.
  *
  * RAM (bytes) of this module: buffers and scalar state (the total is what avr-gcc allocates):
- *   rx_ring            64
- *   tx_frame           45
+ *   rx_frame           46
+ *   tx_frame           46
  *   telemetry_frame    40
  *   replay              8
  *   param_store        37
  *   capture           128
- *   state              97
- *   total             419
+ *   state             106
+ *   total             411
  *
  * Contexts: link_rx_byte(), link_tick_ms() and link_sample() may be called from interrupts,
- * link_poll() from the main loop.  link_rx_byte() shares only single-byte ring indices and an
- * 8-bit overflow count with the main loop; link_tick_ms() and link_sample() share 16/32-bit
+ * link_poll() from the main loop.  link_rx_byte() stores the byte in the frame buffer and marks
+ * the frame complete at its delimiter; it shares only single bytes (the fill count, the ready
+ * flag, an 8-bit count of bytes lost while a frame waits) with the main loop; link_tick_ms() and link_sample() share 16/32-bit
  * counters read by link_poll() inside LINK_CRITICAL_BEGIN()/END(), which must therefore mask
  * the interrupt that calls them.  None of them calls a compiler helper (multiply, divide,
  * generic pointer, flash table read), so none is shared with the main loop.
@@ -45,7 +46,7 @@
 
 #define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0x7E0C51BDUL
+#define LINK_BUILD_ID           0xADAAD003UL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
 #define LINK_TABLE_HASH         0x9E641D7AUL
 #define LINK_SAMPLE_HZ          1000u
@@ -57,7 +58,8 @@
 #define LINK_MAX_PAYLOAD        40u
 #define LINK_MAX_BODY           45u   /* LEN, TYPE, SEQ, payload, CRC */
 #define LINK_MAX_FRAME          47u   /* on the wire: COBS code + body + delimiter */
-#define LINK_RX_RING            64u
+#define LINK_RX_BYTES           46u   /* receive buffer: one frame without its delimiter */
+#define LINK_N_PERSISTED        18u
 #define LINK_REPLAY_BYTES       8u
 #define LINK_CAPTURE_WORDS      64u
 #define LINK_PARAM_GET_MAX      10u
@@ -76,6 +78,9 @@
 #define LINK_HELLO_CAPTURE_WORDS LINK_CAPTURE_WORDS
 #else
 #define LINK_HELLO_CAPTURE_WORDS 0u        /* hello: no capture in this build */
+#endif
+#ifndef LINK_ACCESS_AT            /* SDCC: access-bank address of the link's 32 B of hot scalars */
+#define LINK_ACCESS_AT          0x20
 #endif
 #ifndef LINK_EE_BASE
 #define LINK_EE_BASE            0u
@@ -240,7 +245,7 @@ extern link_params_t link_params;
 
 /* ---- the module ---- */
 void     link_init(void);                      /* defaults, queue the BOOT event */
-void     link_rx_byte(uint8_t b) LINK_WPARAM;  /* UART RX interrupt: stores the byte, nothing more */
+void     link_rx_byte(uint8_t b) LINK_WPARAM;  /* UART RX interrupt: stores the byte, marks a complete frame */
 void     link_poll(void);                      /* main loop */
 void     link_tick_ms(void);                   /* 1 kHz time base */
 void     link_sample(void);                    /* once per speed-loop sample */

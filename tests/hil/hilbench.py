@@ -133,15 +133,17 @@ class Bench:
         time.sleep(seconds)
 
 
-def sector_speed(prof, data: np.ndarray, target: float) -> np.ndarray:
+def sector_speed(prof, data: np.ndarray, target: float, *, breaks=()) -> np.ndarray:
     """The measured speed averaged over one hall sector at the target speed (picdrive.analysis.steptest.sector_mean):
     the speed a six-step drive regulates; inside a sector the pair's EMF, hence the torque per ampere,
     ripples with the rotor angle (the 2016 motor under its 1 N m load: about +-2.5 % at 76 Hz with a
-    PID, which no 1 kHz speed law removes).  The design's verification judges the same mean."""
+    PID, which no 1 kHz speed law removes).  The design's verification judges the same mean.
+    ``breaks``: sample indices where a new phase of the run starts (the setpoint step): no window
+    reaches across one."""
     from picdrive.analysis.steptest import sector_mean
     t = data["t"]
     ts = float(np.median(np.diff(t))) if t.size > 1 else 1.0 / prof.control.speed_loop_hz
-    return sector_mean(prof, data["speed"].astype(float), ts, target)
+    return sector_mean(prof, data["speed"].astype(float), ts, target, breaks=breaks)
 
 
 def step_of(data: np.ndarray, target: float, prof=None):
@@ -152,7 +154,7 @@ def step_of(data: np.ndarray, target: float, prof=None):
     if abs(sp[k] - target) > abs(target) * 1e-3 + 0.5:
         raise AssertionError(f"the setpoint never reached {target} rpm in the record")
     t = data["t"]
-    y = data["speed"] if prof is None else sector_speed(prof, data, target)
+    y = data["speed"] if prof is None else sector_speed(prof, data, target, breaks=(k,))
     return step_metrics(t, y, target, y0=float(data["speed"][k]), t_step=float(t[k])), k
 
 

@@ -108,3 +108,23 @@ def test_load_torque_step_is_rejected(open_bench, profile_name, method, fraction
     assert out.size == 0 or out[-1] < len(y) - 1, why               # recovered inside the record
     assert recovery <= lim.load_recovery_s, why
     assert abs(np.mean(tail) - lim.target_rpm) <= band, why
+
+
+def test_step_figures_do_not_average_across_the_setpoint_step():
+    """The sector mean must not reach back across the setpoint step: the step's figures may not
+    depend on what the speed did before it (a centred window mixed the two phases)."""
+    from picdrive.profile import load_profile
+    prof = load_profile("duy2008")
+    target = 600.0                                  # a long hall sector: 8.3 ms, 8 samples at 1 kHz
+    n, k = 200, 50
+    runs = []
+    for before in (0.0, 450.0):
+        data = np.zeros(n, dtype=[("t", float), ("speed", float), ("setpoint", float)])
+        data["t"] = np.arange(n) * 1e-3
+        data["setpoint"][k:] = target
+        data["speed"][:k] = before
+        data["speed"][k:] = target * (1.0 - np.exp(-np.arange(n - k) / 10.0))
+        runs.append(step_of(data, target, prof))
+    (m0, k0), (m1, k1) = runs
+    assert k0 == k1 == k
+    assert m0.rise_time_s == m1.rise_time_s and m0.settling_time_s == m1.settling_time_s

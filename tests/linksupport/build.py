@@ -123,8 +123,7 @@ def avr_ram_bytes(obj: Path) -> dict[str, int]:
 
 
 SDCC_HOME = Path(os.environ.get("PICDRIVE_SDCC", Path.home() / ".cache/picdrive/toolchain/sdcc-4.2.0-pic16"))
-SDCC_FLAGS = ["-mpic16", "-p18f4431", "--std-c99", "--no-warn-non-free", "--obanksel=9", "--optimize-cmp",
-              "--optimize-df"]
+from picdrive.firmware.target import SDCC_FLAGS   # the image's options (--obanksel=N miscompiles link_fw.c)
 
 
 def sdcc_asm(files: dict[str, str], d: Path) -> str:

@@ -51,6 +51,8 @@ HOST_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-Wconversion")
 #: the overspeed trip, x control.speed_max_rpm (the profile has no field for it)
 OVERSPEED_FACTOR = 1.2
 CAPTURE_BYTES = 128
+"""Capture buffer of the link module, bytes (``--capture-bytes``): 64 samples of one signal, 16 of
+four.  ``bench/link_pic18.py`` prints what the link module costs with and without capture and EEPROM."""
 REGENERABLE = ("build",)    # the Makefile's output folder: picdrive may replace it with the firmware
 
 
@@ -351,8 +353,14 @@ def _protocol_overrides(plan, profile):
 
 
 def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str = "RC1",
-             name: str | None = None) -> Firmware:
-    """Plan and render the firmware (nothing is written)."""
+             name: str | None = None, link_capture: bool = True, link_eeprom: bool = True,
+             capture_bytes: int = CAPTURE_BYTES) -> Firmware:
+    """Plan and render the firmware (nothing is written).
+
+    ``link_capture``/``link_eeprom``: generate the link's triggered capture (commands and its
+    ``capture_bytes`` buffer) and EEPROM persistence, or leave them out to save flash and RAM (a
+    build without capture says 0 capture words in hello and NACKs its commands UNKNOWN_COMMAND; one
+    without EEPROM answers eeprom_save/eeprom_load EEPROM_ERROR and boots with the defaults)."""
     import jinja2
 
     from . import fixedpoint, p18f4431, pcpwm, pinmap
@@ -372,7 +380,16 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     plan = fixedpoint.plan_fixed_point(profile, design.law, pwm)
     brg, baud = uart_brg(profile.uart.baud)
     bus = bus_sense(profile)
+    if isinstance(capture_bytes, bool) or not isinstance(capture_bytes, int) or capture_bytes % 2 \
+            or not 16 <= capture_bytes <= 256:
+        raise CodegenError(f"capture buffer of {capture_bytes!r} B: give an even number of bytes in [16, 256] "
+                           "(--capture-bytes)")
     options = {"hall_input": hall_input, "fault_pin": fault_pin}
+    # link options enter the build id only when they differ from the default (ids stay as they were)
+    for k, v, d in (("link_capture", bool(link_capture), True), ("link_eeprom", bool(link_eeprom), True),
+                    ("capture_bytes", capture_bytes, CAPTURE_BYTES)):
+        if v != d:
+            options[k] = v
     build_id, digest = _inputs_hash(profile, design_bytes, options)
     profile_hash = profile.hash32
     name = name or profile.name
@@ -380,7 +397,8 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     try:
         table = protocol.build_table(plan.n_rules, _protocol_overrides(plan, profile), profile=profile)
         link = protocol.render_c(table, build_id, profile_hash, sample_hz=plan.loop_hz,
-                                 capture_bytes=CAPTURE_BYTES,
+                                 capture_bytes=capture_bytes, capture=bool(link_capture),
+                                 eeprom=bool(link_eeprom),
                                  critical_begin="extern void fw_lock(void); fw_lock();",
                                  critical_end="extern void fw_unlock(void); fw_unlock();")
     except protocol.ProtocolError as e:
@@ -404,6 +422,8 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     summary += pwm.lines() + plan.lines() + pm.lines()
     summary.append(f"uart        SPBRG = {brg}: {baud:.0f} baud; bus sense on AN1 assumed "
                    f"{bus['bus_sense_v_per_v']:.5f} V/V, UV {bus['uv_v']:.1f} V, OV {bus['ov_v']:.1f} V")
+    summary.append("link        " + (f"capture ({capture_bytes} B buffer)" if link_capture else "no capture (--no-capture)")
+                   + ", " + ("EEPROM persistence" if link_eeprom else "no EEPROM persistence (--no-eeprom)"))
     files["board.json"] = json.dumps(_board(profile, plan, pwm, pm, bus, build_id, table), indent=1,
                                      sort_keys=True) + "\n"
     files["Makefile"] = _makefile(name)
@@ -585,7 +605,8 @@ def _cmd(args) -> int:
     profile = load_profile(args.profile)
     out = dir_output(args.output if args.output else Path("firmware_build") / profile.name,
                      what="firmware folder")
-    fw = generate(profile, args.design, hall_input=args.hall_input, fault_pin=args.fault_pin)
+    fw = generate(profile, args.design, hall_input=args.hall_input, fault_pin=args.fault_pin,
+                  link_capture=not args.no_capture, link_eeprom=not args.no_eeprom, capture_bytes=args.capture_bytes)
     for line in fw.summary:
         print(line)
     report: list[str] = []
@@ -609,6 +630,14 @@ def register(sub) -> None:
                    help="hall inputs: INT0..INT2 on RC3..RC5 (int, the default) or IC1..IC3 on RA2..RA4 "
                         "(ic, only without an encoder)")
     p.add_argument("--fault-pin", default="RC1", choices=["RC1", "RD4"], help="FLTA pin (FLTAMX)")
+    p.add_argument("--no-capture", action="store_true",
+                   help="leave the link's triggered capture out (about 1.3 kB of flash and its buffer of RAM; "
+                        "hello then reports 0 capture words)")
+    p.add_argument("--no-eeprom", action="store_true",
+                   help="leave the EEPROM persistence of the parameters out (about 0.8 kB of flash; "
+                        "eeprom_save/eeprom_load answer EEPROM_ERROR)")
+    p.add_argument("--capture-bytes", type=int, default=CAPTURE_BYTES,
+                   help=f"capture buffer, bytes (even, 16..256; default {CAPTURE_BYTES})")
     p.add_argument("--allow-over-budget", action="store_true",
                    help="MEASUREMENT ONLY: write the firmware and its HEX even when flash, RAM + stack or an "
                         "interrupt's cycles exceed the PIC18F4431 budgets (the figures are printed)")

@@ -50,6 +50,8 @@ RESULT_ADDR = 0xB00          # uint16 results, up to 0xEFF
 MAX_RESULTS = 512
 HALL_INVALID = (7, 0, 1)    # both invalid codes, then back to a valid one
 TX_BYTES_PER_MS = 11         # 115200 baud, 10 bits a byte
+FRAME_GAP_MS = 10         # ms of UART time before each frame of the corpus: a maximum-length telemetry
+                          # frame and a maximum-length reply (2 x 47 B at 11 B/ms) have left the board
 
 
 class GpsimError(PicdriveError):
@@ -164,7 +166,7 @@ def _frames(package: str = "picdrive.link") -> dict[str, list[bytes]]:
         "telem4": [codec.encode_command("telem_config", 5, {"mask": mask, "decimation": 1,
                                                             "samples_per_frame": P.DEFAULT_SAMPLES_PER_FRAME})],
         "capture": [codec.encode_command("capture_arm", 6, {"mask": mask, "n_samples": 16,
-                                                            "pre_trigger": 4, "decimation": 1, "trigger": 0,
+                                                            "pre_trigger": 4, "decimation": 1, "trigger": 1,
                                                             "threshold": 0})],
         "max_reply": [codec.encode_command("param_get", 7, {"ids": list(range(P.PARAM_GET_MAX))})],
         # a frame of MAX_PAYLOAD bytes (no command takes that many: parsed, CRC-checked, NACKed)
@@ -210,6 +212,12 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
             mode[0] = arg + "|"
         elif what == "frame":
             name, data = arg
+            # a host sends a command only after the reply to the previous one (docs/protocol.md), and
+            # the board buffers one frame: let the UART send what is queued (telemetry, the last
+            # reply) first, so that the frame's own poll dispatches it
+            for _ in range(FRAME_GAP_MS):
+                drain(TX_BYTES_PER_MS)
+                steps.extend([OP_POLL, 0, key("link_poll")])
             for b in data:
                 steps.extend([OP_RX, b, key("uart_rx_byte")])
             drain(TX_BYTES_PER_MS * 4)

@@ -41,7 +41,7 @@ from ..errors import PicdriveError
 
 __all__ = [
     "ProtocolError", "PROTOCOL_VERSION", "DELIMITER", "MAX_PAYLOAD", "MAX_BODY", "BODY_OVERHEAD",
-    "MAX_FRAME", "FRAME_OVERHEAD", "HOST_GAP_MS", "RX_RING_BYTES", "REPLAY_BYTES", "CAPTURE_BYTES_DEFAULT", "PARAM_GET_MAX",
+    "MAX_FRAME", "FRAME_OVERHEAD", "HOST_GAP_MS", "RX_BUFFER_BYTES", "REPLAY_BYTES", "CAPTURE_BYTES_DEFAULT", "PARAM_GET_MAX",
     "NAME_MAX", "EEPROM_BYTES", "EEPROM_LAYOUT_VERSION", "EEPROM_MAGIC", "EEPROM_HEADER_BYTES",
     "CTYPES", "CType", "UNITS", "FLAG_WRITABLE", "FLAG_PERSISTED", "FLAG_SIGNAL",
     "Nack", "Fault", "State", "Event", "Trigger", "CaptureState", "Controller", "EepromResult",
@@ -95,9 +95,12 @@ HOST_GAP_MS = 100
 and the OS deliver bytes in bursts: an FTDI chip holds them up to its 16 ms latency timer).  The
 board needs no timer: the host's delimiter before each command ends any partial frame."""
 
-RX_RING_BYTES = 64
-"""Receive ring of the C module (power of two, holds a whole command frame: the RX interrupt only
-stores bytes, link_poll decodes a frame once its delimiter is in the ring)."""
+RX_BUFFER_BYTES = MAX_BODY + 1
+"""Receive buffer of the C module: one frame as it arrives (COBS code byte + body, without the
+delimiter).  The RX interrupt only stores bytes and marks the frame complete at its delimiter;
+link_poll decodes it in place and hands the buffer back.  Bytes arriving while a complete frame
+waits for the main loop are lost and counted (status rx_overflows), and the frame they belong to
+is dropped: the host sends a command only after the reply to the previous one."""
 
 REPLAY_BYTES = 8
 """Replies up to this size are stored for duplicate-SEQ replay; every command
@@ -121,8 +124,8 @@ EEPROM_HEADER_BYTES = 8
 then the persisted parameters in table order (little-endian, C-type width),
 then CRC-16/CCITT-FALSE of everything before it, high byte first."""
 
-STATE_BYTES = 97
-"""Scalar state of the C module (struct S and the value register V in link_fw.c), bytes, as avr-nm measures it;
+STATE_BYTES = 106
+"""Scalar state of the C module (struct S, the value and limit registers V and X, the receive bytes rx_n, rx_ready, rx_ovf and the copy and sample pointers in link_fw.c), bytes, as avr-nm measures it;
 checked by tests/test_protocol.py."""
 
 TELEMETRY_HEADER_BYTES = 2            # u16 counter of the frame's first sample
@@ -359,7 +362,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("status", 0x10, "Drive and link status.",
             reply=(_F("state", "B", "State"), _F("fault", "B", "Fault"), _F("capture_state", "B", "CaptureState"),
                    _F("telem_generation", "B"), _F("crc_errors", "H", "received frames with a bad CRC"),
-                   _F("rx_overflows", "H", "bytes lost to a full receive ring"),
+                   _F("rx_overflows", "H", "bytes lost while a received frame waited for the main loop"),
                    _F("telem_dropped", "H", "telemetry samples not sent (link busy)"),
                    _F("uptime_ms", "I")),
             side_effects=False),
@@ -758,14 +761,14 @@ def build_table(rules: int, overrides: Mapping[str, ParamOverride] | None = None
 # RAM budget (the C module's buffers; the state is measured from avr-nm)
 # ---------------------------------------------------------------------------
 def ram_budget(table: Table, capture_bytes: int = CAPTURE_BYTES_DEFAULT) -> dict[str, int]:
-    """Bytes of the C module's buffers for a table: RX ring, TX frame buffer,
+    """Bytes of the C module's buffers for a table: RX frame buffer, TX frame buffer,
     telemetry frame buffer, replay store, parameter store, capture buffer.
     The scalar state (indices, counters, capture and telemetry settings) is
     :data:`STATE_BYTES` more; ``bench/link.py`` measures the total from the avr-gcc
     build (``avr-nm --size-sort -S``)."""
     return {
-        "rx_ring": RX_RING_BYTES,
-        "tx_frame": MAX_BODY,
+        "rx_frame": RX_BUFFER_BYTES,
+        "tx_frame": MAX_BODY + 1,
         "telemetry_frame": MAX_PAYLOAD,
         "replay": REPLAY_BYTES,
         "param_store": table.param_store_bytes,
@@ -807,37 +810,57 @@ def _c_bytes(data: bytes) -> str:
 
 
 def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, capture_words: int) -> dict:
-    """The flash tables of link_fw.c: one row per entry (the param_info reply head, little-endian),
-    store offsets and sizes, names, the hello reply and the EEPROM header."""
-    names, name_offsets = "", [0]
-    for e in table.entries:
-        names += e.name
-        name_offsets.append(len(names))
-
-    def row(e: Entry) -> str:
-        return _c_bytes(struct.pack("<BBBBIiii", e.id, e.ct.code, e.flags, e.unit_index, e.scale_bits,
-                                    e.min_raw, e.max_raw, e.default_raw)) + ","
+    """The flash table of link_fw.c, one byte array read through one function: per entry the row
+    (the param_info reply head, little-endian), store offset, size code and name length; the
+    hello reply, the command specs, the names; with EEPROM the image header and the persisted
+    entries.  Also the id runs (ids are contiguous within each run, so an index is a subtraction)."""
+    ents = table.entries
 
     def size_code(e: Entry) -> int:     # bytes in the store (signals: 16 bits), bit 7: signed
         return e.ct.size | (0x80 if e.ctype.startswith("int") else 0)
 
-    def le(macro: str, n: int) -> str:   # the header's macros stay the authority
-        return ", ".join(f"(uint8_t)({macro} >> {8 * k}u)" if k else f"(uint8_t){macro}" for k in range(n))
+    def le(macro: str, n: int) -> list[str]:   # the header's macros stay the authority
+        return [f"(uint8_t)({macro} >> {8 * k}u)" if k else f"(uint8_t){macro}" for k in range(n)]
 
-    hello = ", ".join(["LINK_PROTO_MAJOR", "LINK_PROTO_MINOR", le("LINK_BUILD_ID", 4), le("LINK_PROFILE_HASH", 4),
-                       le("LINK_TABLE_HASH", 4), "LINK_N_ENTRIES", "LINK_MAX_PAYLOAD", le("LINK_HELLO_CAPTURE_WORDS", 2),
-                       le("LINK_SAMPLE_HZ", 2)])
-    ee_head = ", ".join([_c_bytes(EEPROM_MAGIC + bytes((EEPROM_LAYOUT_VERSION,))), le("LINK_TABLE_HASH", 4),
-                         "EE_DATA_BYTES"])
-    index = {e.name: i for i, e in enumerate(table.entries)}
-    index_of = [None] * (max(e.id for e in table.entries) + 1)
-    for i, e in enumerate(table.entries):
-        index_of[e.id] = i
-    return dict(index_of=index_of, row_bytes=_C_ROW_BYTES, row_bytes_of=row, size_code=size_code,
-                name_offsets=name_offsets, names_concat=names,
-                persisted_index=[index[e.name] for e in table.persisted],
-                name_t="uint8_t" if len(names) <= 255 else "uint16_t", hello_bytes=hello, ee_head_bytes=ee_head,
-                handler_of=lambda c: _C_HANDLERS.get(c.name, "h_" + c.name), idle_cmds=_C_IDLE_COMMANDS)
+    def lines(items: list[str], per: int = 12) -> list[str]:
+        return [", ".join(items[i:i + per]) + "," for i in range(0, len(items), per)]
+
+    rows = [_c_bytes(struct.pack("<BBBBIiii", e.id, e.ct.code, e.flags, e.unit_index, e.scale_bits, e.min_raw,
+                                 e.max_raw, e.default_raw)) + f",   /* {e.name} */" for e in ents]
+    hello = (["LINK_PROTO_MAJOR", "LINK_PROTO_MINOR"] + le("LINK_BUILD_ID", 4) + le("LINK_PROFILE_HASH", 4)
+             + le("LINK_TABLE_HASH", 4) + ["LINK_N_ENTRIES", "LINK_MAX_PAYLOAD"] + le("LINK_HELLO_CAPTURE_WORDS", 2)
+             + le("LINK_SAMPLE_HZ", 2))
+    assert len(hello) == 20
+    cmd_spec = [f"0x{(0x7F if c.args_tail else c.args_size) | (0x80 if c.name in _C_IDLE_COMMANDS else 0):02X}u"
+                for c in COMMANDS]
+    names = [f"0x{b:02X}u" for e in ents for b in e.name.encode("ascii")]
+    index = {e.name: i for i, e in enumerate(ents)}
+    segs = [("ROM_ROWS", rows, len(ents) * _C_ROW_BYTES),
+            ("ROM_OFF", lines(["NONE" if e.signal else f"(uint8_t)offsetof(link_params_t, {e.name})" for e in ents],
+                              4), len(ents)),
+            ("ROM_SIZE", lines([f"0x{size_code(e):02X}u" for e in ents]), len(ents)),
+            ("ROM_NAME_LEN", lines([f"{len(e.name)}u" for e in ents]), len(ents)),
+            ("ROM_HELLO", lines(hello, 4), 20),
+            ("ROM_CMD", lines(cmd_spec), len(cmd_spec)),
+            ("ROM_NAMES", lines(names, 16), len(names)),
+            ("ROM_EE_HEAD", lines([_c_bytes(EEPROM_MAGIC + bytes((EEPROM_LAYOUT_VERSION,)))] + le("LINK_TABLE_HASH", 4)
+                                  + ["EE_DATA_BYTES"], 8), EEPROM_HEADER_BYTES),
+            ("ROM_PERSIST", lines([f"{index[e.name]}u" for e in table.persisted]), len(table.persisted))]
+    rom, off = [], 0
+    for name, items, n in segs:
+        rom.append((name, off, n, items))
+        off += n
+    runs: list[list[int]] = []             # [first id, count, first index]
+    for i, e in enumerate(ents):
+        if runs and runs[-1][0] + runs[-1][1] == e.id:
+            runs[-1][1] += 1
+        else:
+            runs.append([e.id, 1, i])
+    sig = [i for i, e in enumerate(ents) if e.signal]
+    assert sig == list(range(sig[0], sig[0] + len(sig))), "signals must be contiguous in the table"
+    assert all(r[0] >= r[2] for r in runs)
+    return dict(row_bytes=_C_ROW_BYTES, rom_segments=rom, rom_size=off, id_runs=[tuple(r) for r in runs],
+                sig_index=sig[0], handler_of=lambda c: _C_HANDLERS.get(c.name, "h_" + c.name))
 
 
 def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float | None = None,
@@ -849,7 +872,7 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
     ``profile_hash`` (u32) are reported by hello.  ``sample_hz``: rate at
     which the firmware calls ``link_sample()`` (its speed loop), reported by
     hello so that the host can time telemetry (None: 0 = not stated).
-    ``capture_bytes``: capture buffer size (even, 16..1024).
+    ``capture_bytes``: capture buffer size (even, 16..256: its indices are bytes).
     ``critical_begin``/``critical_end``: C statements that make a
     parameter-store update atomic against the interrupt that runs the speed
     loop (e.g. ``"INTCONbits.GIEH = 0;"``); empty when the speed loop reads
@@ -865,8 +888,8 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
     _u32("build_id", build_id)
     _u32("profile_hash", profile_hash)
     if isinstance(capture_bytes, bool) or not isinstance(capture_bytes, int) or capture_bytes % 2 \
-            or not 16 <= capture_bytes <= 1024:
-        raise ProtocolError(f"capture_bytes = {capture_bytes!r}: expected an even number of bytes in [16, 1024]")
+            or not 16 <= capture_bytes <= 256:
+        raise ProtocolError(f"capture_bytes = {capture_bytes!r}: expected an even number of bytes in [16, 256]")
     hz = 0
     if sample_hz is not None:
         if not (isinstance(sample_hz, (int, float)) and math.isfinite(sample_hz) and 1 <= sample_hz <= 65535):
@@ -880,7 +903,7 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
         build_id=build_id, profile_hash=profile_hash, table_hash=table.hash, sample_hz=hz,
         capture_words=capture_bytes // 2, capture_bytes=capture_bytes, sig_all=(1 << len(table.signals)) - 1,
         max_payload=MAX_PAYLOAD, max_frame=MAX_FRAME, max_body=MAX_BODY,
-        rx_ring=RX_RING_BYTES, name_max=NAME_MAX, replay_bytes=REPLAY_BYTES, param_get_max=PARAM_GET_MAX,
+        rx_bytes=RX_BUFFER_BYTES, name_max=NAME_MAX, replay_bytes=REPLAY_BYTES, param_get_max=PARAM_GET_MAX,
         nacks=list(Nack), faults=list(Fault), states=list(State), events=list(Event),
         triggers=list(Trigger), capture_states=list(CaptureState), controllers=list(Controller),
         eeprom_results=list(EepromResult), ctypes=list(CTYPES.values()),
@@ -910,7 +933,7 @@ def _check_definition() -> None:
     assert COMMAND_BY_NAME["param_info"].reply_size + NAME_MAX <= MAX_PAYLOAD
     assert 4 * PARAM_GET_MAX <= MAX_PAYLOAD
     assert TELEMETRY_HEADER_BYTES + 2 * len(DEFAULT_TELEMETRY_SIGNALS) * DEFAULT_SAMPLES_PER_FRAME <= MAX_PAYLOAD
-    assert RX_RING_BYTES & (RX_RING_BYTES - 1) == 0 and RX_RING_BYTES > MAX_FRAME + 1
+    assert RX_BUFFER_BYTES == MAX_FRAME - 1 < 255   # a frame without its delimiter; byte indices
     assert MAX_BODY < 254                 # one COBS block per frame
     assert [c.code for c in COMMANDS] == list(range(1, len(COMMANDS) + 1))   # the C dispatch table
     assert len(SIGNALS) <= 16
@@ -1102,9 +1125,11 @@ def render_markdown(table: Table | None = None) -> str:
     a("```")
     a("")
     a("Contexts: `link_rx_byte`, `link_tick_ms` and `link_sample` may run in interrupts; `link_poll` runs in "
-      "the main loop.  `link_rx_byte` only stores the byte in the ring (8-bit index, power-of-two size) or "
-      "counts an overflow in an 8-bit counter the main loop accumulates: it shares single bytes only, so any "
-      "interrupt priority may call it.  `link_tick_ms` and `link_sample` share 16/32-bit counters (uptime, "
+      "the main loop.  `link_rx_byte` only stores the byte in the frame buffer (one frame, COBS code byte "
+      "and body, byte index) and marks the frame complete at its delimiter; while a complete frame waits for "
+      "`link_poll`, it counts each further byte as lost in an 8-bit counter the main loop accumulates (the "
+      "host sends a command only after the reply to the previous one), and the frame those bytes belonged "
+      "to is dropped.  It shares single bytes only, so any interrupt priority may call it.  `link_tick_ms` and `link_sample` share 16/32-bit counters (uptime, "
       "telemetry drops) that `link_poll` reads inside `LINK_CRITICAL_BEGIN()`/`LINK_CRITICAL_END()`, which "
       "must mask their interrupt.  None of the three calls a compiler helper (no multiplication, division, "
       "generic pointer or flash-table read), so no non-reentrant helper is shared with the main loop.  "
@@ -1146,9 +1171,11 @@ def render_markdown(table: Table | None = None) -> str:
         "Signals are 16-bit on the wire (int16 or uint16); position wraps at 16 bits.",
         f"The host abandons a partial frame after {HOST_GAP_MS} ms without bytes: USB-serial adapters deliver "
         "bytes in bursts (an FTDI chip holds them up to its 16 ms latency timer).  The board needs no timer.",
-        "The C module is table-driven for an 8-bit core: one flash row per table entry (the param_info reply "
-        "itself), store access by byte offset and size, commands dispatched through a table of handlers with "
-        "their argument lengths, no run-time multiplication or division.",
+        "The C module is table-driven for an 8-bit core: one flash byte table read through one function (per "
+        "entry the param_info reply head, store offset, size and name; the hello reply; per command its "
+        "argument length and whether it needs the motor stopped), store access by byte offset and size, values "
+        "moved and range-checked byte by byte (no 32-bit arithmetic), frames COBS-decoded and -encoded in "
+        "place, byte indices only, no run-time multiplication or division.",
     ):
         a(f"* {item}")
     a("")
