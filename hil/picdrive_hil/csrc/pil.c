@@ -274,9 +274,14 @@ static void pil_irq_hook(void *ctx, int what)
 static void pil_timer2_fired(int flag_was_set)
 {
     if (!P.loaded) return;
-    if (flag_was_set) { P.st.speed_lost++; return; }
+    if (flag_was_set) {
+        P.st.speed_lost++;
+        if (P.st.speed_n == 0) P.st.missed_at_start++;
+        return;
+    }
     for (int k = 0; k < P.nest_n && k < PIL_NEST; k++)
         if (P.nest[k].speed) {
+            if (P.st.speed_n == 0) P.st.missed_at_start++;
             if (!P.st.speed_overrun) P.st.overrun_first_cycle = P.cpu.cycles;
             P.st.speed_overrun++;
             return;
