@@ -16,6 +16,8 @@ sees on the chip:
   both switches of a leg;
 - (e) the speed loop captures POSCNT/Timer5 before any ADC access, with the
   high priority masked;
+- (f) the bus current is converted by the PCPWM special event at mid on-time
+  (SEVTCMP = PDC / 8, ADCON3.SSRC4), never by a software start;
 - (g) fw_lock masks both priorities and nests;
 - (h) an encoder speed above 1.2 x speed_max_rpm latches LINK_FAULT_OVERSPEED
   with the outputs off.
@@ -393,3 +395,25 @@ def test_overspeed_latches_a_fault_with_the_outputs_off(fw):
     assert fw.sig(_sig("state")) == protocol.State.FAULT
     assert fw.sig(_sig("fault")) == 8 == int(protocol.Fault.OVERSPEED)
     assert fw.r("OVDCOND") == 0 and fw.r("OVDCONS") == 0
+
+
+def test_bus_current_is_converted_at_mid_on_time_by_the_special_event(fw):
+    """(f): a software start of the current channel samples the shunt at whatever PWM phase the
+    interrupt lands on (on-time current or zero); the special event samples it at mid on-time."""
+    _run_in(fw, 0)
+    start = list(fw.sfr)
+    fw.clear_log()
+    fw.tick()
+    group = BITS["ADCON0"]["ACMOD0"]
+    go = BITS["ADCON0"]["GO_DONE"] if "GO_DONE" in BITS["ADCON0"] else BITS["ADCON0"]["GO"]
+    starts = [s[idx("ADCON0")] >> group & 3 for s in replay(start, fw.log())
+              if s[idx("ADCON0")] >> go & 1]
+    assert starts and 0 not in starts, f"software starts of group A (AN0, the bus current): {starts}"
+    # after the sample: group A selected, the PCPWM special event starts its conversions ...
+    assert fw.r("ADCON0") >> group & 3 == 0 and fw.r("ADCON0") >> BITS["ADCON0"]["ADON"] & 1
+    assert fw.r("ADCON3") >> BITS["ADCON3"]["SSRC4"] & 1, "ADCON3.SSRC4: the special event starts the A/D"
+    # ... once per PWM period, counting up, at mid on-time of the duty just written
+    assert fw.r("PWMCON1") >> 3 & 0x1F == 0, "SEVOPS 1:1 and SEVTDIR = 0 (up)"
+    pdc = fw.r("PDC0L") | fw.r("PDC0H") << 8
+    sev = fw.r("SEVTCMPL") | fw.r("SEVTCMPH") << 8
+    assert pdc > 0 and sev == pdc >> 3, (pdc, sev)

@@ -148,6 +148,9 @@ class Board:
 
     def tick(self, n=1):
         for _ in range(n):
+            if self.r("ADCON3") & 0x10:          # SSRC4: the PCPWM special event converted AN0 meanwhile
+                self.w("ADRESH", self.adc[0] >> 8)
+                self.w("ADRESL", self.adc[0] & 0xFF)
             self.setbit("PIR1", "TMR2IF")
             self.lib.fw_isr_low()
             self.lib.fw_poll()                   # the main loop runs between interrupts

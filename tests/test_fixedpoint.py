@@ -148,7 +148,8 @@ def test_c_matches_python_model_bit_for_bit(tmp_path, kind, profile):
 def test_the_comparison_catches_a_one_lsb_change(tmp_path):
     fw, out = make_firmware(tmp_path, "fuzzy2")
     src = (out / "drive_core.c").read_text()
-    bad = src.replace("return (int16_t)((int32_t)g0 + CORE_ASR(v, 12));", "return (int16_t)((int32_t)g0 + 1 + CORE_ASR(v, 12));")
+    bad = src.replace("return (int16_t)(uint16_t)((uint16_t)bg0 + (uint16_t)(int16_t)ACC);",
+                      "return (int16_t)(uint16_t)((uint16_t)bg0 + 1u + (uint16_t)(int16_t)ACC);")
     assert bad != src
     (out / "drive_core.c").write_text(bad)
     lib = fx.build_core_lib(out, tmp_path / "lib-bad")

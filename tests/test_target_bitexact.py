@@ -13,7 +13,8 @@ core_speed_hall), core_duty.  The law parameters cycle through the design's own 
 (fixedpoint._rand_params, the host comparison's generator).  The mutation tests make sure the
 comparison can fail: a one-LSB change of a constant and a removed 32-bit product cast.
 
-FIXED DEFECT, NAMED: SDCC 4.2 pic16 miscompiled core_law (and so core_control).  In
+FIXED DEFECT, NAMED (history; the law is now assembly on SDCC, see
+test_a_changed_law_instruction_is_caught): SDCC 4.2 pic16 miscompiled core_law (and so core_control).  In
     t = CORE_MULS(kc, i); cterm = CORE_SHIFT_C(t);
     q = add32(pterm, st->d_filt);        /* (sa = pterm, sb = st->d_filt, add32s()) */
     q = sub32(q, cterm);                 /* (sa = q, sb = cterm, sub32s()) */
@@ -30,13 +31,12 @@ store, or sa/sb volatile).  The template now declares sa/sb volatile: law and co
 with the model on all 10^4 vectors, and a copy without volatile still shows the fault
 (test_the_operand_pair_is_volatile_against_the_sdcc_miscompile).
 
-MODEL AGAINST C (not a chip fault; not asserted here, the fix is the model's or the template's):
-core_speed_encoder on the chip equals the gcc build, but both differ from fixedpoint.speed_encoder
-when w_avg = -32768, no count in the sample and K / t5 > 32767 (t5 < 62 ticks): the C's
-div_sat15 caps the one-count bound at 32767 < |-32768| and sets w_avg = -32767, the model's
-unsaturated bound K // t5 leaves -32768.  First at vector 8020 (valid 1, pos = pos_prev = 65452,
-t5 = 54, t5_prev 33068, w_avg -32768): chip and gcc -32767, model -32768.  CHECKED therefore
-leaves the speed encoder out until model and C agree on that edge.
+MODEL AGAINST C, FIXED: core_speed_encoder on the chip equalled the gcc build, but both differed
+from fixedpoint.speed_encoder when w_avg = -32768, no count in the sample and K / t5 > 32767
+(t5 < 62 ticks): the C's div_sat15 caps the one-count bound at 32767 < |-32768| and sets
+w_avg = -32767, the model's unsaturated bound K // t5 left -32768 (first at vector 8020: valid 1,
+pos = pos_prev = 65452, t5 = 54, t5_prev 33068, w_avg -32768).  The bound is a speed (int16): the
+model now caps it at 32767 as the C does, and the speed encoder is compared too.
 """
 import re
 import subprocess
@@ -57,8 +57,8 @@ M32 = 0xFFFFFFFF
 EXT16 = (-32768, -32767, -1, 0, 1, 32766, 32767, -16384)
 EXT32 = (-2 ** 31, 2 ** 31 - 1, -1, 0)
 FUNCS = ("law", "control", "speed", "duty")
-#: compared by the tests (the speed encoder is not, yet: see MODEL AGAINST C above)
-CHECKED = ("law", "control", "duty")
+#: compared by the tests (all four)
+CHECKED = FUNCS
 N_SLOTS = (0xF00 - gpsim.RESULT_ADDR - 32) // 8      # checkpoints that fit the result area
 
 HARNESS = r"""
@@ -77,9 +77,8 @@ __at(0x%(slots)03X) volatile uint16_t slot[%(n_slots)d][4];
 static const int16_t ptab[%(np)d][4 * CORE_N_RULES + 9] = { %(ptab)s };
 static const int16_t ext16[8] = { -32767 - 1, -32767, -1, 0, 1, 32766, 32767, -16384 };
 static const int32_t ext32[4] = { INT32_MIN, INT32_MAX, -1, 0 };
-static core_params_t cp;
-static core_state_t cs;
-static core_law_t cl;
+#define cp core_p
+#define cs core_s
 static uint32_t x, hh[4], ss[4];
 static uint8_t f;
 
@@ -144,7 +143,7 @@ void main(void)
 {
     uint16_t k, s, n = %(n)du, ck = %(ck)du, t0 = %(t0)du;
     uint8_t j, q;
-    int16_t u, r, y, i;
+    int16_t r;
     uint16_t a, pos, t5;
     uint32_t v;
     x = %(seed)sUL;
@@ -164,10 +163,11 @@ void main(void)
         cp.accel_step = (uint16_t)ptab[q][4 * CORE_N_RULES + 8];
         /* core_law */
         f = 0u;
-        law_state(&cl);
-        r = r16(); y = r16(); i = r16();
-        u = core_law(&cl, &cp, r, y, i, cp.u_min, cp.u_max);
-        fold((uint16_t)u); fold_law(&cl);
+        law_state(&cs.law);
+        cs.r_applied = r16(); cs.speed = r16(); cs.current = r16();
+        cs.umin = cp.u_min; cs.umax = cp.u_max;
+        core_law();
+        fold((uint16_t)cs.u); fold_law(&cs.law);
         /* core_control */
         f = 1u;
         law_state(&cs.law);
@@ -181,8 +181,8 @@ void main(void)
         cs.dir = (uint8_t)(rnd() & 1u);
         r = r16();
         a = (uint16_t)(rnd() & 0x3FFu);
-        u = core_control(&cs, &cp, r, a);
-        fold((uint16_t)u); fold_law(&cs.law);
+        core_control(r, a);
+        fold((uint16_t)cs.u); fold_law(&cs.law);
         fold((uint16_t)cs.r_applied); fold((uint16_t)cs.cap); fold((uint16_t)cs.current); fold((uint16_t)cs.u);
         fold(cs.dir); fold(cs.hold); fold(cs.pdc);
         /* speed measurement */
@@ -200,11 +200,11 @@ void main(void)
         t5 = ((uint8_t)(v >> 24) < 96u) ? (uint16_t)(v & 0xFFu) : (uint16_t)v;
         j = (uint8_t)(((uint8_t)(v >> 16) & 7u) == 0u);
 #if %(hall)d
-        u = core_speed_hall(&cs, pos, t5, (uint8_t)(j ^ 1u), (uint8_t)((v >> 20) & 1u));
+        core_speed_hall(pos, t5, (uint8_t)(j ^ 1u), (uint8_t)((v >> 20) & 1u));
 #else
-        u = core_speed_encoder(&cs, pos, t5, j);
+        core_speed_encoder(pos, t5, j);
 #endif
-        fold((uint16_t)u); fold(cs.speed_valid); fold((uint16_t)cs.speed); fold((uint16_t)cs.w_avg);
+        fold((uint16_t)cs.speed); fold(cs.speed_valid); fold((uint16_t)cs.speed); fold((uint16_t)cs.w_avg);
         fold(cs.pos_prev); fold(cs.t5_prev);
         /* core_duty */
         f = 3u;
@@ -440,17 +440,15 @@ def test_pic18_code_matches_the_model(design):
     assert verdict == {f: None for f in CHECKED}, verdict
 
 
-def test_the_operand_pair_is_volatile_against_the_sdcc_miscompile(design):
-    """Without volatile, SDCC 4.2 pic16 coalesces cterm with the global sb past sb = st->d_filt
-    (module docstring) and the chip's core_law disagrees with the model from vector 1 on: the
-    template declares the pair volatile, and a copy without it still shows the fault (so the
-    comparison would catch a regression)."""
+def test_a_changed_law_instruction_is_caught(design):
+    """On SDCC the law is assembly (drive_core.c's core_law_asm, on the accumulator primitives):
+    one changed literal in it (mu1 = 4097 - frac instead of 4096 - frac) must make the chip
+    disagree with the model, so the comparison runs the assembly the HEX holds."""
     plan, folder, tmp = design
-    assert (folder / "drive_core.c").read_text().count("static volatile int32_t sa, sb;") == 1
-    broken = _mutated(folder, tmp, "nonvolatile", "drive_core.c", "static volatile int32_t sa, sb;",
-                      "static int32_t sa, sb;")
-    verdict = compare(broken, tmp / "nonvolatile-run", plan, n=200, funcs=("law", "control"))
-    assert verdict["law"] is not None and verdict["law"].startswith("first failing vector 1: "), verdict
+    old = "    MOVLW   0x10\n    ADDWFC  _core_acc + 1, F, A\n    MOVFF   _core_acc + 0, _core_s + 11\n"
+    bad = _mutated(folder, tmp, "asm", "drive_core.c", old, old.replace("0x10", "0x11"))
+    verdict = compare(bad, tmp / "asm-run", plan, n=200, funcs=("law", "control"))
+    assert verdict["law"] is not None and verdict["law"].startswith("first failing vector"), verdict
     assert verdict["control"] is not None, verdict
 
 
@@ -476,9 +474,8 @@ def test_a_one_lsb_constant_change_is_caught(design):
 
 def test_a_removed_32_bit_cast_is_caught(design):
     plan, folder, tmp = design
-    # mul_u16_k's low partial product as the portable 16x16 product without its (uint32_t) cast:
-    # int is 16 bits on the PIC18, the product is truncated to 16 bits
-    bad = _mutated(folder, tmp, "cast", "drive_core.c", "uint32_t r = CORE_MULU(x, (uint16_t)(k & 0xFFFFu));",
-                   "uint32_t r = x * (uint16_t)(k & 0xFFFFu);")
+    # acc_mul_k (x K for the 32-bit speed constant) without the (uint32_t) cast of the upper
+    # partial product: int is 16 bits on the PIC18, hi << 16 loses it
+    bad = _mutated(folder, tmp, "cast", "drive_core.c", "((uint32_t)hi << 16)", "(hi << 16)")
     verdict = compare(bad, tmp / "cast-run", plan, n=2000)
-    assert verdict["duty"] is not None, verdict
+    assert verdict["speed"] is not None, verdict

@@ -162,9 +162,11 @@ static uint8_t cap_buf[2u * LINK_CAPTURE_WORDS]; /* capture ring, sample-major, 
 #endif
 static union { int32_t l; uint8_t b[4]; } V;   /* the value being moved (main loop only) */
 
-/* The most used scalars, in the access bank under SDCC (LINK_ACCESS_AT, 32 B at most: no bank
- * select per access; the chip's access RAM is 0x00-0x5F and SDCC's own registers r0x.. start at
- * 0x00, so gplink refuses a build whose registers reach this block).  rx_n, rx_ready, rx_ovf and
+/* The most used scalars, in the access bank under SDCC (LINK_ACCESS_AT up to 0x3F: no bank
+ * select per access; the chip's access RAM is 0x00-0x5F, but picdrive.firmware.gpsim's timing
+ * build keeps 0x40-0x5F for the registers it moves, so the firmware's access RAM ends at 0x3F;
+ * SDCC's own registers r0x.. and drive_core's accumulator sit below this block, and gplink
+ * refuses a build whose registers reach it).  rx_n, rx_ready, rx_ovf and
  * the CRC come first: the assembly below addresses them by offset. */
 #if defined(__SDCC_pic16)
 #define LINK_FAST_RAM __at(LINK_ACCESS_AT)  /* external linkage: SDCC 4.2 emits a static __at twice */
@@ -210,7 +212,12 @@ static struct {
     uint16_t tm;
     uint16_t cm;
 } sg;
-typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u && sizeof(struct link_fast) <= 32u) ? 1 : -1];
+#if defined(__SDCC_pic16)
+typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u
+                               && LINK_ACCESS_AT + sizeof(struct link_fast) <= 0x40u) ? 1 : -1];
+#else
+typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u) ? 1 : -1];
+#endif
 #define rx_n link_hot.rx_n
 #define rx_ready link_hot.rx_ready
 #define rx_ovf link_hot.rx_ovf

@@ -3,7 +3,7 @@
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
  *
  * protocol 2.0, 30 table entries (2 rules),
- * table hash 0x9E641D7AUL, build id 0xADAAD003UL, profile hash 0x4B0E5FBAUL
+ * table hash 0x9E641D7AUL, build id 0xB7C9F28EUL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -46,7 +46,7 @@
 
 #define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0xADAAD003UL
+#define LINK_BUILD_ID           0xB7C9F28EUL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
 #define LINK_TABLE_HASH         0x9E641D7AUL
 #define LINK_SAMPLE_HZ          1000u
@@ -79,8 +79,8 @@
 #else
 #define LINK_HELLO_CAPTURE_WORDS 0u        /* hello: no capture in this build */
 #endif
-#ifndef LINK_ACCESS_AT            /* SDCC: access-bank address of the link's 32 B of hot scalars */
-#define LINK_ACCESS_AT          0x20
+#ifndef LINK_ACCESS_AT            /* SDCC: access-bank address of the link's hot scalars (27 B at most), */
+#define LINK_ACCESS_AT          0x25  /* ending at 0x3F: SDCC's registers and drive_core's access RAM below */
 #endif
 #ifndef LINK_EE_BASE
 #define LINK_EE_BASE            0u

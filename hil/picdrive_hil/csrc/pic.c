@@ -60,6 +60,7 @@ void pic_reset(void)
     g.rx_arrive = NEVER; g.baud_bad = 0;
     g.ee_unlock = 0; g.ee_done = NEVER;
     g.adc_done = NEVER;
+    g.sev_at = NEVER;
     g.pwm_buf_stale = 1;
     g.hall_ext_ok = 0;
     g.irq_dirty = 1;
@@ -244,6 +245,13 @@ static void pwm_start_period(int64_t at)
     if (per != g.pwm_period) g.legs_dirty = 1;
     g.pwm_period = per;
     g.pwm_next = at + g.pwm_period;
+    /* special event trigger (edge-aligned, counting up, postscale 1:1: what the firmware uses):
+       PTMR = SEVTCMP starts an A/D conversion when ADCON3.SSRC4 selects the PCPWM */
+    g.sev_at = NEVER;
+    if (ptmod() < 2 && ((picsim_sfr[R_ADCON3] >> B_ADCON3_SSRC4) & 1)) {
+        uint16_t sev = (uint16_t)(sfr16(R_SEVTCMPL, R_SEVTCMPH) & 0x0FFF);
+        if (sev <= g.ptper_act) g.sev_at = at + (int64_t)sev * tcy(ptckps());
+    }
     if (g.flt_cbc && !g.flta_asserted) {
         g.flt_cbc = 0;
         g.legs_dirty = 1;
@@ -263,6 +271,7 @@ static void pwm_time_base(void)
     } else if (!on && g.pwm_on) {
         g.pwm_on = 0;
         g.pwm_next = NEVER;
+        g.sev_at = NEVER;
     }
     if (!g.pwm_on) pwm_load_buffers();
 }
@@ -963,6 +972,7 @@ int64_t pic_next_event(void)
     if (g.rx_arrive < t) t = g.rx_arrive;
     if (g.ee_done < t) t = g.ee_done;
     if (g.adc_done < t) t = g.adc_done;
+    if (g.sev_at < t) t = g.sev_at;
     return t;
 }
 
@@ -977,6 +987,15 @@ void pic_events_due(void)
     if (g.t5.on && g.t5.next <= g.now) timer_event(&g.t5, 5);
     if (g.ee_done <= g.now) ee_complete();
     if (g.adc_done <= g.now) adc_complete();
+    if (g.sev_at <= g.now) {
+        g.sev_at = NEVER;
+        /* the trigger starts a conversion unless one is running (GO already set) */
+        if (((picsim_sfr[R_ADCON3] >> B_ADCON3_SSRC4) & 1) && g.adc_done == NEVER &&
+            ((picsim_sfr[R_ADCON0] >> B_ADCON0_ADON) & 1)) {
+            hw_setbit(R_ADCON0, B_ADCON0_GO);
+            adc_start();
+        }
+    }
     if (g.pwm_on && g.pwm_next <= g.now) pwm_boundary();
 }
 

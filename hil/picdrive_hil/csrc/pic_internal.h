@@ -114,6 +114,7 @@ typedef struct {
     /* ADC */
     int64_t adc_done;
     uint8_t adc_ch;
+    int64_t sev_at;           /* the PCPWM special event (PTMR = SEVTCMP) in this period, NEVER if none */
 
     /* pins and inputs */
     uint8_t ext[5];           /* external pin levels A..E */

@@ -769,7 +769,7 @@ def speed_encoder(plan: FixedPointPlan, st: CoreState, pos: int, t5: int, ovf: i
             prev = st.w_avg                         # no history: no extrapolation
         st.speed_valid = 1
     elif st.speed_valid and t5 != 0:
-        bound = plan.k_speed // t5                  # at most one count in the time since the last edge
+        bound = min(plan.k_speed // t5, INT16_MAX)  # at most one count in the time since the last edge
         mag = -st.w_avg if st.w_avg < 0 else st.w_avg
         if bound < mag:
             st.w_avg = -bound if st.w_avg < 0 else bound
@@ -870,7 +870,7 @@ def core_structs(n_rules: int):
         _fields_ = [("law", Law), ("speed_valid", C.c_uint8), ("pos_prev", C.c_uint16), ("t5_prev", C.c_uint16),
                     ("w_avg", C.c_int16), ("r_applied", C.c_int16), ("cap", C.c_int16),
                     ("speed", C.c_int16), ("current", C.c_int16), ("u", C.c_int16), ("dir", C.c_uint8),
-                    ("hold", C.c_uint8), ("pdc", C.c_uint16)]
+                    ("hold", C.c_uint8), ("pdc", C.c_uint16), ("umin", C.c_int16), ("umax", C.c_int16)]
 
     return Params, Law, State
 
@@ -892,23 +892,37 @@ def build_core_lib(folder, out_dir=None, cc: str = "gcc"):
         raise FixedPointError(f"drive_core.c does not compile: {r.stderr.strip()}")
     d = C.CDLL(str(lib))
     Params, Law, State = core_structs(_n_rules_of(folder))
-    d.core_law.restype = C.c_int16
-    d.core_law.argtypes = [C.POINTER(Law), C.POINTER(Params), C.c_int16, C.c_int16, C.c_int16, C.c_int16,
-                           C.c_int16]
-    d.core_control.restype = C.c_int16
-    d.core_control.argtypes = [C.POINTER(State), C.POINTER(Params), C.c_int16, C.c_uint16]
-    d.core_speed_encoder.restype = C.c_int16
-    d.core_speed_encoder.argtypes = [C.POINTER(State), C.c_uint16, C.c_uint16, C.c_uint8]
-    d.core_speed_hall.restype = C.c_int16
-    d.core_speed_hall.argtypes = [C.POINTER(State), C.c_uint16, C.c_uint16, C.c_uint8, C.c_uint8]
+    # the C's parameters and state are globals (core_p, core_s): the functions take no pointers
+    d.core_law.restype = None
+    d.core_law.argtypes = []
+    d.core_control.restype = None
+    d.core_control.argtypes = [C.c_int16, C.c_uint16]
+    # the firmware compiles the speed sensor's function only (FW_SPEED_ENCODER)
+    if _speed_encoder_of(folder):
+        d.core_speed_encoder.restype = None
+        d.core_speed_encoder.argtypes = [C.c_uint16, C.c_uint16, C.c_uint8]
+    else:
+        d.core_speed_hall.restype = None
+        d.core_speed_hall.argtypes = [C.c_uint16, C.c_uint16, C.c_uint8, C.c_uint8]
     d.core_duty.restype = C.c_uint16
     d.core_duty.argtypes = [C.c_int16]
     d.core_premise_k.restype = C.c_uint16
     d.core_premise_k.argtypes = [C.c_int16, C.c_int16]
     d.core_reset.restype = None
-    d.core_reset.argtypes = [C.POINTER(State)]
+    d.core_reset.argtypes = []
+    d.core_p = Params.in_dll(d, "core_p")
+    d.core_s = State.in_dll(d, "core_s")
     d.structs = (Params, Law, State)
     return d
+
+
+def _speed_encoder_of(folder) -> bool:
+    import re
+    from pathlib import Path
+    m = re.search(r"#define FW_SPEED_ENCODER ([01])\n", (Path(folder) / "drive_params.h").read_text())
+    if not m:
+        raise FixedPointError(f"{folder}/drive_params.h has no FW_SPEED_ENCODER")
+    return m.group(1) == "1"
 
 
 def _n_rules_of(folder) -> int:
@@ -962,7 +976,6 @@ def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
     saturation path) with values around the design's own numbers.
     """
     import numpy as np
-    Params, Law, State = lib.structs
     rng = np.random.default_rng(seed)
     span_y = plan.to_speed_raw(1.5 * max(abs(plan.premise_hi) * 2.0 ** -plan.qs, 1.0))
     res = {"law": [0, 0, None], "control": [0, 0, None], "speed": [0, 0, None], "duty": [0, 0, None],
@@ -988,7 +1001,7 @@ def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
             if r[2] is None:
                 r[2] = what
 
-    cp = Params()
+    cp, cs = lib.core_p, lib.core_s
     for k in range(n):
         wide = rng.random() < 0.3
         p = _rand_params(plan, rng, wide)
@@ -999,11 +1012,13 @@ def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
         # the law
         umin, umax = p.u_min, p.u_max
         s = _rand_law_state(rng, plan.i_lim)
-        cl = Law()
+        cl = cs.law
         law_to_c(cl, s)
         r_, y_ = _i16(rng, span=span_y), _i16(rng, span=span_y)
         i_ = _i16(rng, span=1023)
-        uc = lib.core_law(cl, cp, r_, y_, i_, umin, umax)
+        cs.r_applied, cs.speed, cs.current, cs.umin, cs.umax = r_, y_, i_, umin, umax
+        lib.core_law()
+        uc = cs.u
         up = law_step(plan, p, s, r_, y_, i_, umin, umax)
         ok = uc == up and law_tuple(cl) == law_tuple(s)
         note("law", ok, f"law r={r_} y={y_} i={i_} params={p} -> C {uc} {law_tuple(cl)} Py {up} {law_tuple(s)}")
@@ -1011,13 +1026,13 @@ def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
         st = CoreState(law=_rand_law_state(rng, plan.i_lim), speed_valid=int(rng.integers(0, 2)),
                        r_applied=_i16(rng, span=span_y), cap=int(rng.integers(0, plan.u_limit + 1)),
                        speed=_i16(rng, span=span_y), current=0, u=0, dir=int(rng.integers(0, 2)), hold=0, pdc=0)
-        cs = State()
         law_to_c(cs.law, st.law)
         cs.speed_valid, cs.r_applied, cs.cap, cs.speed = st.speed_valid, st.r_applied, st.cap, st.speed
         cs.current, cs.u, cs.dir, cs.hold, cs.pdc = 0, 0, st.dir, 0, 0
         target = _i16(rng, span=span_y)
         adc = int(rng.integers(0, 1024))
-        uc = lib.core_control(cs, cp, target, adc)
+        lib.core_control(target, adc)
+        uc = cs.u
         up = core_control(plan, p, st, target, adc)
         ok = (uc == up and law_tuple(cs.law) == law_tuple(st.law) and
               (cs.r_applied, cs.cap, cs.current, cs.u, cs.dir, cs.hold, cs.pdc) ==
@@ -1037,13 +1052,15 @@ def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
         cs.speed_valid, cs.w_avg, cs.pos_prev, cs.t5_prev = valid0, wavg0, pos_prev, prev_t5
         st2 = CoreState(speed_valid=valid0, w_avg=wavg0, pos_prev=pos_prev, t5_prev=prev_t5)
         if plan.speed_source == "encoder":
-            wc = lib.core_speed_encoder(cs, a16, b16, fl[0])
+            lib.core_speed_encoder(a16, b16, fl[0])
+            wc = cs.speed
             wp = speed_encoder(plan, st2, a16, b16, fl[0])
             ok = (wc == wp and (cs.speed_valid, cs.speed, cs.w_avg, cs.pos_prev, cs.t5_prev) ==
                   (st2.speed_valid, st2.speed, st2.w_avg, st2.pos_prev, st2.t5_prev))
             what = f"speed pos={a16} t5={b16} ovf={fl[0]} prev=({valid0},{wavg0},{pos_prev},{prev_t5})"
         else:
-            wc = lib.core_speed_hall(cs, a16, b16, fl[0], fl[1])
+            lib.core_speed_hall(a16, b16, fl[0], fl[1])
+            wc = cs.speed
             wp = speed_hall(plan, st2, a16, b16, fl[0], fl[1])
             ok = wc == wp and cs.speed == st2.speed
             what = f"hall speed period={a16} elapsed={b16} flags={fl}"

@@ -11,15 +11,24 @@ build does about it:
   GPRs there; the timing link keeps the linker off 0x060-0x07F so nothing
   else lives in them.
 * Registers whose value the hardware drives (interrupt flags, UART receive,
-  ports, ADC, Timer5) are placed in access RAM (0x040-0x05F) in the timing
-  build, so the harness can set them.  An access-RAM GPR and an SFR are both
+  ports, the ADC result, Timer5) are placed in access RAM (0x040-0x05F) in the
+  timing build, so the harness can set them.  An access-RAM GPR and an SFR are both
   reached with a=0: the firmware's instructions and their cycles are the same.
   Interrupts are therefore never taken for real: the harness calls the
   interrupt entry with CALL (2 cycles, as RETFIE's 2) and adds
   ``ENTRY_CYCLES`` for the interrupt latency and the GOTO at the vector.
-* ADCON0 is one of those registers: the firmware's polled ADC wait finds GO
-  still set and runs to its own poll limit, i.e. the cycles are the
-  firmware's bound on that wait, not a simulated conversion time.
+* The ADC is the timing processor's own: its ADCON0 has the same GO/DONE and
+  ADON bits and converts AN0/AN1 for the firmware's group A/B codes, ADCON2
+  has the same clock and acquisition fields, so a software start and the
+  firmware's wait for GO/DONE take the simulated conversion time.  The bus
+  voltage (AN1 = RA1) is a gpsim pull-up module at the middle of the
+  firmware's under/overvoltage window (``FW_BUS_UV``..``FW_BUS_OV``): the
+  speed loop runs without a bus fault.  The bus current is converted on the
+  18F4431 by the PCPWM special event (ADCON3, SEVTCMP), which the timing
+  processor does not have: the harness writes each state's current reading
+  into ADRESH:ADRESL before the call, and the firmware's wait for a
+  trigger-started conversion in flight at interrupt entry (at most one
+  conversion, ~130 cycles on the chip) is not in the figure.
 
 Timer1 (on both chips, Fosc/4, 1:1) is read before and after each measured
 call; the harness stores the differences in RAM and gpsim's register dump is
@@ -43,8 +52,11 @@ __all__ = ["GpsimError", "measure", "measure_modes", "TELEMETRY_MODES", "Cycles"
 TIMING_PROCESSOR = "p18f4620"
 ENTRY_CYCLES = 4             # interrupt latency to the vector (3-4 Tcy) + GOTO (2) - the harness's CALL (2)
 HARNESS_INPUTS = ("INTCON", "INTCON2", "INTCON3", "PIR1", "PIR2", "PIR3", "PIE1", "PIE2", "PIE3",
-                  "RCREG", "RCSTA", "TXSTA", "TXREG", "ADCON0", "ADRESH", "ADRESL",
-                  "PORTA", "PORTB", "PORTC", "PORTD", "PORTE", "TMR5L", "TMR5H")
+                  "RCREG", "RCSTA", "TXSTA", "TXREG",
+                  "PORTA", "PORTB", "PORTC", "PORTD", "PORTE", "TMR5L", "TMR5H",
+                  # read in a loop until two reads agree: SDCC may read one with MOVFF (0xF6x, a GPR in
+                  # bank 15 on the timing processor) and the other with a=0 (0x06x): keep them one register
+                  "POSCNTL", "POSCNTH")
 INPUT_BASE = 0x040           # access RAM the inputs move to (0x040-0x05F)
 RESULT_ADDR = 0xB00          # uint16 results, up to 0xEFF
 MAX_RESULTS = 512
@@ -223,10 +235,10 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
             drain(TX_BYTES_PER_MS * 4)
             steps.extend([OP_POLL, 0, key("link_poll_frame:" + name), OP_POLL, 0, key("link_poll")])
         elif what == "speed":
-            label, adc, n = arg
+            label, adc, n, step = arg
             steps.extend([OP_ADC, adc >> 8, adc & 0xFF])
             for _ in range(n):
-                steps.extend([OP_SPEED, 0, key("speed_loop_isr:" + label), OP_POLL, 0, key("link_poll")])
+                steps.extend([OP_SPEED, step & 0xFF, key("speed_loop_isr:" + label), OP_POLL, 0, key("link_poll")])
                 drain(TX_BYTES_PER_MS)
         elif what in ("hall", "hall_invalid"):
             codes = hall_codes if what == "hall" else HALL_INVALID
@@ -240,7 +252,7 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
         raise GpsimError("timing corpus has too many keys")
     table = ",\n".join("    " + ", ".join(f"{v}" for v in steps[i:i + 24]) for i in range(0, len(steps), 24))
     regs = ("TMR1L", "TMR1H", "T1CON", "PIR1", "PIR3", "TXSTA", "RCREG", "INTCON", "INTCON3", "PORTC",
-            "ADRESH", "ADRESL", "TMR5L", "TMR5H")
+            "ADRESH", "ADRESL", "TMR5L", "TMR5H", "POSCNTL", "POSCNTH")
     text = f"""/* timing harness (picdrive.gpsim): GENERATED, measurement build only */
 #include <stdint.h>
 #include "drive.h"
@@ -253,7 +265,8 @@ static const uint8_t steps[] = {{
 }};
 static volatile uint8_t lo, hi;
 static uint16_t t, i;
-static uint8_t op, a, k, n;
+static uint8_t op, a, k, n, adc_h, adc_l;
+static uint16_t pos;
 
 void harness_done(void) {{ for (;;) {{ }} }}
 
@@ -302,8 +315,11 @@ void main(void)
                 lo = TMR1L; hi = TMR1H; keep();
             }}
         }} else if (op == {OP_ADC}u) {{
-            ADRESH = a; ADRESL = k;
+            adc_h = a; adc_l = k;
         }} else if (op == {OP_SPEED}u) {{
+            ADRESH = adc_h; ADRESL = adc_l;      /* the bus current the special event converted */
+            pos = (uint16_t)(pos + (uint16_t)(int16_t)(int8_t)a);    /* encoder counts in this sample */
+            POSCNTL = (uint8_t)pos; POSCNTH = (uint8_t)(pos >> 8);
             PIR1 |= 0x12u; TXSTA |= 0x02u;
             TMR1H = 0; TMR1L = 0;
             __asm
@@ -333,15 +349,22 @@ void main(void)
 TELEMETRY_MODES = ("off", "4", "4+capture")
 
 
-def default_corpus(modes=TELEMETRY_MODES, *, protocol_package: str = "picdrive.link") -> list[tuple[str, list]]:
+def default_corpus(modes=TELEMETRY_MODES, *, protocol_package: str = "picdrive.link",
+                   adc_trip: int = 0x3FF) -> list[tuple[str, list]]:
     """The firmware states measured, once per telemetry mode.
 
-    States: rest, a step into the current limit (full reference, ADC at full
-    scale), reversal, saturation (an out-of-range reference), int16 extremes,
-    the largest reply and a MAX_PAYLOAD frame.  ``modes``: 'off', '4' (four
-    signals streaming) and/or '4+capture' (and a capture armed).
+    States: rest, a step into the current limit (full reference, the bus
+    current just under the overcurrent trip ``adc_trip``, ADC counts),
+    reversal, saturation (an out-of-range reference), int16 extremes, the
+    largest reply and a MAX_PAYLOAD frame, then an overcurrent (ADC at full
+    scale: the fault path) and invalid hall codes.  Every state before the
+    overcurrent runs the law (no fault latched).  Each state moves the
+    encoder by its own count per sample (the M/T quotient; 0 after motion:
+    the one-count bound's division).  ``modes``: 'off', '4' (four signals
+    streaming) and/or '4+capture' (and a capture armed).
     """
     f = _frames(protocol_package)
+    high = max(0, min(adc_trip, 0x400) - 1)
     cases = []
     for m in modes:
         if m not in TELEMETRY_MODES:
@@ -350,18 +373,33 @@ def default_corpus(modes=TELEMETRY_MODES, *, protocol_package: str = "picdrive.l
                   ("frame", ("telem_off" if m == "off" else "telem4", f["telem_off" if m == "off" else "telem4"][0]))]
         if m == "4+capture":
             cases.append(("frame", ("capture", f["capture"][0])))
-        cases += [("speed", ("rest", 0x000, 4)), ("hall", None),
+        cases += [("speed", ("rest", 0x000, 4, 0)), ("hall", None),
                   ("frame", ("set_speed_max", f["set_speed_max"][0])), ("frame", ("start", f["start"][0])),
-                  ("speed", ("step", 0x3FF, 6)), ("hall", None),
-                  ("speed", ("current_limit", 0x3FF, 4)),
-                  ("frame", ("set_speed_min", f["set_speed_min"][0])), ("speed", ("reversal", 0x000, 6)),
+                  ("speed", ("step", high, 6, 20)), ("hall", None),
+                  ("speed", ("current_limit", high, 4, 40)),
+                  ("frame", ("set_speed_min", f["set_speed_min"][0])), ("speed", ("reversal", 0x000, 6, -25)),
+                  ("speed", ("coast", 0x000, 3, 0)),
                   ("hall", None),
-                  ("frame", ("set_speed_big", f["set_speed_big"][0])), ("speed", ("saturation", 0x3FF, 4)),
-                  ("speed", ("int16_extremes", 0x200, 4)),
+                  ("frame", ("set_speed_big", f["set_speed_big"][0])), ("speed", ("saturation", high, 4, 127)),
+                  ("speed", ("int16_extremes", high // 2, 4, -128)),
                   ("frame", ("max_reply", f["max_reply"][0])), ("frame", ("max_frame", f["max_frame"][0])),
-                  # invalid codes last: they may latch a hall fault (cleared at the next mode's start)
-                  ("hall_invalid", None), ("speed", ("hall_fault", 0x000, 3))]
+                  # the fault paths last: full-scale current latches an overcurrent, the invalid
+                  # codes a hall fault (cleared at the next mode's start)
+                  ("speed", ("overcurrent", 0x3FF, 2, 0)),
+                  ("hall_invalid", None), ("speed", ("hall_fault", 0x000, 3, 0))]
     return cases
+
+
+def firmware_limits(folder) -> dict[str, int]:
+    """FW_ADC_TRIP, FW_BUS_UV and FW_BUS_OV (ADC counts) of a generated folder's drive_params.h."""
+    text = (Path(folder) / "drive_params.h").read_text()
+    out = {}
+    for name in ("FW_ADC_TRIP", "FW_BUS_UV", "FW_BUS_OV"):
+        m = re.search(rf"#define {name} (\d+)u?\b", text)
+        if not m:
+            raise GpsimError(f"{folder}/drive_params.h has no {name}: regenerate it with 'picdrive firmware'")
+        out[name] = int(m[1])
+    return out
 
 
 def _gpsim() -> str:
@@ -402,7 +440,9 @@ def measure_modes(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3
     from .target import build_hex
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    cases = default_corpus(modes, protocol_package=protocol_package)
+    lim = firmware_limits(folder)
+    cases = default_corpus(modes, protocol_package=protocol_package, adc_trip=lim["FW_ADC_TRIP"])
+    bus_v = 5.0 * (lim["FW_BUS_UV"] + lim["FW_BUS_OV"]) / 2 / 1023
     hall_codes = [1, 3, 2, 6, 4, 5, 1, 5, 4, 6, 2, 3, 1]    # forward, then reverse; HALL_INVALID apart
     harness, keys, counts = harness_c(cases, hall_codes, hall_shift)
     hdr, sfr = timing_device()
@@ -412,7 +452,11 @@ def measure_modes(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3
                   extra_c={"main_sdcc.c": _main_without_main(Path(folder) / "main_sdcc.c"), "harness.c": harness},
                   device=(hdr, sfr))
     script = out / "timing.stc"
-    script.write_text("\n".join([f"break e 0x{b.functions['_harness_done'].address:x}",
+    script.write_text("\n".join([
+        # the bus voltage on AN1 (RA1): a pull-up module at the middle of the UV/OV window
+        "module library libgpsim_modules", "module load pullup vbus", f"vbus.voltage = {bus_v:.4f}",
+        "vbus.resistance = 100", "node nbus", "attach nbus porta1 vbus.pin",
+        f"break e 0x{b.functions['_harness_done'].address:x}",
                                  f"break c {max_cycles}", "run", "dump r", "quit", ""]))
     r = subprocess.run([_gpsim(), "-i", "-S", "disable", "-p", TIMING_PROCESSOR, "-c", str(script),
                         str(b.hex_path.resolve())], capture_output=True, stdin=subprocess.DEVNULL, timeout=900)
