@@ -100,6 +100,13 @@ static void note_adc_start(void)
     P.st.adc_starts++;
     int k = speed_top();
     if (k >= 0) P.nest[k].adc_started = 1;
+}
+
+/* every conversion of the current signal, started by software (GO) or by the PCPWM's special
+   event: the PWM phase it samples at (pic.c's adc_start) */
+static void pil_adc_started(void)
+{
+    if (!P.loaded || g.adc_ch > 8 || g.cfg.analog_signal[g.adc_ch] != ASIG_CURRENT) return;
     if (!g.pwm_on || g.pwm_period <= 0) return;
     double dmax = 0.0;
     for (int x = 0; x < 4; x++) if (g.duty[x] > dmax) dmax = g.duty[x];
