@@ -90,7 +90,7 @@ def import_baseline(root: Path) -> str:
     return BASELINE_PACKAGE
 
 
-def measure(folder: Path, name: str, work: Path, protocol_package: str = "picdrive") -> tuple[target.Build, dict]:
+def measure(folder: Path, name: str, work: Path, protocol_package: str = "picdrive.link") -> tuple[target.Build, dict]:
     b = target.build_measured(folder, work / "hex", name=name)
     return b, gpsim.measure_modes(folder, work / "timing", protocol_package=protocol_package)
 

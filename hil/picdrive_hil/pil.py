@@ -19,8 +19,6 @@ from pathlib import Path
 from . import build, ihex
 from .build import TwinError
 
-TCY_PER_S_40MHZ = 10_000_000
-
 
 class PilError(TwinError):
     """The HEX cannot run on the processor twin as configured."""
@@ -37,7 +35,7 @@ class PilStats(C.Structure):
         "retfie_outside", "in_isr", "resets", "sleep_runs", "adc_starts", "rcreg_reads",
         "speed_preempted", "overrun_first_cycle", "pos_reads", "pos_delay_min", "pos_delay_max",
         "pos_read_unmasked", "pos_read_after_adc", "adc_pwm_starts", "adc_in_on_time",
-        "adc_phase_min_ppm", "adc_phase_max_ppm")]
+        "adc_phase_min_ppm", "adc_phase_max_ppm", "missed_at_start")]
 
 
 def bind(lib: C.CDLL) -> C.CDLL:
@@ -174,6 +172,7 @@ class Report:
     speed_max: int
     speed_overrun: int
     speed_lost: int
+    missed_at_start: int
     high_n: int
     high_max: int
     high_mean: float
@@ -204,6 +203,7 @@ class Report:
             "speed_isr_max_fraction": round(self.speed_max / per, 4) if per else None,
             "speed_periods_missed": self.speed_overrun + self.speed_lost,
             "speed_periods_overrun": self.speed_overrun, "speed_periods_lost": self.speed_lost,
+            "speed_periods_missed_at_start": self.missed_at_start,
             "high_isr": {"n": self.high_n, "mean_cycles": round(self.high_mean, 1), "max_cycles": self.high_max},
             "low_isr": {"n": self.low_n, "max_cycles": self.low_max},
             "return_stack_high_water": self.stack_levels,
@@ -224,7 +224,8 @@ class Report:
                        f"{self.speed_max} cycles min/mean/max ({self.speed_min * us:.1f} / {self.speed_mean * us:.1f} / "
                        f"{self.speed_max * us:.1f} us), {100 * (d['speed_isr_max_fraction'] or 0):.1f} % of its period "
                        f"at worst; periods missed {self.speed_overrun + self.speed_lost} "
-                       f"(overran {self.speed_overrun}, lost {self.speed_lost})")
+                       f"(overran {self.speed_overrun}, lost {self.speed_lost}; {self.missed_at_start} of them "
+                       "before the first speed-loop interrupt ended)")
         else:
             out.append("speed-loop interrupt: not run yet")
         if self.high_n:
@@ -246,7 +247,7 @@ def report(st: PilStats, img: ihex.HexImage, fosc_hz: float, enlarged: bool, spe
         cycles=int(st.cycles), insns=int(st.insns), fosc_hz=fosc_hz,
         speed_n=int(st.speed_n), speed_min=int(st.speed_min),
         speed_mean=(st.speed_sum / st.speed_n) if st.speed_n else 0.0, speed_max=int(st.speed_max),
-        speed_overrun=int(st.speed_overrun), speed_lost=int(st.speed_lost),
+        speed_overrun=int(st.speed_overrun), speed_lost=int(st.speed_lost), missed_at_start=int(st.missed_at_start),
         high_n=int(st.high_n), high_max=int(st.high_max),
         high_mean=(st.high_sum / st.high_n) if st.high_n else 0.0,
         low_n=int(st.low_n), low_max=int(st.low_max),

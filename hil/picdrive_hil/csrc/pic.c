@@ -659,6 +659,7 @@ static void adc_start(void)
     int sel = (picsim_sfr[R_ADCHS] >> shift[grp]) & 3;
     static const int chan[4][3] = {{0, 4, 8}, {1, 5, -1}, {2, 6, -1}, {3, 7, -1}};
     g.adc_ch = (uint8_t)(sel < 3 ? chan[grp][sel] : -1);
+    PIL_ADC_STARTED();
     uint8_t c2 = picsim_sfr[R_ADCON2];
     static const int tad_div[8] = {2, 8, 32, 0, 4, 16, 64, 0};
     int div = tad_div[c2 & 7];

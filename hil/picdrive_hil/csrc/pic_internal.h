@@ -153,9 +153,12 @@ typedef struct {
 /* the processor twin counts speed-loop periods its interrupt missed (pil.c) */
 #ifdef TWIN_PIL
 static void pil_timer2_fired(int flag_was_set);
+static void pil_adc_started(void);
 #define PIL_TIMER2_FIRED(was) pil_timer2_fired(was)
+#define PIL_ADC_STARTED() pil_adc_started()
 #else
 #define PIL_TIMER2_FIRED(was) ((void)0)
+#define PIL_ADC_STARTED() ((void)0)
 #endif
 
 /* one twin per loaded copy of the library; prefixed names keep clear of the firmware's */

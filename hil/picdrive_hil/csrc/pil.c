@@ -100,6 +100,13 @@ static void note_adc_start(void)
     P.st.adc_starts++;
     int k = speed_top();
     if (k >= 0) P.nest[k].adc_started = 1;
+}
+
+/* every conversion of the current signal, started by software (GO) or by the PCPWM's special
+   event: the PWM phase it samples at (pic.c's adc_start) */
+static void pil_adc_started(void)
+{
+    if (!P.loaded || g.adc_ch > 8 || g.cfg.analog_signal[g.adc_ch] != ASIG_CURRENT) return;
     if (!g.pwm_on || g.pwm_period <= 0) return;
     double dmax = 0.0;
     for (int x = 0; x < 4; x++) if (g.duty[x] > dmax) dmax = g.duty[x];
@@ -274,9 +281,14 @@ static void pil_irq_hook(void *ctx, int what)
 static void pil_timer2_fired(int flag_was_set)
 {
     if (!P.loaded) return;
-    if (flag_was_set) { P.st.speed_lost++; return; }
+    if (flag_was_set) {
+        P.st.speed_lost++;
+        if (P.st.speed_n == 0) P.st.missed_at_start++;
+        return;
+    }
     for (int k = 0; k < P.nest_n && k < PIL_NEST; k++)
         if (P.nest[k].speed) {
+            if (P.st.speed_n == 0) P.st.missed_at_start++;
             if (!P.st.speed_overrun) P.st.overrun_first_cycle = P.cpu.cycles;
             P.st.speed_overrun++;
             return;
