@@ -143,6 +143,26 @@ static int64_t next_hall_edge(void)
     return g.now + (int64_t)(dt * PS_PER_S) + 1000;          /* +1 ns: land past the edge */
 }
 
+/* the end of the next step of the event loop (SIL and processor twin): the first of the
+   peripherals' next event, a PWM period (or max_off), a hall edge, a load knot, the trace,
+   the end of an injected hall code or overcurrent, and t_end; always after now */
+static int64_t next_step_end(int64_t t_end, int64_t max_off)
+{
+    int64_t tn = pic_next_event();
+    int64_t cap = g.now + (g.pwm_on && g.pwm_period > 0 && g.pwm_period < max_off ? g.pwm_period : max_off);
+    if (cap < tn) tn = cap;
+    int64_t e = next_hall_edge();
+    if (e < tn) tn = e;
+    e = next_load_knot();
+    if (e < tn) tn = e;
+    if (g.trace_next < tn) tn = g.trace_next;
+    if (g.hall_override >= 0 && g.hall_override_until < tn) tn = g.hall_override_until;
+    if (g.oc_until > g.now && g.oc_until < tn) tn = g.oc_until;
+    if (t_end < tn) tn = t_end;
+    if (tn <= g.now) tn = g.now + 1;
+    return tn;
+}
+
 /* ------------------------------------------------------------ trace */
 
 static void trace_record(void)
@@ -240,18 +260,7 @@ int twin_run_until(int64_t t_end)
     int64_t max_off = (int64_t)llround((g.cfg.max_step_s > 0 ? g.cfg.max_step_s : 50e-6) * PS_PER_S);
     g.irq_dirty = 1;
     while (g.now < t_end && !g.errors) {
-        int64_t tn = pic_next_event();
-        int64_t cap = g.now + (g.pwm_on && g.pwm_period > 0 && g.pwm_period < max_off ? g.pwm_period : max_off);
-        if (cap < tn) tn = cap;
-        int64_t e = next_hall_edge();
-        if (e < tn) tn = e;
-        e = next_load_knot();
-        if (e < tn) tn = e;
-        if (g.trace_next < tn) tn = g.trace_next;
-        if (g.hall_override >= 0 && g.hall_override_until < tn) tn = g.hall_override_until;
-        if (g.oc_until > g.now && g.oc_until < tn) tn = g.oc_until;
-        if (t_end < tn) tn = t_end;
-        if (tn <= g.now) tn = g.now + 1;
+        int64_t tn = next_step_end(t_end, max_off);
 
         pic_compute_legs();
         double h = (double)(tn - g.now) / PS_PER_S;
