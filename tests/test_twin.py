@@ -14,6 +14,7 @@ from picdrive.profile import ProfileWarning, load_profile
 from support import plant_reference as ref
 from picdrive_hil.plant import plant_from_profile
 from support.testfw import make_twin
+from support.twin_uart import command
 from picdrive_hil.twin import Twin, TwinError
 
 warnings.simplefilter("ignore", ProfileWarning)
@@ -434,20 +435,6 @@ def test_pcpwm_duty_buffer_waits_for_udis_cleared_in_a_later_call(tmp_path):
     tw.close()
 
 
-def _command(tw, name, seq, args=None, limit_s=0.1):
-    """One command through the twin's UART in simulated time; returns its decoded reply."""
-    from picdrive.link import codec
-    tw.uart_write(codec.encode_command(name, seq, args))
-    dec, t_end = codec.StreamDecoder(), tw.t + limit_s
-    while tw.t < t_end:
-        tw.run(1e-3)
-        for f in dec.feed(tw.uart_read()):
-            if f.is_reply and f.seq == seq:
-                assert f.is_ack, (name, f.payload)
-                return codec.decode_reply(name, f.payload)
-    raise AssertionError(f"no reply to {name}")
-
-
 def test_generated_firmware_with_halls_on_the_capture_pins_starts_and_runs(tmp_path):
     """The documented no-encoder option (halls on IC1..IC3 = RA2..RA4, also AN2..AN4): the
     firmware reads the halls right after making the pins digital (ANSEL0); that read must see
@@ -462,12 +449,12 @@ def test_generated_firmware_with_halls_on_the_capture_pins_starts_and_runs(tmp_p
     try:
         tw.run(0.01)
         assert tw.state()["hall"] in (1, 2, 3, 4, 5, 6)
-        _command(tw, "set_speed", 1, {"value": fw.table["speed_setpoint"].to_raw(1000.0)})
-        _command(tw, "start", 2)
+        command(tw, "set_speed", 1, {"value": fw.table["speed_setpoint"].to_raw(1000.0)})
+        command(tw, "start", 2)
         for seq in range(3, 13):                       # 0.2 s, heartbeats feed the board's watchdog
-            _command(tw, "heartbeat", seq)
+            command(tw, "heartbeat", seq)
             tw.run(0.02)
-        st = _command(tw, "status", 20)
+        st = command(tw, "status", 20)
         assert st["fault"] == P.Fault.NONE and st["state"] == P.State.RUN
         assert tw.state()["speed_rpm"] > 300.0
     finally:

@@ -16,6 +16,7 @@ from picdrive.firmware import target
 from picdrive.link import codec
 from picdrive.paths import firmware_build_dir
 from picdrive_hil.twin import Twin
+from support.twin_uart import command
 
 FW = firmware_build_dir() / "duy2008"
 
@@ -38,19 +39,6 @@ def link_id_scale(name: str) -> tuple[int, float]:
     m = re.search(rf"#define\s+LINK_ID_{name.upper()}\s+0x([0-9A-Fa-f]+)u\s+/\*[^*]*?scale ([-+0-9.eE]+)", h)
     assert m, f"link_fw.h has no LINK_ID_{name.upper()}"
     return int(m.group(1), 16), float(m.group(2))
-
-
-def command(tw, name, seq, args=None, limit_s=0.1):
-    """One command through the UART in simulated time; returns the decoded reply."""
-    tw.uart_write(codec.encode_command(name, seq, args))
-    dec, t_end = codec.StreamDecoder(), tw.t + limit_s
-    while tw.t < t_end:
-        tw.run(1e-3)
-        for f in dec.feed(tw.uart_read()):
-            if f.is_reply and f.seq == seq:
-                assert f.is_ack, (name, f.payload)
-                return codec.decode_reply(name, f.payload)
-    raise AssertionError(f"no reply to {name} within {limit_s} s of simulated time")
 
 
 def run_at(tw, rpm: float, load: float, warm_s: float = 0.6) -> None:
