@@ -183,13 +183,20 @@ def _object_sizes(obj: Path) -> tuple[int, int]:
     return sum(secs.values()), ram
 
 
+def _write_sources(d: Path, c_text: str, h_text: str) -> None:
+    """The module and the rendered 18F4431 device header and SFR placement, into folder ``d``."""
+    xc_h, xc_sfr = render_sdcc_device()
+    (d / "xc.h").write_text(xc_h)
+    (d / "xc_sfr.c").write_text(xc_sfr)
+    (d / "link_fw.c").write_text(c_text)
+    (d / "link_fw.h").write_text(h_text)
+
+
 def flash_with(c_text: str, h_text: str, defines: list[str]) -> int:
     """Flash of link_fw.o compiled with extra -D options."""
     with tempfile.TemporaryDirectory() as td:
         d = Path(td)
-        (d / "xc.h").write_text(render_sdcc_device()[0])
-        (d / "link_fw.c").write_text(c_text)
-        (d / "link_fw.h").write_text(h_text)
+        _write_sources(d, c_text, h_text)
         _run([str(SDCC / "bin/sdcc"), *CFLAGS, *defines, "-I.", "-c", "link_fw.c"], d)
         return _object_sizes(d / "link_fw.o")[0]
 
@@ -197,11 +204,7 @@ def flash_with(c_text: str, h_text: str, defines: list[str]) -> int:
 def measure(c_text: str, h_text: str) -> dict:
     with tempfile.TemporaryDirectory() as td:
         d = Path(td)
-        xc_h, xc_sfr = render_sdcc_device()
-        (d / "xc.h").write_text(xc_h)
-        (d / "xc_sfr.c").write_text(xc_sfr)
-        (d / "link_fw.c").write_text(c_text)
-        (d / "link_fw.h").write_text(h_text)
+        _write_sources(d, c_text, h_text)
         (d / "h.c").write_text(HARNESS % {"frames": _frames(h_text)})
         (d / "eestub.c").write_text(EESTUB)
         sdcc = [str(SDCC / "bin/sdcc"), *CFLAGS, "-I."]
@@ -305,11 +308,7 @@ def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[i
             f"static const uint8_t f_samples[{len(frames)}] = {{ {', '.join(map(str, samples))} }};")
     with tempfile.TemporaryDirectory() as td:
         d = Path(td)
-        xc_h, xc_sfr = render_sdcc_device()
-        (d / "xc.h").write_text(xc_h)
-        (d / "xc_sfr.c").write_text(xc_sfr)
-        (d / "link_fw.c").write_text(c_text)
-        (d / "link_fw.h").write_text(h_text)
+        _write_sources(d, c_text, h_text)
         (d / "x.c").write_text(EXCHANGE % {"frames": decl})
         (d / "eestub.c").write_text(EESTUB)
         for f in ("link_fw.c", "x.c", "xc_sfr.c", "eestub.c"):
