@@ -367,7 +367,7 @@ def test_run_script_stops_at_the_first_error(board, tmp_path):
 
 
 def test_interactive_completion_history_and_errors(board, tmp_path):
-    pexpect = pytest.importorskip("pexpect")
+    import pexpect                     # a dev dependency (pyproject): missing is a failure
     hist = tmp_path / "hist"
     env = dict(os.environ, MPLBACKEND="Agg", TERM="dumb")
     ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", board.cable.url, "--history", str(hist)],

@@ -124,7 +124,7 @@ def _check_partial_step(csv: Path):
 
 
 def test_ctrl_c_at_the_prompt_stops_the_motor_and_keeps_the_step_data(twin, tmp_path):
-    pexpect = pytest.importorskip("pexpect")
+    import pexpect                     # a dev dependency (pyproject): missing is a failure
     tw, srv = twin
     _idle(srv.url)
     png = tmp_path / "cut.png"
@@ -372,7 +372,7 @@ def test_parameters_explained_checked_and_kept(twin, tmp_path):
 
 
 def test_view_keeps_a_typed_command_and_ctrl_c_stops_the_motor(twin, tmp_path):
-    pexpect = pytest.importorskip("pexpect")
+    import pexpect                     # a dev dependency (pyproject): missing is a failure
     tw, srv = twin
     _idle(srv.url)
     ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", srv.url, "--history", str(tmp_path / "h")],

@@ -210,7 +210,7 @@ def test_script_stops_at_a_rejected_value(twin, tmp_path):
 
 
 def test_interactive_link_lost_while_running_and_regained(twin, tmp_path):
-    pexpect = pytest.importorskip("pexpect")
+    import pexpect                     # a dev dependency (pyproject): missing is a failure
     tw, srv, cable = twin
     env = dict(os.environ, MPLBACKEND="Agg", TERM="dumb")
     ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", cable.url, "--history", str(tmp_path / "h")],
