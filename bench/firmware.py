@@ -31,6 +31,10 @@ from picdrive.paths import firmware_build_dir, repo_root
 from picdrive.profile import load_profile
 from picdrive.result import load_design
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from support import core_c  # noqa: E402  (the gcc/ctypes harness of the bit-exact model)
+from support.fixed_loop import closed_loop_compare, measurement_lag_effect  # noqa: E402
+
 RAM_BYTES = 768
 RAM_TARGET = 600
 
@@ -94,9 +98,9 @@ def main() -> int:
     print(f"  {'total':<14} {sum(flash.values()):6d} B (PIC18F4431 has 16384 B)")
 
     print(f"\n== bit-exact: C (gcc) vs picdrive.firmware.fixedpoint on {a.vectors} random vectors per function")
-    lib = fixedpoint.build_core_lib(folder)
+    lib = core_c.build_core_lib(folder)
     t0 = time.perf_counter()
-    res = fixedpoint.compare_with_c(fw.plan, lib, a.vectors, seed=2024)
+    res = core_c.compare_with_c(fw.plan, lib, a.vectors, seed=2024)
     dt = time.perf_counter() - t0
     for k, v in res.items():
         print(f"  {k:<10} {v['vectors']:8d} vectors, {v['mismatches']} mismatches")
@@ -119,9 +123,9 @@ def main() -> int:
                 print(f"  {pname:<22} {method:<11} skipped: {e}")
                 continue
             plan = fixedpoint.plan_fixed_point(p, law, pcpwm.plan_pwm(p))
-            ra = fixedpoint.closed_loop_compare(p, law, plan, measurement="instant")
-            rs = fixedpoint.closed_loop_compare(p, law, plan, measurement="firmware")
-            lag = fixedpoint.measurement_lag_effect(p, law)
+            ra = closed_loop_compare(p, law, plan, measurement="instant")
+            rs = closed_loop_compare(p, law, plan, measurement="firmware")
+            lag = measurement_lag_effect(p, law)
             print(f"  {pname:<22} {method:<11} arithmetic RMS {100 * ra['rms_dev']:.4f} % (max {100 * ra['max_dev']:.3f} %)"
                   f" {'OK' if ra['rms_dev'] <= 0.005 else 'OVER'};  with sensors RMS {100 * rs['rms_dev']:.3f} % "
                   f"(max {100 * rs['max_dev']:.2f} %);  float law, sample-average vs instant speed: "

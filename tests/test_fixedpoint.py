@@ -14,6 +14,8 @@ from picdrive.firmware import codegen, fixedpoint as fx, pcpwm
 from picdrive.control_law import LawState, Rule, ScheduledLaw, law_step
 from picdrive.profile import load_profile
 from picdrive.result import DesignResult, save_design
+from support import core_c
+from support.fixed_loop import closed_loop_compare
 
 RPM = math.pi / 30
 PROFILE = load_profile("duy2008")
@@ -126,8 +128,8 @@ def test_integer_primitives():
 
 def _bit_exact(tmp_path, kind, n, profile=PROFILE, seed=0):
     fw, out = make_firmware(tmp_path, kind, profile)
-    lib = fx.build_core_lib(out, tmp_path / f"lib-{kind}")
-    res = fx.compare_with_c(fw.plan, lib, n, seed=seed)
+    lib = core_c.build_core_lib(out, tmp_path / f"lib-{kind}")
+    res = core_c.compare_with_c(fw.plan, lib, n, seed=seed)
     return fw, res
 
 
@@ -152,8 +154,8 @@ def test_the_comparison_catches_a_one_lsb_change(tmp_path):
                       "return (int16_t)(uint16_t)((uint16_t)bg0 + 1u + (uint16_t)(int16_t)ACC);")
     assert bad != src
     (out / "drive_core.c").write_text(bad)
-    lib = fx.build_core_lib(out, tmp_path / "lib-bad")
-    res = fx.compare_with_c(fw.plan, lib, 2000, seed=3)
+    lib = core_c.build_core_lib(out, tmp_path / "lib-bad")
+    res = core_c.compare_with_c(fw.plan, lib, 2000, seed=3)
     assert res["law"]["mismatches"] > 0 and res["premise_k"]["mismatches"] == 0
 
 
@@ -168,7 +170,7 @@ def test_fixed_point_loop_follows_the_float_law(kind):
     law = fixture_law(kind)
     plan = fx.plan_fixed_point(PROFILE, law, pcpwm.plan_pwm(PROFILE))
     # what the firmware measures (encoder M/T, bus shunt) against the float law on true values
-    r = fx.closed_loop_compare(PROFILE, law, plan, t_end_s=0.6)
+    r = closed_loop_compare(PROFILE, law, plan, t_end_s=0.6)
     assert r["rms_dev"] <= 0.005, r["rms_dev"]
     # and the loop really ran: the float law reaches the setpoint, the load step happened
     assert abs(r["w_float"][-1] - r["setpoint_rad_s"]) < 0.01 * r["setpoint_rad_s"]
@@ -214,5 +216,5 @@ def test_bundled_designs_fixed_point_arithmetic_against_the_float_law(profile_na
     prof = load_profile(profile_name)
     law = load_design(path, require_usable=True, profile=prof).law      # a missing or stale design fails
     plan = fx.plan_fixed_point(prof, law, pcpwm.plan_pwm(prof))
-    r = fx.closed_loop_compare(prof, law, plan, t_end_s=0.6, measurement="instant")
+    r = closed_loop_compare(prof, law, plan, t_end_s=0.6, measurement="instant")
     assert r["rms_dev"] <= 0.005, r["rms_dev"]

@@ -10,7 +10,7 @@ inputs and the model's outputs.
 
 Functions: core_law, core_control (limiter, ramp, law, duty, direction), core_speed_encoder (or
 core_speed_hall), core_duty.  The law parameters cycle through the design's own and random sets
-(fixedpoint._rand_params, the host comparison's generator).  The mutation tests make sure the
+(tests/support/core_c.rand_params, the host comparison's generator).  The mutation tests make sure the
 comparison can fail: a one-LSB change of a constant and a removed 32-bit product cast.
 
 FIXED DEFECT, NAMED (history; the law is now assembly on SDCC, see
@@ -48,6 +48,7 @@ from picdrive.firmware import codegen, fixedpoint as fx, gpsim
 from picdrive.paths import repo_root
 from picdrive.profile import load_profile
 from picdrive.firmware.target import build_hex
+from support import core_c
 
 N_VECTORS = 10_000          # per function
 CK = 100                    # vectors per checkpoint
@@ -276,7 +277,7 @@ def param_sets(plan):
     rng = np.random.default_rng(7)
     sets = [fx.law_params_from_plan(plan)]
     while len(sets) < N_PARAM_SETS:
-        sets.append(fx._rand_params(plan, rng, wide=len(sets) % 3 == 0))
+        sets.append(core_c.rand_params(plan, rng, wide=len(sets) % 3 == 0))
     return sets
 
 
