@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from picdrive.link import codec, protocol as P
+from picdrive.link.protocol_c import render_c
 from picdrive.link.protocol import Nack
 
 from linksupport.build import DEFAULT_BUILD_ID, DEFAULT_PROFILE_HASH
@@ -672,7 +673,7 @@ def test_build_without_capture_and_eeprom():
     """The generation options: a module rendered without capture NACKs its commands
     UNKNOWN_COMMAND and reports 0 capture words; without EEPROM it refuses eeprom_save and
     loads nothing.  Everything else works as in the full build."""
-    files = P.render_c(TABLE, build_id=1, profile_hash=2, sample_hz=1000, capture=False, eeprom=False)
+    files = render_c(TABLE, build_id=1, profile_hash=2, sample_hz=1000, capture=False, eeprom=False)
     assert "#define LINK_WITH_CAPTURE       0" in files["link_fw.h"]
     b = FakeBoard(TABLE, files=files, txq_bytes=4096)
     try:

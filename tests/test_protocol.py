@@ -8,6 +8,8 @@ import zlib
 import pytest
 
 from picdrive.link import protocol as P
+from picdrive.link.protocol_c import render_c
+from picdrive.link.protocol_doc import render_markdown
 from picdrive.paths import repo_root
 from picdrive.profile import load_profile
 
@@ -107,13 +109,13 @@ def test_eeprom_fits_for_eight_int32_rules():
 def test_render_c_arguments_checked():
     t = P.build_table(2)
     with pytest.raises(P.ProtocolError, match="build_id"):
-        P.render_c(t, build_id=-1, profile_hash=0)
+        render_c(t, build_id=-1, profile_hash=0)
     with pytest.raises(P.ProtocolError, match="profile_hash"):
-        P.render_c(t, build_id=0, profile_hash=2**32)
+        render_c(t, build_id=0, profile_hash=2**32)
     with pytest.raises(P.ProtocolError, match="capture_bytes"):
-        P.render_c(t, build_id=0, profile_hash=0, capture_bytes=33)
+        render_c(t, build_id=0, profile_hash=0, capture_bytes=33)
     with pytest.raises(P.ProtocolError, match="sample_hz"):
-        P.render_c(t, build_id=0, profile_hash=0, sample_hz=0)
+        render_c(t, build_id=0, profile_hash=0, sample_hz=0)
 
 
 def _tables():
@@ -127,7 +129,7 @@ def _tables():
 
 @pytest.mark.parametrize("name,table", list(_tables()))
 def test_rendered_c_compiles_strict_gcc_and_avr(tmp_path, name, table):
-    files = P.render_c(table, build_id=0xCAFE0001, profile_hash=0x01020304, sample_hz=1000,
+    files = render_c(table, build_id=0xCAFE0001, profile_hash=0x01020304, sample_hz=1000,
                        critical_begin="", critical_end="")
     assert set(files) == {"link_fw.h", "link_fw.c"}
     h = files["link_fw.h"]
@@ -155,13 +157,13 @@ def test_rendered_c_compiles_strict_gcc_and_avr(tmp_path, name, table):
 
 def test_docs_protocol_md_is_current():
     path = repo_root() / "docs" / "protocol.md"
-    assert path.exists(), "docs/protocol.md missing: python -m picdrive.link.protocol docs/protocol.md"
-    assert path.read_text() == P.render_markdown(), \
-        "docs/protocol.md is stale: regenerate with python -m picdrive.link.protocol docs/protocol.md"
+    assert path.exists(), "docs/protocol.md missing: python -m picdrive.link.protocol_doc docs/protocol.md"
+    assert path.read_text() == render_markdown(), \
+        "docs/protocol.md is stale: regenerate with python -m picdrive.link.protocol_doc docs/protocol.md"
 
 
 def test_markdown_lists_every_command_code_and_entry():
-    md = P.render_markdown()
+    md = render_markdown()
     for c in P.COMMANDS:
         assert f"| 0x{c.code:02X} | {c.name} |" in md
     for n in P.Nack:
@@ -174,7 +176,7 @@ def test_markdown_lists_every_command_code_and_entry():
 @pytest.mark.parametrize("rules,capture", [(2, P.CAPTURE_BYTES_DEFAULT), (5, 64)])
 def test_stated_ram_budget_is_what_avr_gcc_allocates(tmp_path, rules, capture):
     t = P.build_table(rules)
-    files = P.render_c(t, build_id=1, profile_hash=2, capture_bytes=capture)
+    files = render_c(t, build_id=1, profile_hash=2, capture_bytes=capture)
     sym = build.avr_ram_bytes(build.avr_object(files, tmp_path))
     budget = P.ram_budget(t, capture)
     buffers = ("rx_buf", "tx_buf", "tm_buf", "rp_data", "link_params", "cap_buf")

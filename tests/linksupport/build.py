@@ -14,6 +14,7 @@ import tempfile
 from pathlib import Path
 
 from picdrive.link import protocol as P
+from picdrive.link.protocol_c import render_c
 
 HERE = Path(__file__).resolve().parent
 CACHE = Path(tempfile.gettempdir()) / f"picdrive_linksupport_{os.getuid()}"
@@ -30,7 +31,7 @@ def render(table: P.Table | None = None, *, build_id: int = DEFAULT_BUILD_ID,
            profile_hash: int = DEFAULT_PROFILE_HASH, sample_hz: float | None = 1000,
            capture_bytes: int = P.CAPTURE_BYTES_DEFAULT) -> dict[str, str]:
     table = table if table is not None else P.build_table(2)
-    return P.render_c(table, build_id=build_id, profile_hash=profile_hash, sample_hz=sample_hz,
+    return render_c(table, build_id=build_id, profile_hash=profile_hash, sample_hz=sample_hz,
                       capture_bytes=capture_bytes)
 
 

@@ -9,7 +9,7 @@
    (:mod:`picdrive.pcpwm`), pin map (:mod:`picdrive.pinmap`), Q formats,
    coefficients, speed measurement and timers (:mod:`picdrive.fixedpoint`);
 3. renders the Jinja2 templates of ``firmware_templates/`` and the protocol's
-   C module (:func:`picdrive.protocol.render_c`, with the parameter scales
+   C module (:func:`picdrive.link.protocol_c.render_c`, with the parameter scales
    and limits of the fixed-point plan);
 4. build-checks the result in a temporary folder (gcc ``-std=c99 -Wall
    -Wextra -Werror -Wconversion`` against the generated register shim, and
@@ -371,7 +371,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
 
     from . import fixedpoint, p18f4431, pcpwm, pinmap
     from .. import outputs
-    from ..link import protocol
+    from ..link import protocol, protocol_c
     from ..paths import templates_dir
     from ..result import load_design
 
@@ -402,7 +402,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
 
     try:
         table = protocol.build_table(plan.n_rules, _protocol_overrides(plan, profile), profile=profile)
-        link = protocol.render_c(table, build_id, profile_hash, sample_hz=plan.loop_hz,
+        link = protocol_c.render_c(table, build_id, profile_hash, sample_hz=plan.loop_hz,
                                  capture_bytes=capture_bytes, capture=bool(link_capture),
                                  eeprom=bool(link_eeprom),
                                  critical_begin="extern void fw_lock(void); fw_lock();",
