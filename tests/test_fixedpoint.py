@@ -218,3 +218,18 @@ def test_bundled_designs_fixed_point_arithmetic_against_the_float_law(profile_na
     plan = fx.plan_fixed_point(prof, law, pcpwm.plan_pwm(prof))
     r = closed_loop_compare(prof, law, plan, t_end_s=0.6, measurement="instant")
     assert r["rms_dev"] <= 0.005, r["rms_dev"]
+
+
+@pytest.mark.parametrize("kind", ["fuzzy2", "fuzzy3-filter", "pi1"])
+def test_law_parameters_are_the_param_specs_defaults(kind):
+    """The law -> parameter mapping (what the console's 'load' pushes) names the parameters
+    param_specs defines, and its values are their defaults before quantisation."""
+    law = fixture_law(kind)
+    plan = fx.plan_fixed_point(PROFILE, law, pcpwm.plan_pwm(PROFILE))
+    ps = fx.param_specs(plan, PROFILE)
+    vals = fx.law_parameters(law)
+    assert len([k for k in vals if k.startswith("rule")]) == 4 * law.n_rules
+    assert ("premise_low" in vals) == (law.n_rules > 1)
+    for name, v in vals.items():
+        s = ps[name]                                      # a name param_specs does not define fails here
+        assert s.to_eng(s.default_raw) == pytest.approx(v, rel=1e-3, abs=s.scale), name

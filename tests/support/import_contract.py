@@ -34,7 +34,9 @@ LAYERS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "twin": (("picdrive_hil",), ("firmware", "link", "core")),
     "gate": (("picdrive.gate",), ("design", "analysis", "models", "twin", "firmware", "link", "core")),
     "papers": (("picdrive.papers",), ("gate", "design", "analysis", "models", "core")),
-    "console": (("picdrive.console",), ("link", "analysis", "core")),
+    # the console talks to the firmware through the link; it takes the law -> parameter mapping from
+    # the firmware, its owner (fixedpoint.law_parameters), instead of rebuilding it
+    "console": (("picdrive.console",), ("firmware", "link", "analysis", "core")),
     "app": (("picdrive.cli", "picdrive.__main__", "picdrive.demo"),
             ("console", "papers", "gate", "design", "analysis", "models", "twin", "firmware", "link", "core")),
 }

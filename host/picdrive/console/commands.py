@@ -165,7 +165,7 @@ BOARD_POLL_S = 0.01
 
 def board_time_s(con) -> float:
     """The board's clock (its uptime), s: the twin's simulated time, a real board's own time."""
-    return con._require_link().status().uptime_ms / 1000.0
+    return con.require_link().status().uptime_ms / 1000.0
 
 
 def _wait(con, seconds: float) -> None:
@@ -626,20 +626,8 @@ def _load(con, args):
         raise ConsoleError(f"load: the design was made from profile {r.profile_name!r} (hash 0x{hash32(r.profile_sha256):08x}), "
                            f"the board was built from profile hash 0x{link.info.profile_hash:08x}; "
                            "use a design of the board's profile")
-    rpm = 60.0 / (2.0 * math.pi)
-    values: dict[str, float] = {}
-    for j, rule in enumerate(law.rules, 1):
-        for k in ("kp", "ki", "kd", "kc"):
-            values[f"rule{j}_{k}"] = float(getattr(rule, k))
-    values["setpoint_weight"] = float(law.setpoint_weight)
-    values["u_min"] = float(law.u_min_v)
-    values["u_max"] = float(law.u_max_v)
-    if rules > 1:
-        values["premise_low"] = float(law.premise_rad_s[0]) * rpm
-        values["premise_high"] = float(law.premise_rad_s[1]) * rpm
-    if getattr(law, "current_limit_a", None) is not None:
-        values["current_limit"] = float(law.current_limit_a)   # I_lim of the back-EMF voltage window
-    values = {k: v for k, v in values.items() if k in link.table}
+    from ..firmware.fixedpoint import law_parameters     # the firmware owns the law -> parameter mapping
+    values = {k: v for k, v in law_parameters(law).items() if k in link.table}
     # check everything before writing anything: no half-pushed design
     from ..link.client import ParamError
     asked = dict(values)                  # the design's values (rounding is reported against them)
@@ -699,7 +687,7 @@ def _ensure_signals(con):
 
 def _telemetry_on(con, quiet=False):
     _ensure_signals(con)
-    cfg = con._apply_telemetry()
+    cfg = con.apply_telemetry()
     con.tele_on = True
     if not quiet:
         con.say(f"telemetry on: {', '.join(e.name for e in cfg.signals)} at {cfg.rate_hz:g} Hz "
@@ -764,8 +752,7 @@ def _telemetry(con, args):
         if con.tele_on:
             _telemetry_on(con)
             if con.plot is not None and con.plot.alive:
-                with con._sinks_lock:
-                    con.plot.control("signals", con.signal_units(names))
+                con.plot_control("signals", con.signal_units(names))
         else:
             con.say(f"telemetry signals {', '.join(names)} (off; 'telemetry on', 'plot', 'view' or 'record' start it)"
                     + _bandwidth_note(con, len(names), con.tele_rate_hz))
@@ -790,7 +777,7 @@ def _telemetry(con, args):
     elif sub == "off":
         if rest:
             raise ConsoleError("usage: telemetry off")
-        con._stop_pump()
+        con.stop_pump()
         link.stop_telemetry()
         con.tele_on = False
         con.close_plot()
@@ -878,8 +865,7 @@ def _plot(con, args):
                 "redrawn every second; 'view' shows a text view")
     if plot is None:
         plot = LivePlot(sigs, png_path=png, backend="Agg", window_s=window)
-    with con._sinks_lock:
-        con.plot = plot
+    con.set_sink("plot", plot)
     con.say(f"plot open ({plot.backend}): {', '.join(n for n, _ in sigs)}" + (f" -> {png}" if png else ""))
 
 
@@ -894,8 +880,7 @@ def _view(con, args):
     if not con.tele_on:
         _telemetry_on(con)
     tv = TextView(con.signal_units(con.tele_signals))
-    with con._sinks_lock:
-        con._view = tv
+    con.set_sink("view", tv)
     tty = con.interactive and sys.stdout.isatty()
     typed = con.interactive and sys.stdin.isatty() and os.name == "posix"
     end = board_time_s(con) + seconds
@@ -921,10 +906,9 @@ def _view(con, args):
             else:
                 con.say(line)
             if con.link is None:
-                raise ConsoleError(f"view: link lost ({con._lost})")
+                raise ConsoleError(f"view: link lost ({con.lost_reason})")
     finally:
-        with con._sinks_lock:
-            con._view = None
+        con.set_sink("view", None)
         if tty:
             sys.stdout.write("\n")
     con.say(f"view: {tv.count} samples")
@@ -944,8 +928,7 @@ def _record(con, args):
     if args[0].lower() == "stop":
         if con.recorder is None:
             raise ConsoleError("record stop: no recording is running")
-        with con._sinks_lock:
-            rec, con.recorder = con.recorder, None
+        rec = con.set_sink("recorder", None)
         p = rec.close()
         con.say(f"recording saved to {p}: {rec.samples} samples, {rec.dropped} dropped")
         return
@@ -960,9 +943,7 @@ def _record(con, args):
                    firmware=f"build 0x{info.build_id:08x} table 0x{info.table_hash:08x}",
                    profile=f"{prof} hash 0x{info.profile_hash:08x}",
                    protocol=f"{info.proto_version[0]}.{info.proto_version[1]}")
-    con._rec_dropped_seen = con.link.telemetry_stats.dropped
-    with con._sinks_lock:
-        con.recorder = rec
+    con.set_sink("recorder", rec)          # its dropped count starts from the link's now
     con.say(f"recording {', '.join(n for n, _ in rec.signals)} at {rec.rate_hz:g} Hz to {rec.path} "
             "('record stop' ends it)")
 
@@ -989,7 +970,7 @@ def _step_wait(con, collect: list, until, timeout_s: float, what: str):
         if data is not None and len(data) and until(data):
             return data
         if con.link is None:
-            raise ConsoleError(f"step: link lost ({con._lost}) while {what}")
+            raise ConsoleError(f"step: link lost ({con.lost_reason}) while {what}")
         if time.monotonic() > end:
             raise ConsoleError(f"step: timed out after {timeout_s:g} s while {what}")
         time.sleep(0.02)
@@ -1015,11 +996,10 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
     band = 0.02 * abs(to_rpm - from_rpm)
     was = (con.tele_on, list(con.tele_signals), con.tele_rate_hz)
     collect: list = []
-    con._stop_pump()
+    con.stop_pump()
     link.configure_telemetry(sigs, decimation=1)
-    with con._sinks_lock:
-        con._collect = collect
-    con._start_pump()
+    con.set_sink("collect", collect)
+    con.start_pump()
     interrupted = ""
     k0 = None
     step_index = None                      # defined once the step is commanded
@@ -1077,9 +1057,8 @@ def run_step(con, from_rpm: float, to_rpm: float, hold_s: float):
         if k0 is None:
             k0 = step_index(data) if step_index is not None else None
     finally:
-        with con._sinks_lock:
-            con._collect = None
-        con._stop_pump()
+        con.set_sink("collect", None)
+        con.stop_pump()
         if was[0]:
             con.tele_signals, con.tele_rate_hz = was[1], was[2]
             try:

@@ -258,10 +258,16 @@ class Console:
     def connected(self) -> bool:
         return self.link is not None
 
-    def _require_link(self):
+    def require_link(self):
+        """The open link; a :class:`ConsoleError` saying it is lost (and being reconnected) otherwise."""
         if self.link is None:
             raise ConsoleError(f"not connected: link lost ({self._lost}); reconnecting to {self.url} in the background")
         return self.link
+
+    @property
+    def lost_reason(self) -> str | None:
+        """Why the link was lost (None while it is up or was never lost)."""
+        return self._lost
 
     def link_lost(self, reason: str) -> None:
         """Drop the link and start reconnecting in the background."""
@@ -271,7 +277,7 @@ class Console:
             link, self.link = self.link, None
             self._lost = reason
         self.notify(f"link lost: {reason}; reconnecting to {self.url} (commands will fail until it is back)")
-        self._stop_pump()
+        self.stop_pump()
         if self.recorder is not None:
             with self._sinks_lock:
                 rec, self.recorder = self.recorder, None
@@ -297,7 +303,7 @@ class Console:
         if link is None or not self.tele_on:
             return
         try:
-            self._apply_telemetry()
+            self.apply_telemetry()
             self.notify(f"telemetry restored: {', '.join(self.tele_signals)} at {self.tele_rate_hz:g} Hz")
         except LinkError as e:              # e.g. the board rebooted into another build
             if self.link is link:
@@ -341,7 +347,7 @@ class Console:
             self.notify(f"link regained after {tries} tries: " + " / ".join(self.handshake_lines() + [state]))
             if self.tele_on:
                 try:
-                    self._apply_telemetry()
+                    self.apply_telemetry()
                     self.notify(f"telemetry restored: {', '.join(self.tele_signals)} at {self.tele_rate_hz:g} Hz")
                 except PicdriveError as e:
                     self.notify(f"telemetry not restored: {e}")
@@ -377,24 +383,28 @@ class Console:
 
     # -- telemetry ---------------------------------------------------------------
 
-    def _apply_telemetry(self):
-        link = self._require_link()
+    def apply_telemetry(self):
+        """Configure the board's telemetry to the selection (``tele_signals`` at ``tele_rate_hz``)
+        and (re)start the pump that feeds the sinks; returns the link's telemetry configuration."""
+        link = self.require_link()
         hz = link.info.sample_hz
         if hz:
             dec = max(1, int(round(hz / self.tele_rate_hz)))
         else:
             dec = max(1, int(round(self.tele_rate_hz)))
-        self._stop_pump()
+        self.stop_pump()
         cfg = link.configure_telemetry(self.tele_signals, decimation=dec)
-        self._start_pump()
+        self.start_pump()
         return cfg
 
-    def _start_pump(self) -> None:
+    def start_pump(self) -> None:
+        """Start the thread that reads telemetry samples and hands them to the sinks."""
         self._pump_stop.clear()
         self._pump = threading.Thread(target=self._pump_loop, name="picdrive-console-telemetry", daemon=True)
         self._pump.start()
 
-    def _stop_pump(self) -> None:
+    def stop_pump(self) -> None:
+        """Stop the telemetry pump (before the telemetry is reconfigured or switched off)."""
         self._pump_stop.set()
         p = self._pump
         if p is not None and p is not threading.current_thread():
@@ -446,6 +456,31 @@ class Console:
         if closed_plot:
             self.notify("plot window closed")
 
+    SINKS = ("recorder", "plot", "view", "collect")
+
+    def set_sink(self, kind: str, sink):
+        """Attach (or with None detach) a telemetry sink under the sinks lock; returns the previous one.
+
+        ``kind``: ``"recorder"`` (a :class:`~picdrive.console.record.Recorder`; its dropped-sample
+        count starts from the link's count now), ``"plot"``, ``"view"`` (objects with ``signals``
+        and ``feed(t, values)``) or ``"collect"`` (a list that receives each batch of samples).
+        """
+        if kind not in self.SINKS:
+            raise ValueError(f"sink {kind!r}: expected one of {', '.join(self.SINKS)}")
+        attr = {"view": "_view", "collect": "_collect"}.get(kind, kind)
+        with self._sinks_lock:
+            old = getattr(self, attr)
+            if kind == "recorder" and sink is not None and self.link is not None:
+                self._rec_dropped_seen = self.link.telemetry_stats.dropped
+            setattr(self, attr, sink)
+        return old
+
+    def plot_control(self, *args) -> None:
+        """Send a control message to the live plot under the sinks lock (never while it is fed)."""
+        with self._sinks_lock:
+            if self.plot is not None:
+                self.plot.control(*args)
+
     def close_plot(self) -> bool:
         """Close the live plot, if one is open."""
         with self._sinks_lock:
@@ -455,7 +490,7 @@ class Console:
         return plot is not None
 
     def signal_units(self, names) -> list[tuple[str, str]]:
-        link = self._require_link()
+        link = self.require_link()
         return [(n, link.param(n).unit) for n in names]
 
     # -- executing commands ---------------------------------------------------------
@@ -476,7 +511,7 @@ class Console:
             near = difflib.get_close_matches(name, list(COMMANDS) + list(ALIASES), n=3, cutoff=0.6)
             hint = f" (did you mean {', '.join(near)}?)" if near else ""
             raise ConsoleError(f"unknown command {words[0]!r}{hint}; 'help' lists the commands")
-        link = self._require_link() if cmd.needs_link else self.link
+        link = self.require_link() if cmd.needs_link else self.link
         try:
             cmd.func(self, args)
         except KeyboardInterrupt:
@@ -580,7 +615,7 @@ class Console:
     def close(self) -> None:
         """Stop background work, save an open recording, close the plot and the link."""
         self._closing.set()
-        self._stop_pump()
+        self.stop_pump()
         if self.link is not None:
             from ..link import protocol as P
             from ..link.client import LinkError

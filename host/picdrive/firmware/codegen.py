@@ -403,10 +403,10 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     try:
         table = protocol.build_table(plan.n_rules, _protocol_overrides(plan, profile), profile=profile)
         link = protocol_c.render_c(table, build_id, profile_hash, sample_hz=plan.loop_hz,
-                                 capture_bytes=capture_bytes, capture=bool(link_capture),
-                                 eeprom=bool(link_eeprom),
-                                 critical_begin="extern void fw_lock(void); fw_lock();",
-                                 critical_end="extern void fw_unlock(void); fw_unlock();")
+                                   capture_bytes=capture_bytes, capture=bool(link_capture),
+                                   eeprom=bool(link_eeprom),
+                                   critical_begin="extern void fw_lock(void); fw_lock();",
+                                   critical_end="extern void fw_unlock(void); fw_unlock();")
     except protocol.ProtocolError as e:
         raise CodegenError(f"the protocol table cannot hold this design's numbers: {e}") from None
 

@@ -44,7 +44,7 @@ from ..board import FCY_HZ
 from ..errors import PicdriveError
 
 __all__ = ["FixedPointError", "Coef", "FixedPointPlan", "plan_fixed_point", "ParamSpec",
-           "param_specs", "signal_specs", "INT16_MIN", "INT16_MAX", "INT32_MIN", "INT32_MAX",
+           "param_specs", "signal_specs", "law_parameters", "INT16_MIN", "INT16_MAX", "INT32_MIN", "INT32_MAX",
            "sat16", "sat32", "asr32", "shl_sat32", "shift32", "mul_q15", "premise_k",
            "law_step", "LawState", "LawParams", "speed_encoder", "speed_hall", "duty_counts",
            "CoreState", "core_control", "core_reset", "law_params_from_plan"]
@@ -576,6 +576,40 @@ def param_specs(plan: FixedPointPlan, profile) -> dict[str, ParamSpec]:
     out["link_timeout"] = ParamSpec("link_timeout", "uint16", 1.0, "ms", 20, 60000, plan.link_timeout_ms)
     out["stall_timeout"] = ParamSpec("stall_timeout", "uint16", 1.0, "ms", 10, 60000, plan.stall_ms)
     return out
+
+
+def law_parameters(law) -> dict[str, float]:
+    """The run-time parameters a control law sets, in engineering units: the same names as
+    :func:`param_specs` (whose defaults are these values quantised by the build's plan).
+
+    Parameters
+    ----------
+    law : picdrive.control_law.ScheduledLaw
+        The design's law.
+
+    Returns
+    -------
+    dict
+        ``rule<j>_kp`` (V/(rad/s)), ``rule<j>_ki`` (V/rad), ``rule<j>_kd`` (V s^2/rad),
+        ``rule<j>_kc`` (V/A) for each rule j = 1..r; ``setpoint_weight`` (1); ``u_min``,
+        ``u_max`` (V); with two rules or more ``premise_low``, ``premise_high`` (rpm); when the
+        law has a back-EMF window ``current_limit`` (A).  What the law holds beyond these
+        (derivative filter, integrator limit, Kb, R) is fixed by the build.
+    """
+    rpm = 60.0 / (2.0 * math.pi)
+    values: dict[str, float] = {}
+    for j, rule in enumerate(law.rules, 1):
+        for k in ("kp", "ki", "kd", "kc"):
+            values[f"rule{j}_{k}"] = float(getattr(rule, k))
+    values["setpoint_weight"] = float(law.setpoint_weight)
+    values["u_min"] = float(law.u_min_v)
+    values["u_max"] = float(law.u_max_v)
+    if law.n_rules > 1:
+        values["premise_low"] = float(law.premise_rad_s[0]) * rpm
+        values["premise_high"] = float(law.premise_rad_s[1]) * rpm
+    if getattr(law, "current_limit_a", None) is not None:
+        values["current_limit"] = float(law.current_limit_a)   # I_lim of the back-EMF voltage window
+    return values
 
 
 def signal_specs(plan: FixedPointPlan) -> dict[str, ParamSpec]:
