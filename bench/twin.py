@@ -334,12 +334,15 @@ def step_and_load(tw, prof, target: float, step_s: float = 1.0, load_s: float = 
     """The HIL's two scenarios on one twin: a step from rest to the target (no load), then the
     profile's load torque applied as a step; the true rotor speed every 100 us."""
     from picdrive.analysis.metrics import step_metrics
+    from picdrive_hil.scenario import step_and_load as scenario_step_and_load
     configure(tw, target)
     tw.set_load_torque(0.0)
     tw.run(0.01)
-    send(tw, "start", 203)
     c0, w0 = time.process_time(), time.perf_counter()
-    rec = tw.record(step_s, 1e-4)
+    run = scenario_step_and_load(tw, load_n_m=prof.control.load_torque_n_m, load_after_s=step_s,
+                                 load_for_s=load_s, dt_s=1e-4, start_seq=203)
+    c1, w1 = time.process_time(), time.perf_counter()
+    rec, rec2, t_load = run.step, run.load, run.t_load_s
     rpm = rec["w_rad_s"] * 60 / (2 * math.pi)
     on = np.nonzero(rec["duty_max"] > 0)[0]
     t0 = rec["t_s"][on[0]] if on.size else rec["t_s"][0]
@@ -347,11 +350,6 @@ def step_and_load(tw, prof, target: float, step_s: float = 1.0, load_s: float = 
     m = step_metrics(rec["t_s"][sel], rpm[sel], target, y0=0.0, t_step=t0)
     inside = np.nonzero(np.abs(rpm[sel] - target) <= 0.01 * target)[0]
     t_reach = float(rec["t_s"][sel][inside[0]] - t0) if inside.size else math.inf
-    tl = prof.control.load_torque_n_m
-    tw.set_load_torque(tl)
-    t_load = tw.t
-    rec2 = tw.record(load_s, 1e-4)
-    c1, w1 = time.process_time(), time.perf_counter()
     rpm2 = rec2["w_rad_s"] * 60 / (2 * math.pi)
     dip = float(np.max(target - rpm2))
     out = np.nonzero(np.abs(rpm2 - target) > 0.01 * target)[0]

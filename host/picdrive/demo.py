@@ -91,6 +91,7 @@ def gain_difference(a, b) -> float:
 
 def run_in_twin(profile, firmware_dir: Path, method: str, *, step_s: float, load_s: float) -> TwinRun:
     """Speed step then load step on the twin, commanded and recorded through picdrive.link."""
+    from picdrive_hil.scenario import load_step_on_link
     from picdrive_hil.twin import Twin
 
     from .link.client import Link
@@ -106,9 +107,7 @@ def run_in_twin(profile, firmware_dir: Path, method: str, *, step_s: float, load
             ln.flush_samples()
             ln.set_speed(target)
             ln.start()
-            first = ln.read_samples(seconds=step_s)
-            tw.set_load_torque(load)
-            second = ln.read_samples(seconds=load_s)
+            first, second, _ = load_step_on_link(tw, ln, load, step_s, load_s)
             true_final = tw.state()["speed_rad_s"] * RPM
             dropped = ln.telemetry_stats.dropped
             ln.stop()

@@ -149,6 +149,7 @@ def twin_run(profile, design_path, plan=None, *, workdir=None, perturb=None, see
     from pathlib import Path
     from types import SimpleNamespace
 
+    from picdrive_hil.scenario import step_and_load
     from picdrive_hil.twin import Twin
 
     from .firmware import codegen
@@ -169,16 +170,12 @@ def twin_run(profile, design_path, plan=None, *, workdir=None, perturb=None, see
             send("param_set", {"id": e_to.id, "value": e_to.max_raw})
             send("set_speed", {"value": int(round(plan["target_rpm"] / e_sp.scale))})
             tw.run(0.005)
-            send("start")
-            dt = 1e-4
-            parts = [tw.record(0.02, dt)]
-            on = np.nonzero(parts[0]["duty_max"] > 0)[0]
-            if on.size == 0:
-                raise RuntimeError("the firmware never switched the bridge on")
-            t0 = float(parts[0]["t_s"][on[0]]) - 1.0 / profile.inverter.pwm_frequency_hz
-            parts.append(tw.record(t0 + plan["t_load_s"] - tw.t, dt))
-            tw.set_load_torque(plan["load_n_m"])
-            parts.append(tw.record(plan["t_end_s"] - plan["t_load_s"] + ts, dt))
+            # t = 0: one PWM period before the first duty (the firmware's first sample in RUN)
+            run = step_and_load(tw, load_n_m=plan["load_n_m"], load_after_s=plan["t_load_s"],
+                                load_for_s=plan["t_end_s"] - plan["t_load_s"] + ts, dt_s=1e-4,
+                                start_seq=next(seq), from_switch_on=True,
+                                on_offset_s=-1.0 / profile.inverter.pwm_frequency_hz)
+            parts, t0 = run.parts, run.t_zero_s
         finally:
             tw.close()
     t = np.concatenate([p["t_s"] for p in parts]) - t0

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from picdrive.link import protocol as P
+from picdrive_hil.scenario import load_step_on_link
 
 from hilbench import METHODS, PROFILES, sector_speed, step_of
 
@@ -83,11 +84,8 @@ def test_load_torque_step_is_rejected(open_bench, profile_name, method, fraction
     lim = b.limits(fraction * b.profile.speed_step_rpm())
     b.settle_at(lim.target_rpm, 0.8)
     b.stream()
-    b.collect(0.05)
-    b.link.flush_samples()
-    t_load = b.twin.t
-    b.twin.set_load_torque(b.profile.control.load_torque_n_m)
-    data = b.collect(RECORD_S)
+    _, data, t_load = load_step_on_link(b.twin, b.link, b.profile.control.load_torque_n_m, 0.05, RECORD_S,
+                                        flush=True)
     t = data["t"]
     y = sector_speed(b.profile, data, lim.target_rpm)     # the mean over a hall sector (hilbench.sector_speed)
     raw = data["speed"].astype(float)
