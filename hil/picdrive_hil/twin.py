@@ -152,7 +152,39 @@ def firmware_profile_hash(firmware_dir: str | Path) -> int | None:
 
 
 class Twin:
-    """A virtual board: firmware + peripherals + plant (see module docstring)."""
+    """A virtual board: firmware + peripherals + plant (see module docstring).
+
+    Parameters
+    ----------
+    profile : picdrive.profile.Profile or str
+        The drive (or a bundled profile's name): the plant's constants, SI units.
+    firmware_dir : str or pathlib.Path, optional
+        A firmware folder written by ``picdrive firmware`` (its C runs unchanged on the host).
+    firmware : picdrive_hil.build.Group, optional
+        Already-gathered C sources instead of a folder.
+    board : BoardConfig, optional
+        The board wiring (default: the folder's ``board.json``).
+    perturb : mapping or sequence of str, optional
+        Multiplicative plant perturbations (``{"resistance": 1.1}``) or ``"resistance=+u"``
+        (the profile's ``design.resistance_uncertainty``).
+    seed : int
+        Seed of the twin's random numbers (the speed-sensor noise).
+    load_mode : str
+        ``"passive"`` (the load opposes motion, holds a standing rotor) or ``"active"`` (a
+        signed torque, 2016 eq 5).
+    speed_noise_rpm : float, optional
+        Speed-sensor noise, rpm (default: the profile's ``sensors.speed_noise_rpm``).
+    eeprom : bytes, optional
+        The EEPROM's content at power-on (default: erased, or a HEX's EEPROM data).
+    diode_drop_v : float
+        Forward drop of the bridge's freewheeling diodes, V (0 .. 5).
+    power_on : bool
+        Power the board on now (else call :meth:`power_on`).
+    hex_file : str or pathlib.Path, optional
+        Processor-in-the-loop: run this HEX on the PIC18 core instead of the C.
+    enlarged_memory : bool
+        With ``hex_file``: simulate 128 KB flash / 1.5 KB RAM (a HEX that does not fit the 18F4431).
+    """
 
     def __init__(self, profile, firmware_dir: str | Path | None = None, *,
                  firmware: build.Group | None = None,
@@ -410,7 +442,13 @@ class Twin:
             self._lib.twin_set_plant_state(float(speed_rad_s), float(th))
 
     def set_load_torque(self, torque_n_m: float) -> None:
-        """A load-torque step, applied from now on."""
+        """A load-torque step, applied from now on.
+
+        Parameters
+        ----------
+        torque_n_m : float
+            The load torque, N m (:class:`Twin`'s ``load_mode`` says how it acts).
+        """
         self.set_load_profile([0.0], [torque_n_m])
 
     def set_load_profile(self, t_s: Sequence[float], torque_n_m: Sequence[float], *,
@@ -522,8 +560,21 @@ class Twin:
 
     # -- traces ---------------------------------------------------------------
     def record(self, seconds: float, period_s: float = 1e-3) -> dict[str, np.ndarray]:
-        """Run ``seconds`` and return the plant sampled every ``period_s``
-        (exactly, in simulated time): t_s, w_rad_s, i_a/b/c, i_bus_a, ..."""
+        """Run ``seconds`` and return the plant sampled every ``period_s``.
+
+        Parameters
+        ----------
+        seconds : float
+            Simulated time to run, s.
+        period_s : float
+            Sample period, s (exact, in simulated time).
+
+        Returns
+        -------
+        dict of numpy.ndarray
+            ``t_s`` (s), ``w_rad_s`` (rad/s), ``i_a``/``i_b``/``i_c``/``i_bus_a`` (A),
+            ``duty_max``, ``fault``... (:data:`picdrive_hil.cmodel.TRACE_FIELDS`).
+        """
         n = int(math.floor(seconds / period_s + 1e-9)) + 1
         buf = (cmodel.TraceRec * n)()
         with self._lock:

@@ -302,15 +302,31 @@ def _sim_checks(profile, law, drive) -> dict:
 def verify_design(profile, result, *, drive=None, simulate: bool = True):
     """Run every applicable check, fill ``result.verification``, fail on any failed check.
 
-    ``drive``: the drive as built, for the checks the models cannot make -- an object with
-    ``speed_measurement(profile, law) -> dict`` (the firmware's speed measurement, as
-    :func:`picdrive.analysis.steptest.run_sim` takes it) and ``hold_torque(profile, rpm, *,
-    r_factor=1.0) -> (delivered, needed)`` (N m, the bridge in the twin's three-phase plant) and
-    ``three_phase_plant(profile, r_factor)`` (the winding the simulations run on):
-    :class:`picdrive.gate.BuiltDrive`.  Needed to simulate a law (``simulate``); a design
-    without a law, or ``simulate=False``, is checked on the models alone.
+    Parameters
+    ----------
+    profile : picdrive.profile.Profile
+        The drive the design is for.
+    result : picdrive.result.DesignResult
+        The design (its law and/or certificate); updated in place.
+    drive : object, optional
+        The drive as built, for the checks the models cannot make -- an object with
+        ``speed_measurement(profile, law) -> dict`` (the firmware's speed measurement, as
+        :func:`picdrive.analysis.steptest.run_sim` takes it), ``hold_torque(profile, rpm, *,
+        r_factor=1.0) -> (delivered, needed)`` (N m, the bridge in the twin's three-phase plant)
+        and ``three_phase_plant(profile, r_factor)`` (the winding the simulations run on):
+        :class:`picdrive.gate.BuiltDrive`.  Needed to simulate a law (``simulate``); a design
+        without a law, or ``simulate=False``, is checked on the models alone.
+    simulate : bool
+        Run the step and load-step simulations (the figures in s, %, rpm, A) besides the
+        linear checks.
 
-    Returns the same result (status ``verified`` unless a check failed)."""
+    Returns
+    -------
+    picdrive.result.DesignResult
+        The same result: ``verification`` holds each check's ``value``, ``limit``, ``unit`` and
+        ``ok``; ``status`` is ``"verified"`` unless a check failed (then ``"failed"`` with the
+        reasons).
+    """
     checks: dict[str, Any] = {}
     law = result.law
     if law is not None and simulate and drive is None:

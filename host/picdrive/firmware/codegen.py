@@ -363,10 +363,39 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
              capture_bytes: int = CAPTURE_BYTES) -> Firmware:
     """Plan and render the firmware (nothing is written).
 
-    ``link_capture``/``link_eeprom``: generate the link's triggered capture (commands and its
-    ``capture_bytes`` buffer) and EEPROM persistence, or leave them out to save flash and RAM (a
-    build without capture says 0 capture words in hello and NACKs its commands UNKNOWN_COMMAND; one
-    without EEPROM answers eeprom_save/eeprom_load EEPROM_ERROR and boots with the defaults)."""
+    Parameters
+    ----------
+    profile : picdrive.profile.Profile
+        The drive; its hash goes into the build (``profile_hash``).
+    design_path : str or pathlib.Path
+        A usable design result (``*.design.json``) of this profile.
+    hall_input : str
+        Where the hall sensors enter: ``"int"`` (INT0..INT2), ``"ic"`` (IC1..IC3) or ``"auto"``
+        (:func:`picdrive.firmware.pinmap.choose_pinmap`).
+    fault_pin : str
+        The overcurrent comparator's input pin (``"RC1"``...).
+    name : str, optional
+        The build's name (default: the profile's).
+    link_capture, link_eeprom : bool
+        Generate the link's triggered capture (commands and its ``capture_bytes`` buffer) and
+        EEPROM persistence, or leave them out to save flash and RAM (a build without capture says
+        0 capture words in hello and NACKs its commands UNKNOWN_COMMAND; one without EEPROM
+        answers eeprom_save/eeprom_load EEPROM_ERROR and boots with the defaults).
+    capture_bytes : int
+        The capture buffer, B (even, 16..256).
+
+    Returns
+    -------
+    Firmware
+        The rendered files (name -> text), the build id (u32), the fixed-point plan (Q formats,
+        raw limits), the PWM plan and pin map, the protocol table (scales in engineering units
+        per count) and the summary lines.
+
+    Raises
+    ------
+    CodegenError
+        A design or option the firmware cannot hold, named with the fix.
+    """
     import jinja2
 
     from . import fixedpoint, p18f4431, pcpwm, pinmap

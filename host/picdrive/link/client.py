@@ -259,11 +259,39 @@ class Link:
              handshake: bool = True, keepalive: bool = True, expect_table_hash: int | None = None,
              expect_profile_hash: int | None = None, expect_build_id: int | None = None,
              app_timeout: float | None = APP_TIMEOUT_S, **serial_kwargs: Any) -> "Link":
-        """Open ``url`` and handshake.  ``timeout``: seconds per try of a command;
-        ``retries``: extra tries after the first.  ``expect_*``: refuse (HandshakeMismatch) a
-        board of another build or profile (e.g. the one a firmware folder was generated for).
-        ``app_timeout``: the keep-alive contract (module docstring; None: feed while the process
-        runs)."""
+        """Open ``url`` and handshake.
+
+        Parameters
+        ----------
+        url : str
+            Any pyserial URL: ``/dev/ttyUSB0``, ``COM5``, ``socket://host:port``, ``loop://``.
+        baudrate : int
+            Line rate, bit/s (the profile's ``uart.baud``).
+        timeout : float
+            Seconds per try of a command.
+        retries : int
+            Extra tries after the first.
+        handshake : bool
+            Say hello and read the parameter table (needed for everything in engineering units).
+        keepalive : bool
+            Start the heartbeat thread (:meth:`start_keepalive`).
+        expect_table_hash, expect_profile_hash, expect_build_id : int, optional
+            Refuse (:class:`HandshakeMismatch`) a board of another build or profile (e.g. the one
+            a firmware folder was generated for).
+        app_timeout : float or None
+            The keep-alive contract, s (module docstring; None: feed while the process runs).
+
+        Returns
+        -------
+        Link
+            The open link; a context manager (closing it stops the keep-alive).
+
+        Raises
+        ------
+        LinkError
+            The port cannot be opened, or the handshake fails (:class:`LinkTimeout`,
+            :class:`HandshakeMismatch`...).
+        """
         import serial
         try:
             port = serial.serial_for_url(url, baudrate=baudrate, timeout=0, write_timeout=2.0, **serial_kwargs)
@@ -702,8 +730,21 @@ class Link:
         return raw
 
     def set(self, name: str, value) -> Any:
-        """Write a parameter in engineering units; returns the value the board stored (after
-        rounding to its raw resolution)."""
+        """Write a parameter in engineering units.
+
+        Parameters
+        ----------
+        name : str
+            A writable parameter of the board's table (``rule1_kp``, ``u_max``...).
+        value : float
+            In the parameter's unit (:attr:`picdrive.link.protocol.Entry.unit`: V/(rad/s), V,
+            rpm, A, ms...).
+
+        Returns
+        -------
+        float
+            The value the board stored, same unit (after rounding to its raw resolution).
+        """
         e = self.param(name)
         if not e.writable:
             raise ParamError(f"{name} is read-only ({'a telemetry signal' if e.signal else 'fixed by the build'})")
@@ -728,7 +769,18 @@ class Link:
 
     # ---------------------------------------------------------------- drive
     def set_speed(self, rpm: float) -> float:
-        """Speed setpoint in rpm (signed: the sign is the direction); returns what was stored."""
+        """Set the speed setpoint.
+
+        Parameters
+        ----------
+        rpm : float
+            Mechanical speed, rpm (signed: the sign is the direction).
+
+        Returns
+        -------
+        float
+            What the board stored, rpm.
+        """
         raw = self.to_raw("speed_setpoint", rpm)
         return self._eng(self.param("speed_setpoint"),
                          self.request("set_speed", {"value": raw}, detail=f"{rpm:g} rpm")["value"])
@@ -842,8 +894,23 @@ class Link:
     # ---------------------------------------------------------------- telemetry
     def configure_telemetry(self, signals: Iterable[str] = P.DEFAULT_TELEMETRY_SIGNALS, *, decimation: int = 1,
                             samples_per_frame: int | None = None) -> TelemetryConfig:
-        """Stream ``signals`` every ``decimation``-th speed-loop sample, ``samples_per_frame``
-        samples per frame (default: as many as fit, at most 4).  Clears the sample buffer."""
+        """Stream telemetry signals; clears the sample buffer.
+
+        Parameters
+        ----------
+        signals : iterable of str
+            Telemetry signals of the board's table (``speed`` rpm, ``current`` A, ``voltage`` V...).
+        decimation : int
+            Send every ``decimation``-th speed-loop sample (1..65535).
+        samples_per_frame : int, optional
+            Samples per frame (default: as many as fit, at most 4).
+
+        Returns
+        -------
+        TelemetryConfig
+            The signals in frame order, the decimation, samples per frame, the board's
+            speed-loop rate ``sample_hz`` and the telemetry rate ``rate_hz``, Hz.
+        """
         t = self._check_table()
         names = list(signals)
         ents = [self.param(n) for n in names]
@@ -931,13 +998,25 @@ class Link:
 
     def read_samples(self, n: int | None = None, *, seconds: float | None = None,
                      timeout: float | None = None) -> np.ndarray:
-        """Telemetry samples as a structured array: ``index`` (sample number since
-        configure_telemetry; gaps are dropped samples), ``t`` (s since the configuration:
-        index x decimation / sample_hz, or host arrival time if the build does not state its
-        rate) and one field per signal in engineering units.
+        """Telemetry samples received since :meth:`configure_telemetry`.
 
-        ``n``: the oldest n buffered samples (waits for them; LinkTimeout after ``timeout``).
-        ``seconds``: wait that long, then everything buffered."""
+        Parameters
+        ----------
+        n : int, optional
+            The oldest n buffered samples (waits for them; :class:`LinkTimeout` after ``timeout``).
+        seconds : float, optional
+            Wait that long (s, host time), then everything buffered.  Give ``n`` or ``seconds``.
+        timeout : float, optional
+            With ``n``: the longest wait, s.
+
+        Returns
+        -------
+        numpy.ndarray
+            A structured array: ``index`` (sample number since configure_telemetry; gaps are
+            dropped samples), ``t`` (s since the configuration: index x decimation / sample_hz,
+            or host arrival time if the build does not state its rate) and one field per signal
+            in engineering units (rpm, A, V...).
+        """
         with self._app_call():                 # waiting here is the application being alive
             return self._read_samples(n, seconds, timeout)
 
