@@ -4,7 +4,7 @@ The firmware runs :mod:`picdrive.control_law` (the float reference) in
 integers.  :func:`plan_fixed_point` chooses every Q format from the design's
 numbers with headroom, quantises every coefficient and reports its error,
 and refuses what cannot be represented.  The functions below the plan
-(:func:`law_step`, :func:`core_step`, :func:`speed_encoder`...) are the
+(:func:`law_step`, :func:`core_control`, :func:`speed_encoder`...) are the
 Python model of the C in ``firmware_templates/drive_core.c.j2``, operation
 for operation: the tests run both on the same random vectors and require 0
 LSB difference (the gcc/ctypes harness is tests/support/core_c.py; the
