@@ -260,9 +260,10 @@ def identify(profile, plant_factory: Callable, *, speeds_rpm: Sequence[float] | 
 
 
 def open_loop_run(profile, plant, u_of_t: Callable[[float], float], t_end_s: float, load_n_m: float,
-                  *, w0_rad_s: float = 0.0) -> dict:
+                  *, w0_rad_s: float = 0.0, u_cap: Callable[[float], float] | None = None) -> dict:
     """Free-running three-phase ``plant`` (twin interface, see :func:`hold_sector_means`) at voltage ``u(t)``
     through the hall table, under a constant load torque opposing the motion; every PWM period.
+    ``u_cap(w)``: a speed-dependent ceiling on the voltage (V, at the present true speed w, rad/s).
 
     Returns arrays ``t`` (s), ``w`` (rad/s), ``i`` (sensed current, A)."""
     from ..commutation import hall_table
@@ -275,7 +276,10 @@ def open_loop_run(profile, plant, u_of_t: Callable[[float], float], t_end_s: flo
     w = np.empty(n)
     i = np.empty(n)
     for k in range(n):
-        d = max(0.0, min(u_of_t(k * h) / inv.bus_voltage_v, 1.0))
+        u = u_of_t(k * h)
+        if u_cap is not None:
+            u = min(u, u_cap(plant.state.w_rad_s))
+        d = max(0.0, min(u / inv.bus_voltage_v, 1.0))
         plant.step(_legs_for(tab, plant.hall_code(), d), load_n_m if plant.state.w_rad_s > 0.0 else 0.0, h)
         w[k] = plant.state.w_rad_s
         i[k] = plant.state.i_link_on_a
