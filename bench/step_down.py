@@ -1,0 +1,93 @@
+"""Speed steps down (issue 14, item 4): 2400 -> 600 rpm and to rest, against the friction-only coast.
+
+For each bundled duy2008 design (and the 2016 designs, from their step target to a quarter of it
+and to rest): the law in the verification's plant (the twin's three-phase winding, the firmware's
+speed measurement and current window, picdrive.models.simulate.simulate_six_step) runs at the high
+speed, then the reference drops.  Printed: the time until the sector-mean speed stays within 2 % of
+the new reference (to rest: until the speed stays below 2 % of the start), the least current the law
+drew (negative: the reverse table, plugging), and the same plant coasting with every switch off
+(friction and load only: the first time it is within 2 % of the new reference, or below 2 % of the
+start for rest; the analytic J/B ln((B w0 + T)/(B w1 + T)) beside), with and without the profile's
+load (passive: it stops the rotor).
+
+    PYTHONPATH=$PWD/host:$PWD/hil python3 bench/step_down.py
+"""
+from __future__ import annotations
+
+import math
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def settle_after(t, y, t0, goal, band_abs):
+    sel = t >= t0
+    tt, yy = t[sel], y[sel]
+    out = np.nonzero(np.abs(yy - goal) > band_abs)[0]
+    if out.size == 0:
+        return 0.0
+    if out[-1] == yy.size - 1:
+        return math.inf
+    return float(tt[out[-1] + 1] - t0)
+
+
+def first_below(t, y, level):
+    hit = np.nonzero(y <= level)[0]
+    return float(t[hit[0]]) if hit.size else math.inf
+
+
+def coast_s(profile, w0, w1, load):
+    """Friction-only coast from w0 to w1 (rad/s): J w' = -B w - T_load, s."""
+    m = profile.motor
+    J, B = m.inertia_kg_m2, m.viscous_friction_n_m_s
+    return J / B * math.log((B * w0 + load) / (B * w1 + load))
+
+
+def main(argv):
+    from picdrive.analysis.steptest import sector_mean
+    from picdrive.gate import BuiltDrive, three_phase_plant
+    from picdrive.models.averaged import open_loop_run
+    from picdrive.models.simulate import simulate_six_step
+    from picdrive.profile import load_profile
+    from picdrive.result import load_design
+    warnings.simplefilter("ignore")
+    drive = BuiltDrive()
+    print("design                         load   from->to rpm | law: settle ms  min current A | coast (all off) to the band: ms")
+    for prof_name in ("duy2008", "assawinchaichote2016"):
+        p = load_profile(str(ROOT / f"examples/{prof_name}.toml"))
+        hi = min(2400.0, p.speed_step_rpm())
+        for lo in (600.0 if hi == 2400.0 else round(hi / 4), 0.0):
+            for load in (0.0, p.control.load_torque_n_m):
+                t1 = 0.4
+                goal = 1.02 * lo if lo > 0 else 0.02 * hi
+                rad = 2 * math.pi / 60
+                t_an = coast_s(p, hi * rad, goal * rad, load)
+                t_end = t1 + min(20.0, max(1.0, 1.3 * t_an))
+                # coast: the same plant at the high speed, every switch off: first time within the band
+                run = open_loop_run(p, three_phase_plant(p, 1.0), lambda t: 0.0, t_end - t1, load,
+                                    w0_rad_s=hi * rad)
+                t_coast = first_below(run["t"], run["w"] / rad, goal)
+                for path in sorted((ROOT / "examples").glob(f"{prof_name}.*.design.json")):
+                    res = load_design(str(path))
+                    if res.law is None:
+                        continue
+                    sim = simulate_six_step(p, res.law, t_end=t_end, ref_rpm=lambda t: hi if t < t1 else lo,
+                                            load=load, commutated=True, **drive.speed_measurement(p, res.law),
+                                            three_phase=drive.three_phase_plant(p))
+                    ts = res.law.sample_time_s
+                    if lo > 0:
+                        sm = sector_mean(p, sim.rpm, ts, lo, breaks=(int(round(t1 / ts)),))
+                        t_s = settle_after(sim.t, sm, t1, lo, 0.02 * lo)
+                    else:
+                        t_s = settle_after(sim.t, sim.rpm, t1, 0.0, 0.02 * hi)
+                    i_min = float(np.min(sim.i[sim.t >= t1]))
+                    print(f"{path.name[:-12]:30} {load:5.3g} {hi:6.0f}->{lo:4.0f} | {1e3 * t_s:14.1f} {i_min:14.3f} |"
+                          f" {1e3 * t_coast:10.1f} (J/B ln: {1e3 * t_an:.1f})", flush=True)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
