@@ -8,7 +8,8 @@ the new reference (to rest: until the speed stays below 2 % of the start), the l
 drew (negative: the reverse table, plugging), and the same plant coasting with every switch off
 (friction and load only: the first time it is within 2 % of the new reference, or below 2 % of the
 start for rest; the analytic J/B ln((B w0 + T)/(B w1 + T)) beside), with and without the profile's
-load (passive: it stops the rotor).
+load (passive: it stops the rotor); and the bound of braking at the current limit all the way down
+(J w' = -Kt I_lim - B w - T_load), what a bridge that can reverse the current below the back-EMF allows.
 
     PYTHONPATH=$PWD/host:$PWD/hil python3 bench/step_down.py
 """
@@ -45,6 +46,15 @@ def coast_s(profile, w0, w1, load):
     m = profile.motor
     J, B = m.inertia_kg_m2, m.viscous_friction_n_m_s
     return J / B * math.log((B * w0 + load) / (B * w1 + load))
+
+
+def brake_bound_s(profile, w0, w1, load):
+    """Braking at the current limit the whole way (what a bridge that can reverse the current below the
+    back-EMF would allow): J w' = -Kt I_lim - B w - T_load, s."""
+    m = profile.motor
+    J, B = m.inertia_kg_m2, m.viscous_friction_n_m_s
+    tb = m.kt_n_m_per_a * profile.inverter.current_limit_a + load
+    return J / B * math.log((B * w0 + tb) / (B * w1 + tb))
 
 
 def main(argv):
@@ -86,7 +96,8 @@ def main(argv):
                         t_s = settle_after(sim.t, sim.rpm, t1, 0.0, 0.02 * hi)
                     i_min = float(np.min(sim.i[sim.t >= t1]))
                     print(f"{path.name[:-12]:30} {load:5.3g} {hi:6.0f}->{lo:4.0f} | {1e3 * t_s:14.1f} {i_min:14.3f} |"
-                          f" {1e3 * t_coast:10.1f} (J/B ln: {1e3 * t_an:.1f})", flush=True)
+                          f" {1e3 * t_coast:10.1f} (J/B ln: {1e3 * t_an:.1f}) | braking at I_lim: "
+                          f"{1e3 * brake_bound_s(p, hi * rad, goal * rad, load):.1f}", flush=True)
 
 
 if __name__ == "__main__":
