@@ -524,18 +524,24 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     plant_model = options.get("plant_model", "six-step")
     if plant_model not in ("six-step", "averaged", "dq"):
         raise FuzzyHinfError(f"option plant_model={plant_model!r}: 'six-step', 'averaged' or 'dq'")
-    if plant_model == "averaged" and (variant != "six-step" or drive is None):
+    if plant_model == "averaged" and variant != "six-step":
+        raise FuzzyHinfError(f"option plant_model='averaged' is a six-step model: drop --variant {variant} "
+                             "(or the option)")
+    if plant_model == "averaged" and drive is None:
         raise FuzzyHinfError("option plant_model='averaged' identifies the speed-dependent model from the drive's "
-                             "three-phase plant: it needs the six-step variant and the built drive "
-                             "(picdrive design does this; in Python pass drive=picdrive.gate.BuiltDrive())")
+                             "three-phase plant: it needs the built drive (picdrive design passes it; in Python "
+                             "pass drive=picdrive.gate.BuiltDrive())")
     model_opts = {k: options.get(k) for k in ("rules", "resistance_uncertainty", "integral_weight_rad_s")}
     model_opts["rho"] = rho
+    t_ident = None
     if variant == "six-step" and plant_model in ("six-step", "averaged"):
         model = "six-step"
         if plant_model == "averaged":
             from ..models.averaged import identify
             model = "six-step-averaged"
+            ti = _t.perf_counter()
             model_opts["averaged"] = identify(profile, drive.three_phase_plant).to_dict()
+            t_ident = _t.perf_counter() - ti
         if options.get("emf_polytope") is not None:
             model_opts["emf_polytope"] = bool(options["emf_polytope"])
         if model_opts["integral_weight_rad_s"] is None:
@@ -599,7 +605,7 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
         return res
 
     t1 = _t.perf_counter()
-    timings = {"model": t_model}
+    timings = {"model": t_model} if t_ident is None else {"identify": t_ident, "model": t_model}
     if variant != "six-step":
         disk = None
         if variant != "paper":
