@@ -11,6 +11,8 @@ Per bundled design (examples/*.design.json) and load (none; the profile's load f
 * design: the design's law in the verification's plant (three-phase winding, the firmware's speed
   measurement, picdrive.models.simulate.simulate_six_step): time until the sector-mean speed stays
   inside the 1 % band, overshoot of the sector-mean speed;
+* without load, the same step in the motor twin with the design's firmware in the loop
+  (picdrive.gate.twin_run), its time, overshoot and ratio;
 * ratios design / bound, and times in units of J w / (Kt I_lim) as the issue quotes them.
 
     PYTHONPATH=$PWD/host:$PWD/hil python3 bench/time_optimal.py
@@ -27,21 +29,33 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def design_step(profile, law, drive, load: float, rpm: float) -> dict:
+def band_figures(profile, t, rpm_run, rpm: float, ts: float) -> dict:
+    """Time until the sector-mean speed stays within 1 % of ``rpm``, and its overshoot."""
     from picdrive.analysis.steptest import sector_mean
+    sm = sector_mean(profile, rpm_run, ts, rpm)
+    out = np.nonzero(np.abs(sm - rpm) > 0.01 * rpm)[0]
+    t_band = 0.0 if out.size == 0 else (math.inf if out[-1] == sm.size - 1 else float(t[out[-1] + 1]))
+    return {"t_band_s": t_band, "overshoot_pct": max(0.0, 100 * (float(np.max(sm)) - rpm) / rpm)}
+
+
+def design_step(profile, law, drive, load: float, rpm: float) -> dict:
     from picdrive.analysis.timeoptimal import t_unit
     from picdrive.models.simulate import simulate_six_step
     w_t = rpm * 2 * math.pi / 60
     t_end = max(0.3, 40 * t_unit(profile, w_t))
     sim = simulate_six_step(profile, law, t_end=t_end, ref_rpm=rpm, load=load, commutated=True,
                             **drive.speed_measurement(profile, law), three_phase=drive.three_phase_plant(profile))
-    ts = law.sample_time_s
-    sm = sector_mean(profile, sim.rpm, ts, rpm)
-    out = np.nonzero(np.abs(sm - rpm) > 0.01 * rpm)[0]
-    t_band = math.inf if out.size == 0 or out[-1] == sm.size - 1 else float(sim.t[out[-1] + 1])
-    if out.size == 0:
-        t_band = 0.0
-    return {"t_band_s": t_band, "overshoot_pct": max(0.0, 100 * (float(np.max(sm)) - rpm) / rpm)}
+    return band_figures(profile, sim.t, sim.rpm, rpm, law.sample_time_s)
+
+
+def twin_step(profile, path, law, rpm: float) -> dict:
+    """The design's firmware in the motor twin (picdrive.gate.twin_run), step from rest without load."""
+    from picdrive.analysis.steptest import sim_plan
+    from picdrive.gate import twin_run
+    plan = {**sim_plan(profile), "target_rpm": rpm}
+    tw = twin_run(profile, path, plan)
+    sel = tw.t < plan["t_load_s"]
+    return band_figures(profile, tw.t[sel], tw.rpm[sel], rpm, law.sample_time_s)
 
 
 def window_time(profile, plant_factory, load: float, rpm: float) -> float:
@@ -81,10 +95,12 @@ def main(argv):
                 if res.law is None:
                     continue
                 d = design_step(p, res.law, drive, load, rpm)
+                tw = "" if load else (lambda f: f" | twin {1e3 * f['t_band_s']:.0f} ms ovs {f['overshoot_pct']:.2f} % "
+                                                f"ratio {f['t_band_s'] / b['t_s']:.2f}")(twin_step(p, path, res.law, rpm))
                 print(f"{path.name[:-12]:30} {load:8.3g} | {1e3 * b['t_s']:9.2f} ({b['t_s'] / unit:4.2f})"
                       f" {1e3 * bdc['t_s']:11.2f} | {1e3 * win:9.2f} | {1e3 * d['t_band_s']:9.2f} "
                       f"({d['t_band_s'] / unit:5.2f}) {d['overshoot_pct']:6.2f} | {d['t_band_s'] / b['t_s']:12.2f}"
-                      f"  {win / b['t_s']:12.2f}", flush=True)
+                      f"  {win / b['t_s']:12.2f}{tw}", flush=True)
 
 
 if __name__ == "__main__":
