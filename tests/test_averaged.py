@@ -32,14 +32,14 @@ POINTS = [(600.0, 1.0), (1800.0, 0.0), (2280.0, 1.0)]
 
 @pytest.mark.parametrize("rpm,load_frac", POINTS)
 def test_model_predicts_the_three_phase_plant(duy, avg, rpm, load_frac):
-    """Tolerances (bench/averaged.py prints the full table): steady speed 1 %, mean sensed current 8 %
-    (loaded: 2 %), small-signal gain 5 %, 63 % time of a -5 % voltage step 12 %."""
+    """Tolerances (bench/averaged.py prints the full table): steady speed 1 %, mean sensed current 3 %,
+    small-signal gain 5 %, 63 % time of a -5 % voltage step 10 %."""
     c = check_point(duy, avg, three_phase_plant, rpm, load_frac * duy.control.load_torque_n_m)
     tw, mo, dc = c["twin"], c["model"], c["dc"]
     assert mo["w_rpm"] == pytest.approx(tw["w_rpm"], rel=0.01)
-    assert mo["i_a"] == pytest.approx(tw["i_a"], rel=0.02 if load_frac else 0.08)
+    assert mo["i_a"] == pytest.approx(tw["i_a"], rel=0.03)
     assert mo["gain_rpm_per_v"] == pytest.approx(tw["gain_rpm_per_v"], rel=0.05)
-    assert mo["t63_s"] == pytest.approx(tw["t63_s"], rel=0.12)
+    assert mo["t63_s"] == pytest.approx(tw["t63_s"], rel=0.10)
     # and the DC equivalent, which the model replaces, is measurably worse on the current
     assert abs(dc["i_a"] / tw["i_a"] - 1) > 2 * abs(mo["i_a"] / tw["i_a"] - 1)
 
@@ -87,3 +87,19 @@ def test_averaged_option_needs_the_built_drive(duy):
     from picdrive.design.fuzzy_hinf import FuzzyHinfError, design
     with pytest.raises(FuzzyHinfError, match="built drive"):
         design(duy, progress=False, plant_model="averaged", simulate=False)
+
+
+def test_discontinuous_conduction_steady_state():
+    """The 2016 motor without load: its pair's EMF ripples +-7 % inside a sector and R is 1 ohm, so the
+    current flows in part of each sector only.  The maps (knee points below the counter voltage) hold
+    steady speed to 1 % and current to 5 % there; the DC equivalent misses by > 4 % and > 8 %."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        p = load_profile("assawinchaichote2016")
+    top = p.speed_step_rpm()
+    avg = identify(p, three_phase_plant, speeds_rpm=[0.6 * top, 0.7 * top, 0.8 * top])
+    c = check_point(p, avg, three_phase_plant, 0.75 * top, 0.0)
+    tw, mo, dc = c["twin"], c["model"], c["dc"]
+    assert mo["w_rpm"] == pytest.approx(tw["w_rpm"], rel=0.01)
+    assert mo["i_a"] == pytest.approx(tw["i_a"], rel=0.05)
+    assert abs(dc["w_rpm"] / tw["w_rpm"] - 1) > 0.04 and abs(dc["i_a"] / tw["i_a"] - 1) > 0.08

@@ -75,6 +75,8 @@ class AveragedModel:
     points: tuple[SectorPoint, ...]
     w_ref_rad_s: float               # top identified speed
     coef: dict = field(default_factory=dict, compare=False)   # name -> scipy PchipInterpolator over w
+    maps: tuple = ()                 # per identified speed (w, u's, sector-mean currents, torques), u increasing
+    _map_fns: tuple = field(default=(), compare=False, repr=False)
 
     @property
     def w_range(self) -> tuple[float, float]:
@@ -112,19 +114,69 @@ class AveragedModel:
             return self._poly("t0", lo) * abs(w) / lo
         return self._poly("t0", w)
 
+    def _map_at(self, k: int, u: float) -> tuple[float, float]:
+        """Sector-mean (current, torque) of the identified speed ``k`` at voltage ``u`` (PCHIP inside the
+        measured voltages; outside, the line through the two nearest points, current not below 0)."""
+        fi, ft, ug, ig, tg = self._map_fns[k]
+        if ug[0] <= u <= ug[-1]:
+            return max(0.0, float(fi(u))), float(ft(u))
+        a, b = (0, 1) if u < ug[0] else (-2, -1)
+        si = (ig[b] - ig[a]) / (ug[b] - ug[a])
+        st = (tg[b] - tg[a]) / (ug[b] - ug[a])
+        i = ig[a] + si * (u - ug[a])
+        if i <= 0.0:
+            return 0.0, 0.0
+        return i, tg[a] + st * (u - ug[a])
+
+    def _steady(self, u: float, w: float) -> tuple[float, float]:
+        w = abs(w)
+        ws = [m[0] for m in self.maps]
+        if w <= ws[0]:
+            # below the grid: the lowest speed's map at the voltage that leaves the same IR drop
+            return self._map_at(0, u + self.e(ws[0]) - self.e(w))
+        if w >= ws[-1]:
+            return self._map_at(len(ws) - 1, u + self.e(ws[-1]) - self.e(w))
+        k = int(np.searchsorted(ws, w)) - 1
+        x = (w - ws[k]) / (ws[k + 1] - ws[k])
+        # between identified speeds at the same voltage above the counter voltage (the knee moves with E)
+        v = u - self.e(w)
+        i0, t0 = self._map_at(k, self.e(ws[k]) + v)
+        i1, t1 = self._map_at(k + 1, self.e(ws[k + 1]) + v)
+        return (1 - x) * i0 + x * i1, (1 - x) * t0 + x * t1
+
     def current(self, u: float, w: float) -> float:
-        """Steady sector-mean current at voltage ``u`` and speed ``w``, A (not below 0: the bridge cannot brake)."""
+        """Steady sector-mean current at voltage ``u`` and speed ``w``, A (not below 0: the bridge cannot brake).
+        With ``maps``: the identified sector means (discontinuous conduction included), interpolated;
+        without: the affine summary ``(u - E)/R_e``."""
+        if self.maps:
+            return self._steady(u, w)[0]
         return max(0.0, (u - self.e(w)) / self.r_e(w))
 
     def torque(self, u: float, w: float) -> float:
         """Steady sector-mean torque, N m."""
+        if self.maps:
+            return self._steady(u, w)[1] if self._steady(u, w)[0] > 0.0 else 0.0
         i = self.current(u, w)
         return self.kt(w) * i + self.t0(w) if i > 0.0 else 0.0
 
     def equilibrium(self, w: float, load_n_m: float) -> tuple[float, float]:
         """``(u, i)`` holding speed ``w`` under ``load_n_m``: V, A."""
         i = (self.b_n_m_s * w + load_n_m - self.t0(w)) / self.kt(w)
-        return self.r_e(w) * i + self.e(w), i
+        u = self.r_e(w) * i + self.e(w)
+        if not self.maps:
+            return u, i
+        need = self.b_n_m_s * w + load_n_m
+        lo, hi = 0.0, max(u, self.e(w)) + 2.0 * self.r_line_ohm + 1.0
+        while self.torque(hi, w) < need:
+            hi += hi - lo
+        for _ in range(80):
+            mid = 0.5 * (lo + hi)
+            if self.torque(mid, w) < need:
+                lo = mid
+            else:
+                hi = mid
+        u = 0.5 * (lo + hi)
+        return u, self.current(u, w)
 
     def steady_speed(self, u: float, load_n_m: float) -> float:
         """Speed the drive settles at with voltage ``u`` and load ``load_n_m``, rad/s (0 if it cannot turn)."""
@@ -143,8 +195,25 @@ class AveragedModel:
     def linearise(self, w: float, load_n_m: float) -> tuple[np.ndarray, np.ndarray]:
         """Small-signal ``(A, B)`` about the equilibrium at ``w`` under the load, states ``[d_w, d_i]``, input ``d_u``.
 
-        ``d_i' = (d_u - R_e d_i - (E' + R_e' i*) d_w)/L``,
-        ``d_w' = (k_t d_i + (k_t' i* + T_0' - B) d_w)/J`` (primes: d/dw)."""
+        Affine summary: ``d_i' = (d_u - R_e d_i - (E' + R_e' i*) d_w)/L``,
+        ``d_w' = (k_t d_i + (k_t' i* + T_0' - B) d_w)/J`` (primes: d/dw).  With ``maps``: the same form
+        from the maps' local slopes (``a = di/du``, ``b = di/dw``, ``c = dT/du``, ``d = dT/dw``, steady state):
+        ``L d_i' = d_u + (b d_w - d_i)/a``, ``J d_w' = (c/a) d_i + (d - b c/a - B) d_w``."""
+        if self.maps:
+            u, _ = self.equilibrium(w, load_n_m)
+            hu = 1e-3 * self.r_line_ohm
+            hw = 1e-3 * self.w_range[1]
+            ip, tp = self._steady(u + hu, w)
+            im, tm = self._steady(u - hu, w)
+            a, c = (ip - im) / (2 * hu), (tp - tm) / (2 * hu)
+            ip, tp = self._steady(u, w + hw)
+            im, tm = self._steady(u, max(w - hw, 0.0))
+            dw_ = w + hw - max(w - hw, 0.0)
+            b, d = (ip - im) / dw_, (tp - tm) / dw_
+            k = c / a
+            A = np.array([[(d - b * k - self.b_n_m_s) / self.j_kg_m2, k / self.j_kg_m2],
+                          [b / a / self.l_h, -1.0 / a / self.l_h]])
+            return A, np.array([[0.0], [1.0 / self.l_h]])
         _, i = self.equilibrium(w, load_n_m)
         de = self._poly("e", w, 1) if abs(w) >= self.w_range[0] else self.e(self.w_range[0]) / self.w_range[0]
         dr = self._poly("r_e", w, 1)
@@ -159,7 +228,8 @@ class AveragedModel:
         return {"form": "picdrive.averaged_six_step/1", "l_h": self.l_h, "j_kg_m2": self.j_kg_m2,
                 "b_n_m_s": self.b_n_m_s, "kb_v_s_per_rad": self.kb_v_s_per_rad, "r_line_ohm": self.r_line_ohm,
                 "u_bridge_v": self.u_bridge_v, "w_ref_rad_s": self.w_ref_rad_s,
-                "points": [[p.w_rad_s, p.r_e_ohm, p.e_v, p.kt_n_m_per_a, p.t0_n_m, p.fit_rms_a] for p in self.points]}
+                "points": [[p.w_rad_s, p.r_e_ohm, p.e_v, p.kt_n_m_per_a, p.t0_n_m, p.fit_rms_a] for p in self.points],
+                "maps": [[w, list(u), list(i), list(t)] for w, u, i, t in self.maps]}
 
 
 def _fit(points: Sequence[SectorPoint]) -> dict:
@@ -171,21 +241,25 @@ def _fit(points: Sequence[SectorPoint]) -> dict:
             "t0": PchipInterpolator(x, [p.t0_n_m for p in points])}
 
 
-def _build(profile, points: Sequence[SectorPoint]) -> AveragedModel:
+def _build(profile, points: Sequence[SectorPoint], maps=()) -> AveragedModel:
+    from scipy.interpolate import PchipInterpolator
     m, inv = profile.motor, profile.inverter
     pts = tuple(sorted(points, key=lambda p: p.w_rad_s))
     w_ref = pts[-1].w_rad_s
+    maps = tuple(sorted(((float(w), tuple(map(float, u)), tuple(map(float, i)), tuple(map(float, t)))
+                         for w, u, i, t in maps), key=lambda r: r[0]))
+    fns = tuple((PchipInterpolator(u, i), PchipInterpolator(u, t), u, i, t) for _, u, i, t in maps)
     return AveragedModel(l_h=m.l_line_h, j_kg_m2=m.inertia_kg_m2, b_n_m_s=m.viscous_friction_n_m_s,
                          kb_v_s_per_rad=m.kb_v_s_per_rad, r_line_ohm=m.r_line_ohm,
                          u_bridge_v=inv.bus_voltage_v * profile.max_duty(), points=pts, w_ref_rad_s=w_ref,
-                         coef=_fit(pts))
+                         coef=_fit(pts), maps=maps, _map_fns=fns)
 
 
 def model_from_dict(profile, d: dict) -> AveragedModel:
     """Rebuild a model saved by :meth:`AveragedModel.to_dict` (the design certificate keeps it)."""
     if d.get("form") != "picdrive.averaged_six_step/1":
         raise ValueError(f"unknown averaged-model form {d.get('form')!r}")
-    return _build(profile, [SectorPoint(*map(float, row)) for row in d["points"]])
+    return _build(profile, [SectorPoint(*map(float, row)) for row in d["points"]], d.get("maps", ()))
 
 
 def _legs_for(table, code: int, duty: float):
@@ -228,20 +302,26 @@ def hold_sector_means(profile, plant, w_rad_s: float, u_v: float) -> tuple[float
 
 
 def identify(profile, plant_factory: Callable, *, speeds_rpm: Sequence[float] | None = None,
-             current_fractions: Sequence[float] = (0.03, 0.1, 0.3, 0.6, 0.9)) -> AveragedModel:
+             current_fractions: Sequence[float] = (0.03, 0.1, 0.3, 0.6, 0.9),
+             knee_fractions: Sequence[float] = (0.2, 0.12, 0.07, 0.04, 0.02, 0.01, 0.0, -0.005, -0.01, -0.02)
+             ) -> AveragedModel:
     """Identify :class:`AveragedModel` from the three-phase plant (``plant_factory(profile, r_factor)``).
 
-    Speeds: default 10 points from 3 % to 100 % of the step target (``profile.speed_step_rpm()``).
+    Speeds: default 11 points from 3 % to 100 % of the step target (``profile.speed_step_rpm()``).
     At each, the voltages ``Kb w + f R I_lim`` for ``f`` in ``current_fractions`` that the bridge
     reaches (at least three: below the bridge's edge otherwise), the sector means fitted by least
-    squares: ``i = (u - E)/R_e``, ``T = k_t i + T_0``."""
+    squares: ``i = (u - E)/R_e``, ``T = k_t i + T_0`` (the affine summary); then the knee: the
+    voltages ``(1 - q) E`` for ``q`` in ``knee_fractions`` (below the counter voltage by up to 20 %,
+    the span of the pair's EMF ripple inside a sector), where the current goes to zero in part of
+    each sector (discontinuous conduction).  Every measured point goes into the speed's map
+    (``AveragedModel.maps``)."""
     m, inv = profile.motor, profile.inverter
     top = profile.speed_step_rpm()
     if speeds_rpm is None:
         speeds_rpm = [top * f for f in (0.03, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)]
     ub = inv.bus_voltage_v * profile.max_duty()
     span = m.r_line_ohm * inv.current_limit_a
-    pts = []
+    pts, maps = [], []
     for rpm in speeds_rpm:
         w = rpm * RPM
         u0 = m.kb_v_s_per_rad * w
@@ -256,7 +336,13 @@ def identify(profile, plant_factory: Callable, *, speeds_rpm: Sequence[float] | 
         kt, t0 = np.polyfit(ii, tt, 1)
         pts.append(SectorPoint(w_rad_s=w, r_e_ohm=1.0 / g, e_v=-c / g, kt_n_m_per_a=float(kt), t0_n_m=float(t0),
                                fit_rms_a=float(np.sqrt(np.mean(res ** 2)))))
-    return _build(profile, pts)
+        e = -c / g
+        knee = [(1.0 - q) * e for q in knee_fractions if 0.0 < (1.0 - q) * e < us[0] - 1e-3 * span]
+        data += [hold_sector_means(profile, plant_factory(profile, 1.0), w, float(u)) for u in knee]
+        uu = np.concatenate([us, knee])
+        order = np.argsort(uu)
+        maps.append((w, uu[order], np.array([d[0] for d in data])[order], np.array([d[1] for d in data])[order]))
+    return _build(profile, pts, maps)
 
 
 def open_loop_run(profile, plant, u_of_t: Callable[[float], float], t_end_s: float, load_n_m: float,
