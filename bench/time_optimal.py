@@ -11,6 +11,9 @@ Per bundled design (examples/*.design.json) and load (none; the profile's load f
 * design: the design's law in the verification's plant (three-phase winding, the firmware's speed
   measurement, picdrive.models.simulate.simulate_six_step): time until the sector-mean speed stays
   inside the 1 % band, overshoot of the sector-mean speed;
+* shaped: the same law, unchanged, with its reference following the bound's speed profile
+  (picdrive.analysis.timeoptimal.trajectory) stretched 1.0x and 1.2x in time: reference shaping alone,
+  without a feedforward voltage;
 * without load, the same step in the motor twin with the design's firmware in the loop
   (picdrive.gate.twin_run), its time, overshoot and ratio;
 * ratios design / bound, and times in units of J w / (Kt I_lim) as the issue quotes them.
@@ -58,6 +61,19 @@ def twin_step(profile, path, law, rpm: float) -> dict:
     return band_figures(profile, tw.t[sel], tw.rpm[sel], rpm, law.sample_time_s)
 
 
+def shaped_step(profile, law, drive, load: float, rpm: float, traj, stretch: float) -> dict:
+    """The design's law (unchanged) with its reference following the bound's trajectory stretched in time by
+    ``stretch`` (reference shaping alone, no feedforward), in the verification's plant."""
+    from picdrive.models.simulate import simulate_six_step
+    t_tr, w_tr = traj
+    k = 60 / (2 * math.pi)
+    ref = lambda t: min(rpm, float(np.interp(t / stretch, t_tr, w_tr)) * k)
+    sim = simulate_six_step(profile, law, t_end=max(0.3, 3 * stretch * float(t_tr[-1])), ref_rpm=ref, load=load,
+                            commutated=True, **drive.speed_measurement(profile, law),
+                            three_phase=drive.three_phase_plant(profile))
+    return band_figures(profile, sim.t, sim.rpm, rpm, law.sample_time_s)
+
+
 def window_time(profile, plant_factory, load: float, rpm: float) -> float:
     from picdrive.models.averaged import open_loop_run
     from picdrive.analysis.timeoptimal import t_unit
@@ -71,7 +87,7 @@ def window_time(profile, plant_factory, load: float, rpm: float) -> float:
 
 
 def main(argv):
-    from picdrive.analysis.timeoptimal import t_unit, time_to_band
+    from picdrive.analysis.timeoptimal import t_unit, time_to_band, trajectory
     from picdrive.gate import BuiltDrive, three_phase_plant
     from picdrive.models.averaged import identify
     from picdrive.profile import load_profile
@@ -79,7 +95,7 @@ def main(argv):
     warnings.simplefilter("ignore")
     drive = BuiltDrive()
     print("design                          load N m | bound avg ms (x unit)  bound dc ms | window ms | design ms (x unit)"
-          "  ovs %  | design/bound  window/bound")
+          "  ovs %  | design/bound  window/bound | shaped x1.0: ratio ovs %  x1.2: ratio ovs %")
     for prof_name in ("duy2008", "assawinchaichote2016"):
         p = load_profile(str(ROOT / f"examples/{prof_name}.toml"))
         avg = identify(p, three_phase_plant)
@@ -95,12 +111,15 @@ def main(argv):
                 if res.law is None:
                     continue
                 d = design_step(p, res.law, drive, load, rpm)
+                traj = trajectory(p, w_t, load, model=avg)
+                sh = [shaped_step(p, res.law, drive, load, rpm, traj, k) for k in (1.0, 1.2)]
+                shaped = " | " + "  ".join(f"{f['t_band_s'] / b['t_s']:5.2f} {f['overshoot_pct']:5.2f}" for f in sh)
                 tw = "" if load else (lambda f: f" | twin {1e3 * f['t_band_s']:.0f} ms ovs {f['overshoot_pct']:.2f} % "
                                                 f"ratio {f['t_band_s'] / b['t_s']:.2f}")(twin_step(p, path, res.law, rpm))
                 print(f"{path.name[:-12]:30} {load:8.3g} | {1e3 * b['t_s']:9.2f} ({b['t_s'] / unit:4.2f})"
                       f" {1e3 * bdc['t_s']:11.2f} | {1e3 * win:9.2f} | {1e3 * d['t_band_s']:9.2f} "
                       f"({d['t_band_s'] / unit:5.2f}) {d['overshoot_pct']:6.2f} | {d['t_band_s'] / b['t_s']:12.2f}"
-                      f"  {win / b['t_s']:12.2f}{tw}", flush=True)
+                      f"  {win / b['t_s']:12.2f}{shaped}{tw}", flush=True)
 
 
 if __name__ == "__main__":

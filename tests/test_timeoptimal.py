@@ -5,7 +5,7 @@ import warnings
 import numpy as np
 import pytest
 
-from picdrive.analysis.timeoptimal import t_unit, time_to_band
+from picdrive.analysis.timeoptimal import t_unit, time_to_band, trajectory
 from picdrive.gate import three_phase_plant
 from picdrive.models.averaged import identify, open_loop_run
 from picdrive.profile import load_profile
@@ -53,3 +53,11 @@ def test_averaged_bound_matches_the_plant_at_the_top_of_the_current_window(duy):
     t_hit = float(run["t"][np.nonzero(run["w"] >= 0.99 * rpm * RPM)[0][0]])
     assert t_hit == pytest.approx(bound, rel=0.03)
     assert time_to_band(duy, rpm * RPM, 0.0)["t_s"] < 0.85 * t_hit
+
+
+def test_trajectory_reaches_the_band_at_the_bound(duy):
+    w = duy.speed_step_rpm() * RPM
+    t, ws = trajectory(duy, w, duy.control.load_torque_n_m)
+    assert ws[-1] == pytest.approx(w) and np.all(np.diff(t) > 0)
+    t99 = float(np.interp(0.99 * w, ws, t))
+    assert t99 == pytest.approx(time_to_band(duy, w, duy.control.load_torque_n_m)["t_s"], rel=2e-3)

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["time_to_band", "t_unit"]
+__all__ = ["time_to_band", "trajectory", "t_unit"]
 
 
 def t_unit(profile, w_t: float) -> float:
@@ -29,12 +29,8 @@ def t_unit(profile, w_t: float) -> float:
     return m.inertia_kg_m2 * w_t / (m.kt_n_m_per_a * profile.inverter.current_limit_a)
 
 
-def time_to_band(profile, w_t: float, load_n_m: float = 0.0, *, model=None, band: float = 0.01,
-                 w0: float = 0.0) -> dict:
-    """Fastest time from ``w0`` to ``(1 - band) w_t`` (rad/s) under a constant load, s.
-
-    Returns ``{"t_s", "t_current_s" (time at the current limit), "w_switch_rad_s" (where the voltage
-    limit takes over, or None), "reachable"}``; ``t_s`` is inf when the bridge cannot reach the band."""
+def _acceleration(profile, load_n_m: float, model):
+    """``w -> (dw/dt at the bound, voltage-limited?)`` (see module docstring)."""
     m, inv = profile.motor, profile.inverter
     i_lim = inv.current_limit_a
     ub = inv.bus_voltage_v * profile.max_duty()
@@ -53,7 +49,16 @@ def time_to_band(profile, w_t: float, load_n_m: float = 0.0, *, model=None, band
         if limited:
             i = max(0.0, (ub - e(w)) / r_e(w))
         return (kt(w) * i + (t0(w) if i > 0 else 0.0) - B * w - load_n_m) / J, limited
+    return accel
 
+
+def time_to_band(profile, w_t: float, load_n_m: float = 0.0, *, model=None, band: float = 0.01,
+                 w0: float = 0.0) -> dict:
+    """Fastest time from ``w0`` to ``(1 - band) w_t`` (rad/s) under a constant load, s.
+
+    Returns ``{"t_s", "t_current_s" (time at the current limit), "w_switch_rad_s" (where the voltage
+    limit takes over, or None), "reachable"}``; ``t_s`` is inf when the bridge cannot reach the band."""
+    accel = _acceleration(profile, load_n_m, model)
     goal = (1.0 - band) * w_t
     # integrate in speed: dt = dw / a(w), midpoint rule on a fine speed grid
     n = 20000
@@ -71,3 +76,18 @@ def time_to_band(profile, w_t: float, load_n_m: float = 0.0, *, model=None, band
         if not lim:
             t_cur = t
     return {"t_s": t, "t_current_s": t_cur, "w_switch_rad_s": w_sw, "reachable": True}
+
+
+def trajectory(profile, w_t: float, load_n_m: float = 0.0, *, model=None, n: int = 4000):
+    """The bound's speed profile from rest to ``w_t``: ``(t, w)`` arrays (s, rad/s), ``w`` rising to ``w_t``
+    (where the bridge cannot reach ``w_t``, up to the last speed it can accelerate through)."""
+    import numpy as np
+    accel = _acceleration(profile, load_n_m, model)
+    ws = np.linspace(0.0, w_t, n + 1)
+    ts = np.zeros(n + 1)
+    for k in range(n):
+        a, _ = accel(0.5 * (ws[k] + ws[k + 1]))
+        if a <= 0.0:
+            return ts[:k + 1], ws[:k + 1]
+        ts[k + 1] = ts[k] + (ws[k + 1] - ws[k]) / a
+    return ts, ws
