@@ -9,7 +9,10 @@ drew (negative: the reverse table, plugging), and the same plant coasting with e
 (friction and load only: the first time it is within 2 % of the new reference, or below 2 % of the
 start for rest; the analytic J/B ln((B w0 + T)/(B w1 + T)) beside), with and without the profile's
 load (passive: it stops the rotor); and the bound of braking at the current limit all the way down
-(J w' = -Kt I_lim - B w - T_load), what a bridge that can reverse the current below the back-EMF allows.
+(J w' = -Kt I_lim - B w - T_load), what a bridge that can reverse the current below the back-EMF allows;
+and the same plant braked by a low-side braking table (low_side_brake_run: the scheme docs/scheduling.md
+proposes for the PIC18F4431, open loop at the current window's braking edge), its peak phase current
+and the energy it returns to the bus.
 
     PYTHONPATH=$PWD/host:$PWD/hil python3 bench/step_down.py
 """
@@ -57,6 +60,48 @@ def brake_bound_s(profile, w0, w1, load):
     return J / B * math.log((B * w0 + tb) / (B * w1 + tb))
 
 
+def low_side_brake_run(profile, plant, w0: float, goal: float, load: float, t_max: float, *,
+                       plug_below: bool = False) -> dict:
+    """What a low-side braking table would give (docs/scheduling.md, item 4), in the twin's three-phase plant:
+    on each hall code the forward table's source leg has its LOW side on for ``d`` of the period (PWM) and
+    the sink's low side on, both high sides off (independent mode, no PMOD change); in the off-time the
+    braking current returns through the source's high-side body diode into the bus.  ``d`` from the law's
+    window: the average line voltage ``(1 - d) Vbus = max(0, Kb w - R I_lim)`` (braking current at the
+    limit), applied from the true speed every PWM period, until ``w <= goal``; then every switch off.
+    ``plug_below``: below ``R I_lim / Kb`` (where the window's braking edge is negative) plug instead: the
+    reverse table with its source's high side at duty ``(R I_lim - Kb w)/Vbus``, as the law's window does.
+    Returns the time to the goal (s), the peak phase current (A) and the energy returned to the bus (J)."""
+    from picdrive.commutation import hall_table
+    m, inv, se = profile.motor, profile.inverter, profile.sensors
+    ht = hall_table(se.hall_spacing_deg, se.hall_offset_deg, m.back_emf_shape)
+    tab = ht.forward
+    h = 1.0 / inv.pwm_frequency_hz
+    plant.state.w_rad_s = w0
+    t = e_bus = i_pk = 0.0
+    while t < t_max:
+        w = plant.state.w_rad_s
+        if w <= goal:
+            return {"t_s": t, "i_peak_a": i_pk, "e_bus_j": e_bus}
+        u = m.kb_v_s_per_rad * w - m.r_line_ohm * inv.current_limit_a
+        legs = [(0.0, 0.0)] * 3
+        if u < 0.0 and plug_below:
+            st = ht.reverse[plant.hall_code()]
+            if st is not None:
+                legs[st[0]] = (min(1.0, -u / inv.bus_voltage_v), 0.0)
+                legs[st[1]] = (0.0, 1.0)
+        else:
+            d = min(1.0, max(0.0, 1.0 - max(u, 0.0) / inv.bus_voltage_v))
+            st = tab[plant.hall_code()]
+            if st is not None:
+                legs[st[0]] = (0.0, d)
+                legs[st[1]] = (0.0, 1.0)
+        plant.step(legs, load if w > 0.0 else 0.0, h)
+        t += h
+        i_pk = max(i_pk, plant.state.i_peak_a)
+        e_bus -= inv.bus_voltage_v * plant.state.i_bus_a * h
+    return {"t_s": math.inf, "i_peak_a": i_pk, "e_bus_j": e_bus}
+
+
 def main(argv):
     from picdrive.analysis.steptest import sector_mean
     from picdrive.gate import BuiltDrive, three_phase_plant
@@ -81,6 +126,9 @@ def main(argv):
                 run = open_loop_run(p, three_phase_plant(p, 1.0), lambda t: 0.0, t_end - t1, load,
                                     w0_rad_s=hi * rad)
                 t_coast = first_below(run["t"], run["w"] / rad, goal)
+                lsb = low_side_brake_run(p, three_phase_plant(p, 1.0), hi * rad, goal * rad, load, t_end - t1)
+                lsp = low_side_brake_run(p, three_phase_plant(p, 1.0), hi * rad, goal * rad, load, t_end - t1,
+                                         plug_below=True)
                 for path in sorted((ROOT / "examples").glob(f"{prof_name}.*.design.json")):
                     res = load_design(str(path))
                     if res.law is None:
@@ -97,7 +145,10 @@ def main(argv):
                     i_min = float(np.min(sim.i[sim.t >= t1]))
                     print(f"{path.name[:-12]:30} {load:5.3g} {hi:6.0f}->{lo:4.0f} | {1e3 * t_s:14.1f} {i_min:14.3f} |"
                           f" {1e3 * t_coast:10.1f} (J/B ln: {1e3 * t_an:.1f}) | braking at I_lim: "
-                          f"{1e3 * brake_bound_s(p, hi * rad, goal * rad, load):.1f}", flush=True)
+                          f"{1e3 * brake_bound_s(p, hi * rad, goal * rad, load):.1f} | low-side braking table: "
+                          f"{1e3 * lsb['t_s']:.1f} ms, peak {lsb['i_peak_a']:.2f} A, to the bus {lsb['e_bus_j']:.3f} J"
+                          f" | with plugging below R I_lim/Kb: {1e3 * lsp['t_s']:.1f} ms, peak {lsp['i_peak_a']:.2f} A",
+                          flush=True)
 
 
 if __name__ == "__main__":
