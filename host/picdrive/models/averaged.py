@@ -21,17 +21,23 @@ sector mean of the current the firmware senses (the switch that carries the
 line current: the twin's ``i_link_on``), ``R_e`` an effective resistance (ohm),
 ``E`` the sector-mean counter voltage (V; ``Kb w`` in the DC equivalent),
 ``k_t`` the torque per sensed ampere (N m/A) and ``T_0`` a torque offset (N m;
-0 in the DC equivalent).  In steady state ``i = (u - E)/R_e`` and the torque
-``k_t i + T_0`` is affine in ``u`` at each speed.
+0 in the DC equivalent): the affine summary, in steady state ``i = (u - E)/R_e``
+and torque ``k_t i + T_0`` at each speed.  Below the counter voltage the current
+flows in part of each sector only (discontinuous conduction: the pair's EMF
+ripples above the applied voltage), where the steady state is not affine; the
+model's steady state therefore comes from per-speed *maps* of the measured
+sector means (current and torque against ``u``, knee included), of which the
+affine form is the summary, and its small-signal form from their local slopes
+(:meth:`AveragedModel.linearise`).
 
 Identification (:func:`identify`): the motor's three-phase winding (the motor
 twin's plant, ``picdrive.gate.three_phase_plant``, passed in as a factory: this
 layer imports no twin) is driven through the profile's hall table at a few
-duties with its speed *held* at each speed of a grid (infinite inertia), and
-the sector means of current and torque in periodic steady state are fitted as
-affine functions of ``u``.  The four coefficients are smoothed over the speed
-grid by a shape-preserving cubic (PCHIP, :class:`AveragedModel` evaluates it,
-clamped to the identified range).  Free-running checks against the same plant
+duties with its speed *held* at each speed of a grid (infinite inertia); the
+sector means of current and torque in periodic steady state make the maps and,
+fitted as affine functions of ``u``, the summary, whose four coefficients are
+interpolated over the speed grid by a shape-preserving cubic (PCHIP, clamped to
+the identified range).  Free-running checks against the same plant
 (:func:`open_loop_run`, ``bench/averaged.py``, ``tests/test_averaged.py``)
 judge steady speed, mean current, the small-signal gain ``dw/du`` and the
 63 % time of a small voltage step.
@@ -44,8 +50,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-__all__ = ["SectorPoint", "AveragedModel", "hold_sector_means", "identify", "open_loop_run", "small_signal",
-           "model_from_dict"]
+__all__ = ["SectorPoint", "AveragedModel", "hold_sector_means", "identify", "open_loop_run", "model_from_dict"]
 
 RPM = 2.0 * math.pi / 60.0
 
@@ -370,23 +375,3 @@ def open_loop_run(profile, plant, u_of_t: Callable[[float], float], t_end_s: flo
         w[k] = plant.state.w_rad_s
         i[k] = plant.state.i_link_on_a
     return {"t": t, "w": w, "i": i}
-
-
-def small_signal(A: np.ndarray, B: np.ndarray, *, c=(1.0, 0.0)) -> tuple[float, float]:
-    """Gain ``d_w/d_u`` (rad/s per V) and 63 % time (s) of the step response of ``(A, B)`` with output ``c x``."""
-    import scipy.linalg as sla
-    c = np.asarray(c, float)
-    gain = float(-c @ np.linalg.solve(A, B).reshape(-1))
-    tau_max = 1.0 / min(abs(np.linalg.eigvals(A).real))
-    ts = np.linspace(0.0, 10 * tau_max, 4001)
-    dt = ts[1] - ts[0]
-    n = A.shape[0]
-    M = sla.expm(np.block([[A, B.reshape(n, 1)], [np.zeros((1, n + 1))]]) * dt)
-    F, G = M[:n, :n], M[:n, n]
-    x = np.zeros(n)
-    y = np.empty(ts.size)
-    for k in range(ts.size):
-        y[k] = c @ x
-        x = F @ x + G
-    k63 = int(np.argmax(y >= 0.632 * gain))
-    return gain, float(ts[k63])
