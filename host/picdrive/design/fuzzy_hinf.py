@@ -348,8 +348,10 @@ OPTIONS: dict[str, str] = {
                              "corner (B + Kt Kb/R)/J; dq tracking, 0.2 of it)",
     "max_spectral_radius": "six-step: the disk search's bound on the sampled loop's spectral radius (default 0.95)",
     "emf_polytope": "six-step: the EMF polytope over the commutated pair's EMF range (default true)",
-    "plant_model": "six-step: 'six-step' (default, DC equivalent with the commutated EMF range) or 'dq' (the dq "
-                   "tracking model with v_d = 0, zero gain on i_d)",
+    "plant_model": "six-step: 'six-step' (default, DC equivalent with the commutated EMF range), 'averaged' (the "
+                   "speed-dependent averaged six-step model identified from the drive's three-phase plant, "
+                   "picdrive.models.averaged: one linearisation per rule centre, distinct rule gains) or 'dq' (the "
+                   "dq tracking model with v_d = 0, zero gain on i_d)",
     "solver": f"cvxpy solver (default {DEFAULT_SOLVER})",
     "simulate": "run the nonlinear verification simulation (default true)",
     "setpoint_weight": "six-step: law's b (default: the largest of 1 + Kb/kp, its midpoint with 1, and 1 that "
@@ -520,12 +522,26 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     solver = options.get("solver", DEFAULT_SOLVER)
     simulate = bool(options.get("simulate", True))
     plant_model = options.get("plant_model", "six-step")
-    if plant_model not in ("six-step", "dq"):
-        raise FuzzyHinfError(f"option plant_model={plant_model!r}: 'six-step' or 'dq'")
+    if plant_model not in ("six-step", "averaged", "dq"):
+        raise FuzzyHinfError(f"option plant_model={plant_model!r}: 'six-step', 'averaged' or 'dq'")
+    if plant_model == "averaged" and variant != "six-step":
+        raise FuzzyHinfError(f"option plant_model='averaged' is a six-step model: drop --variant {variant} "
+                             "(or the option)")
+    if plant_model == "averaged" and drive is None:
+        raise FuzzyHinfError("option plant_model='averaged' identifies the speed-dependent model from the drive's "
+                             "three-phase plant: it needs the built drive (picdrive design passes it; in Python "
+                             "pass drive=picdrive.gate.BuiltDrive())")
     model_opts = {k: options.get(k) for k in ("rules", "resistance_uncertainty", "integral_weight_rad_s")}
     model_opts["rho"] = rho
-    if variant == "six-step" and plant_model == "six-step":
+    t_ident = None
+    if variant == "six-step" and plant_model in ("six-step", "averaged"):
         model = "six-step"
+        if plant_model == "averaged":
+            from ..models.averaged import identify
+            model = "six-step-averaged"
+            ti = _t.perf_counter()
+            model_opts["averaged"] = identify(profile, drive.three_phase_plant).to_dict()
+            t_ident = _t.perf_counter() - ti
         if options.get("emf_polytope") is not None:
             model_opts["emf_polytope"] = bool(options["emf_polytope"])
         if model_opts["integral_weight_rad_s"] is None:
@@ -589,7 +605,7 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
         return res
 
     t1 = _t.perf_counter()
-    timings = {"model": t_model}
+    timings = {"model": t_model} if t_ident is None else {"identify": t_ident, "model": t_model}
     if variant != "six-step":
         disk = None
         if variant != "paper":
@@ -615,7 +631,7 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     tries: list[dict] = []
     res = None
     t_lmi = t_ver = 0.0
-    why_none = no_certificate_reason(profile, ts, max(disks)) if model == "six-step" else None
+    why_none = no_certificate_reason(profile, ts, max(disks)) if model in ("six-step", "six-step-averaged") else None
     if why_none:
         res = result_of(Theorem1Solution(False, "not attempted", math.nan, math.nan, alpha, rho), max(disks))
         res.reasons.clear()

@@ -253,7 +253,8 @@ def emf_range(profile) -> tuple[float, float]:
 
 def six_step_model(profile, *, rules: int | None = None, premise_rad_s=None,
                    resistance_uncertainty: float | None = None, rho: float | None = None,
-                   integral_weight_rad_s: float | None = None, emf_polytope: bool = True) -> TSModel:
+                   integral_weight_rad_s: float | None = None, emf_polytope: bool = True,
+                   averaged=None) -> TSModel:
     """Tracking model of the six-step drive: the DC equivalent (2008 eq 1) with integral action.
 
     States ``[d_omega, d_i, d_z]`` (mechanical rad/s, line current A, ``z = int (r - omega) dt``
@@ -274,6 +275,13 @@ def six_step_model(profile, *, rules: int | None = None, premise_rad_s=None,
     certificate then holds for every blend of the rule gains.  R uncertainty
     as Assumption 1 on the current equation (``dA = E F H1``,
     ``H1 = -eps R/L`` on ``d_i``).  Output ``z = [d_omega, w_i d_z]``.
+
+    ``averaged``: a speed-dependent averaged model (:class:`picdrive.models.averaged.AveragedModel`)
+    instead of the DC equivalent: rule j's ``(A_j, B_j)`` is its linearisation at the rule centre
+    ``c_j`` under the profile's load (effective resistance ``R_e(c_j)``, counter-voltage slope,
+    torque per ampere ``k_t(c_j)`` and their speed derivatives), so the rules differ and Theorem 1
+    returns distinct ``K_j``; ``H1_j = -eps R_e(c_j)/L``.  The EMF polytope is kept (the ripple
+    inside a sector is what the law sees between samples).
     """
     m = profile.motor
     d = profile.design
@@ -287,6 +295,14 @@ def six_step_model(profile, *, rules: int | None = None, premise_rad_s=None,
     A0 = np.array([[Am[1, 1], Am[1, 0], 0.0], [Am[0, 1], Am[0, 0], 0.0], [-1.0, 0.0, 0.0]])
     A = np.repeat(A0[None], r, 0)
     Bm = np.repeat(np.array([[0.0], [Bs[0, 0]], [0.0]])[None], r, 0)
+    cs = rule_centres(prem, r)
+    r_rule = np.full(r, R)
+    if averaged is not None:
+        for j, c in enumerate(cs):
+            Aa, Ba = averaged.linearise(float(c), profile.control.load_torque_n_m)
+            A[j, :2, :2] = Aa
+            Bm[j, :2, :] = Ba
+            r_rule[j] = averaged.r_e(float(c))
     Bw = np.array([[0.0, 0.0, Bs[1, 1]], [0.0, 0.1, 0.0], [0.0, 0.0, 0.0]])
     if integral_weight_rad_s is None:
         integral_weight_rad_s = 0.2 * (B + m.kt_n_m_per_a * kb / R) / J
@@ -297,7 +313,7 @@ def six_step_model(profile, *, rules: int | None = None, premise_rad_s=None,
     D = np.zeros((r, 2, 1))
     E = np.array([[0.0], [1.0], [0.0]])
     H1 = np.zeros((r, 1, n))
-    H1[:, 0, 1] = -eps * R / L
+    H1[:, 0, 1] = -eps * r_rule / L
     k_lo, k_hi = emf_range(profile)
     offs = None
     if emf_polytope:
@@ -309,7 +325,8 @@ def six_step_model(profile, *, rules: int | None = None, premise_rad_s=None,
                    H4=np.zeros((r, 1, 1)), rho=float(rho), premise_rad_s=prem, dA=offs, E=E,
                    state_names=("d_omega_m", "d_i", "d_z"), input_names=("u",),
                    disturbance_names=("w1", "w2", "w3"), output_names=("d_omega_m", "w_i d_z"),
-                   info={"rule_centres_rad_s": rule_centres(prem, r), "resistance_uncertainty": eps,
+                   info={"rule_centres_rad_s": cs, "resistance_uncertainty": eps,
+                         "averaged": averaged is not None,
                          "integral_weight_rad_s": wi, "inputs": "six-step", "emf_range_v_s": (k_lo, k_hi),
                          "state_scale": np.array([max(w_top, 1.0), i_s, max(w_top, 1.0) / wi]),
                          "input_scale": np.array([profile.inverter.bus_voltage_v])})
@@ -352,7 +369,8 @@ def paper_as_printed_model(N=None):
 
 def model_for(profile, model: str, options: dict | None = None):
     """Rebuild the TS model a certificate refers to (``paper``, ``tracking-dq``, ``tracking-six-step``,
-    ``six-step``)."""
+    ``six-step``, ``six-step-averaged``: the speed-dependent averaged model whose identified table
+    is ``options["averaged"]``, :meth:`picdrive.models.averaged.AveragedModel.to_dict`)."""
     o = dict(options or {})
     kw = {k: o[k] for k in ("rules", "resistance_uncertainty", "rho") if o.get(k) is not None}
     if model == "paper":
@@ -363,8 +381,13 @@ def model_for(profile, model: str, options: dict | None = None):
         kw["integral_weight_rad_s"] = o["integral_weight_rad_s"]
     if model in ("tracking-dq", "tracking-six-step"):
         return tracking_model(profile, inputs=model.split("-", 1)[1], **kw)
-    if model == "six-step":
+    if model in ("six-step", "six-step-averaged"):
         if o.get("emf_polytope") is not None:
             kw["emf_polytope"] = bool(o["emf_polytope"])
+        if model == "six-step-averaged":
+            from .averaged import model_from_dict
+            if not isinstance(o.get("averaged"), dict):
+                raise ValueError("model 'six-step-averaged' needs its identified table (model_options['averaged'])")
+            kw["averaged"] = model_from_dict(profile, o["averaged"])
         return six_step_model(profile, **kw)
     raise ValueError(f"unknown fuzzy model {model!r}")

@@ -1,0 +1,63 @@
+"""The bridge's time-optimal step bound (current limit, then voltage limit)."""
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from picdrive.analysis.timeoptimal import t_unit, time_to_band, trajectory
+from picdrive.gate import three_phase_plant
+from picdrive.models.averaged import identify, open_loop_run
+from picdrive.profile import load_profile
+
+RPM = 2 * math.pi / 60
+
+
+@pytest.fixture(scope="module")
+def duy():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return load_profile("duy2008")
+
+
+def test_current_limited_phase_is_the_closed_form(duy):
+    """Below the speed where the voltage limit binds, the DC-equivalent bound is
+    J/B ln((Kt I - T) / (Kt I - T - B w)) (no EMF enters while the current is held)."""
+    m = duy.motor
+    w = 300 * RPM
+    load = duy.control.load_torque_n_m
+    b = time_to_band(duy, w, load)
+    assert b["w_switch_rad_s"] is None
+    J, B, f = m.inertia_kg_m2, m.viscous_friction_n_m_s, m.kt_n_m_per_a * duy.inverter.current_limit_a - load
+    assert b["t_s"] == pytest.approx(J / B * math.log(f / (f - B * 0.99 * w)), rel=1e-6)
+    assert t_unit(duy, w) == pytest.approx(J * w / (m.kt_n_m_per_a * duy.inverter.current_limit_a))
+
+
+def test_voltage_limit_binds_near_the_top_and_cannot_be_beaten(duy):
+    w = duy.speed_step_rpm() * RPM
+    b = time_to_band(duy, w, 0.0)
+    assert b["w_switch_rad_s"] is not None and b["t_s"] > b["t_current_s"]
+    assert not time_to_band(duy, 1.2 * duy.control.speed_max_rpm * RPM, 0.0)["reachable"]
+
+
+def test_averaged_bound_matches_the_plant_at_the_top_of_the_current_window(duy):
+    """The three-phase plant driven at u = min(bridge, Kb w + R I_lim) (the top of the firmware's window)
+    reaches the 1 % band within 3 % of the averaged model's bound; the DC equivalent's bound is >= 15 %
+    optimistic there (its current per volt ignores the commutation losses)."""
+    m, inv = duy.motor, duy.inverter
+    rpm = duy.speed_step_rpm()
+    avg = identify(duy, three_phase_plant)
+    bound = time_to_band(duy, rpm * RPM, 0.0, model=avg)["t_s"]
+    run = open_loop_run(duy, three_phase_plant(duy, 1.0), lambda t: inv.bus_voltage_v * duy.max_duty(), 0.1, 0.0,
+                        u_cap=lambda w: m.kb_v_s_per_rad * w + m.r_line_ohm * inv.current_limit_a)
+    t_hit = float(run["t"][np.nonzero(run["w"] >= 0.99 * rpm * RPM)[0][0]])
+    assert t_hit == pytest.approx(bound, rel=0.03)
+    assert time_to_band(duy, rpm * RPM, 0.0)["t_s"] < 0.85 * t_hit
+
+
+def test_trajectory_reaches_the_band_at_the_bound(duy):
+    w = duy.speed_step_rpm() * RPM
+    t, ws = trajectory(duy, w, duy.control.load_torque_n_m)
+    assert ws[-1] == pytest.approx(w) and np.all(np.diff(t) > 0)
+    t99 = float(np.interp(0.99 * w, ws, t))
+    assert t99 == pytest.approx(time_to_band(duy, w, duy.control.load_torque_n_m)["t_s"], rel=2e-3)
