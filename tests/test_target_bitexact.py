@@ -56,7 +56,7 @@ SEED = 0x2545F491
 M32 = 0xFFFFFFFF
 EXT16 = (-32768, -32767, -1, 0, 1, 32766, 32767, -16384)
 EXT32 = (-2 ** 31, 2 ** 31 - 1, -1, 0)
-FUNCS = ("law", "control", "speed", "duty")
+FUNCS = ("law", "control", "speed", "duty")   # "duty": core_duty and core_premise_k
 #: compared by the tests (all four)
 CHECKED = FUNCS
 N_SLOTS = (0xF00 - gpsim.RESULT_ADDR - 32) // 8      # checkpoints that fit the result area
@@ -209,6 +209,10 @@ void main(void)
         /* core_duty */
         f = 3u;
         fold(core_duty(r16()));
+        {   /* the membership slope: the accumulator's 16-bit quotient on the chip */
+            int16_t plo = r16(), phi = r16();
+            fold(core_premise_k(plo, phi));
+        }
         s = 0xFFFFu;
         if (k >= t0) {
             if (k - t0 < %(n_slots)du) s = k - t0;
@@ -351,7 +355,10 @@ def model_run(plan, n, t0, n_slots):
         vin["speed"] += (f"-> w={w} state {st}",)
         uu = g.r16()
         sums[3].fold(fx.duty_counts(plan, uu))
-        vin["duty"] = (f"u={uu} -> {fx.duty_counts(plan, uu)}",)
+        plo, phi = g.r16(), g.r16()
+        mk = fx.premise_k(plo, phi, plan.n_rules, plan.mu_sh)
+        sums[3].fold(mk)
+        vin["duty"] = (f"u={uu} -> {fx.duty_counts(plan, uu)}", f"premise_k({plo}, {phi}) -> {mk}")
         inputs.append(vin)
         s = None
         if k >= t0:
