@@ -47,6 +47,7 @@ import pytest
 from picdrive.firmware import codegen, fixedpoint as fx, gpsim
 from picdrive.paths import repo_root
 from picdrive.profile import load_profile
+from picdrive.firmware import target
 from picdrive.firmware.target import build_hex
 
 N_VECTORS = 10_000          # per function
@@ -66,13 +67,7 @@ HARNESS = r"""
 #include <stdint.h>
 #include "drive_core.h"
 #pragma config WDTEN = OFF
-void __eeprom_gptrget1(void) { }
-void __eeprom_gptrget2(void) { }
-void __eeprom_gptrget4(void) { }
-void __eeprom_gptrput1(void) { }
-void __eeprom_gptrput2(void) { }
-void __eeprom_gptrput4(void) { }
-__at(0x%(res)03X) volatile uint32_t res[8];
+%(eestub)s__at(0x%(res)03X) volatile uint32_t res[8];
 __at(0x%(slots)03X) volatile uint16_t slot[%(n_slots)d][4];
 static const int16_t ptab[%(np)d][4 * CORE_N_RULES + 9] = { %(ptab)s };
 static const int16_t ext16[8] = { -32767 - 1, -32767, -1, 0, 1, 32766, 32767, -16384 };
@@ -377,13 +372,13 @@ def chip_run(folder, out, plan, n, t0=0xFFFF):
     n_slots = min(N_SLOTS, n // CK if t0 == 0xFFFF else N_SLOTS)
     sets = param_sets(plan)
     ptab = ", ".join("{" + ", ".join(str(v) for v in param_row(p)) + "}" for p in sets)
-    harness = HARNESS % {"res": gpsim.RESULT_ADDR, "slots": gpsim.RESULT_ADDR + 32, "n_slots": N_SLOTS,
+    harness = HARNESS % {"eestub": target.EEPROM_GPTR_STUBS, "res": gpsim.RESULT_ADDR, "slots": gpsim.RESULT_ADDR + 32, "n_slots": N_SLOTS,
                          "np": N_PARAM_SETS, "ptab": ptab, "n": n, "ck": CK, "t0": t0, "seed": f"0x{SEED:08X}",
                          "hall": int(plan.speed_source == "hall")}
     out.mkdir(parents=True, exist_ok=True)
     (out / "bitexact.lkr").write_text(gpsim.timing_lkr())
-    b = build_hex(folder, out, name="bitexact", linker_script=out / "bitexact.lkr", sources=("drive_core.c",),
-                  extra_c={"harness.c": harness})
+    b = build_hex(folder, out, name="bitexact", linker_script=out / "bitexact.lkr", sources=(),
+                  extra_c={"drive_core_test.c": target.TEST_BUILD_CORE, "harness.c": harness})
     script = out / "bitexact.stc"
     script.write_text("\n".join([f"break e 0x{b.functions['_harness_done'].address:x}",
                                  "break c 2000000000", "run", "dump r", "quit", ""]))
