@@ -87,6 +87,7 @@ def attribute(run, label: int, funcs: list[tuple[int, int, str]]):
                 hi = mid - 1
         return best
 
+    starts = {a for a, _s, _n in funcs}
     excl: dict = defaultdict(int)
     incl: dict = defaultdict(int)
     ncall: dict = defaultdict(int)
@@ -112,7 +113,8 @@ def attribute(run, label: int, funcs: list[tuple[int, int, str]]):
         if op in ("call", "rcall"):
             callee = owner(nxt[1])
             stack.append(callee)
-            ncall[callee] += 1
+            if nxt[1] in starts:           # not an RCALL to a local label inside a function
+                ncall[callee] += 1
         elif op in ("return", "retfie", "retlw") and stack:
             stack.pop()
     return excl, incl, ncall, total
