@@ -11,7 +11,9 @@ inputs and the model's outputs.
 Functions: core_law, core_control (limiter, ramp, law, duty, direction), core_speed_encoder (or
 core_speed_hall), core_duty.  The law parameters cycle through the design's own and random sets
 (fixedpoint._rand_params, the host comparison's generator).  The mutation tests make sure the
-comparison can fail: a one-LSB change of a constant and a removed 32-bit product cast.
+comparison can fail: a one-LSB change of a constant and a lost upper partial product (the M/T
+product is assembly on the chip: the C form's missing 32-bit cast loses the same half).  The
+"duty" checksum also folds core_premise_k (the accumulator's 16-bit quotient on the chip).
 
 FIXED DEFECT, NAMED (history; the law is now assembly on SDCC, see
 test_a_changed_law_instruction_is_caught): SDCC 4.2 pic16 miscompiled core_law (and so core_control).  In
@@ -467,17 +469,30 @@ def _mutated(folder, tmp, name, fn, old, new):
 
 
 def test_a_one_lsb_constant_change_is_caught(design):
+    """The duty's constant as the chip uses it (core_duty_asm's literal, generated from CORE_KDUTY)
+    one LSB off must make the chip disagree with the model."""
     plan, folder, tmp = design
-    m = re.search(r"#define CORE_KDUTY UINT32_C\((\d+)\)\n", (folder / "drive_params.h").read_text())
-    bad = _mutated(folder, tmp, "lsb", "drive_params.h", m[0], f"#define CORE_KDUTY UINT32_C({int(m[1]) + 1})\n")
+    text = (folder / "drive_core.c").read_text()
+    m = re.search(r"    MOVLW   (\d+)( +; CORE_KDUTY, bits 0-7\n)", text)
+    v = int(m[1])
+    bad = _mutated(folder, tmp, "lsb", "drive_core.c", m[0], f"    MOVLW   {v + 1 if v < 255 else v - 1}{m[2]}")
     verdict = compare(bad, tmp / "lsb-run", plan, n=2000)
     assert verdict["duty"] is not None, verdict
 
 
-def test_a_removed_32_bit_cast_is_caught(design):
+def test_a_lost_upper_partial_product_is_caught(design):
+    """The M/T product mag x K_SPEED (K > 2^16: two 16x16 partial products) is assembly on the
+    chip.  The C form's hazard, a missing 32-bit cast before `hi << 16` (int is 16 bits on the
+    PIC18), loses the upper partial product; the same loss in the assembly (its add into the
+    product's upper half removed) must make the chip disagree with the model."""
     plan, folder, tmp = design
-    # acc_mul_k (x K for the 32-bit speed constant) without the (uint32_t) cast of the upper
-    # partial product: int is 16 bits on the PIC18, hi << 16 loses it
-    bad = _mutated(folder, tmp, "cast", "drive_core.c", "((uint32_t)hi << 16)", "(hi << 16)")
-    verdict = compare(bad, tmp / "cast-run", plan, n=2000)
+    old = ("    ; x += (mag K_hi) 2^16: the upper partial product\n"
+           "    MOVFF   _core_lw + 4, _core_acc + 13\n"
+           "    MOVF    _core_acc + 13, W, A\n"
+           "    ADDWF   _core_acc + 2, F, A\n"
+           "    MOVFF   _core_lw + 5, _core_acc + 13\n"
+           "    MOVF    _core_acc + 13, W, A\n"
+           "    ADDWFC  _core_acc + 3, F, A\n")
+    bad = _mutated(folder, tmp, "upper", "drive_core.c", old, "")
+    verdict = compare(bad, tmp / "upper-run", plan, n=2000)
     assert verdict["speed"] is not None, verdict
