@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "host"))
 from picdrive.link import codec, protocol as P  # noqa: E402
 from picdrive.firmware.p18f4431 import render_sdcc_device  # noqa: E402
-from picdrive.firmware.target import SDCC_FLAGS  # noqa: E402
+from picdrive.firmware.target import EEPROM_GPTR_STUBS, SDCC_FLAGS  # noqa: E402
 
 SDCC = Path(os.environ.get("PICDRIVE_SDCC", Path.home() / ".cache/picdrive/toolchain/sdcc-4.2.0-pic16"))
 LIB = SDCC / "share/sdcc/lib/pic16"
@@ -121,8 +121,7 @@ void main(void)
 }
 """
 
-EESTUB = "\n".join(f"void __eeprom_gptr{op}{n}(void) __naked {{ __asm return __endasm; }}"
-                   for op in ("get", "put") for n in (1, 2, 3, 4)) + "\n"
+EESTUB = EEPROM_GPTR_STUBS
 
 
 def _run(cmd, cwd):

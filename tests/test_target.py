@@ -158,7 +158,7 @@ def _mini(tmp_path, main_text):
 def _rendered_main(tpl: str) -> str:
     import jinja2
     return jinja2.Environment(trim_blocks=True, lstrip_blocks=True).from_string(tpl).render(
-        gen_note="test", config=[("WDTEN", "OFF", "no watchdog")])
+        gen_note="test", config=[("WDTEN", "OFF", "no watchdog")], eeprom_gptr_stubs=target.EEPROM_GPTR_STUBS)
 
 
 def test_table_pointer_check_finds_an_unsaved_table_read(tmp_path):

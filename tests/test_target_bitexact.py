@@ -11,7 +11,9 @@ inputs and the model's outputs.
 Functions: core_law, core_control (limiter, ramp, law, duty, direction), core_speed_encoder (or
 core_speed_hall), core_duty.  The law parameters cycle through the design's own and random sets
 (tests/support/core_c.rand_params, the host comparison's generator).  The mutation tests make sure the
-comparison can fail: a one-LSB change of a constant and a removed 32-bit product cast.
+comparison can fail: a one-LSB change of a constant and a lost upper partial product (the M/T
+product is assembly on the chip: the C form's missing 32-bit cast loses the same half).  The
+"duty" checksum also folds core_premise_k (the accumulator's 16-bit quotient on the chip).
 
 FIXED DEFECT, NAMED (history; the law is now assembly on SDCC, see
 test_a_changed_law_instruction_is_caught): SDCC 4.2 pic16 miscompiled core_law (and so core_control).  In
@@ -47,6 +49,7 @@ import pytest
 from picdrive.firmware import codegen, fixedpoint as fx, gpsim
 from picdrive.paths import repo_root
 from picdrive.profile import load_profile
+from picdrive.firmware import target
 from picdrive.firmware.target import build_hex
 from support import core_c
 
@@ -57,7 +60,7 @@ SEED = 0x2545F491
 M32 = 0xFFFFFFFF
 EXT16 = (-32768, -32767, -1, 0, 1, 32766, 32767, -16384)
 EXT32 = (-2 ** 31, 2 ** 31 - 1, -1, 0)
-FUNCS = ("law", "control", "speed", "duty")
+FUNCS = ("law", "control", "speed", "duty")   # "duty": core_duty and core_premise_k
 #: compared by the tests (all four)
 CHECKED = FUNCS
 N_SLOTS = (0xF00 - gpsim.RESULT_ADDR - 32) // 8      # checkpoints that fit the result area
@@ -67,13 +70,7 @@ HARNESS = r"""
 #include <stdint.h>
 #include "drive_core.h"
 #pragma config WDTEN = OFF
-void __eeprom_gptrget1(void) { }
-void __eeprom_gptrget2(void) { }
-void __eeprom_gptrget4(void) { }
-void __eeprom_gptrput1(void) { }
-void __eeprom_gptrput2(void) { }
-void __eeprom_gptrput4(void) { }
-__at(0x%(res)03X) volatile uint32_t res[8];
+%(eestub)s__at(0x%(res)03X) volatile uint32_t res[8];
 __at(0x%(slots)03X) volatile uint16_t slot[%(n_slots)d][4];
 static const int16_t ptab[%(np)d][4 * CORE_N_RULES + 9] = { %(ptab)s };
 static const int16_t ext16[8] = { -32767 - 1, -32767, -1, 0, 1, 32766, 32767, -16384 };
@@ -210,6 +207,10 @@ void main(void)
         /* core_duty */
         f = 3u;
         fold(core_duty(r16()));
+        {   /* the membership slope: the accumulator's 16-bit quotient on the chip */
+            int16_t plo = r16(), phi = r16();
+            fold(core_premise_k(plo, phi));
+        }
         s = 0xFFFFu;
         if (k >= t0) {
             if (k - t0 < %(n_slots)du) s = k - t0;
@@ -352,7 +353,10 @@ def model_run(plan, n, t0, n_slots):
         vin["speed"] += (f"-> w={w} state {st}",)
         uu = g.r16()
         sums[3].fold(fx.duty_counts(plan, uu))
-        vin["duty"] = (f"u={uu} -> {fx.duty_counts(plan, uu)}",)
+        plo, phi = g.r16(), g.r16()
+        mk = fx.premise_k(plo, phi, plan.n_rules, plan.mu_sh)
+        sums[3].fold(mk)
+        vin["duty"] = (f"u={uu} -> {fx.duty_counts(plan, uu)}", f"premise_k({plo}, {phi}) -> {mk}")
         inputs.append(vin)
         s = None
         if k >= t0:
@@ -371,13 +375,13 @@ def chip_run(folder, out, plan, n, t0=0xFFFF):
     n_slots = min(N_SLOTS, n // CK if t0 == 0xFFFF else N_SLOTS)
     sets = param_sets(plan)
     ptab = ", ".join("{" + ", ".join(str(v) for v in param_row(p)) + "}" for p in sets)
-    harness = HARNESS % {"res": gpsim.RESULT_ADDR, "slots": gpsim.RESULT_ADDR + 32, "n_slots": N_SLOTS,
+    harness = HARNESS % {"eestub": target.EEPROM_GPTR_STUBS, "res": gpsim.RESULT_ADDR, "slots": gpsim.RESULT_ADDR + 32, "n_slots": N_SLOTS,
                          "np": N_PARAM_SETS, "ptab": ptab, "n": n, "ck": CK, "t0": t0, "seed": f"0x{SEED:08X}",
                          "hall": int(plan.speed_source == "hall")}
     out.mkdir(parents=True, exist_ok=True)
     (out / "bitexact.lkr").write_text(gpsim.timing_lkr())
-    b = build_hex(folder, out, name="bitexact", linker_script=out / "bitexact.lkr", sources=("drive_core.c",),
-                  extra_c={"harness.c": harness})
+    b = build_hex(folder, out, name="bitexact", linker_script=out / "bitexact.lkr", sources=(),
+                  extra_c={"drive_core_test.c": target.TEST_BUILD_CORE, "harness.c": harness})
     script = out / "bitexact.stc"
     script.write_text("\n".join([f"break e 0x{b.functions['_harness_done'].address:x}",
                                  "break c 2000000000", "run", "dump r", "quit", ""]))
@@ -466,17 +470,30 @@ def _mutated(folder, tmp, name, fn, old, new):
 
 
 def test_a_one_lsb_constant_change_is_caught(design):
+    """The duty's constant as the chip uses it (core_duty_asm's literal, generated from CORE_KDUTY)
+    one LSB off must make the chip disagree with the model."""
     plan, folder, tmp = design
-    m = re.search(r"#define CORE_KDUTY UINT32_C\((\d+)\)\n", (folder / "drive_params.h").read_text())
-    bad = _mutated(folder, tmp, "lsb", "drive_params.h", m[0], f"#define CORE_KDUTY UINT32_C({int(m[1]) + 1})\n")
+    text = (folder / "drive_core.c").read_text()
+    m = re.search(r"    MOVLW   (\d+)( +; CORE_KDUTY, bits 0-7\n)", text)
+    v = int(m[1])
+    bad = _mutated(folder, tmp, "lsb", "drive_core.c", m[0], f"    MOVLW   {v + 1 if v < 255 else v - 1}{m[2]}")
     verdict = compare(bad, tmp / "lsb-run", plan, n=2000)
     assert verdict["duty"] is not None, verdict
 
 
-def test_a_removed_32_bit_cast_is_caught(design):
+def test_a_lost_upper_partial_product_is_caught(design):
+    """The M/T product mag x K_SPEED (K > 2^16: two 16x16 partial products) is assembly on the
+    chip.  The C form's hazard, a missing 32-bit cast before `hi << 16` (int is 16 bits on the
+    PIC18), loses the upper partial product; the same loss in the assembly (its add into the
+    product's upper half removed) must make the chip disagree with the model."""
     plan, folder, tmp = design
-    # acc_mul_k (x K for the 32-bit speed constant) without the (uint32_t) cast of the upper
-    # partial product: int is 16 bits on the PIC18, hi << 16 loses it
-    bad = _mutated(folder, tmp, "cast", "drive_core.c", "((uint32_t)hi << 16)", "(hi << 16)")
-    verdict = compare(bad, tmp / "cast-run", plan, n=2000)
+    old = ("    ; x += (mag K_hi) 2^16: the upper partial product\n"
+           "    MOVFF   _core_lw + 4, _core_acc + 13\n"
+           "    MOVF    _core_acc + 13, W, A\n"
+           "    ADDWF   _core_acc + 2, F, A\n"
+           "    MOVFF   _core_lw + 5, _core_acc + 13\n"
+           "    MOVF    _core_acc + 13, W, A\n"
+           "    ADDWFC  _core_acc + 3, F, A\n")
+    bad = _mutated(folder, tmp, "upper", "drive_core.c", old, "")
+    verdict = compare(bad, tmp / "upper-run", plan, n=2000)
     assert verdict["speed"] is not None, verdict

@@ -38,6 +38,7 @@ from pathlib import Path
 from .. import __version__
 from ..board import FCY_HZ, FOSC_HZ
 from ..errors import PicdriveError
+from .target import EEPROM_GPTR_STUBS
 
 __all__ = ["CodegenError", "Firmware", "generate", "write_firmware", "build_check", "host_build",
            "HOST_SOURCES", "XC8_ONLY_SOURCES", "register", "uart_brg", "bus_sense"]
@@ -444,7 +445,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     gen_note = f"profile {profile.name}, design {design_path.name}, build 0x{build_id:08X}"
     ctx = dict(gen_note=gen_note, profile_name=profile.name, profile_sha=profile.sha256, design_desc=design_desc,
                build_id=build_id, sections=_sections(profile, design, plan, pwm, pm, brg, baud, bus),
-               config=_config_bits(pm))
+               config=_config_bits(pm), eeprom_gptr_stubs=EEPROM_GPTR_STUBS)
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(templates_dir())),
                              undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True,
                              keep_trailing_newline=True, autoescape=False)

@@ -47,7 +47,7 @@ from pathlib import Path
 
 from ..errors import PicdriveError
 
-__all__ = ["GpsimError", "measure", "measure_modes", "TELEMETRY_MODES", "Cycles", "ENTRY_CYCLES", "TIMING_PROCESSOR", "HARNESS_INPUTS"]
+__all__ = ["GpsimError", "measure", "measure_modes", "build_timing", "TELEMETRY_MODES", "Cycles", "ENTRY_CYCLES", "TIMING_PROCESSOR", "HARNESS_INPUTS"]
 
 TIMING_PROCESSOR = "p18f4620"
 ENTRY_CYCLES = 4             # interrupt latency to the vector (3-4 Tcy) + GOTO (2) - the harness's CALL (2)
@@ -323,6 +323,8 @@ void main(void)
             PIR1 |= 0x12u; TXSTA |= 0x02u;
             TMR1H = 0; TMR1L = 0;
             __asm
+            global  _harness_speed_call     ; bench/isr_profile.py breaks here (a label: no code)
+_harness_speed_call:
             CALL _isr_low
             __endasm;
             lo = TMR1L; hi = TMR1H; keep();
@@ -427,16 +429,12 @@ def measure(folder, out_dir, telemetry: str = "4+capture", **kw) -> Cycles:
     return measure_modes(folder, out_dir, (telemetry,), **kw)[telemetry]
 
 
-def measure_modes(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3,
-                  max_cycles: int = 20_000_000, protocol_package: str = "picdrive.link") -> dict[str, Cycles]:
-    """Build the timing harness around a firmware folder and run it in gpsim (one run for all modes).
+def build_timing(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3, max_cycles: int = 20_000_000,
+                 protocol_package: str = "picdrive.link", pre_run: tuple = ()):
+    """The timing build of a firmware folder and its gpsim script (``measure_modes`` runs it).
 
-    Returns {mode: Cycles}; keys of ``Cycles.worst``: ``speed_loop_isr`` (and
-    ``speed_loop_isr:<state>``), ``hall_isr``, ``uart_rx_byte``, ``uart_tx_byte``,
-    ``link_poll`` (idle pass), ``link_poll_max_frame`` and ``link_poll_frame:<frame>``.
-    Interrupt figures include ``ENTRY_CYCLES``.  ``protocol_package``: whose
-    codec frames the link commands (the firmware's own protocol revision).
-    """
+    Returns (Build, result keys, {key: calls}, script path).  ``pre_run``: more
+    gpsim commands before ``run`` (bench/isr_profile.py logs the trace)."""
     from .target import build_hex
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -457,7 +455,23 @@ def measure_modes(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3
         "module library libgpsim_modules", "module load pullup vbus", f"vbus.voltage = {bus_v:.4f}",
         "vbus.resistance = 100", "node nbus", "attach nbus porta1 vbus.pin",
         f"break e 0x{b.functions['_harness_done'].address:x}",
-                                 f"break c {max_cycles}", "run", "dump r", "quit", ""]))
+                                 f"break c {max_cycles}", *pre_run, "run", "dump r", "quit", ""]))
+    return b, keys, counts, script
+
+
+def measure_modes(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3,
+                  max_cycles: int = 20_000_000, protocol_package: str = "picdrive.link") -> dict[str, Cycles]:
+    """Build the timing harness around a firmware folder and run it in gpsim (one run for all modes).
+
+    Returns {mode: Cycles}; keys of ``Cycles.worst``: ``speed_loop_isr`` (and
+    ``speed_loop_isr:<state>``), ``hall_isr``, ``uart_rx_byte``, ``uart_tx_byte``,
+    ``link_poll`` (idle pass), ``link_poll_max_frame`` and ``link_poll_frame:<frame>``.
+    Interrupt figures include ``ENTRY_CYCLES``.  ``protocol_package``: whose
+    codec frames the link commands (the firmware's own protocol revision).
+    """
+    b, keys, counts, script = build_timing(folder, out_dir, modes, hall_shift=hall_shift,
+                                           max_cycles=max_cycles, protocol_package=protocol_package)
+    out = Path(out_dir)
     r = subprocess.run([_gpsim(), "-i", "-S", "disable", "-p", TIMING_PROCESSOR, "-c", str(script),
                         str(b.hex_path.resolve())], capture_output=True, stdin=subprocess.DEVNULL, timeout=900)
     text = r.stdout.decode("latin-1") + r.stderr.decode("latin-1")

@@ -41,7 +41,8 @@ from ..errors import PicdriveError
 
 __all__ = ["TargetError", "Toolchain", "Budgets", "BUDGETS", "FCY_HZ", "RAM_BYTES", "FLASH_BYTES",
            "TARGET_SOURCES", "toolchain", "build_hex", "Build", "Function", "call_graph",
-           "budget_lines", "over_budget", "build_measured", "enlarged_lkr", "shared_static_helpers", "unsaved_table_pointer"]
+           "budget_lines", "over_budget", "build_measured", "enlarged_lkr", "shared_static_helpers", "unsaved_table_pointer",
+           "EEPROM_GPTR_STUBS", "TEST_BUILD_CORE"]
 
 FLASH_BYTES = 16_384         # PIC18F4431 program memory
 RAM_BYTES = 768              # PIC18F4431 data memory (0x000-0x2FF)
@@ -52,6 +53,21 @@ TOOLCHAIN_SCRIPT = "scripts/pic_toolchain.sh"
 #: SDCC options of every build (the HEX, the timing and the bit-exact builds): bank selection
 #: and data-flow optimisation, no frame pointer where a function needs none (SDCC 4.2 does not
 #: know --optimize-goto: it warns and ignores it, so it is not here)
+#: SDCC's generic-pointer helpers reach data EEPROM through these symbols, which its (non-free)
+#: device library provides.  picdrive's code never forms a pointer into EEPROM, so they are
+#: unreachable: should one be reached anyway, reset (outputs off).  One copy for every SDCC
+#: build: main_sdcc.c (codegen renders it in), the bit-exact test's and bench/link_pic18.py's harnesses.
+EEPROM_GPTR_STUBS = """void eeprom_gptr_unused(void) __naked
+{
+    __asm
+""" + "".join(f"    global ___eeprom_gptr{op}{n}\n" for op in ("get", "put") for n in (1, 2, 3, 4)) + \
+    "".join(f"___eeprom_gptr{op}{n}:\n" for op in ("get", "put") for n in (1, 2, 3, 4)) + """    reset
+    __endasm;
+}
+"""
+#: drive_core.c as the bit-exact test builds it: with the C entry points the firmware itself
+#: reaches only through the assembly (core_law, core_duty, core_speed_encoder on SDCC)
+TEST_BUILD_CORE = '#define CORE_TEST_BUILD 1\n#include "drive_core.c"\n'
 SDCC_FLAGS = ("-mpic16", "-p18f4431", "--std-c99", "--no-warn-non-free", "--obanksel=9", "--optimize-cmp",
               "--optimize-df", "--fomit-frame-pointer")
 
