@@ -54,7 +54,9 @@ uint8_t ee[256];
 int16_t sig[16];
 uint8_t app_command(uint8_t cmd, const uint8_t *arg, uint8_t n) { (void)cmd; (void)arg; (void)n; return 0; }
 void app_param_changed(uint8_t id) { (void)id; }
-int16_t app_signal(uint8_t s) { return sig[s]; }
+int16_t app_signal(uint8_t s) LINK_WPARAM { return sig[s]; }
+/* signals 0..3 straight from sig[], the others through app_signal (both paths of link_sample) */
+LINK_DATA int16_t * const app_signal_src[LINK_N_SIGNALS] = { &sig[0], &sig[1], &sig[2], &sig[3] };
 void app_link_lost(void) {}
 uint8_t app_tx_free(void) { return 255; }
 void app_tx_byte(uint8_t b) { sink = b; }
@@ -255,7 +257,9 @@ __at(0x500) uint8_t ee[256];
 int16_t sig[16];
 uint8_t app_command(uint8_t cmd, const uint8_t *arg, uint8_t n) { (void)cmd; (void)arg; (void)n; return 0; }
 void app_param_changed(uint8_t id) { (void)id; }
-int16_t app_signal(uint8_t s) { return sig[s]; }
+int16_t app_signal(uint8_t s) LINK_WPARAM { return sig[s]; }
+/* signals 0..3 straight from sig[], the others through app_signal (both paths of link_sample) */
+LINK_DATA int16_t * const app_signal_src[LINK_N_SIGNALS] = { &sig[0], &sig[1], &sig[2], &sig[3] };
 void app_link_lost(void) {}
 uint8_t app_tx_free(void) { return 255; }
 void app_tx_byte(uint8_t b) { if (txn < sizeof txlog) { txlog[txn] = b; txn++; } else { txn_hi = 1; } }
@@ -330,6 +334,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     ap.add_argument("--rev", help="git revision of firmware_build/duy2008/link_fw.[ch] (default: working tree)")
     ap.add_argument("--features", action="store_true", help="also the flash without capture, EEPROM, both")
+    ap.add_argument("--folder", default="firmware_build/duy2008", help="generated firmware folder (default %(default)s)")
     a = ap.parse_args()
     if not (SDCC / "bin/sdcc").exists():
         print(f"SDCC pic16 not found in {SDCC}: run scripts/pic_toolchain.sh", file=sys.stderr)
@@ -338,8 +343,8 @@ def main() -> int:
         get = lambda f: _run(["git", "show", f"{a.rev}:firmware_build/duy2008/{f}"], ROOT)  # noqa: E731
         c_text, h_text = get("link_fw.c"), get("link_fw.h")
     else:
-        c_text = (ROOT / "firmware_build/duy2008/link_fw.c").read_text()
-        h_text = (ROOT / "firmware_build/duy2008/link_fw.h").read_text()
+        c_text = (ROOT / a.folder / "link_fw.c").read_text()
+        h_text = (ROOT / a.folder / "link_fw.h").read_text()
     m = measure(c_text, h_text)
     print(f"link_fw.c ({a.rev or 'working tree'}), SDCC 4.2.0 {' '.join(CFLAGS[1:])}, gpsim p18f4520")
     print(f"  flash        {m['flash']:6d} B  (code + const of link_fw.o)")

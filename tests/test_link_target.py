@@ -43,12 +43,29 @@ def test_interrupt_paths_call_no_compiler_helper(asm):
 
 
 def test_interrupt_paths_read_no_flash_table(asm):
-    """Hazard a: the interrupt prologue does not save TBLPTR/TABLAT; the functions the
-    interrupts call read no flash (no TBLRD, no generic-pointer read)."""
+    """Hazard a: an interrupt prologue need not save TBLPTR/TABLAT; the functions the interrupts
+    call read no flash (no TBLRD, no generic-pointer read), except where the function itself saves
+    the four table registers before its first table access and restores them at its only return
+    (put_signals' table of signal addresses)."""
     graph, bodies = build.asm_call_graph(asm), _bodies(asm)
+    table_regs = ["0xFF8", "0xFF7", "0xFF6", "0xFF5"]        # TBLPTRU, TBLPTRH, TBLPTRL, TABLAT
+    saving = []
     for f in build.reachable(graph, ISR_ENTRIES):
-        if f in bodies:
-            assert "TBLRD" not in bodies[f] and "TBLPTR" not in bodies[f], f
+        if f not in bodies:
+            continue
+        code = [" ".join(ln.split(";")[0].replace(",", " ").split()) for ln in bodies[f].splitlines()]
+        code = [c for c in code if c and not c.endswith(":")]
+        code = code[:max(i for i, c in enumerate(code) if c.startswith(("RETURN", "RETFIE"))) + 1]
+        touches = [i for i, c in enumerate(code) if "TBLRD" in c or "TBLPTR" in c or "TABLAT" in c
+                   or any(r in c.split()[1:] for r in table_regs)]
+        if not touches:
+            continue
+        saving.append(f)
+        assert code[:4] == [f"MOVFF {r} 0xFE5" for r in table_regs], f        # pushed first (POSTDEC1)
+        assert code[-5:] == [f"MOVFF 0xFE4 {r}" for r in reversed(table_regs)] + ["RETURN"], f
+        assert sum(c.startswith(("RETURN", "RETFIE")) for c in code) == 1, f  # no other way out
+        assert not any(c.startswith(("GOTO", "BRA")) and c.split()[1].startswith("_") for c in code), f
+    assert saving == ["_put_signals"]
 
 
 def test_rx_interrupt_shares_single_bytes_only():

@@ -14,7 +14,7 @@
  *
  * Contexts: link_rx_byte() (UART RX interrupt) only stores the byte in the frame buffer and
  * marks the frame complete at the delimiter; link_tick_ms() and link_sample() (speed-loop
- * interrupt) touch no flash table; COBS decoding, CRC and dispatch run in link_poll() (main loop).
+ * interrupt) touch no flash table but app_signal_src (put_signals saves the table pointer); COBS decoding, CRC and dispatch run in link_poll() (main loop).
  */
 #include <stddef.h>
 #include "link_fw.h"
@@ -206,13 +206,15 @@ LINK_FAST_RAM struct link_fast {
 
 /* the sample being written (speed-loop interrupt only): telemetry and capture destinations and
  * the masks still to write */
-static struct {
+static struct link_sg {               /* put_signals' assembly addresses the fields by offset */
     LINK_DATA uint8_t *p;
     LINK_DATA uint8_t *q;              /* 0: no capture sample */
     uint16_t tm;
     uint16_t cm;
+    uint8_t j;
 } sg;
 #if defined(__SDCC_pic16)
+typedef char link_sg_layout[(offsetof(struct link_sg, tm) == 4u && offsetof(struct link_sg, j) == 8u) ? 1 : -1];
 typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u
                                && LINK_ACCESS_AT + sizeof(struct link_fast) <= 0x40u) ? 1 : -1];
 #else
@@ -1318,44 +1320,123 @@ void link_tick_ms(void)
 
 /* ---- per speed-loop sample: telemetry and capture ---- */
 /* One sample's signals, read once each: those of sg.tm (telemetry) to sg.p, those of sg.cm (capture)
- * to sg.q, int16 little-endian (speed-loop interrupt only) */
+ * to sg.q, int16 little-endian (speed-loop interrupt only).  Each value comes straight from
+ * app_signal_src[j] (no call, no lock: the interrupt owns the values), or through app_signal(j) for
+ * a NULL entry.  The masks are consumed (shifted out); they are within SIG_ALL (mask_ok). */
+#if defined(__SDCC_pic16)
+/* PIC18 assembly: about 60 cycles a selected signal, no software-stack frame.  The flash table is
+ * read with TBLRD: TBLPTR and TABLAT are saved on entry and restored on exit (hazard a: this runs
+ * in an interrupt, whatever the application's prologue saves).  FSR0 and PROD are saved by the
+ * interrupt's prologue; sg (one bank) holds the pointers, the masks and the index j. */
+static void put_signals(void) __naked
+{
+    __asm
+    MOVFF   0xFF8, 0xFE5            ; save TBLPTRU, TBLPTRH, TBLPTRL, TABLAT (POSTDEC1)
+    MOVFF   0xFF7, 0xFE5
+    MOVFF   0xFF6, 0xFE5
+    MOVFF   0xFF5, 0xFE5
+    MOVLW   UPPER(_app_signal_src)
+    MOVWF   0xFF8, A
+    MOVLW   HIGH(_app_signal_src)
+    MOVWF   0xFF7, A
+    MOVLW   LOW(_app_signal_src)
+    MOVWF   0xFF6, A
+    BANKSEL _sg
+    CLRF    (_sg + 8), B            ; j = 0
+lps_loop:
+    TBLRD*+
+    MOVFF   0xFF5, 0xFE9            ; FSR0 = app_signal_src[j]
+    TBLRD*+
+    MOVFF   0xFF5, 0xFEA
+    MOVF    (_sg + 4), W, B
+    IORWF   (_sg + 6), W, B
+    BTFSS   0xFE8, 0, A             ; signal j in neither mask: next
+    BRA     lps_next
+    MOVF    0xFE9, W, A
+    IORWF   0xFEA, W, A
+    BZ      lps_call
+    MOVFF   0xFEE, 0xFF3            ; PRODL, PRODH = *src (POSTINC0)
+    MOVFF   0xFEE, 0xFF4
+    BRA     lps_have
+lps_call:                          ; NULL: app_signal(j), the table pointer kept across the call
+    MOVFF   0xFF8, 0xFE5
+    MOVFF   0xFF7, 0xFE5
+    MOVFF   0xFF6, 0xFE5
+    MOVF    (_sg + 8), W, B
+    CALL    _app_signal             ; low byte in W, high byte in PRODL
+    MOVFF   0xFF3, 0xFF4
+    MOVWF   0xFF3, A
+    MOVFF   0xFE4, 0xFF6            ; PREINC1
+    MOVFF   0xFE4, 0xFF7
+    MOVFF   0xFE4, 0xFF8
+    BANKSEL _sg
+lps_have:
+    BTFSS   (_sg + 4), 0, B
+    BRA     lps_cap
+    MOVFF   _sg, 0xFE9              ; *sg.p++ = value
+    MOVFF   (_sg + 1), 0xFEA
+    MOVFF   0xFF3, 0xFEE
+    MOVFF   0xFF4, 0xFEE
+    MOVFF   0xFE9, _sg
+    MOVFF   0xFEA, (_sg + 1)
+lps_cap:
+    BTFSS   (_sg + 6), 0, B
+    BRA     lps_next
+    MOVFF   (_sg + 2), 0xFE9        ; *sg.q++ = value
+    MOVFF   (_sg + 3), 0xFEA
+    MOVFF   0xFF3, 0xFEE
+    MOVFF   0xFF4, 0xFEE
+    MOVFF   0xFE9, (_sg + 2)
+    MOVFF   0xFEA, (_sg + 3)
+lps_next:
+    INCF    (_sg + 8), F, B
+    BCF     0xFD8, 0, A             ; tm >>= 1, cm >>= 1
+    RRCF    (_sg + 5), F, B
+    RRCF    (_sg + 4), F, B
+    BCF     0xFD8, 0, A
+    RRCF    (_sg + 7), F, B
+    RRCF    (_sg + 6), F, B
+    MOVF    (_sg + 4), W, B
+    IORWF   (_sg + 5), W, B
+    IORWF   (_sg + 6), W, B
+    IORWF   (_sg + 7), W, B
+    BNZ     lps_loop
+    MOVFF   0xFE4, 0xFF5            ; restore TABLAT, TBLPTRL, TBLPTRH, TBLPTRU (PREINC1)
+    MOVFF   0xFE4, 0xFF6
+    MOVFF   0xFE4, 0xFF7
+    MOVFF   0xFE4, 0xFF8
+    RETURN
+    __endasm;
+}
+#else
 static void put_signals(void)
 {
-    /* locals: the compiler keeps them in its access-bank registers (no bank select in the loop) */
-    LINK_DATA uint8_t *p = sg.p, *q = sg.q;
-    uint8_t tl = (uint8_t)sg.tm, th = (uint8_t)(sg.tm >> 8), cl = (uint8_t)sg.cm, ch = (uint8_t)(sg.cm >> 8);
-    uint8_t j = 0u, hi = 0u;
+    uint8_t j = 0u;
     uint16_t v;
-    for (;;) {
-        if ((uint8_t)(tl | cl) == 0u) {         /* the low byte done: the high byte's signals, from 8 on */
-            if (hi != 0u || (uint8_t)(th | ch) == 0u) {
-                return;
+    LINK_DATA int16_t *src;
+    while ((sg.tm | sg.cm) != 0u) {
+        if ((uint8_t)((uint8_t)(sg.tm | sg.cm) & 1u) != 0u) {
+            src = app_signal_src[j];
+            v = (uint16_t)((src != 0) ? *src : app_signal(j));
+            if (((uint8_t)sg.tm & 1u) != 0u) {
+                *sg.p = (uint8_t)v;
+                sg.p++;
+                *sg.p = (uint8_t)(v >> 8);
+                sg.p++;
             }
-            hi = 1u;
-            tl = th;
-            cl = ch;
-            j = 8u;
-        }
-        if ((uint8_t)((uint8_t)(tl | cl) & 1u) != 0u) {
-            v = (uint16_t)app_signal(j);
-            if ((tl & 1u) != 0u) {
-                *p = (uint8_t)v;
-                p++;
-                *p = (uint8_t)(v >> 8);
-                p++;
-            }
-            if ((cl & 1u) != 0u) {
-                *q = (uint8_t)v;
-                q++;
-                *q = (uint8_t)(v >> 8);
-                q++;
+            if (((uint8_t)sg.cm & 1u) != 0u) {
+                *sg.q = (uint8_t)v;
+                sg.q++;
+                *sg.q = (uint8_t)(v >> 8);
+                sg.q++;
             }
         }
-        tl = (uint8_t)(tl >> 1);
-        cl = (uint8_t)(cl >> 1);
+        sg.tm = (uint16_t)(sg.tm >> 1);
+        sg.cm = (uint16_t)(sg.cm >> 1);
         j++;
     }
 }
+#endif
 
 #if LINK_WITH_CAPTURE
 static void capture_due(void)          /* decimation and trigger; a sample due: sg.q, sg.cm set */

@@ -3,7 +3,7 @@
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
  *
  * protocol 2.0, 30 table entries (2 rules),
- * table hash 0x9E641D7AUL, build id 0xB7C9F28EUL, profile hash 0x4B0E5FBAUL
+ * table hash 0x9E641D7AUL, build id 0xF0B038DAUL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -17,8 +17,8 @@
  *   replay              8
  *   param_store        37
  *   capture           128
- *   state             106
- *   total             411
+ *   state             107
+ *   total             412
  *
  * Contexts: link_rx_byte(), link_tick_ms() and link_sample() may be called from interrupts,
  * link_poll() from the main loop.  link_rx_byte() stores the byte in the frame buffer and marks
@@ -26,7 +26,8 @@
  * flag, an 8-bit count of bytes lost while a frame waits) with the main loop; link_tick_ms() and link_sample() share 16/32-bit
  * counters read by link_poll() inside LINK_CRITICAL_BEGIN()/END(), which must therefore mask
  * the interrupt that calls them.  None of them calls a compiler helper (multiply, divide,
- * generic pointer, flash table read), so none is shared with the main loop.
+ * generic pointer), so none is shared with the main loop; link_sample() reads the flash table
+ * app_signal_src and saves/restores the table pointer (TBLPTR, TABLAT) around that itself.
  * Parameter-store writes happen in link_poll() between LINK_CRITICAL_BEGIN() and
  * LINK_CRITICAL_END() (define them, e.g. to clear/set GIEH, if the speed-loop interrupt
  * reads link_params).
@@ -46,7 +47,7 @@
 
 #define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0xB7C9F28EUL
+#define LINK_BUILD_ID           0xF0B038DAUL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
 #define LINK_TABLE_HASH         0x9E641D7AUL
 #define LINK_SAMPLE_HZ          1000u
@@ -260,7 +261,12 @@ uint16_t link_crc16(const uint8_t *p, uint8_t n);
 /* ---- implemented by the application ---- */
 uint8_t  app_command(uint8_t cmd, const uint8_t *arg, uint8_t n);  /* start/stop/brake/fault_clear: 0 or LINK_NACK_* */
 void     app_param_changed(uint8_t id);
-int16_t  app_signal(uint8_t signal);           /* LINK_SIG_*: raw value */
+int16_t  app_signal(uint8_t signal) LINK_WPARAM;   /* LINK_SIG_*: raw value (main loop, and the NULL entries below) */
+/* Where each signal's int16 value lives, in data space (a flash table, indexed by LINK_SIG_*):
+ * link_sample() copies a selected signal straight from there, without a call; a NULL entry (a
+ * computed or 8-bit signal) is read through app_signal() instead.  Read in the speed-loop
+ * interrupt: the application writes these values in that interrupt, or atomically. */
+extern LINK_DATA int16_t * const app_signal_src[LINK_N_SIGNALS];
 void     app_link_lost(void);                  /* called from link_tick_ms: outputs off, latch LINK_LOST */
 uint8_t  app_tx_free(void);                    /* free bytes in the UART TX queue */
 void     app_tx_byte(uint8_t b);
