@@ -53,7 +53,7 @@ uint8_t crcbuf[40];
 uint8_t ee[256];
 int16_t sig[16];
 uint8_t app_command(uint8_t cmd, const uint8_t *arg, uint8_t n) { (void)cmd; (void)arg; (void)n; return 0; }
-void app_param_changed(uint8_t id) { (void)id; }
+void app_param_changed(uint8_t id) LINK_WPARAM { (void)id; }
 int16_t app_signal(uint8_t s) LINK_WPARAM { return sig[s]; }
 /* signals 0..3 straight from sig[], the others through app_signal (both paths of link_sample) */
 LINK_DATA int16_t * const app_signal_src[LINK_N_SIGNALS] = { &sig[0], &sig[1], &sig[2], &sig[3] };
@@ -259,7 +259,7 @@ __at(0x4F1) uint8_t txn_hi;
 __at(0x500) uint8_t ee[256];
 int16_t sig[16];
 uint8_t app_command(uint8_t cmd, const uint8_t *arg, uint8_t n) { (void)cmd; (void)arg; (void)n; return 0; }
-void app_param_changed(uint8_t id) { (void)id; }
+void app_param_changed(uint8_t id) LINK_WPARAM { (void)id; }
 int16_t app_signal(uint8_t s) LINK_WPARAM { return sig[s]; }
 /* signals 0..3 straight from sig[], the others through app_signal (both paths of link_sample) */
 LINK_DATA int16_t * const app_signal_src[LINK_N_SIGNALS] = { &sig[0], &sig[1], &sig[2], &sig[3] };
