@@ -289,6 +289,7 @@ void main(void)
         for (k = 0; k < f_samples[i]; k++) {
             link_sample();
             link_poll();
+            sig[0] = (int16_t)(sig[0] + RAMP);  /* the speed moves by RAMP a sample */
         }
     }
     done();
@@ -298,18 +299,20 @@ void main(void)
 """
 
 
-def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[int] | None = None) -> bytes:
+def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[int] | None = None,
+                  ramp: int = 0) -> bytes:
     """Run the link module on the PIC18 core in gpsim: link_init, link_poll, then every byte of
     ``frames`` through link_rx_byte with a link_poll after each (as tests/linksupport's direct
     mode does on the host), and after frame i ``samples[i]`` times link_sample and link_poll
-    (app_signal(s) = 0x0101 s - 0x3000 for s < 7, else 0); returns the bytes it sent to the UART (at most 240)."""
+    (app_signal(s) = 0x0101 s - 0x3000 for s < 7, else 0; signal 0 moves by ``ramp`` after each
+    link_sample); returns the bytes it sent to the UART (at most 240)."""
     samples = samples or [0] * len(frames)
     from picdrive.firmware.gpsim import _dump
     data = b"".join(frames)
     starts = [0]
     for f in frames:
         starts.append(starts[-1] + len(f))
-    decl = (f"#define N_FRAMES {len(frames)}u\n"
+    decl = (f"#define N_FRAMES {len(frames)}u\n#define RAMP ({int(ramp)})\n"
             f"static const uint8_t f_bytes[{max(1, len(data))}] = {{ {', '.join(str(b) for b in data) or '0'} }};\n"
             f"static const uint16_t f_start[{len(starts)}] = {{ {', '.join(map(str, starts))} }};\n"
             f"static const uint8_t f_samples[{len(frames)}] = {{ {', '.join(map(str, samples))} }};")

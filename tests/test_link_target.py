@@ -174,3 +174,26 @@ def test_telemetry_and_capture_on_the_chip(cap_mask):
     assert r["values"] == cap * 4
     r = codec.decode_reply("param_get", [f for f in got if f.is_reply and f.seq == 4][0].payload)
     assert r["values"] == [_signal(0), _signal(3)]            # signals through app_signal, sign-extended
+
+
+@pytest.mark.parametrize("trigger,ramp,thr", [(P.Trigger.SPEED_RISING, 0x100, -0x2C00),
+                                              (P.Trigger.SPEED_FALLING, -0x100, -0x3300),
+                                              (P.Trigger.SPEED_RISING, 0x5000, -0x4800)])   # differences beyond int16
+def test_capture_threshold_trigger_on_the_chip(trigger, ramp, thr):
+    """The speed-crossing trigger of the assembly capture on the PIC18 core: the speed (signal 0)
+    moves by ``ramp`` a sample; the record holds the pre-trigger samples and the samples from the
+    first crossing on, as the protocol defines them (signed int16 compare, falling = the
+    complements rising)."""
+    from picdrive.link import codec
+    files = build.render()
+    n, pre, samples = 6, 2, 20
+    frames = [codec.encode_command("capture_arm", 1, {"mask": 1, "n_samples": n, "pre_trigger": pre, "decimation": 1,
+                                                      "trigger": trigger, "threshold": thr}),
+              codec.encode_command("capture_read", 2, {"start": 0, "count": 10})]
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames, [samples, 0], ramp=ramp)
+    v = [((_signal(0) + k * ramp + 0x8000) & 0xFFFF) - 0x8000 for k in range(samples)]
+    flip = (lambda x: ~x) if trigger == P.Trigger.SPEED_FALLING else (lambda x: x)
+    fire = next(k for k in range(1, samples) if flip(v[k - 1]) < flip(thr) <= flip(v[k]))
+    r = codec.decode_reply("capture_read", [f for f in codec.StreamDecoder().feed(chip) if f.seq == 2][0].payload)
+    assert r["state"] == P.CaptureState.DONE and r["total"] == n and r["trigger_index"] == pre
+    assert r["values"] == v[fire - pre:fire - pre + n]
