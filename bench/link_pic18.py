@@ -256,6 +256,7 @@ EXCHANGE = r"""
 __at(0x400) uint8_t txlog[240];
 __at(0x4F0) uint8_t txn;
 __at(0x4F1) uint8_t txn_hi;
+__at(0x3C0) int16_t pi16[32];                   /* link_param_i16(f_ids[i]), at the end */
 __at(0x500) uint8_t ee[256];
 int16_t sig[16];
 uint8_t app_command(uint8_t cmd, const uint8_t *arg, uint8_t n) { (void)cmd; (void)arg; (void)n; return 0; }
@@ -292,11 +293,18 @@ void main(void)
             sig[0] = (int16_t)(sig[0] + RAMP);  /* the speed moves by RAMP a sample */
         }
     }
+    for (i = 0; i < 32; i++) {
+        pi16[i] = link_param_i16(f_ids[i]);
+    }
     done();
     while (1) {
     }
 }
 """
+
+
+I16_IDS = [e.id for e in P.build_table(2).entries] + [0x0B, 0x7F]   # every id of a 2-rule table, 2 unknown
+assert len(I16_IDS) == 32
 
 
 def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[int] | None = None,
@@ -305,7 +313,9 @@ def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[i
     ``frames`` through link_rx_byte with a link_poll after each (as tests/linksupport's direct
     mode does on the host), and after frame i ``samples[i]`` times link_sample and link_poll
     (app_signal(s) = 0x0101 s - 0x3000 for s < 7, else 0; signal 0 moves by ``ramp`` after each
-    link_sample); returns the bytes it sent to the UART (at most 240)."""
+    link_sample); returns the bytes it sent to the UART (at most 240).  Afterwards
+    ``chip_exchange.param_i16`` holds {id: link_param_i16(id)} for I16_IDS, ``chip_exchange.eeprom``
+    the EEPROM."""
     samples = samples or [0] * len(frames)
     from picdrive.firmware.gpsim import _dump
     data = b"".join(frames)
@@ -315,7 +325,8 @@ def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[i
     decl = (f"#define N_FRAMES {len(frames)}u\n#define RAMP ({int(ramp)})\n"
             f"static const uint8_t f_bytes[{max(1, len(data))}] = {{ {', '.join(str(b) for b in data) or '0'} }};\n"
             f"static const uint16_t f_start[{len(starts)}] = {{ {', '.join(map(str, starts))} }};\n"
-            f"static const uint8_t f_samples[{len(frames)}] = {{ {', '.join(map(str, samples))} }};")
+            f"static const uint8_t f_samples[{len(frames)}] = {{ {', '.join(map(str, samples))} }};\n"
+            f"static const uint8_t f_ids[32] = {{ {', '.join(map(str, I16_IDS))} }};")
     with tempfile.TemporaryDirectory() as td:
         d = Path(td)
         _write_sources(d, c_text, h_text)
@@ -333,6 +344,8 @@ def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[i
     if mem[0x4F1] & 1:
         raise SystemExit("the exchange sent more than 240 bytes: shorten it")
     chip_exchange.eeprom = bytes(mem.get(0x500 + i, 0) for i in range(256))
+    chip_exchange.param_i16 = {k: ((mem.get(0x3C0 + 2 * i, 0) | mem.get(0x3C1 + 2 * i, 0) << 8) ^ 0x8000) - 0x8000
+                               for i, k in enumerate(I16_IDS)}
     return bytes(mem[0x400 + i] for i in range(mem[0x4F0]))
 
 

@@ -122,7 +122,8 @@ def test_the_chip_answers_byte_for_byte_like_the_host_build():
               bytes([0x00, 0x05, 0x11, 0x22, 0x33, 0x44, 0x00]),                     # bad CRC: one NACK
               cmd("eeprom_save", 8), cmd("param_set", 9, {"id": 0x07, "value": 5}), cmd("eeprom_load", 10),
               cmd("param_get", 11, {"ids": [0x07]}), bytes([0x01] * 60) + b"\x00", cmd("status", 12)]
-    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
+    bench = _bench()
+    chip = bench.chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
     b = FakeBoard(files=files, txq_bytes=4096)
     try:
         b.boot()
@@ -130,8 +131,15 @@ def test_the_chip_answers_byte_for_byte_like_the_host_build():
         for f in frames:
             b.feed(f)
             host += b.take_tx()
+        host_i16 = {i: b.lib.link_param_i16(i) for i in bench.I16_IDS}
     finally:
         b.close()
+    # link_param_i16 (the assembly's saturation on the chip): the same for every parameter id,
+    # 0 for unknown ids, the harness's values for the signals
+    sig_index = {e.id: i for i, e in enumerate(t for t in P.build_table(2) if t.signal)}
+    want = {i: _signal(sig_index[i]) if i in sig_index else v for i, v in host_i16.items()}
+    assert bench.chip_exchange.param_i16 == want
+    assert any(v == 32767 for v in want.values()) and 0 in want.values()    # saturated ones and unknown ids
     dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
     assert len(dec_chip) == len(frames)                # BOOT, one reply each (the bad CRC: one NACK), garbage silent
     # the BOOT event's code is the application's (the fake board reports its own reset cause)
