@@ -205,3 +205,33 @@ def test_capture_threshold_trigger_on_the_chip(trigger, ramp, thr):
     r = codec.decode_reply("capture_read", [f for f in codec.StreamDecoder().feed(chip) if f.seq == 2][0].payload)
     assert r["state"] == P.CaptureState.DONE and r["total"] == n and r["trigger_index"] == pre
     assert r["values"] == v[fire - pre:fire - pre + n]
+
+
+def test_capture_arm_checks_on_the_chip():
+    """capture_arm's argument checks (the assembly on the PIC18 core) give the host build's
+    replies: every NACK reason and the largest record that fits."""
+    from picdrive.link import codec
+    from linksupport.fakeboard import FakeBoard
+    files = build.render()
+    T = P.Trigger
+    bad = [dict(mask=0), dict(mask=0x8001), dict(n_samples=0), dict(n_samples=P.CAPTURE_BYTES_DEFAULT // 2 + 1),
+           dict(n_samples=0x101), dict(pre_trigger=0x100), dict(pre_trigger=8, n_samples=8), dict(decimation=0),
+           dict(trigger=4), dict(trigger=T.IMMEDIATE, pre_trigger=1), dict(mask=0x7FF, n_samples=P.CAPTURE_BYTES_DEFAULT // 22 + 1),
+           dict(mask=0x7FF, n_samples=P.CAPTURE_BYTES_DEFAULT // 22), dict(mask=0x3, n_samples=32, trigger=T.SPEED_FALLING, threshold=-5)]
+    base = dict(mask=0x3, n_samples=8, pre_trigger=2, decimation=1, trigger=T.SETPOINT_CHANGE, threshold=0)
+    frames = [codec.encode_command("capture_arm", k + 1, {**base, **d}) for k, d in enumerate(bad)]
+    frames.append(codec.encode_command("capture_read", 40, {"start": 0, "count": 1}))
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
+    b = FakeBoard(files=files, txq_bytes=4096)
+    try:
+        b.boot()
+        host = b.take_tx()
+        for f in frames:
+            b.feed(f)
+            host += b.take_tx()
+    finally:
+        b.close()
+    dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
+    assert dec_chip[1:] == dec_host[1:] and len(dec_chip) == len(frames) + 1
+    nacks = [f for f in dec_chip if f.type == P.MSG_NACK and f.seq <= len(bad)]
+    assert len(nacks) == 11 and all(f.payload[1] == P.Nack.OUT_OF_RANGE for f in nacks)
