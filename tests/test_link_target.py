@@ -235,3 +235,29 @@ def test_capture_arm_checks_on_the_chip():
     assert dec_chip[1:] == dec_host[1:] and len(dec_chip) == len(frames) + 1
     nacks = [f for f in dec_chip if f.type == P.MSG_NACK and f.seq <= len(bad)]
     assert len(nacks) == 11 and all(f.payload[1] == P.Nack.OUT_OF_RANGE for f in nacks)
+
+
+def test_telem_config_checks_on_the_chip():
+    """telem_config (the assembly on the PIC18 core) gives the host build's replies: the frame
+    length, 0 when off, and OUT_OF_RANGE for an empty or foreign mask, no samples, too long a frame."""
+    from picdrive.link import codec
+    from linksupport.fakeboard import FakeBoard
+    files = build.render()
+    cases = [(0xF, 1, 4), (0xF, 0, 0), (0x8000, 0, 9), (0, 1, 1), (0x8001, 1, 1), (0x3, 1, 0), (0xF, 1, 5),
+             (0xF, 2, 4), (0x7FF, 3, 1), (0x7FF, 1, 2)]
+    frames = [codec.encode_command("telem_config", k + 1, {"mask": m, "decimation": d, "samples_per_frame": n})
+              for k, (m, d, n) in enumerate(cases)]
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
+    b = FakeBoard(files=files, txq_bytes=4096)
+    try:
+        b.boot()
+        host = b.take_tx()
+        for f in frames:
+            b.feed(f)
+            host += b.take_tx()
+    finally:
+        b.close()
+    dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
+    assert dec_chip[1:] == dec_host[1:] and len(dec_chip) == len(frames) + 1
+    assert [f.type == P.MSG_NACK for f in dec_chip[1:]] == [False, False, False, True, True, True, True, False,
+                                                            False, True]
