@@ -198,13 +198,23 @@ def test_capture_threshold_trigger_on_the_chip(trigger, ramp, thr):
     frames = [codec.encode_command("capture_arm", 1, {"mask": 1, "n_samples": n, "pre_trigger": pre, "decimation": 1,
                                                       "trigger": trigger, "threshold": thr}),
               codec.encode_command("capture_read", 2, {"start": 0, "count": 10})]
-    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames, [samples, 0], ramp=ramp)
+    reads = [(2, 3), (5, 10), (6, 4), (0, 0)]                 # (start, count): parts, the end, nothing
+    frames += [codec.encode_command("capture_read", 3 + k, {"start": a, "count": c}) for k, (a, c) in enumerate(reads)]
+    frames += [codec.encode_command("capture_read", 9, {"start": 7, "count": 1}),        # beyond the record
+               codec.encode_command("capture_read", 10, {"start": 256, "count": 1})]
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames, [samples] + [0] * 7, ramp=ramp)
     v = [((_signal(0) + k * ramp + 0x8000) & 0xFFFF) - 0x8000 for k in range(samples)]
     flip = (lambda x: ~x) if trigger == P.Trigger.SPEED_FALLING else (lambda x: x)
     fire = next(k for k in range(1, samples) if flip(v[k - 1]) < flip(thr) <= flip(v[k]))
-    r = codec.decode_reply("capture_read", [f for f in codec.StreamDecoder().feed(chip) if f.seq == 2][0].payload)
+    got = {f.seq: f for f in codec.StreamDecoder().feed(chip) if f.is_reply or f.type == P.MSG_NACK}
+    r = codec.decode_reply("capture_read", got[2].payload)
     assert r["state"] == P.CaptureState.DONE and r["total"] == n and r["trigger_index"] == pre
-    assert r["values"] == v[fire - pre:fire - pre + n]
+    record = v[fire - pre:fire - pre + n]
+    assert r["values"] == record
+    for k, (a, c) in enumerate(reads):
+        r = codec.decode_reply("capture_read", got[3 + k].payload)
+        assert r["start"] == a and r["values"] == record[a:a + c]
+    assert [got[q].type == P.MSG_NACK and got[q].payload[1] == P.Nack.OUT_OF_RANGE for q in (9, 10)] == [True, True]
 
 
 def test_capture_arm_checks_on_the_chip():
