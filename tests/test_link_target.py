@@ -271,3 +271,32 @@ def test_telem_config_checks_on_the_chip():
     assert dec_chip[1:] == dec_host[1:] and len(dec_chip) == len(frames) + 1
     assert [f.type == P.MSG_NACK for f in dec_chip[1:]] == [False, False, False, True, True, True, True, False,
                                                             False, True]
+
+
+def test_param_get_checks_on_the_chip():
+    """param_get (the assembly on the PIC18 core): the host build's replies for no id, too many,
+    an unknown one among known ones, and the most ids with signals among them."""
+    from picdrive.link import codec
+    from linksupport.fakeboard import FakeBoard
+    files = build.render()
+    ids = [e.id for e in P.build_table(2).entries if not e.signal]
+    frames = [codec.encode_frame(P.COMMAND_BY_NAME["param_get"].code, 1, b"", lead=True),
+              codec.encode_command("param_get", 2, {"ids": ids[:P.PARAM_GET_MAX]}),
+              codec.encode_frame(P.COMMAND_BY_NAME["param_get"].code, 3, bytes(ids[:P.PARAM_GET_MAX + 1]), lead=True),
+              codec.encode_command("param_get", 4, {"ids": [ids[0], 0x30, ids[1]]}),
+              codec.encode_command("param_get", 5, {"ids": [e.id for e in P.build_table(2).entries][-P.PARAM_GET_MAX - 4:-4]})]
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
+    b = FakeBoard(files=files, txq_bytes=4096)
+    try:
+        b.boot()
+        host = b.take_tx()
+        for f in frames:
+            b.feed(f)
+            host += b.take_tx()
+    finally:
+        b.close()
+    dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
+    assert dec_chip[1:] == dec_host[1:] and len(dec_chip) == len(frames) + 1
+    assert [f.type == P.MSG_NACK for f in dec_chip[1:]] == [True, False, True, True, False]
+    assert len(dec_chip[2].payload) == len(dec_chip[5].payload) == 4 * P.PARAM_GET_MAX
+    assert any(e.signal for e in P.build_table(2).entries[-P.PARAM_GET_MAX - 4:-4])
