@@ -59,7 +59,7 @@ int16_t app_signal(uint8_t s) LINK_WPARAM { return sig[s]; }
 LINK_DATA int16_t * const app_signal_src[LINK_N_SIGNALS] = { &sig[0], &sig[1], &sig[2], &sig[3] };
 void app_link_lost(void) {}
 uint8_t app_tx_free(void) { return 255; }
-void app_tx_byte(uint8_t b) { sink = b; }
+void app_tx_byte(uint8_t b) LINK_WPARAM { sink = b; }
 uint8_t app_eeprom_read(uint8_t a) { return ee[a]; }
 void app_eeprom_write(uint8_t a, uint8_t v) { ee[a] = v; }
 void fw_lock(void) {}
@@ -265,8 +265,9 @@ int16_t app_signal(uint8_t s) LINK_WPARAM { return sig[s]; }
 /* signals 0..3 straight from sig[], the others through app_signal (both paths of link_sample) */
 LINK_DATA int16_t * const app_signal_src[LINK_N_SIGNALS] = { &sig[0], &sig[1], &sig[2], &sig[3] };
 void app_link_lost(void) {}
-uint8_t app_tx_free(void) { return 255; }
-void app_tx_byte(uint8_t b) { if (txn < sizeof txlog) { txlog[txn] = b; txn++; } else { txn_hi = 1; } }
+static uint8_t tx_since;                        /* bytes queued since app_tx_free: never more than it said */
+uint8_t app_tx_free(void) { tx_since = 0; return TX_ROOM; }
+void app_tx_byte(uint8_t b) LINK_WPARAM { if (++tx_since > TX_ROOM) { txn_hi |= 4; } if (txn < sizeof txlog) { txlog[txn] = b; txn++; } else { txn_hi = 1; } }
 uint8_t app_eeprom_read(uint8_t a) { return ee[a]; }
 void app_eeprom_write(uint8_t a, uint8_t v) { ee[a] = v; }
 void fw_lock(void) {}
@@ -308,12 +309,12 @@ assert len(I16_IDS) == 32
 
 
 def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[int] | None = None,
-                  ramp: int = 0) -> bytes:
+                  ramp: int = 0, tx_room: int = 255) -> bytes:
     """Run the link module on the PIC18 core in gpsim: link_init, link_poll, then every byte of
     ``frames`` through link_rx_byte with a link_poll after each (as tests/linksupport's direct
     mode does on the host), and after frame i ``samples[i]`` times link_sample and link_poll
     (app_signal(s) = 0x0101 s - 0x3000 for s < 7, else 0; signal 0 moves by ``ramp`` after each
-    link_sample); returns the bytes it sent to the UART (at most 240).  Afterwards
+    link_sample; app_tx_free() reports ``tx_room`` bytes); returns the bytes it sent to the UART (at most 240).  Afterwards
     ``chip_exchange.param_i16`` holds {id: link_param_i16(id)} for I16_IDS, ``chip_exchange.eeprom``
     the EEPROM."""
     samples = samples or [0] * len(frames)
@@ -333,7 +334,7 @@ def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[i
         (d / "x.c").write_text(EXCHANGE % {"frames": decl})
         (d / "eestub.c").write_text(EESTUB)
         for f in ("link_fw.c", "x.c", "xc_sfr.c", "eestub.c"):
-            _run([str(SDCC / "bin/sdcc"), *CFLAGS, "-I.", "-c", f], d)
+            _run([str(SDCC / "bin/sdcc"), *CFLAGS, f"-DTX_ROOM={int(tx_room)}u", "-I.", "-c", f], d)
         _run(["gplink", "-m", "-w", "-s", LKR, "-o", "out.hex", str(LIB / "crt0i.o"), "x.o", "link_fw.o",
               "xc_sfr.o", "eestub.o", str(LIB / "libsdcc.lib")], d)
         (d / "s.stc").write_text("processor p18f4520\nload out.cod\nbreak e _done\nrun\ndump r\nquit\n")
@@ -343,6 +344,8 @@ def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[i
         raise SystemExit("gpsim printed no register dump")
     if mem[0x4F1] & 1:
         raise SystemExit("the exchange sent more than 240 bytes: shorten it")
+    if mem[0x4F1] & 4:
+        raise AssertionError("link_poll queued more bytes than app_tx_free() reported")
     chip_exchange.eeprom = bytes(mem.get(0x500 + i, 0) for i in range(256))
     chip_exchange.param_i16 = {k: ((mem.get(0x3C0 + 2 * i, 0) | mem.get(0x3C1 + 2 * i, 0) << 8) ^ 0x8000) - 0x8000
                                for i, k in enumerate(I16_IDS)}

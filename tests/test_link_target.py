@@ -306,3 +306,27 @@ def test_param_get_checks_on_the_chip():
     host_v = codec.decode_reply("param_get", dec_host[5].payload)["values"]
     assert any(e.signal for e in entries) and any(not e.signal for e in entries)
     assert chip_v == [_signal(sig_index[e.id]) if e.signal else h for e, h in zip(entries, host_v)]
+
+
+def test_small_tx_room_on_the_chip():
+    """With a UART queue reporting 3 free bytes (tx_drain's room running out on every poll), the
+    chip still sends every frame whole and in order: the host build's bytes."""
+    from picdrive.link import codec
+    from linksupport.fakeboard import FakeBoard
+    files = build.render()
+    frames = [codec.encode_command("hello", 1), codec.encode_command("param_get", 2, {"ids": [0x00, 0x07]}),
+              codec.encode_command("status", 3)]
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames, [40, 40, 40], tx_room=3)
+    b = FakeBoard(files=files, txq_bytes=4096)
+    try:
+        b.boot()
+        host = b.take_tx()
+        for f in frames:
+            b.feed(f)
+            host += b.take_tx()
+    finally:
+        b.close()
+    dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
+    assert len(dec_chip) == len(frames) + 1
+    assert dec_chip[1:3] == dec_host[1:3]                       # hello, param_get (status: uptime differs)
+    assert dec_chip[3].seq == 3 and dec_chip[3].is_reply
