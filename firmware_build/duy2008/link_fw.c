@@ -36,6 +36,8 @@
 
 #define SIG_ALL            0x07FFu
 #define NONE               0xFFu
+#define NACK_ARMED         1u                        /* S.nack: a bad frame may be NACKed */
+#define NACK_PENDING       2u                        /* S.nack: a BAD_CRC NACK to send */
 #define EE_ALL             0xFEu                     /* S.changed: every persisted parameter (not an id) */
 #define ROW                20u          /* bytes of a table row (= param_info reply head) */
 #define EE_HEADER          8u
@@ -218,16 +220,15 @@ typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u) ? 1 : -
 #define crc_lo link_hot.crc_lo
 
 /* the sample being written (speed-loop interrupt only): telemetry and capture destinations,
- * the masks still to write, the signal index (put_signals' assembly addresses the fields by offset) */
+ * the masks still to write (put_signals' assembly addresses the fields by offset) */
 static struct link_sg {
     LINK_DATA uint8_t *p;
     LINK_DATA uint8_t *q;              /* 0: no capture sample */
     uint16_t tm;
     uint16_t cm;
-    uint8_t j;
 } sg;
 #if defined(__SDCC_pic16)
-typedef char link_sg_layout[(offsetof(struct link_sg, tm) == 4u && offsetof(struct link_sg, j) == 8u) ? 1 : -1];
+typedef char link_sg_layout[(offsetof(struct link_sg, tm) == 4u && offsetof(struct link_sg, cm) == 6u) ? 1 : -1];
 #endif
 static union { int32_t l; uint8_t b[4]; } V;   /* the value being moved (main loop only) */
 /* copies and loops walk static data-space pointers: no arguments on the software stack */
@@ -246,8 +247,7 @@ static struct link_state {
     /* receive */
     uint8_t rx_ovf_seen;
     volatile uint8_t rx_valid;         /* a host command arrived (main sets, tick clears: watchdog) */
-    uint8_t nack_armed;                /* one BAD_CRC NACK per valid frame */
-    uint8_t nack_pending;
+    uint8_t nack;                      /* one BAD_CRC NACK per valid frame: NACK_ARMED, then NACK_PENDING */
     uint8_t nack_type;
     uint8_t nack_seq;
     /* replay */
@@ -952,9 +952,9 @@ static uint8_t ee_load(void)
 
 #if defined(__SDCC_pic16)
 #if LINK_WITH_CAPTURE
-#define LS_CHANGED 56                  /* offsetof(struct link_state, changed), for the assembly */
+#define LS_CHANGED 55                  /* offsetof(struct link_state, changed), for the assembly */
 #else
-#define LS_CHANGED 38
+#define LS_CHANGED 37
 #endif
 typedef char link_changed_layout[(offsetof(struct link_state, changed) == LS_CHANGED) ? 1 : -1];
 /* PIC18 assembly: no register held across the calls (S.changed counts), no frame */
@@ -1045,7 +1045,7 @@ void link_init(void)
     }
     S.rp_len = NONE;
     S.changed = NONE;
-    S.nack_armed = 1u;
+    S.nack = NACK_ARMED;
     S.ev_boot = 1u;
 }
 
@@ -1194,9 +1194,8 @@ static uint8_t rx_frame(void)
     if (S.crc_errors != 0xFFFFu) {
         S.crc_errors++;
     }
-    if (S.nack_armed != 0u && n >= PL) {
-        S.nack_armed = 0u;
-        S.nack_pending = 1u;
+    if (S.nack == NACK_ARMED && n >= PL) {
+        S.nack = NACK_PENDING;
         S.nack_type = rx_buf[1];
         S.nack_seq = rx_buf[2];
     }
@@ -1220,7 +1219,7 @@ static void rx_release(void)           /* rx_buf back to the interrupt */
 
 /* ---- transmit: body in tx_buf[1..], COBS-encoded in place, sent as the UART queue has room ---- */
 #if defined(__SDCC_pic16)
-typedef char link_tx_layout[(offsetof(struct link_state, tseq) == 18u && offsetof(struct link_state, tx_pos) == 20u
+typedef char link_tx_layout[(offsetof(struct link_state, tseq) == 17u && offsetof(struct link_state, tx_pos) == 19u
                              && offsetof(struct link_fast, n) == 5u && offsetof(struct link_fast, tx_len) == 10u)
                             ? 1 : -1];
 /* PIC18 assembly: the CRC through crc_n (FSR0 ends on the CRC's place), then COBS in place with
@@ -1231,7 +1230,7 @@ static void tx_seal(uint8_t type) LINK_WPARAM __naked   /* payload A(0..link_hot
     __asm
     MOVFF   0xFE8, (_tx_buf + 2)    ; TYPE, LEN, SEQ
     MOVFF   (_link_hot + 5), (_tx_buf + 1)
-    MOVFF   (_S + 18), (_tx_buf + 3)
+    MOVFF   (_S + 17), (_tx_buf + 3)
     MOVLW   LOW(_tx_buf + 1)        ; CRC over LEN .. payload
     MOVFF   0xFE8, _cp_s
     MOVLW   HIGH(_tx_buf + 1)
@@ -1245,7 +1244,7 @@ static void tx_seal(uint8_t type) LINK_WPARAM __naked   /* payload A(0..link_hot
     ADDLW   7
     MOVWF   (_link_hot + 10), A
     BANKSEL _S
-    CLRF    (_S + 20), B            ; tx_pos = 0
+    CLRF    (_S + 19), B            ; tx_pos = 0
     MOVF    (_link_hot + 5), W, A   ; count = body bytes
     ADDLW   5
     MOVWF   0xFF4, A
@@ -1304,6 +1303,45 @@ static void tx_seal(uint8_t type) LINK_WPARAM   /* payload A(0..link_hot.n-1), S
 }
 #endif
 
+#if defined(__SDCC_pic16)
+/* PIC18 assembly (the C below, step for step): the room on the software stack (PLUSW1, W = 1) */
+static void tx_drain(void) __naked
+{
+    __asm
+    extern  _app_tx_free
+    extern  _app_tx_byte
+    MOVF    (_link_hot + 10), W, A  ; tx_len: nothing to send
+    BZ      ltd_ret
+    CALL    _app_tx_free
+    IORLW   0
+    BZ      ltd_ret
+    MOVWF   0xFE5, A                ; room (POSTDEC1)
+ltd_loop:
+    BANKSEL _S
+    DECF    (_link_hot + 10), W, A  ; tx_pos == tx_len - 1: only the delimiter is left
+    XORWF   (_S + 19), W, B
+    BZ      ltd_end
+    LFSR    0, _tx_buf
+    MOVF    (_S + 19), W, B
+    MOVF    0xFEB, W, A             ; tx_buf[tx_pos] (PLUSW0)
+    CALL    _app_tx_byte
+    BANKSEL _S
+    INCF    (_S + 19), F, B
+    MOVLW   1
+    DECFSZ  0xFE3, F, A             ; room-- (PLUSW1)
+    BRA     ltd_loop
+    BRA     ltd_pop
+ltd_end:
+    MOVLW   0
+    CALL    _app_tx_byte            ; the delimiter
+    CLRF    (_link_hot + 10), A
+ltd_pop:
+    MOVF    0xFE4, F, A             ; drop room (PREINC1)
+ltd_ret:
+    RETURN
+    __endasm;
+}
+#else
 static void tx_drain(void)
 {
     uint8_t room;
@@ -1322,6 +1360,7 @@ static void tx_drain(void)
         room--;
     }
 }
+#endif
 
 /* ---- command handlers: arguments in R(0..link_hot.n-1), reply in A(..), its length in link_hot.n ---- */
 static uint8_t drive_busy(void)
@@ -1367,6 +1406,71 @@ static uint8_t h_param_info(void)
     return 0u;
 }
 
+#if defined(__SDCC_pic16)
+/* PIC18 assembly (the C below, step for step): the index on the software stack (PLUSW1 with
+ * W = 1 reaches it across the calls), every id checked before any value is read */
+static uint8_t h_param_get(void) __naked
+{
+    __asm
+    MOVF    (_link_hot + 5), W, A   ; 1 .. LINK_PARAM_GET_MAX ids
+    BZ      lpg_bad
+    SUBLW   10
+    BNC     lpg_bad
+    CLRF    0xFE5, A                ; i = 0 (POSTDEC1)
+lpg_check:
+    MOVLW   1
+    MOVF    0xFE3, W, A             ; i (PLUSW1)
+    LFSR    0, (_rx_buf + 3)
+    MOVF    0xFEB, W, A             ; R(i) (PLUSW0)
+    CALL    _entry_index
+    XORLW   0xFF
+    BZ      lpg_unknown
+    MOVLW   1
+    INCF    0xFE3, F, A
+    MOVLW   1
+    MOVF    0xFE3, W, A
+    XORWF   (_link_hot + 5), W, A
+    BNZ     lpg_check
+    MOVLW   1
+    CLRF    0xFE3, A
+lpg_value:
+    MOVLW   1
+    MOVF    0xFE3, W, A
+    LFSR    0, (_rx_buf + 3)
+    MOVF    0xFEB, W, A
+    CALL    _entry_index
+    CALL    _value_at
+    MOVLW   1                       ; A(4 i ..) = V
+    MOVF    0xFE3, W, A
+    MULLW   4
+    LFSR    0, (_tx_buf + 4)
+    MOVF    0xFF3, W, A
+    ADDWF   0xFE9, F, A
+    BTFSC   0xFD8, 0, A
+    INCF    0xFEA, F, A
+    MOVFF   _V, 0xFEE
+    MOVFF   (_V + 1), 0xFEE
+    MOVFF   (_V + 2), 0xFEE
+    MOVFF   (_V + 3), 0xFEE
+    MOVLW   1
+    INCF    0xFE3, F, A
+    MOVLW   1
+    MOVF    0xFE3, W, A
+    XORWF   (_link_hot + 5), W, A
+    BNZ     lpg_value
+    MOVF    (_link_hot + 5), W, A   ; 4 bytes an id
+    MULLW   4
+    MOVFF   0xFF3, (_link_hot + 5)
+    MOVF    0xFE4, F, A             ; drop i (PREINC1)
+    RETLW   0
+lpg_unknown:
+    MOVF    0xFE4, F, A
+    RETLW   8
+lpg_bad:
+    RETLW   3
+    __endasm;
+}
+#else
 static uint8_t h_param_get(void)
 {
     uint8_t n = link_hot.n, i, o = 0u;
@@ -1386,6 +1490,7 @@ static uint8_t h_param_get(void)
     link_hot.n = o;
     return 0u;
 }
+#endif
 
 /* set id to the value in V; reply the stored value: the last 4 of the link_hot.n reply bytes */
 static uint8_t set_reply(uint8_t id) LINK_WPARAM
@@ -1477,9 +1582,9 @@ ltc_set:
     CALL    _crit_begin
     CLRF    (_link_hot + 13), A     ; tm_dec = 0 while the settings change
     CLRF    (_link_hot + 14), A
-    MOVFF   (_rx_buf + 3), (_S + 36)    ; tm_mask
-    MOVFF   (_rx_buf + 4), (_S + 37)
-    MOVFF   (_rx_buf + 7), (_S + 21)    ; tm_spf
+    MOVFF   (_rx_buf + 3), (_S + 35)    ; tm_mask
+    MOVFF   (_rx_buf + 4), (_S + 36)
+    MOVFF   (_rx_buf + 7), (_S + 20)    ; tm_spf
     MOVFF   0xFE4, (_link_hot + 12) ; tm_nb (PREINC1)
     CLRF    (_link_hot + 15), A     ; tr: div, counter, nsamp, len
     CLRF    (_link_hot + 16), A
@@ -1597,24 +1702,24 @@ lca_add:
     CALL    _crit_begin
     BANKSEL _S
     CLRF    _S, B                   ; IDLE while the settings change
-    MOVFF   (_rx_buf + 3), (_S + 42)    ; cap_mask
-    MOVFF   (_rx_buf + 4), (_S + 43)
-    MOVFF   0xFE4, (_S + 40)        ; cap_bytes (PREINC1)
+    MOVFF   (_rx_buf + 3), (_S + 41)    ; cap_mask
+    MOVFF   (_rx_buf + 4), (_S + 42)
+    MOVFF   0xFE4, (_S + 39)        ; cap_bytes (PREINC1)
     MOVFF   0xFE4, (_link_hot + 22) ; cap_nb
     MOVFF   (_rx_buf + 5), (_link_hot + 21) ; cap_n
-    MOVFF   (_rx_buf + 7), (_S + 41)    ; cap_pre
+    MOVFF   (_rx_buf + 7), (_S + 40)    ; cap_pre
     MOVFF   (_rx_buf + 9), (_link_hot + 23) ; cap_dec
     MOVFF   (_rx_buf + 10), (_link_hot + 24)
-    MOVFF   (_rx_buf + 11), (_S + 39)   ; cap_trig
-    MOVFF   (_rx_buf + 12), (_S + 44)   ; cap_thr (SPEED_FALLING: complemented)
-    MOVFF   (_rx_buf + 13), (_S + 45)
-    MOVF    (_S + 39), W, B
+    MOVFF   (_rx_buf + 11), (_S + 38)   ; cap_trig
+    MOVFF   (_rx_buf + 12), (_S + 43)   ; cap_thr (SPEED_FALLING: complemented)
+    MOVFF   (_rx_buf + 13), (_S + 44)
+    MOVF    (_S + 38), W, B
     XORLW   3
     BNZ     lca_clear
+    COMF    (_S + 43), F, B
     COMF    (_S + 44), F, B
-    COMF    (_S + 45), F, B
 lca_clear:
-    LFSR    0, (_S + 46)            ; the record (S.cr, 10 bytes)
+    LFSR    0, (_S + 45)            ; the record (S.cr, 10 bytes)
     MOVLW   10
 lca_zero:
     CLRF    0xFEE, A                ; POSTINC0
@@ -1622,7 +1727,7 @@ lca_zero:
     BRA     lca_zero
     CLRF    (_link_hot + 25), A     ; cr_div
     CLRF    (_link_hot + 26), A
-    CLRF    (_S + 38), B            ; cap_sp_changed
+    CLRF    (_S + 37), B            ; cap_sp_changed
     MOVLW   1
     MOVWF   _S, B
     CALL    _crit_end
@@ -1690,7 +1795,7 @@ static uint8_t h_capture_read(void) __naked
 lcr_wrong:
     RETLW   6
 lcr_done:
-    MOVFF   (_S + 50), 0xFF3        ; PRODL = total
+    MOVFF   (_S + 49), 0xFF3        ; PRODL = total
     BANKSEL _rx_buf
     MOVF    (_rx_buf + 4), W, B     ; start < 256
     BNZ     lcr_range
@@ -1700,8 +1805,8 @@ lcr_done:
     MOVWF   0xFF4, A
     MOVLW   3          ; A(0..6): state, total, trigger index, start (u16 each but the state)
     MOVFF   0xFE8, (_tx_buf + 4)
-    MOVFF   (_S + 50), (_tx_buf + 5)
-    MOVFF   (_S + 52), (_tx_buf + 7)
+    MOVFF   (_S + 49), (_tx_buf + 5)
+    MOVFF   (_S + 51), (_tx_buf + 7)
     MOVFF   (_rx_buf + 3), (_tx_buf + 9)
     MOVLW   0
     MOVFF   0xFE8, (_tx_buf + 6)
@@ -1731,7 +1836,7 @@ lcr_fitted:
     MOVFF   0xFF3, 0xFF5            ; TABLAT = bytes
     BANKSEL _S
     MOVFF   (_rx_buf + 3), 0xFE8    ; the first sample: (record start + start) mod cap_n
-    ADDWF   (_S + 51), W, B
+    ADDWF   (_S + 50), W, B
     MOVWF   0xFF3, A
     MOVF    (_link_hot + 21), W, A
     CPFSLT  0xFF3, A
@@ -1753,7 +1858,7 @@ lcr_loop:
     MOVFF   0xFEE, 0xFDE            ; POSTINC0 -> POSTINC2
     INCF    0xFF4, F, A
     DECF    0xFF4, W, A             ; past the last byte: back to the start
-    XORWF   (_S + 40), W, B
+    XORWF   (_S + 39), W, B
     BNZ     lcr_next
     CLRF    0xFF4, A
     LFSR    0, _cap_buf
@@ -1902,7 +2007,7 @@ static void dispatch(void)
     if ((uint8_t)(type - 1u) < N_CMDS) {
         S.rx_valid = 1u;               /* only a host command feeds the watchdog */
     }
-    S.nack_armed = 1u;
+    S.nack = NACK_ARMED;
     LINK_HOOK_FRAME(type, S.tseq, &R(0), link_hot.n);
     if (type == S.rp_type && S.tseq == S.rp_seq && S.fc0 == S.rp_crc0 && S.fc1 == S.rp_crc1
         && S.rp_len != NONE) {
@@ -1966,10 +2071,10 @@ static void wd_arm(void)
 }
 
 #if defined(__SDCC_pic16)
-typedef char link_poll_layout[(offsetof(struct link_state, tm_gen) == 1u && offsetof(struct link_state, nack_pending) == 15u
-                               && offsetof(struct link_state, nack_type) == 16u
-                               && offsetof(struct link_state, nack_seq) == 17u
-                               && offsetof(struct link_state, tseq) == 18u && offsetof(struct link_fast, tr) == 15u)
+typedef char link_poll_layout[(offsetof(struct link_state, tm_gen) == 1u && offsetof(struct link_state, nack) == 14u
+                               && offsetof(struct link_state, nack_type) == 15u
+                               && offsetof(struct link_state, nack_seq) == 16u
+                               && offsetof(struct link_state, tseq) == 17u && offsetof(struct link_fast, tr) == 15u)
                               ? 1 : -1];
 /* PIC18 assembly (the C below, step for step): the pass count on the software stack, no register
  * held across the calls */
@@ -1984,15 +2089,16 @@ lpl_loop:
     MOVF    (_link_hot + 10), W, A  ; tx_len: a frame still leaving
     BNZ     lpl_end
     BANKSEL _S
-    MOVF    (_S + 15), W, B         ; nack_pending: one BAD_CRC NACK
-    BZ      lpl_rx
-    CLRF    (_S + 15), B
-    MOVFF   (_S + 16), (_tx_buf + 4)   ; A(0) = the frame type, A(1) = BAD_CRC
+    MOVF    (_S + 14), W, B         ; nack == NACK_PENDING: one BAD_CRC NACK
+    XORLW   2
+    BNZ     lpl_rx
+    CLRF    (_S + 14), B
+    MOVFF   (_S + 15), (_tx_buf + 4)   ; A(0) = the frame type, A(1) = BAD_CRC
     MOVLW   2
     MOVFF   0xFE8, (_tx_buf + 5)
     MOVLW   2
     MOVWF   (_link_hot + 5), A
-    MOVFF   (_S + 17), (_S + 18)    ; SEQ of the bad frame
+    MOVFF   (_S + 16), (_S + 17)    ; SEQ of the bad frame
     MOVLW   127
     CALL    _tx_seal
     BRA     lpl_next
@@ -2025,7 +2131,7 @@ lpl_ev:
     MOVFF   0xFE8, (_cp_s + 1)
     MOVF    (_link_hot + 5), W, A
     CALL    _mcopy_n
-    MOVFF   (_S + 1), (_S + 18)     ; SEQ = tm_gen
+    MOVFF   (_S + 1), (_S + 17)     ; SEQ = tm_gen
     MOVLW   96
     CALL    _tx_seal
     CLRF    (_link_hot + 19), A     ; tr.nsamp = tr.len = 0, tm_ready = 0
@@ -2054,8 +2160,8 @@ void link_poll(void)
         if (link_hot.tx_len != 0u) {
             break;
         }
-        if (S.nack_pending != 0u) {
-            S.nack_pending = 0u;
+        if (S.nack == NACK_PENDING) {
+            S.nack = 0u;
             A(0) = S.nack_type;
             A(1) = LINK_NACK_BAD_CRC;
             link_hot.n = 2u;
@@ -2100,7 +2206,7 @@ void link_poll(void)
 /* PIC18 assembly: about 60 cycles a selected signal, no software-stack frame.  The flash table is
  * read with TBLRD: TBLPTR and TABLAT are saved on entry and restored on exit (hazard a: this runs
  * in an interrupt, whatever the application's prologue saves).  FSR0 and PROD are saved by the
- * interrupt's prologue; sg (one bank) holds the pointers, the masks and the index j. */
+ * interrupt's prologue; sg (one bank) holds the pointers and the masks. */
 static void put_signals(void) __naked
 {
     __asm
@@ -2115,7 +2221,6 @@ static void put_signals(void) __naked
     MOVLW   LOW(_app_signal_src)
     MOVWF   0xFF6, A
     BANKSEL _sg
-    CLRF    (_sg + 8), B            ; j = 0
 lps_loop:
     TBLRD*+
     MOVFF   0xFF5, 0xFE9            ; FSR0 = app_signal_src[j]
@@ -2135,7 +2240,9 @@ lps_call:                          ; NULL: app_signal(j), the table pointer kept
     MOVFF   0xFF8, 0xFE5
     MOVFF   0xFF7, 0xFE5
     MOVFF   0xFF6, 0xFE5
-    MOVF    (_sg + 8), W, B
+    MOVLW   LOW(_app_signal_src + 2)    ; j = (TBLPTR - (app_signal_src + 2)) / 2, the low bytes suffice
+    SUBWF   0xFF6, W, A
+    RRNCF   0xFE8, W, A
     CALL    _app_signal             ; low byte in W, high byte in PRODL
     MOVFF   0xFF3, 0xFF4
     MOVWF   0xFF3, A
@@ -2162,7 +2269,6 @@ lps_cap:
     MOVFF   0xFE9, (_sg + 2)
     MOVFF   0xFEA, (_sg + 3)
 lps_next:
-    INCF    (_sg + 8), F, B
     BCF     0xFD8, 0, A             ; tm >>= 1, cm >>= 1
     RRCF    (_sg + 5), F, B
     RRCF    (_sg + 4), F, B
@@ -2218,20 +2324,20 @@ static void put_signals(void)
 typedef char link_isr_layout[(offsetof(struct link_fast, tm_ready) == 11u && offsetof(struct link_fast, tm_nb) == 12u
     && offsetof(struct link_fast, tm_dec) == 13u && offsetof(struct link_fast, tr) == 15u
     && offsetof(struct link_state, tm_dropped) == 6u && offsetof(struct link_state, rx_valid) == 13u
-    && offsetof(struct link_state, tm_spf) == 21u && offsetof(struct link_state, wd_armed) == 28u
-    && offsetof(struct link_state, wd_ms) == 29u && offsetof(struct link_state, ev_watchdog) == 34u
-    && offsetof(struct link_state, tm_mask) == 36u
+    && offsetof(struct link_state, tm_spf) == 20u && offsetof(struct link_state, wd_armed) == 27u
+    && offsetof(struct link_state, wd_ms) == 28u && offsetof(struct link_state, ev_watchdog) == 33u
+    && offsetof(struct link_state, tm_mask) == 35u
     && offsetof(link_params_t, link_timeout) == 17u) ? 1 : -1];
 #if LINK_WITH_CAPTURE
 typedef char link_cap_layout[(offsetof(struct link_fast, cap_n) == 21u && offsetof(struct link_fast, cap_nb) == 22u
     && offsetof(struct link_fast, cap_dec) == 23u && offsetof(struct link_fast, cr_div) == 25u
-    && offsetof(struct link_state, cap_sp_changed) == 38u && offsetof(struct link_state, cap_trig) == 39u
-    && offsetof(struct link_state, cap_pre) == 41u && offsetof(struct link_state, cap_bytes) == 40u && offsetof(struct link_state, cap_mask) == 42u
-    && offsetof(struct link_state, cap_thr) == 44u && offsetof(struct link_state, cr) == 46u
+    && offsetof(struct link_state, cap_sp_changed) == 37u && offsetof(struct link_state, cap_trig) == 38u
+    && offsetof(struct link_state, cap_pre) == 40u && offsetof(struct link_state, cap_bytes) == 39u && offsetof(struct link_state, cap_mask) == 41u
+    && offsetof(struct link_state, cap_thr) == 43u && offsetof(struct link_state, cr) == 45u
     && sizeof S.cr == 10u) ? 1 : -1];
 
-/* decimation and trigger; a sample due: sg.q, sg.cm set (S.cr: w 46, wi 47, filled 48, post 49,
- * total 50, start 51, tidx 52, prev_valid 53, prev 54) */
+/* decimation and trigger; a sample due: sg.q, sg.cm set (S.cr: w 45, wi 46, filled 47, post 48,
+ * total 49, start 50, tidx 51, prev_valid 52, prev 53) */
 static void capture_due(void) __naked
 {
     __asm
@@ -2250,11 +2356,11 @@ lcd_due:
     MOVF    _S, W, B                ; cap_state
     XORLW   1
     BNZ     lcd_slot
-    MOVF    (_S + 39), W, B         ; cap_trig
+    MOVF    (_S + 38), W, B         ; cap_trig
     BZ      lcd_fire                ; IMMEDIATE
     XORLW   1
     BNZ     lcd_speed
-    MOVF    (_S + 38), W, B         ; SETPOINT_CHANGE: the setpoint was written
+    MOVF    (_S + 37), W, B         ; SETPOINT_CHANGE: the setpoint was written
     BZ      lcd_slot
     BRA     lcd_fire
 lcd_speed:                          ; a crossing: sp in PRODH:PRODL
@@ -2263,27 +2369,27 @@ lcd_speed:                          ; a crossing: sp in PRODH:PRODL
     MOVFF   0xFF3, 0xFF4
     MOVWF   0xFF3, A
     BANKSEL _S
-    MOVF    (_S + 39), W, B
+    MOVF    (_S + 38), W, B
     XORLW   3
     BNZ     lcd_cmp
     COMF    0xFF3, F, A             ; falling through thr = ~speed rising through ~thr (stored so)
     COMF    0xFF4, F, A
 lcd_cmp:
-    MOVF    (_S + 53), W, B         ; no previous sample: no crossing
+    MOVF    (_S + 52), W, B         ; no previous sample: no crossing
     BZ      lcd_keep
-    MOVF    (_S + 44), W, B         ; prev - thr: signed less-than is N xor OV
-    SUBWF   (_S + 54), W, B
-    MOVF    (_S + 45), W, B
-    SUBWFB  (_S + 55), W, B
+    MOVF    (_S + 43), W, B         ; prev - thr: signed less-than is N xor OV
+    SUBWF   (_S + 53), W, B
+    MOVF    (_S + 44), W, B
+    SUBWFB  (_S + 54), W, B
     BOV     lcd_ov1
     BNN     lcd_keep
     BRA     lcd_now
 lcd_ov1:
     BN      lcd_keep
 lcd_now:
-    MOVF    (_S + 44), W, B         ; sp - thr: greater or equal is N == OV
+    MOVF    (_S + 43), W, B         ; sp - thr: greater or equal is N == OV
     SUBWF   0xFF3, W, A
-    MOVF    (_S + 45), W, B
+    MOVF    (_S + 44), W, B
     SUBWFB  0xFF4, W, A
     BOV     lcd_ov2
     BN      lcd_keep
@@ -2291,33 +2397,33 @@ lcd_now:
 lcd_ov2:
     BNN     lcd_keep
 lcd_yes:
-    MOVFF   0xFF3, (_S + 54)        ; prev = sp
-    MOVFF   0xFF4, (_S + 55)
+    MOVFF   0xFF3, (_S + 53)        ; prev = sp
+    MOVFF   0xFF4, (_S + 54)
     BRA     lcd_fire
 lcd_keep:
-    MOVFF   0xFF3, (_S + 54)        ; prev = sp, prev_valid = 1
-    MOVFF   0xFF4, (_S + 55)
+    MOVFF   0xFF3, (_S + 53)        ; prev = sp, prev_valid = 1
+    MOVFF   0xFF4, (_S + 54)
     MOVLW   1
-    MOVWF   (_S + 53), B
+    MOVWF   (_S + 52), B
     BRA     lcd_slot
 lcd_fire:
-    MOVF    (_S + 48), W, B         ; tidx = min(filled, pre)
-    CPFSGT  (_S + 41), B
-    MOVF    (_S + 41), W, B
-    MOVWF   (_S + 52), B
-    CLRF    (_S + 49), B            ; post = 0
+    MOVF    (_S + 47), W, B         ; tidx = min(filled, pre)
+    CPFSGT  (_S + 40), B
+    MOVF    (_S + 40), W, B
+    MOVWF   (_S + 51), B
+    CLRF    (_S + 48), B            ; post = 0
     MOVLW   2
     MOVWF   _S, B
 lcd_slot:
-    MOVF    (_S + 47), W, B         ; sg.q = &cap_buf[wi], sg.cm = cap_mask
+    MOVF    (_S + 46), W, B         ; sg.q = &cap_buf[wi], sg.cm = cap_mask
     ADDLW   LOW(_cap_buf)
     MOVFF   0xFE8, (_sg + 2)
     MOVLW   HIGH(_cap_buf)
     BTFSC   0xFD8, 0, A
     ADDLW   1
     MOVFF   0xFE8, (_sg + 3)
-    MOVFF   (_S + 42), (_sg + 6)
-    MOVFF   (_S + 43), (_sg + 7)
+    MOVFF   (_S + 41), (_sg + 6)
+    MOVFF   (_S + 42), (_sg + 7)
     RETURN
     __endasm;
 }
@@ -2327,32 +2433,32 @@ static void capture_done(void) __naked  /* after a sample was written: the ring 
     __asm
     BANKSEL _S
     MOVF    (_link_hot + 22), W, A  ; wi += cap_nb
-    ADDWF   (_S + 47), F, B
-    INCF    (_S + 46), F, B         ; w++
+    ADDWF   (_S + 46), F, B
+    INCF    (_S + 45), F, B         ; w++
     MOVF    (_link_hot + 21), W, A  ; W = cap_n
-    CPFSEQ  (_S + 46), B
+    CPFSEQ  (_S + 45), B
     BRA     lcd2_fill
-    CLRF    (_S + 46), B            ; the ring wraps
-    CLRF    (_S + 47), B
+    CLRF    (_S + 45), B            ; the ring wraps
+    CLRF    (_S + 46), B
 lcd2_fill:
-    CPFSEQ  (_S + 48), B            ; filled < cap_n: one more
-    INCF    (_S + 48), F, B
+    CPFSEQ  (_S + 47), B            ; filled < cap_n: one more
+    INCF    (_S + 47), F, B
     MOVF    _S, W, B
     XORLW   2
     BNZ     lcd2_end
-    INCF    (_S + 49), F, B         ; post++
-    MOVF    (_S + 41), W, B         ; post + pre == cap_n: the record is complete
-    ADDWF   (_S + 49), W, B
+    INCF    (_S + 48), F, B         ; post++
+    MOVF    (_S + 40), W, B         ; post + pre == cap_n: the record is complete
+    ADDWF   (_S + 48), W, B
     XORWF   (_link_hot + 21), W, A
     BNZ     lcd2_end
-    MOVF    (_S + 52), W, B         ; total = tidx + post
-    ADDWF   (_S + 49), W, B
-    MOVWF   (_S + 50), B
-    SUBWF   (_S + 46), W, B         ; start = (w - total) mod cap_n
+    MOVF    (_S + 51), W, B         ; total = tidx + post
+    ADDWF   (_S + 48), W, B
+    MOVWF   (_S + 49), B
+    SUBWF   (_S + 45), W, B         ; start = (w - total) mod cap_n
     BC      lcd2_start
     ADDWF   (_link_hot + 21), W, A
 lcd2_start:
-    MOVWF   (_S + 51), B
+    MOVWF   (_S + 50), B
     MOVLW   3
     MOVWF   _S, B
 lcd2_end:
@@ -2407,12 +2513,12 @@ lsm_ptr:
     BTFSC   0xFD8, 0, A
     ADDLW   1
     MOVFF   0xFE8, (_sg + 1)
-    MOVFF   (_S + 36), (_sg + 4)
-    MOVFF   (_S + 37), (_sg + 5)
+    MOVFF   (_S + 35), (_sg + 4)
+    MOVFF   (_S + 36), (_sg + 5)
     MOVF    (_link_hot + 12), W, A  ; tr.len += tm_nb, tr.nsamp++
     ADDWF   (_link_hot + 20), F, A
     INCF    (_link_hot + 19), F, A
-    MOVF    (_S + 21), W, B         ; tr.nsamp >= tm_spf: the frame is ready (filled before return)
+    MOVF    (_S + 20), W, B         ; tr.nsamp >= tm_spf: the frame is ready (filled before return)
     CPFSLT  (_link_hot + 19), A
     BSF     (_link_hot + 11), 0, A
 lsm_count:
@@ -2461,38 +2567,38 @@ void link_tick_ms(void) __naked
     BNZ     ltk_wd
     INCF    (_S + 11), F, B
 ltk_wd:
-    MOVF    (_S + 28), W, B         ; wd_armed
+    MOVF    (_S + 27), W, B         ; wd_armed
     BZ      ltk_clear
     MOVF    (_S + 13), W, B         ; rx_valid: a host command arrived
     BZ      ltk_count
     CLRF    (_S + 13), B
 ltk_clear:
-    CLRF    (_S + 29), B            ; wd_ms = 0
-    CLRF    (_S + 30), B
+    CLRF    (_S + 28), B            ; wd_ms = 0
+    CLRF    (_S + 29), B
     RETURN
 ltk_count:
-    INFSNZ  (_S + 29), F, B         ; wd_ms++, saturating
-    INCF    (_S + 30), F, B
-    MOVF    (_S + 29), W, B
-    IORWF   (_S + 30), W, B
+    INFSNZ  (_S + 28), F, B         ; wd_ms++, saturating
+    INCF    (_S + 29), F, B
+    MOVF    (_S + 28), W, B
+    IORWF   (_S + 29), W, B
     BNZ     ltk_cmp
+    SETF    (_S + 28), B
     SETF    (_S + 29), B
-    SETF    (_S + 30), B
 ltk_cmp:
     MOVFF   (_link_params + 17), 0xFF3   ; wd_ms - link_timeout: no borrow = expired
     MOVFF   (_link_params + 18), 0xFF4
     MOVF    0xFF3, W, A
-    SUBWF   (_S + 29), W, B
+    SUBWF   (_S + 28), W, B
     MOVF    0xFF4, W, A
-    SUBWFB  (_S + 30), W, B
+    SUBWFB  (_S + 29), W, B
     BNC     ltk_end
-    CLRF    (_S + 28), B            ; disarm, outputs off (the application), the event
+    CLRF    (_S + 27), B            ; disarm, outputs off (the application), the event
+    CLRF    (_S + 28), B
     CLRF    (_S + 29), B
-    CLRF    (_S + 30), B
     CALL    _app_link_lost
     BANKSEL _S
     MOVLW   1
-    MOVWF   (_S + 34), B
+    MOVWF   (_S + 33), B
 ltk_end:
     RETURN
     __endasm;
