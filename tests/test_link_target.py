@@ -330,3 +330,15 @@ def test_small_tx_room_on_the_chip():
     assert len(dec_chip) == len(frames) + 1
     assert dec_chip[1:3] == dec_host[1:3]                       # hello, param_get (status: uptime differs)
     assert dec_chip[3].seq == 3 and dec_chip[3].is_reply
+
+
+def test_assembly_leaves_the_frame_pointer_alone():
+    """The module's assembly runs with interrupts enabled: an interrupt function that sets up a
+    frame saves only FSR2L (SDCC's small stack model keeps the stack in one bank), so FSR2H must
+    never change under it (a main-loop copy through FSR2 once corrupted the speed loop's
+    arguments: an overspeed trip under UART traffic).  No FSR2 in the assembly at all."""
+    c = build.render()["link_fw.c"]
+    blocks = re.findall(r"__asm(.*?)__endasm", c, re.S)
+    assert len(blocks) >= 10
+    code = "\n".join(ln.split(";")[0] for b in blocks for ln in b.splitlines())
+    assert not re.search(r"0xFD[9A-F]\b|LFSR\s+2\b|FSR2|INDF2|PLUSW2|POSTINC2|POSTDEC2|PREINC2", code, re.I)

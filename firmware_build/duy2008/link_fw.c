@@ -306,8 +306,9 @@ typedef char link_status_layout[(offsetof(struct link_state, uptime_ms) == 8u) ?
 
 
 #if defined(__SDCC_pic16)
-/* PIC18 assembly (main loop only): FSR0 and the table pointer are the compiler's scratch
- * registers, FSR2 (its frame pointer) is saved on the software stack; PROD counts. */
+/* PIC18 assembly (main loop only): FSR0, PROD and the table pointer are the compiler's scratch
+ * registers.  FSR2 is not used: it is the compiler's frame pointer, and a function of an
+ * interrupt that sets it saves only its low byte (the stack's bank is fixed). */
 static void mcopy_n(uint8_t n) LINK_WPARAM __naked  /* cp_d[0..n-1] = cp_s[0..n-1] (RAM to RAM) */
 {
     (void)n;
@@ -315,22 +316,19 @@ static void mcopy_n(uint8_t n) LINK_WPARAM __naked  /* cp_d[0..n-1] = cp_s[0..n-
     MOVWF   0xFF3, A                ; PRODL = n
     MOVF    0xFF3, F, A
     BZ      lmc_end
-    MOVFF   0xFD9, 0xFE5            ; save FSR2L, FSR2H (POSTDEC1)
-    MOVFF   0xFDA, 0xFE5
-    MOVFF   _cp_s, 0xFE9            ; FSR0 = cp_s, FSR2 = cp_d
-    MOVFF   (_cp_s + 1), 0xFEA
-    MOVFF   _cp_d, 0xFD9
-    MOVFF   (_cp_d + 1), 0xFDA
 lmc_loop:
-    MOVFF   0xFEE, 0xFDE            ; *FSR2++ = *FSR0++ (POSTINC0, POSTINC2)
-    DECFSZ  0xFF3, F, A
-    BRA     lmc_loop
+    MOVFF   _cp_s, 0xFE9            ; PRODH = *cp_s++ (FSR0 only: FSR2 is the frame pointer of an
+    MOVFF   (_cp_s + 1), 0xFEA      ; interrupt function, which saves only its low byte)
+    MOVFF   0xFEE, 0xFF4
     MOVFF   0xFE9, _cp_s
     MOVFF   0xFEA, (_cp_s + 1)
-    MOVFF   0xFD9, _cp_d
-    MOVFF   0xFDA, (_cp_d + 1)
-    MOVFF   0xFE4, 0xFDA            ; restore FSR2H, FSR2L (PREINC1)
-    MOVFF   0xFE4, 0xFD9
+    MOVFF   _cp_d, 0xFE9            ; *cp_d++ = PRODH
+    MOVFF   (_cp_d + 1), 0xFEA
+    MOVFF   0xFF4, 0xFEE
+    MOVFF   0xFE9, _cp_d
+    MOVFF   0xFEA, (_cp_d + 1)
+    DECFSZ  0xFF3, F, A
+    BRA     lmc_loop
 lmc_end:
     RETURN
     __endasm;
@@ -1126,32 +1124,31 @@ void link_rx_byte(uint8_t b) LINK_WPARAM
  * bytes become the zeros they stand for): its body length if it passes the length and CRC checks,
  * else 0.  The frame's CRC bytes are kept in S.fc0, S.fc1 (duplicate detection). */
 #if defined(__SDCC_pic16)
-/* PIC18 assembly: FSR0 reads, FSR2 (saved) writes, TABLAT the run, PRODH the count */
+/* PIC18 assembly: FSR0 walks the frame, each byte goes one place down (PLUSW0 with W = -1);
+ * TABLAT the run, PRODH the count */
 static uint8_t cobs_decode(void) __naked   /* rx_buf decoded in place; the last run (1: well formed) */
 {
     __asm
     DECF    (_link_hot + 0), W, A   ; rx_n - 1 bytes after the code byte
     MOVWF   0xFF4, A
     MOVFF   _rx_buf, 0xFF5          ; run = the code byte
-    MOVFF   0xFD9, 0xFE5            ; save FSR2 (POSTDEC1)
-    MOVFF   0xFDA, 0xFE5
     LFSR    0, (_rx_buf + 1)
-    LFSR    2, _rx_buf
     MOVF    0xFF4, F, A
     BZ      lcd3_end
 lcd3_loop:
-    MOVF    0xFEE, W, A             ; POSTINC0
+    MOVF    0xFEF, W, A             ; INDF0
     DECFSZ  0xFF5, F, A             ; the run ends here: a code byte, the zero it stands for
     BRA     lcd3_put
     MOVWF   0xFF5, A
     MOVLW   0
 lcd3_put:
-    MOVWF   0xFDE, A                ; POSTINC2
+    MOVWF   0xFF3, A
+    MOVLW   0xFF
+    MOVFF   0xFF3, 0xFEB            ; FSR0[-1] (PLUSW0)
+    MOVF    0xFEE, F, A             ; FSR0++ (POSTINC0)
     DECFSZ  0xFF4, F, A
     BRA     lcd3_loop
 lcd3_end:
-    MOVFF   0xFE4, 0xFDA            ; restore FSR2 (PREINC1)
-    MOVFF   0xFE4, 0xFD9
     MOVF    0xFF5, W, A
     RETURN
     __endasm;
@@ -1223,7 +1220,7 @@ typedef char link_tx_layout[(offsetof(struct link_state, tseq) == 17u && offseto
                              && offsetof(struct link_fast, n) == 5u && offsetof(struct link_fast, tx_len) == 10u)
                             ? 1 : -1];
 /* PIC18 assembly: the CRC through crc_n (FSR0 ends on the CRC's place), then COBS in place with
- * FSR0 scanning and FSR2 (saved) on the last code byte; TABLAT the run, PRODH the count. */
+ * FSR0 scanning: the last code byte is run bytes back (PLUSW0); TABLAT the run, PRODH the count. */
 static void tx_seal(uint8_t type) LINK_WPARAM __naked   /* payload A(0..link_hot.n-1), SEQ S.tseq */
 {
     (void)type;
@@ -1248,27 +1245,23 @@ static void tx_seal(uint8_t type) LINK_WPARAM __naked   /* payload A(0..link_hot
     MOVF    (_link_hot + 5), W, A   ; count = body bytes
     ADDLW   5
     MOVWF   0xFF4, A
-    MOVFF   0xFD9, 0xFE5            ; save FSR2 (POSTDEC1)
-    MOVFF   0xFDA, 0xFE5
     LFSR    0, (_tx_buf + 1)
-    LFSR    2, _tx_buf
     MOVLW   1
-    MOVWF   0xFF5, A                ; run = 1
+    MOVWF   0xFF5, A                ; run = 1: the code byte is run bytes back
 lts_loop:
     MOVF    0xFEE, W, A             ; POSTINC0: a zero becomes the distance to the next one
     BNZ     lts_next
-    MOVFF   0xFF5, 0xFDF            ; *code = run (INDF2)
-    MOVFF   0xFE9, 0xFD9            ; code = this byte (FSR0 - 1)
-    MOVFF   0xFEA, 0xFDA
-    MOVF    0xFDD, F, A             ; POSTDEC2
+    MOVF    0xFF5, W, A             ; *(this byte - run) = run: W = -run - 1 from FSR0 (one past it)
+    SUBLW   0xFF
+    MOVFF   0xFF5, 0xFEB            ; PLUSW0
     CLRF    0xFF5, A
 lts_next:
     INCF    0xFF5, F, A
     DECFSZ  0xFF4, F, A
     BRA     lts_loop
-    MOVFF   0xFF5, 0xFDF
-    MOVFF   0xFE4, 0xFDA            ; restore FSR2 (PREINC1)
-    MOVFF   0xFE4, 0xFD9
+    MOVF    0xFF5, W, A             ; the last code byte: run back from one past the end
+    SUBLW   0
+    MOVFF   0xFF5, 0xFEB
     RETURN
     __endasm;
 }
@@ -1779,8 +1772,8 @@ static uint8_t h_capture_arm(void)
 #if defined(__SDCC_pic16)
 /* PIC18 assembly (the C below, step for step).  R(0..1) start, R(2) count (R(i) = rx_buf[3 + i]).
  * The samples sent: min(count, total - start, what fits), their bytes by the 8x8 multiplier
- * (at most 256: the buffer's size); FSR0 walks the ring (wrapping after cap_bytes), FSR2 (saved)
- * the reply; PRODH the byte index, TABLAT the bytes left. */
+ * (at most 256: the buffer's size); FSR0 walks the ring (wrapping after cap_bytes) and the reply
+ * (cp_d) in turn; PRODH the byte index, TABLAT the bytes left. */
 static uint8_t h_capture_read(void) __naked
 {
     __asm
@@ -1844,18 +1837,28 @@ lcr_fitted:
     MOVF    0xFF3, W, A             ; its byte index (< 256)
     MULWF   (_link_hot + 22), A
     MOVFF   0xFF3, 0xFF4            ; PRODH = the byte index
-    MOVFF   0xFD9, 0xFE5            ; save FSR2 (POSTDEC1)
-    MOVFF   0xFDA, 0xFE5
+    MOVLW   LOW(_tx_buf + 11)   ; cp_d: the reply after its header
+    MOVFF   0xFE8, _cp_d
+    MOVLW   HIGH(_tx_buf + 11)
+    MOVFF   0xFE8, (_cp_d + 1)
     LFSR    0, _cap_buf
     MOVF    0xFF4, W, A
     ADDWF   0xFE9, F, A
     BTFSC   0xFD8, 0, A
     INCF    0xFEA, F, A
-    LFSR    2, (_tx_buf + 11)
     MOVF    0xFF5, F, A
     BZ      lcr_end
 lcr_loop:
-    MOVFF   0xFEE, 0xFDE            ; POSTINC0 -> POSTINC2
+    MOVFF   0xFEE, 0xFF3            ; PRODL = the ring byte (POSTINC0), then *cp_d++ = PRODL
+    MOVFF   0xFE9, _cp_s            ; (FSR0 only: the ring position waits in cp_s)
+    MOVFF   0xFEA, (_cp_s + 1)
+    MOVFF   _cp_d, 0xFE9
+    MOVFF   (_cp_d + 1), 0xFEA
+    MOVFF   0xFF3, 0xFEE
+    MOVFF   0xFE9, _cp_d
+    MOVFF   0xFEA, (_cp_d + 1)
+    MOVFF   _cp_s, 0xFE9
+    MOVFF   (_cp_s + 1), 0xFEA
     INCF    0xFF4, F, A
     DECF    0xFF4, W, A             ; past the last byte: back to the start
     XORWF   (_S + 39), W, B
@@ -1866,8 +1869,6 @@ lcr_next:
     DECFSZ  0xFF5, F, A
     BRA     lcr_loop
 lcr_end:
-    MOVFF   0xFE4, 0xFDA            ; restore FSR2 (PREINC1)
-    MOVFF   0xFE4, 0xFD9
     RETLW   0
 lcr_range:
     RETLW   4
