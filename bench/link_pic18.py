@@ -53,11 +53,13 @@ uint8_t crcbuf[40];
 uint8_t ee[256];
 int16_t sig[16];
 uint8_t app_command(uint8_t cmd, const uint8_t *arg, uint8_t n) { (void)cmd; (void)arg; (void)n; return 0; }
-void app_param_changed(uint8_t id) { (void)id; }
-int16_t app_signal(uint8_t s) { return sig[s]; }
+void app_param_changed(uint8_t id) LINK_WPARAM { (void)id; }
+int16_t app_signal(uint8_t s) LINK_WPARAM { return sig[s]; }
+/* signals 0..3 straight from sig[], the others through app_signal (both paths of link_sample) */
+LINK_DATA int16_t * const app_signal_src[LINK_N_SIGNALS] = { &sig[0], &sig[1], &sig[2], &sig[3] };
 void app_link_lost(void) {}
 uint8_t app_tx_free(void) { return 255; }
-void app_tx_byte(uint8_t b) { sink = b; }
+void app_tx_byte(uint8_t b) LINK_WPARAM { sink = b; }
 uint8_t app_eeprom_read(uint8_t a) { return ee[a]; }
 void app_eeprom_write(uint8_t a, uint8_t v) { ee[a] = v; }
 void fw_lock(void) {}
@@ -209,13 +211,16 @@ def measure(c_text: str, h_text: str) -> dict:
         sdcc = [str(SDCC / "bin/sdcc"), *CFLAGS, "-I."]
         env_path = f"{SDCC / 'bin'}:{os.environ['PATH']}"
         for f in ("link_fw.c", "h.c", "xc_sfr.c", "eestub.c"):
-            r = subprocess.run([*sdcc, "-c", f], cwd=d, capture_output=True, text=True,
+            # link_crc16 (host API, not in a chip build) is timed here: compiled in for the harness
+            r = subprocess.run([*sdcc, "-DLINK_WITH_HOST_API=1", "-c", f], cwd=d, capture_output=True, text=True,
                                env={**os.environ, "PATH": env_path})
             if r.returncode != 0:
                 raise SystemExit(f"sdcc {f} failed:\n{r.stdout[-3000:]}{r.stderr[-3000:]}")
         _run(["gplink", "-m", "-w", "-s", LKR, "-o", "out.hex", str(LIB / "crt0i.o"), "h.o", "link_fw.o",
               "xc_sfr.o", "eestub.o", str(LIB / "libsdcc.lib")], d)
         funcs, ram = _sections(d / "link_fw.o")
+        for k in ("link_crc16", "link_param_set"):    # the host API: not in a chip build
+            funcs.pop(k, None)
         flash = sum(funcs.values())
         mp = (d / "out.map").read_text()
         lib = {m.group(1): int(m.group(2), 16) for m in
@@ -250,14 +255,18 @@ EXCHANGE = r"""
 __at(0x400) uint8_t txlog[240];
 __at(0x4F0) uint8_t txn;
 __at(0x4F1) uint8_t txn_hi;
+__at(0x3C0) int16_t pi16[32];                   /* link_param_i16(f_ids[i]), at the end */
 __at(0x500) uint8_t ee[256];
 int16_t sig[16];
 uint8_t app_command(uint8_t cmd, const uint8_t *arg, uint8_t n) { (void)cmd; (void)arg; (void)n; return 0; }
-void app_param_changed(uint8_t id) { (void)id; }
-int16_t app_signal(uint8_t s) { return sig[s]; }
+void app_param_changed(uint8_t id) LINK_WPARAM { (void)id; }
+int16_t app_signal(uint8_t s) LINK_WPARAM { return sig[s]; }
+/* signals 0..3 straight from sig[], the others through app_signal (both paths of link_sample) */
+LINK_DATA int16_t * const app_signal_src[LINK_N_SIGNALS] = { &sig[0], &sig[1], &sig[2], &sig[3] };
 void app_link_lost(void) {}
-uint8_t app_tx_free(void) { return 255; }
-void app_tx_byte(uint8_t b) { if (txn < sizeof txlog) { txlog[txn] = b; txn++; } else { txn_hi = 1; } }
+static uint8_t tx_since;                        /* bytes queued since app_tx_free: never more than it said */
+uint8_t app_tx_free(void) { tx_since = 0; return TX_ROOM; }
+void app_tx_byte(uint8_t b) LINK_WPARAM { if (++tx_since > TX_ROOM) { txn_hi |= 4; } if (txn < sizeof txlog) { txlog[txn] = b; txn++; } else { txn_hi = 1; } }
 uint8_t app_eeprom_read(uint8_t a) { return ee[a]; }
 void app_eeprom_write(uint8_t a, uint8_t v) { ee[a] = v; }
 void fw_lock(void) {}
@@ -281,7 +290,11 @@ void main(void)
         for (k = 0; k < f_samples[i]; k++) {
             link_sample();
             link_poll();
+            sig[0] = (int16_t)(sig[0] + RAMP);  /* the speed moves by RAMP a sample */
         }
+    }
+    for (i = 0; i < 32; i++) {
+        pi16[i] = link_param_i16(f_ids[i]);
     }
     done();
     while (1) {
@@ -290,28 +303,37 @@ void main(void)
 """
 
 
-def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[int] | None = None) -> bytes:
+I16_IDS = [e.id for e in P.build_table(2).entries] + [0x0B, 0x7F]   # every id of a 2-rule table, 2 unknown
+assert len(I16_IDS) == 32
+
+
+def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[int] | None = None,
+                  ramp: int = 0, tx_room: int = 255) -> bytes:
     """Run the link module on the PIC18 core in gpsim: link_init, link_poll, then every byte of
     ``frames`` through link_rx_byte with a link_poll after each (as tests/linksupport's direct
     mode does on the host), and after frame i ``samples[i]`` times link_sample and link_poll
-    (app_signal(s) = 0x0101 s - 0x3000 for s < 7, else 0); returns the bytes it sent to the UART (at most 240)."""
+    (app_signal(s) = 0x0101 s - 0x3000 for s < 7, else 0; signal 0 moves by ``ramp`` after each
+    link_sample; app_tx_free() reports ``tx_room`` bytes); returns the bytes it sent to the UART (at most 240).  Afterwards
+    ``chip_exchange.param_i16`` holds {id: link_param_i16(id)} for I16_IDS, ``chip_exchange.eeprom``
+    the EEPROM."""
     samples = samples or [0] * len(frames)
     from picdrive.firmware.gpsim import _dump
     data = b"".join(frames)
     starts = [0]
     for f in frames:
         starts.append(starts[-1] + len(f))
-    decl = (f"#define N_FRAMES {len(frames)}u\n"
+    decl = (f"#define N_FRAMES {len(frames)}u\n#define RAMP ({int(ramp)})\n"
             f"static const uint8_t f_bytes[{max(1, len(data))}] = {{ {', '.join(str(b) for b in data) or '0'} }};\n"
             f"static const uint16_t f_start[{len(starts)}] = {{ {', '.join(map(str, starts))} }};\n"
-            f"static const uint8_t f_samples[{len(frames)}] = {{ {', '.join(map(str, samples))} }};")
+            f"static const uint8_t f_samples[{len(frames)}] = {{ {', '.join(map(str, samples))} }};\n"
+            f"static const uint8_t f_ids[32] = {{ {', '.join(map(str, I16_IDS))} }};")
     with tempfile.TemporaryDirectory() as td:
         d = Path(td)
         _write_sources(d, c_text, h_text)
         (d / "x.c").write_text(EXCHANGE % {"frames": decl})
         (d / "eestub.c").write_text(EESTUB)
         for f in ("link_fw.c", "x.c", "xc_sfr.c", "eestub.c"):
-            _run([str(SDCC / "bin/sdcc"), *CFLAGS, "-I.", "-c", f], d)
+            _run([str(SDCC / "bin/sdcc"), *CFLAGS, f"-DTX_ROOM={int(tx_room)}u", "-I.", "-c", f], d)
         _run(["gplink", "-m", "-w", "-s", LKR, "-o", "out.hex", str(LIB / "crt0i.o"), "x.o", "link_fw.o",
               "xc_sfr.o", "eestub.o", str(LIB / "libsdcc.lib")], d)
         (d / "s.stc").write_text("processor p18f4520\nload out.cod\nbreak e _done\nrun\ndump r\nquit\n")
@@ -321,7 +343,11 @@ def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[i
         raise SystemExit("gpsim printed no register dump")
     if mem[0x4F1] & 1:
         raise SystemExit("the exchange sent more than 240 bytes: shorten it")
+    if mem[0x4F1] & 4:
+        raise AssertionError("link_poll queued more bytes than app_tx_free() reported")
     chip_exchange.eeprom = bytes(mem.get(0x500 + i, 0) for i in range(256))
+    chip_exchange.param_i16 = {k: ((mem.get(0x3C0 + 2 * i, 0) | mem.get(0x3C1 + 2 * i, 0) << 8) ^ 0x8000) - 0x8000
+                               for i, k in enumerate(I16_IDS)}
     return bytes(mem[0x400 + i] for i in range(mem[0x4F0]))
 
 
@@ -329,6 +355,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     ap.add_argument("--rev", help="git revision of firmware_build/duy2008/link_fw.[ch] (default: working tree)")
     ap.add_argument("--features", action="store_true", help="also the flash without capture, EEPROM, both")
+    ap.add_argument("--folder", default="firmware_build/duy2008", help="generated firmware folder (default %(default)s)")
     a = ap.parse_args()
     if not (SDCC / "bin/sdcc").exists():
         print(f"SDCC pic16 not found in {SDCC}: run scripts/pic_toolchain.sh", file=sys.stderr)
@@ -337,8 +364,8 @@ def main() -> int:
         get = lambda f: _run(["git", "show", f"{a.rev}:firmware_build/duy2008/{f}"], ROOT)  # noqa: E731
         c_text, h_text = get("link_fw.c"), get("link_fw.h")
     else:
-        c_text = (ROOT / "firmware_build/duy2008/link_fw.c").read_text()
-        h_text = (ROOT / "firmware_build/duy2008/link_fw.h").read_text()
+        c_text = (ROOT / a.folder / "link_fw.c").read_text()
+        h_text = (ROOT / a.folder / "link_fw.h").read_text()
     m = measure(c_text, h_text)
     print(f"link_fw.c ({a.rev or 'working tree'}), SDCC 4.2.0 {' '.join(CFLAGS[1:])}, gpsim p18f4520")
     print(f"  flash        {m['flash']:6d} B  (code + const of link_fw.o)")

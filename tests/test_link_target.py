@@ -43,12 +43,29 @@ def test_interrupt_paths_call_no_compiler_helper(asm):
 
 
 def test_interrupt_paths_read_no_flash_table(asm):
-    """Hazard a: the interrupt prologue does not save TBLPTR/TABLAT; the functions the
-    interrupts call read no flash (no TBLRD, no generic-pointer read)."""
+    """Hazard a: an interrupt prologue need not save TBLPTR/TABLAT; the functions the interrupts
+    call read no flash (no TBLRD, no generic-pointer read), except where the function itself saves
+    the four table registers before its first table access and restores them at its only return
+    (put_signals' table of signal addresses)."""
     graph, bodies = build.asm_call_graph(asm), _bodies(asm)
+    table_regs = ["0xFF8", "0xFF7", "0xFF6", "0xFF5"]        # TBLPTRU, TBLPTRH, TBLPTRL, TABLAT
+    saving = []
     for f in build.reachable(graph, ISR_ENTRIES):
-        if f in bodies:
-            assert "TBLRD" not in bodies[f] and "TBLPTR" not in bodies[f], f
+        if f not in bodies:
+            continue
+        code = [" ".join(ln.split(";")[0].replace(",", " ").split()) for ln in bodies[f].splitlines()]
+        code = [c for c in code if c and not c.endswith(":")]
+        code = code[:max(i for i, c in enumerate(code) if c.startswith(("RETURN", "RETFIE"))) + 1]
+        touches = [i for i, c in enumerate(code) if "TBLRD" in c or "TBLPTR" in c or "TABLAT" in c
+                   or any(r in c.split()[1:] for r in table_regs)]
+        if not touches:
+            continue
+        saving.append(f)
+        assert code[:4] == [f"MOVFF {r} 0xFE5" for r in table_regs], f        # pushed first (POSTDEC1)
+        assert code[-5:] == [f"MOVFF 0xFE4 {r}" for r in reversed(table_regs)] + ["RETURN"], f
+        assert sum(c.startswith(("RETURN", "RETFIE")) for c in code) == 1, f  # no other way out
+        assert not any(c.startswith(("GOTO", "BRA")) and c.split()[1].startswith("_") for c in code), f
+    assert saving == ["_put_signals"]
 
 
 def test_rx_interrupt_shares_single_bytes_only():
@@ -105,7 +122,8 @@ def test_the_chip_answers_byte_for_byte_like_the_host_build():
               bytes([0x00, 0x05, 0x11, 0x22, 0x33, 0x44, 0x00]),                     # bad CRC: one NACK
               cmd("eeprom_save", 8), cmd("param_set", 9, {"id": 0x07, "value": 5}), cmd("eeprom_load", 10),
               cmd("param_get", 11, {"ids": [0x07]}), bytes([0x01] * 60) + b"\x00", cmd("status", 12)]
-    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
+    bench = _bench()
+    chip = bench.chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
     b = FakeBoard(files=files, txq_bytes=4096)
     try:
         b.boot()
@@ -113,8 +131,15 @@ def test_the_chip_answers_byte_for_byte_like_the_host_build():
         for f in frames:
             b.feed(f)
             host += b.take_tx()
+        host_i16 = {i: b.lib.link_param_i16(i) for i in bench.I16_IDS}
     finally:
         b.close()
+    # link_param_i16 (the assembly's saturation on the chip): the same for every parameter id,
+    # 0 for unknown ids, the harness's values for the signals
+    sig_index = {e.id: i for i, e in enumerate(t for t in P.build_table(2) if t.signal)}
+    want = {i: _signal(sig_index[i]) if i in sig_index else v for i, v in host_i16.items()}
+    assert bench.chip_exchange.param_i16 == want
+    assert any(v == 32767 for v in want.values()) and 0 in want.values()    # saturated ones and unknown ids
     dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
     assert len(dec_chip) == len(frames)                # BOOT, one reply each (the bad CRC: one NACK), garbage silent
     # the BOOT event's code is the application's (the fake board reports its own reset cause)
@@ -157,3 +182,163 @@ def test_telemetry_and_capture_on_the_chip(cap_mask):
     assert r["values"] == cap * 4
     r = codec.decode_reply("param_get", [f for f in got if f.is_reply and f.seq == 4][0].payload)
     assert r["values"] == [_signal(0), _signal(3)]            # signals through app_signal, sign-extended
+
+
+@pytest.mark.parametrize("trigger,ramp,thr", [(P.Trigger.SPEED_RISING, 0x100, -0x2C00),
+                                              (P.Trigger.SPEED_FALLING, -0x100, -0x3300),
+                                              (P.Trigger.SPEED_RISING, 0x5000, -0x4800)])   # differences beyond int16
+def test_capture_threshold_trigger_on_the_chip(trigger, ramp, thr):
+    """The speed-crossing trigger of the assembly capture on the PIC18 core: the speed (signal 0)
+    moves by ``ramp`` a sample; the record holds the pre-trigger samples and the samples from the
+    first crossing on, as the protocol defines them (signed int16 compare, falling = the
+    complements rising)."""
+    from picdrive.link import codec
+    files = build.render()
+    n, pre, samples = 6, 2, 20
+    frames = [codec.encode_command("capture_arm", 1, {"mask": 1, "n_samples": n, "pre_trigger": pre, "decimation": 1,
+                                                      "trigger": trigger, "threshold": thr}),
+              codec.encode_command("capture_read", 2, {"start": 0, "count": 10})]
+    reads = [(2, 3), (5, 10), (6, 4), (0, 0)]                 # (start, count): parts, the end, nothing
+    frames += [codec.encode_command("capture_read", 3 + k, {"start": a, "count": c}) for k, (a, c) in enumerate(reads)]
+    frames += [codec.encode_command("capture_read", 9, {"start": 7, "count": 1}),        # beyond the record
+               codec.encode_command("capture_read", 10, {"start": 256, "count": 1})]
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames, [samples] + [0] * 7, ramp=ramp)
+    v = [((_signal(0) + k * ramp + 0x8000) & 0xFFFF) - 0x8000 for k in range(samples)]
+    flip = (lambda x: ~x) if trigger == P.Trigger.SPEED_FALLING else (lambda x: x)
+    fire = next(k for k in range(1, samples) if flip(v[k - 1]) < flip(thr) <= flip(v[k]))
+    got = {f.seq: f for f in codec.StreamDecoder().feed(chip) if f.is_reply or f.type == P.MSG_NACK}
+    r = codec.decode_reply("capture_read", got[2].payload)
+    assert r["state"] == P.CaptureState.DONE and r["total"] == n and r["trigger_index"] == pre
+    record = v[fire - pre:fire - pre + n]
+    assert r["values"] == record
+    for k, (a, c) in enumerate(reads):
+        r = codec.decode_reply("capture_read", got[3 + k].payload)
+        assert r["start"] == a and r["values"] == record[a:a + c]
+    assert [got[q].type == P.MSG_NACK and got[q].payload[1] == P.Nack.OUT_OF_RANGE for q in (9, 10)] == [True, True]
+
+
+def test_capture_arm_checks_on_the_chip():
+    """capture_arm's argument checks (the assembly on the PIC18 core) give the host build's
+    replies: every NACK reason and the largest record that fits."""
+    from picdrive.link import codec
+    from linksupport.fakeboard import FakeBoard
+    files = build.render()
+    T = P.Trigger
+    bad = [dict(mask=0), dict(mask=0x8001), dict(n_samples=0), dict(n_samples=P.CAPTURE_BYTES_DEFAULT // 2 + 1),
+           dict(n_samples=0x101), dict(pre_trigger=0x100), dict(pre_trigger=8, n_samples=8), dict(decimation=0),
+           dict(trigger=4), dict(trigger=T.IMMEDIATE, pre_trigger=1), dict(mask=0x7FF, n_samples=P.CAPTURE_BYTES_DEFAULT // 22 + 1),
+           dict(mask=0x7FF, n_samples=P.CAPTURE_BYTES_DEFAULT // 22), dict(mask=0x3, n_samples=32, trigger=T.SPEED_FALLING, threshold=-5)]
+    base = dict(mask=0x3, n_samples=8, pre_trigger=2, decimation=1, trigger=T.SETPOINT_CHANGE, threshold=0)
+    frames = [codec.encode_command("capture_arm", k + 1, {**base, **d}) for k, d in enumerate(bad)]
+    frames.append(codec.encode_command("capture_read", 40, {"start": 0, "count": 1}))
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
+    b = FakeBoard(files=files, txq_bytes=4096)
+    try:
+        b.boot()
+        host = b.take_tx()
+        for f in frames:
+            b.feed(f)
+            host += b.take_tx()
+    finally:
+        b.close()
+    dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
+    assert dec_chip[1:] == dec_host[1:] and len(dec_chip) == len(frames) + 1
+    nacks = [f for f in dec_chip if f.type == P.MSG_NACK and f.seq <= len(bad)]
+    assert len(nacks) == 11 and all(f.payload[1] == P.Nack.OUT_OF_RANGE for f in nacks)
+
+
+def test_telem_config_checks_on_the_chip():
+    """telem_config (the assembly on the PIC18 core) gives the host build's replies: the frame
+    length, 0 when off, and OUT_OF_RANGE for an empty or foreign mask, no samples, too long a frame."""
+    from picdrive.link import codec
+    from linksupport.fakeboard import FakeBoard
+    files = build.render()
+    cases = [(0xF, 1, 4), (0xF, 0, 0), (0x8000, 0, 9), (0, 1, 1), (0x8001, 1, 1), (0x3, 1, 0), (0xF, 1, 5),
+             (0xF, 2, 4), (0x7FF, 3, 1), (0x7FF, 1, 2)]
+    frames = [codec.encode_command("telem_config", k + 1, {"mask": m, "decimation": d, "samples_per_frame": n})
+              for k, (m, d, n) in enumerate(cases)]
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
+    b = FakeBoard(files=files, txq_bytes=4096)
+    try:
+        b.boot()
+        host = b.take_tx()
+        for f in frames:
+            b.feed(f)
+            host += b.take_tx()
+    finally:
+        b.close()
+    dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
+    assert dec_chip[1:] == dec_host[1:] and len(dec_chip) == len(frames) + 1
+    assert [f.type == P.MSG_NACK for f in dec_chip[1:]] == [False, False, False, True, True, True, True, False,
+                                                            False, True]
+
+
+def test_param_get_checks_on_the_chip():
+    """param_get (the assembly on the PIC18 core): the host build's replies for no id, too many,
+    an unknown one among known ones, and the most ids with signals among them."""
+    from picdrive.link import codec
+    from linksupport.fakeboard import FakeBoard
+    files = build.render()
+    ids = [e.id for e in P.build_table(2).entries if not e.signal]
+    frames = [codec.encode_frame(P.COMMAND_BY_NAME["param_get"].code, 1, b"", lead=True),
+              codec.encode_command("param_get", 2, {"ids": ids[:P.PARAM_GET_MAX]}),
+              codec.encode_frame(P.COMMAND_BY_NAME["param_get"].code, 3, bytes(ids[:P.PARAM_GET_MAX + 1]), lead=True),
+              codec.encode_command("param_get", 4, {"ids": [ids[0], 0x30, ids[1]]}),
+              codec.encode_command("param_get", 5, {"ids": [e.id for e in P.build_table(2).entries][-P.PARAM_GET_MAX - 4:-4]})]
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
+    b = FakeBoard(files=files, txq_bytes=4096)
+    try:
+        b.boot()
+        host = b.take_tx()
+        for f in frames:
+            b.feed(f)
+            host += b.take_tx()
+    finally:
+        b.close()
+    dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
+    assert dec_chip[1:5] == dec_host[1:5] and len(dec_chip) == len(dec_host) == len(frames) + 1
+    assert [f.type == P.MSG_NACK for f in dec_chip[1:]] == [True, False, True, True, False]
+    assert len(dec_chip[2].payload) == len(dec_chip[5].payload) == 4 * P.PARAM_GET_MAX
+    # the last mixes signals (the harness's values on the chip, the fake drive's on the host)
+    entries = P.build_table(2).entries[-P.PARAM_GET_MAX - 4:-4]
+    sig_index = {e.id: i for i, e in enumerate(t for t in P.build_table(2) if t.signal)}
+    chip_v = codec.decode_reply("param_get", dec_chip[5].payload)["values"]
+    host_v = codec.decode_reply("param_get", dec_host[5].payload)["values"]
+    assert any(e.signal for e in entries) and any(not e.signal for e in entries)
+    assert chip_v == [_signal(sig_index[e.id]) if e.signal else h for e, h in zip(entries, host_v)]
+
+
+def test_small_tx_room_on_the_chip():
+    """With a UART queue reporting 3 free bytes (tx_drain's room running out on every poll), the
+    chip still sends every frame whole and in order: the host build's bytes."""
+    from picdrive.link import codec
+    from linksupport.fakeboard import FakeBoard
+    files = build.render()
+    frames = [codec.encode_command("hello", 1), codec.encode_command("param_get", 2, {"ids": [0x00, 0x07]}),
+              codec.encode_command("status", 3)]
+    chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames, [40, 40, 40], tx_room=3)
+    b = FakeBoard(files=files, txq_bytes=4096)
+    try:
+        b.boot()
+        host = b.take_tx()
+        for f in frames:
+            b.feed(f)
+            host += b.take_tx()
+    finally:
+        b.close()
+    dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
+    assert len(dec_chip) == len(frames) + 1
+    assert dec_chip[1:3] == dec_host[1:3]                       # hello, param_get (status: uptime differs)
+    assert dec_chip[3].seq == 3 and dec_chip[3].is_reply
+
+
+def test_assembly_leaves_the_frame_pointer_alone():
+    """The module's assembly runs with interrupts enabled: an interrupt function that sets up a
+    frame saves only FSR2L (SDCC's small stack model keeps the stack in one bank), so FSR2H must
+    never change under it (a main-loop copy through FSR2 once corrupted the speed loop's
+    arguments: an overspeed trip under UART traffic).  No FSR2 in the assembly at all."""
+    c = build.render()["link_fw.c"]
+    blocks = re.findall(r"__asm(.*?)__endasm", c, re.S)
+    assert len(blocks) >= 10
+    code = "\n".join(ln.split(";")[0] for b in blocks for ln in b.splitlines())
+    assert not re.search(r"0xFD[9A-F]\b|LFSR\s+2\b|FSR2|INDF2|PLUSW2|POSTINC2|POSTDEC2|PREINC2", code, re.I)

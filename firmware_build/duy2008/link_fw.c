@@ -14,7 +14,7 @@
  *
  * Contexts: link_rx_byte() (UART RX interrupt) only stores the byte in the frame buffer and
  * marks the frame complete at the delimiter; link_tick_ms() and link_sample() (speed-loop
- * interrupt) touch no flash table; COBS decoding, CRC and dispatch run in link_poll() (main loop).
+ * interrupt) touch no flash table but app_signal_src (put_signals saves the table pointer); COBS decoding, CRC and dispatch run in link_poll() (main loop).
  */
 #include <stddef.h>
 #include "link_fw.h"
@@ -36,6 +36,9 @@
 
 #define SIG_ALL            0x07FFu
 #define NONE               0xFFu
+#define NACK_ARMED         1u                        /* S.nack: a bad frame may be NACKed */
+#define NACK_PENDING       2u                        /* S.nack: a BAD_CRC NACK to send */
+#define EE_ALL             0xFEu                     /* S.changed: every persisted parameter (not an id) */
 #define ROW                20u          /* bytes of a table row (= param_info reply head) */
 #define EE_HEADER          8u
 #define EE_DATA_BYTES      35u
@@ -160,7 +163,6 @@ static uint8_t rp_data[LINK_REPLAY_BYTES];     /* last short reply, for duplicat
 #if LINK_WITH_CAPTURE
 static uint8_t cap_buf[2u * LINK_CAPTURE_WORDS]; /* capture ring, sample-major, int16 little-endian */
 #endif
-static union { int32_t l; uint8_t b[4]; } V;   /* the value being moved (main loop only) */
 
 /* The most used scalars, in the access bank under SDCC (LINK_ACCESS_AT up to 0x3F: no bank
  * select per access; the chip's access RAM is 0x00-0x5F, but picdrive.firmware.gpsim's timing
@@ -204,15 +206,8 @@ LINK_FAST_RAM struct link_fast {
 #endif
 } link_hot;
 
-/* the sample being written (speed-loop interrupt only): telemetry and capture destinations and
- * the masks still to write */
-static struct {
-    LINK_DATA uint8_t *p;
-    LINK_DATA uint8_t *q;              /* 0: no capture sample */
-    uint16_t tm;
-    uint16_t cm;
-} sg;
 #if defined(__SDCC_pic16)
+typedef char link_ro_layout[(offsetof(struct link_fast, ro) == 6u) ? 1 : -1];
 typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u
                                && LINK_ACCESS_AT + sizeof(struct link_fast) <= 0x40u) ? 1 : -1];
 #else
@@ -223,6 +218,22 @@ typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u) ? 1 : -
 #define rx_ovf link_hot.rx_ovf
 #define crc_hi link_hot.crc_hi
 #define crc_lo link_hot.crc_lo
+
+/* the sample being written (speed-loop interrupt only): telemetry and capture destinations,
+ * the masks still to write (put_signals' assembly addresses the fields by offset) */
+static struct link_sg {
+    LINK_DATA uint8_t *p;
+    LINK_DATA uint8_t *q;              /* 0: no capture sample */
+    uint16_t tm;
+    uint16_t cm;
+} sg;
+#if defined(__SDCC_pic16)
+typedef char link_sg_layout[(offsetof(struct link_sg, tm) == 4u && offsetof(struct link_sg, cm) == 6u) ? 1 : -1];
+#endif
+static union { int32_t l; uint8_t b[4]; } V;   /* the value being moved (main loop only) */
+/* copies and loops walk static data-space pointers: no arguments on the software stack */
+static LINK_DATA uint8_t *cp_d;
+static LINK_DATA uint8_t *cp_s;
 
 /* ---- scalar state ---- */
 static struct link_state {
@@ -236,12 +247,10 @@ static struct link_state {
     /* receive */
     uint8_t rx_ovf_seen;
     volatile uint8_t rx_valid;         /* a host command arrived (main sets, tick clears: watchdog) */
-    uint8_t nack_armed;                /* one BAD_CRC NACK per valid frame */
-    uint8_t nack_pending;
+    uint8_t nack;                      /* one BAD_CRC NACK per valid frame: NACK_ARMED, then NACK_PENDING */
     uint8_t nack_type;
     uint8_t nack_seq;
     /* replay */
-    uint8_t c;                         /* command code - 1 */
     uint8_t tseq;                      /* SEQ of the frame being sealed */
     uint8_t ee_off;                    /* next EEPROM image byte */
     uint8_t tx_pos;
@@ -252,8 +261,6 @@ static struct link_state {
     uint8_t rp_len;                    /* NONE: reply too long to store (read-only command) */
     uint8_t rp_crc0;
     uint8_t rp_crc1;
-    uint8_t fc0;                       /* CRC bytes of the frame being dispatched */
-    uint8_t fc1;
     /* watchdog */
     volatile uint8_t wd_armed;
     uint16_t wd_ms;
@@ -285,6 +292,10 @@ static struct link_state {
         int16_t prev;
     } cr;
 #endif
+    uint8_t changed;                   /* parameter to announce (app_param_changed) after the command:
+                                        * NONE, an id, or EE_ALL (every persisted one) */
+    uint8_t fc0;                       /* CRC bytes of the frame being dispatched */
+    uint8_t fc1;
 } S;
 
 typedef char link_status_layout[(offsetof(struct link_state, uptime_ms) == 8u) ? 1 : -1];
@@ -293,10 +304,76 @@ typedef char link_status_layout[(offsetof(struct link_state, uptime_ms) == 8u) ?
 #define put16(o, v) do { uint16_t v_ = (v); A(o) = (uint8_t)v_; A((o) + 1u) = (uint8_t)(v_ >> 8); } while (0)
 #define arg16(o) ((uint16_t)((uint16_t)R(o) | (uint16_t)((uint16_t)R((o) + 1u) << 8)))
 
-/* copies and loops walk static data-space pointers: no arguments on the software stack */
-static LINK_DATA uint8_t *cp_d;
-static LINK_DATA uint8_t *cp_s;
 
+#if defined(__SDCC_pic16)
+/* PIC18 assembly (main loop only): FSR0, PROD and the table pointer are the compiler's scratch
+ * registers.  FSR2 is not used: it is the compiler's frame pointer, and a function of an
+ * interrupt that sets it saves only its low byte (the stack's bank is fixed). */
+static void mcopy_n(uint8_t n) LINK_WPARAM __naked  /* cp_d[0..n-1] = cp_s[0..n-1] (RAM to RAM) */
+{
+    (void)n;
+    __asm
+    MOVWF   0xFF3, A                ; PRODL = n
+    MOVF    0xFF3, F, A
+    BZ      lmc_end
+lmc_loop:
+    MOVFF   _cp_s, 0xFE9            ; PRODH = *cp_s++ (FSR0 only: FSR2 is the frame pointer of an
+    MOVFF   (_cp_s + 1), 0xFEA      ; interrupt function, which saves only its low byte)
+    MOVFF   0xFEE, 0xFF4
+    MOVFF   0xFE9, _cp_s
+    MOVFF   0xFEA, (_cp_s + 1)
+    MOVFF   _cp_d, 0xFE9            ; *cp_d++ = PRODH
+    MOVFF   (_cp_d + 1), 0xFEA
+    MOVFF   0xFF4, 0xFEE
+    MOVFF   0xFE9, _cp_d
+    MOVFF   0xFEA, (_cp_d + 1)
+    DECFSZ  0xFF3, F, A
+    BRA     lmc_loop
+lmc_end:
+    RETURN
+    __endasm;
+}
+
+static void mzero_n(uint8_t n) LINK_WPARAM __naked  /* cp_d[0..n-1] = 0 */
+{
+    (void)n;
+    __asm
+    MOVWF   0xFF3, A
+    MOVF    0xFF3, F, A
+    BZ      lmz_end
+    MOVFF   _cp_d, 0xFE9
+    MOVFF   (_cp_d + 1), 0xFEA
+lmz_loop:
+    CLRF    0xFEE, A                ; POSTINC0
+    DECFSZ  0xFF3, F, A
+    BRA     lmz_loop
+    MOVFF   0xFE9, _cp_d
+    MOVFF   0xFEA, (_cp_d + 1)
+lmz_end:
+    RETURN
+    __endasm;
+}
+
+static uint8_t rom_next(void) __naked  /* link_rom[link_hot.ro++]: the module's only flash read */
+{
+    __asm
+    MOVLW   LOW(_link_rom)
+    ADDWF   (_link_hot + 6), W, A   ; TBLPTR = link_rom + ro
+    MOVWF   0xFF6, A
+    MOVLW   HIGH(_link_rom)
+    ADDWFC  (_link_hot + 7), W, A
+    MOVWF   0xFF7, A
+    CLRF    0xFF8, A                ; (CLRF and MOVLW keep the carry)
+    MOVLW   UPPER(_link_rom)
+    ADDWFC  0xFF8, F, A
+    TBLRD*
+    INFSNZ  (_link_hot + 6), F, A   ; ro++
+    INCF    (_link_hot + 7), F, A
+    MOVF    0xFF5, W, A             ; TABLAT
+    RETURN
+    __endasm;
+}
+#else
 static void mcopy_n(uint8_t n) LINK_WPARAM         /* cp_d[0..n-1] = cp_s[0..n-1] (RAM to RAM) */
 {
     while (n != 0u) {
@@ -306,7 +383,6 @@ static void mcopy_n(uint8_t n) LINK_WPARAM         /* cp_d[0..n-1] = cp_s[0..n-1
         n--;
     }
 }
-#define mcopy(d, src, n) do { cp_d = (d); cp_s = (src); mcopy_n(n); } while (0)
 
 static void mzero_n(uint8_t n) LINK_WPARAM
 {
@@ -316,7 +392,6 @@ static void mzero_n(uint8_t n) LINK_WPARAM
         n--;
     }
 }
-#define mzero(d, n) do { cp_d = (d); mzero_n(n); } while (0)
 
 static uint8_t rom_next(void)          /* link_rom[link_hot.ro++]: the module's only flash read */
 {
@@ -324,20 +399,59 @@ static uint8_t rom_next(void)          /* link_rom[link_hot.ro++]: the module's 
     link_hot.ro++;
     return b;
 }
+#endif
+#define mcopy(d, src, n) do { cp_d = (d); cp_s = (src); mcopy_n(n); } while (0)
+#define mzero(d, n) do { cp_d = (d); mzero_n(n); } while (0)
 
 #define rom_at(o) (link_hot.ro = (uint16_t)(o))
 
-static uint8_t popcount16(uint16_t m)
+/* The signals of the mask in the command's first two argument bytes (telem_config, capture_arm):
+ * their number, or 0 for an empty mask or one with bits beyond the table's signals. */
+#if defined(__SDCC_pic16)
+static uint8_t mask_nsig(void) __naked     /* PROD shifts, TABLAT counts */
 {
+    __asm
+    MOVFF   (_rx_buf + 3), 0xFF3    ; PRODL, PRODH = R(0), R(1)
+    MOVFF   (_rx_buf + 4), 0xFF4
+    MOVLW   0xF8
+    ANDWF   0xFF4, W, A
+    BNZ     lmn_bad
+    MOVLW   0x00
+    ANDWF   0xFF3, W, A
+    BNZ     lmn_bad
+    CLRF    0xFF5, A
+lmn_loop:
+    MOVF    0xFF3, W, A
+    IORWF   0xFF4, W, A
+    BZ      lmn_end
+    BCF     0xFD8, 0, A
+    RRCF    0xFF4, F, A
+    RRCF    0xFF3, F, A
+    BTFSC   0xFD8, 0, A
+    INCF    0xFF5, F, A
+    BRA     lmn_loop
+lmn_end:
+    MOVF    0xFF5, W, A
+    RETURN
+lmn_bad:
+    RETLW   0
+    __endasm;
+}
+#else
+static uint8_t mask_nsig(void)
+{
+    uint16_t m = (uint16_t)((uint16_t)rx_buf[PL] | (uint16_t)((uint16_t)rx_buf[PL + 1u] << 8));
     uint8_t n = 0u;
+    if ((m & (uint16_t)~SIG_ALL) != 0u) {
+        return 0u;
+    }
     while (m != 0u) {
-        if (((uint8_t)m & 1u) != 0u) {
-            n++;
-        }
+        n = (uint8_t)(n + ((uint8_t)m & 1u));
         m = (uint16_t)(m >> 1);
     }
     return n;
 }
+#endif
 
 /* CRC-16/CCITT-FALSE (poly 0x1021) byte-wise without a table, on two bytes of state: 8-bit
  * shifts and XORs only (a shift form needs no 512 B table and no 16-bit arithmetic) */
@@ -381,7 +495,31 @@ static void crc_byte(uint8_t b) LINK_WPARAM
 }
 #endif
 
-/* CRC of cp_s[0..n-1] into crc_hi, crc_lo */
+/* CRC of cp_s[0..n-1] into crc_hi, crc_lo; cp_s ends after them */
+#if defined(__SDCC_pic16)
+static void crc_n(uint8_t n) LINK_WPARAM __naked   /* TABLAT counts (crc_byte keeps it and FSR0) */
+{
+    (void)n;
+    __asm
+    MOVWF   0xFF5, A
+    SETF    (_link_hot + 3), A      ; CRC_INIT
+    SETF    (_link_hot + 4), A
+    MOVF    0xFF5, F, A
+    BZ      lcrc_end
+    MOVFF   _cp_s, 0xFE9
+    MOVFF   (_cp_s + 1), 0xFEA
+lcrc_loop:
+    MOVF    0xFEE, W, A             ; POSTINC0
+    CALL    _crc_byte
+    DECFSZ  0xFF5, F, A
+    BRA     lcrc_loop
+    MOVFF   0xFE9, _cp_s
+    MOVFF   0xFEA, (_cp_s + 1)
+lcrc_end:
+    RETURN
+    __endasm;
+}
+#else
 static void crc_n(uint8_t n) LINK_WPARAM
 {
     CRC_INIT();
@@ -391,8 +529,10 @@ static void crc_n(uint8_t n) LINK_WPARAM
         n--;
     }
 }
+#endif
 #define crc_buf(p, n) do { cp_s = (p); crc_n(n); } while (0)
 
+#if LINK_WITH_HOST_API
 uint16_t link_crc16(const uint8_t *p, uint8_t n)
 {
     CRC_INIT();
@@ -403,6 +543,7 @@ uint16_t link_crc16(const uint8_t *p, uint8_t n)
     }
     return (uint16_t)((uint16_t)((uint16_t)crc_hi << 8) | crc_lo);
 }
+#endif
 
 /* ---- the table: ids in contiguous runs, so the index is a subtraction ---- */
 static uint8_t entry_index(uint8_t id) LINK_WPARAM
@@ -419,11 +560,23 @@ static uint8_t entry_index(uint8_t id) LINK_WPARAM
     return NONE;
 }
 
-static void row_of(uint8_t idx) LINK_WPARAM        /* link_hot.ro = the entry's row (idx * 20, by shifts) */
+#if defined(__SDCC_pic16)
+static void row_of(uint8_t idx) LINK_WPARAM __naked   /* link_hot.ro = the entry's row: idx ROW (MULLW) */
 {
-    uint16_t o = (uint16_t)((uint16_t)idx << 2);
-    link_hot.ro = (uint16_t)(o + (uint16_t)(o << 2));
+    (void)idx;
+    __asm
+    MULLW   20
+    MOVFF   0xFF3, (_link_hot + 6)
+    MOVFF   0xFF4, (_link_hot + 7)
+    RETURN
+    __endasm;
 }
+#else
+static void row_of(uint8_t idx) LINK_WPARAM        /* link_hot.ro = the entry's row */
+{
+    link_hot.ro = (uint16_t)((uint16_t)idx * ROW);
+}
+#endif
 #define row_at(idx, k) do { row_of(idx); link_hot.ro = (uint16_t)(link_hot.ro + (k)); } while (0)
 
 static void entry_load(uint8_t idx) LINK_WPARAM   /* link_hot.e_off, link_hot.e_sz */
@@ -434,7 +587,34 @@ static void entry_load(uint8_t idx) LINK_WPARAM   /* link_hot.e_off, link_hot.e_
     link_hot.e_sz = rom_next();
 }
 
-static void sign_extend(void)          /* V.b[0..n-1] hold a value of size code link_hot.e_sz */
+/* V.b[0..n-1] hold a value of size code link_hot.e_sz (n bytes, bit 7: signed): extend it to 32 bits */
+#if defined(__SDCC_pic16)
+static void sign_extend(void) __naked      /* PRODL the fill byte, PRODH the index, FSR0 at V */
+{
+    __asm
+    CLRF    0xFF3, A
+    MOVLW   0x7F
+    ANDWF   (_link_hot + 9), W, A   ; e_sz
+    MOVWF   0xFF4, A
+    LFSR    0, (_V - 1)
+    BTFSS   (_link_hot + 9), 7, A
+    BRA     lse_fill
+    BTFSC   0xFEB, 7, A             ; V.b[n - 1] (PLUSW0) negative: fill with 0xFF
+    SETF    0xFF3, A
+lse_fill:
+    LFSR    0, _V
+lse_loop:
+    MOVLW   0x04
+    CPFSLT  0xFF4, A                ; index < 4: store the fill
+    RETURN
+    MOVF    0xFF4, W, A
+    MOVFF   0xFF3, 0xFEB            ; V.b[index] = fill (PLUSW0)
+    INCF    0xFF4, F, A
+    BRA     lse_loop
+    __endasm;
+}
+#else
+static void sign_extend(void)
 {
     uint8_t k = (uint8_t)(link_hot.e_sz & 0x7Fu), fill = 0u;
     if ((link_hot.e_sz & 0x80u) != 0u && (V.b[k - 1u] & 0x80u) != 0u) {
@@ -445,6 +625,7 @@ static void sign_extend(void)          /* V.b[0..n-1] hold a value of size code 
         k++;
     }
 }
+#endif
 
 static void store_get(void)            /* V = the parameter at link_hot.e_off */
 {
@@ -472,6 +653,66 @@ static void value_at(uint8_t idx) LINK_WPARAM      /* V = parameter or signal */
     }
 }
 
+#if defined(__SDCC_pic16)
+/* The next 4 table bytes (an int32 limit X, little-endian) against V, signed: 1 if V < X
+ * (above = 0) or if X < V (above != 0), else 0.  X is held in PRODL, PRODH, FSR0L, TABLAT, the
+ * mode on the software stack; the subtraction runs low byte first through the borrow (MOVF keeps
+ * the carry); signed less-than is N xor OV. */
+static uint8_t rom_cmp(uint8_t above) LINK_WPARAM __naked
+{
+    (void)above;
+    __asm
+    MOVWF   0xFE5, A                ; POSTDEC1
+    CALL    _rom_next
+    MOVWF   0xFF3, A
+    CALL    _rom_next
+    MOVWF   0xFF4, A
+    CALL    _rom_next
+    MOVWF   0xFE9, A
+    CALL    _rom_next               ; the top byte stays in TABLAT (FSR0H holds 4 bits only)
+    MOVF    0xFE4, F, A             ; PREINC1: Z = below
+    BANKSEL _V
+    BNZ     lrc_above
+    MOVF    0xFF3, W, A             ; V - X
+    SUBWF   _V, W, B
+    MOVF    0xFF4, W, A
+    SUBWFB  (_V + 1), W, B
+    MOVF    0xFE9, W, A
+    SUBWFB  (_V + 2), W, B
+    MOVF    0xFF5, W, A
+    SUBWFB  (_V + 3), W, B
+    BRA     lrc_sign
+lrc_above:
+    MOVF    _V, W, B                ; X - V
+    SUBWF   0xFF3, W, A
+    MOVF    (_V + 1), W, B
+    SUBWFB  0xFF4, W, A
+    MOVF    (_V + 2), W, B
+    SUBWFB  0xFE9, W, A
+    MOVF    (_V + 3), W, B
+    SUBWFB  0xFF5, W, A
+lrc_sign:
+    BOV     lrc_ov
+    BN      lrc_lt
+    RETLW   0
+lrc_ov:
+    BN      lrc_ge
+lrc_lt:
+    RETLW   1
+lrc_ge:
+    RETLW   0
+    __endasm;
+}
+
+static uint8_t in_range(uint8_t idx) LINK_WPARAM   /* V within the entry's [min, max] */
+{
+    row_at(idx, 8u);
+    if (rom_cmp(0u) != 0u) {           /* V < min */
+        return 0u;
+    }
+    return (uint8_t)(rom_cmp(1u) == 0u);   /* not max < V */
+}
+#else
 static union { int32_t l; uint8_t b[4]; } X;   /* a limit read from the table */
 
 static void rom_x(void)                /* X = the next 4 table bytes (little-endian int32) */
@@ -492,6 +733,7 @@ static uint8_t in_range(uint8_t idx) LINK_WPARAM   /* V within the entry's [min,
     rom_x();
     return (uint8_t)(V.l <= X.l);
 }
+#endif
 
 int32_t link_param_get(uint8_t id)
 {
@@ -503,6 +745,46 @@ int32_t link_param_get(uint8_t id)
     return V.l;
 }
 
+#if defined(__SDCC_pic16)
+/* PIC18 assembly: V's upper half must be the sign extension of its lower half, else the nearer
+ * limit; the result in PRODL (high byte) and W (low byte) */
+int16_t link_param_i16(uint8_t id) LINK_WPARAM __naked
+{
+    (void)id;
+    __asm
+    CALL    _entry_index
+    MOVWF   0xFF3, A
+    INCF    0xFF3, W, A             ; NONE: unknown id, 0
+    BZ      lpi_zero
+    MOVF    0xFF3, W, A
+    CALL    _value_at
+    BANKSEL _V
+    MOVLW   0x00                    ; the sign extension of the low half
+    BTFSC   (_V + 1), 7, B
+    MOVLW   0xFF
+    CPFSEQ  (_V + 2), B
+    BRA     lpi_sat
+    CPFSEQ  (_V + 3), B
+    BRA     lpi_sat
+    MOVFF   (_V + 1), 0xFF3
+    MOVF    _V, W, B
+    RETURN
+lpi_sat:
+    BTFSC   (_V + 3), 7, B
+    BRA     lpi_min
+    MOVLW   0x7F                    ; INT16_MAX
+    MOVWF   0xFF3, A
+    RETLW   0xFF
+lpi_min:
+    MOVLW   0x80                    ; INT16_MIN
+    MOVWF   0xFF3, A
+    RETLW   0x00
+lpi_zero:
+    CLRF    0xFF3, A
+    RETLW   0x00
+    __endasm;
+}
+#else
 int16_t link_param_i16(uint8_t id)
 {
     int32_t v = link_param_get(id);
@@ -514,6 +796,7 @@ int16_t link_param_i16(uint8_t id)
     }
     return (int16_t)v;
 }
+#endif
 
 static uint8_t set_v(uint8_t id) LINK_WPARAM       /* write V to entry id: 0 or a NACK code */
 {
@@ -535,14 +818,8 @@ static uint8_t set_v(uint8_t id) LINK_WPARAM       /* write V to entry id: 0 or 
         S.cap_sp_changed = 1u;
     }
 #endif
-    app_param_changed(id);
+    S.changed = id;                    /* announced by link_notify, after the reply (shallow stack) */
     return 0u;
-}
-
-uint8_t link_param_set(uint8_t id, int32_t raw)
-{
-    V.l = raw;
-    return set_v(id);
 }
 
 /* ---- EEPROM image ---- */
@@ -618,7 +895,7 @@ uint8_t link_eeprom_save(void)
     return 0u;
 }
 
-uint8_t link_eeprom_load(void)
+static uint8_t ee_load(void)           /* link_eeprom_load without the announcement */
 {
     uint8_t i, k, pass, r = LINK_EE_BLANK;
     ee_off = 0u;
@@ -656,9 +933,7 @@ uint8_t link_eeprom_load(void)
             }
         }
     }
-    for (i = 0u; i < LINK_N_PERSISTED; i++) {
-        app_param_changed(id_of(persisted(i)));
-    }
+    S.changed = EE_ALL;
     return LINK_EE_OK;
 }
 #else  /* generated without EEPROM persistence: nothing to load, saving is refused */
@@ -667,11 +942,87 @@ uint8_t link_eeprom_save(void)
     return LINK_NACK_EEPROM_ERROR;
 }
 
-uint8_t link_eeprom_load(void)
+static uint8_t ee_load(void)
 {
     return LINK_EE_BLANK;
 }
 #endif
+
+#if defined(__SDCC_pic16)
+#if LINK_WITH_CAPTURE
+#define LS_CHANGED 55                  /* offsetof(struct link_state, changed), for the assembly */
+#else
+#define LS_CHANGED 37
+#endif
+typedef char link_changed_layout[(offsetof(struct link_state, changed) == LS_CHANGED) ? 1 : -1];
+/* PIC18 assembly: no register held across the calls (S.changed counts), no frame */
+static void link_notify(void) __naked  /* app_param_changed for what the last command or load changed */
+{
+    __asm
+    extern  _app_param_changed
+    BANKSEL _S
+    MOVF    (_S + LS_CHANGED), W, B
+    XORLW   0xFE          ; EE_ALL: every persisted parameter
+    BNZ     lnt_one
+#if LINK_WITH_EEPROM
+    CLRF    (_S + LS_CHANGED), B
+lnt_loop:
+    MOVF    (_S + LS_CHANGED), W, B
+    CALL    _persisted
+    CALL    _id_of
+    CALL    _app_param_changed
+    BANKSEL _S
+    INCF    (_S + LS_CHANGED), F, B
+    MOVLW   18
+    CPFSEQ  (_S + LS_CHANGED), B
+    BRA     lnt_loop
+#endif
+    BRA     lnt_end
+lnt_one:
+    INCF    (_S + LS_CHANGED), W, B  ; NONE (0xFF): nothing
+    BZ      lnt_end
+    MOVF    (_S + LS_CHANGED), W, B
+    CALL    _app_param_changed
+lnt_end:
+    BANKSEL _S
+    SETF    (_S + LS_CHANGED), B    ; NONE
+    RETURN
+    __endasm;
+}
+#else
+static void link_notify(void)          /* app_param_changed for what the last command or load changed */
+{
+#if LINK_WITH_EEPROM
+    if (S.changed == EE_ALL) {
+        for (S.changed = 0u; S.changed < LINK_N_PERSISTED; S.changed++) {
+            app_param_changed(id_of(persisted(S.changed)));
+        }
+    } else
+#endif
+    if (S.changed != NONE) {
+        app_param_changed(S.changed);
+    }
+    S.changed = NONE;
+}
+#endif
+
+#if LINK_WITH_HOST_API
+uint8_t link_param_set(uint8_t id, int32_t raw)
+{
+    uint8_t code;
+    V.l = raw;
+    code = set_v(id);
+    link_notify();
+    return code;
+}
+#endif
+
+uint8_t link_eeprom_load(void)
+{
+    uint8_t r = ee_load();
+    link_notify();
+    return r;
+}
 
 /* ---- init, events ---- */
 void link_init(void)
@@ -691,7 +1042,8 @@ void link_init(void)
         }
     }
     S.rp_len = NONE;
-    S.nack_armed = 1u;
+    S.changed = NONE;
+    S.nack = NACK_ARMED;
     S.ev_boot = 1u;
 }
 
@@ -771,7 +1123,38 @@ void link_rx_byte(uint8_t b) LINK_WPARAM
 /* The complete frame in rx_buf, COBS-decoded in place (each byte moves one place down, the code
  * bytes become the zeros they stand for): its body length if it passes the length and CRC checks,
  * else 0.  The frame's CRC bytes are kept in S.fc0, S.fc1 (duplicate detection). */
-static uint8_t rx_frame(void)
+#if defined(__SDCC_pic16)
+/* PIC18 assembly: FSR0 walks the frame, each byte goes one place down (PLUSW0 with W = -1);
+ * TABLAT the run, PRODH the count */
+static uint8_t cobs_decode(void) __naked   /* rx_buf decoded in place; the last run (1: well formed) */
+{
+    __asm
+    DECF    (_link_hot + 0), W, A   ; rx_n - 1 bytes after the code byte
+    MOVWF   0xFF4, A
+    MOVFF   _rx_buf, 0xFF5          ; run = the code byte
+    LFSR    0, (_rx_buf + 1)
+    MOVF    0xFF4, F, A
+    BZ      lcd3_end
+lcd3_loop:
+    MOVF    0xFEF, W, A             ; INDF0
+    DECFSZ  0xFF5, F, A             ; the run ends here: a code byte, the zero it stands for
+    BRA     lcd3_put
+    MOVWF   0xFF5, A
+    MOVLW   0
+lcd3_put:
+    MOVWF   0xFF3, A
+    MOVLW   0xFF
+    MOVFF   0xFF3, 0xFEB            ; FSR0[-1] (PLUSW0)
+    MOVF    0xFEE, F, A             ; FSR0++ (POSTINC0)
+    DECFSZ  0xFF4, F, A
+    BRA     lcd3_loop
+lcd3_end:
+    MOVF    0xFF5, W, A
+    RETURN
+    __endasm;
+}
+#else
+static uint8_t cobs_decode(void)       /* rx_buf decoded in place; the last run (1: well formed) */
 {
     uint8_t n = (uint8_t)(rx_n - 1u), run = rx_buf[0], b;
     cp_s = &rx_buf[1];
@@ -788,11 +1171,17 @@ static uint8_t rx_frame(void)
         cp_d++;
         n--;
     }
-    n = (uint8_t)(rx_n - 1u);          /* the body length */
-    if (run == 1u && n >= BODY_OVERHEAD) {
+    return run;
+}
+#endif
+
+static uint8_t rx_frame(void)
+{
+    uint8_t n = (uint8_t)(rx_n - 1u);  /* the body length */
+    if (cobs_decode() == 1u && n >= BODY_OVERHEAD) {
         crc_buf(rx_buf, n);            /* over the CRC too: a good frame leaves 0 */
         if ((uint8_t)(rx_buf[0] + BODY_OVERHEAD) == n && (crc_hi | crc_lo) == 0u) {
-            cp_s--;
+            cp_s--;                    /* crc_n left cp_s after the frame */
             S.fc1 = *cp_s;
             cp_s--;
             S.fc0 = *cp_s;
@@ -802,9 +1191,8 @@ static uint8_t rx_frame(void)
     if (S.crc_errors != 0xFFFFu) {
         S.crc_errors++;
     }
-    if (S.nack_armed != 0u && n >= PL) {
-        S.nack_armed = 0u;
-        S.nack_pending = 1u;
+    if (S.nack == NACK_ARMED && n >= PL) {
+        S.nack = NACK_PENDING;
         S.nack_type = rx_buf[1];
         S.nack_seq = rx_buf[2];
     }
@@ -827,6 +1215,57 @@ static void rx_release(void)           /* rx_buf back to the interrupt */
 }
 
 /* ---- transmit: body in tx_buf[1..], COBS-encoded in place, sent as the UART queue has room ---- */
+#if defined(__SDCC_pic16)
+typedef char link_tx_layout[(offsetof(struct link_state, tseq) == 17u && offsetof(struct link_state, tx_pos) == 19u
+                             && offsetof(struct link_fast, n) == 5u && offsetof(struct link_fast, tx_len) == 10u)
+                            ? 1 : -1];
+/* PIC18 assembly: the CRC through crc_n (FSR0 ends on the CRC's place), then COBS in place with
+ * FSR0 scanning: the last code byte is run bytes back (PLUSW0); TABLAT the run, PRODH the count. */
+static void tx_seal(uint8_t type) LINK_WPARAM __naked   /* payload A(0..link_hot.n-1), SEQ S.tseq */
+{
+    (void)type;
+    __asm
+    MOVFF   0xFE8, (_tx_buf + 2)    ; TYPE, LEN, SEQ
+    MOVFF   (_link_hot + 5), (_tx_buf + 1)
+    MOVFF   (_S + 17), (_tx_buf + 3)
+    MOVLW   LOW(_tx_buf + 1)        ; CRC over LEN .. payload
+    MOVFF   0xFE8, _cp_s
+    MOVLW   HIGH(_tx_buf + 1)
+    MOVFF   0xFE8, (_cp_s + 1)
+    MOVF    (_link_hot + 5), W, A
+    ADDLW   3
+    CALL    _crc_n
+    MOVFF   (_link_hot + 3), 0xFEE  ; CRC high, low (POSTINC0)
+    MOVFF   (_link_hot + 4), 0xFEE
+    MOVF    (_link_hot + 5), W, A   ; tx_len = body + COBS code + delimiter
+    ADDLW   7
+    MOVWF   (_link_hot + 10), A
+    BANKSEL _S
+    CLRF    (_S + 19), B            ; tx_pos = 0
+    MOVF    (_link_hot + 5), W, A   ; count = body bytes
+    ADDLW   5
+    MOVWF   0xFF4, A
+    LFSR    0, (_tx_buf + 1)
+    MOVLW   1
+    MOVWF   0xFF5, A                ; run = 1: the code byte is run bytes back
+lts_loop:
+    MOVF    0xFEE, W, A             ; POSTINC0: a zero becomes the distance to the next one
+    BNZ     lts_next
+    MOVF    0xFF5, W, A             ; *(this byte - run) = run: W = -run - 1 from FSR0 (one past it)
+    SUBLW   0xFF
+    MOVFF   0xFF5, 0xFEB            ; PLUSW0
+    CLRF    0xFF5, A
+lts_next:
+    INCF    0xFF5, F, A
+    DECFSZ  0xFF4, F, A
+    BRA     lts_loop
+    MOVF    0xFF5, W, A             ; the last code byte: run back from one past the end
+    SUBLW   0
+    MOVFF   0xFF5, 0xFEB
+    RETURN
+    __endasm;
+}
+#else
 static void tx_seal(uint8_t type) LINK_WPARAM   /* payload A(0..link_hot.n-1), SEQ S.tseq */
 {
     uint8_t run = 1u, len;
@@ -855,7 +1294,47 @@ static void tx_seal(uint8_t type) LINK_WPARAM   /* payload A(0..link_hot.n-1), S
     }
     *cp_d = run;
 }
+#endif
 
+#if defined(__SDCC_pic16)
+/* PIC18 assembly (the C below, step for step): the room on the software stack (PLUSW1, W = 1) */
+static void tx_drain(void) __naked
+{
+    __asm
+    extern  _app_tx_free
+    extern  _app_tx_byte
+    MOVF    (_link_hot + 10), W, A  ; tx_len: nothing to send
+    BZ      ltd_ret
+    CALL    _app_tx_free
+    IORLW   0
+    BZ      ltd_ret
+    MOVWF   0xFE5, A                ; room (POSTDEC1)
+ltd_loop:
+    BANKSEL _S
+    DECF    (_link_hot + 10), W, A  ; tx_pos == tx_len - 1: only the delimiter is left
+    XORWF   (_S + 19), W, B
+    BZ      ltd_end
+    LFSR    0, _tx_buf
+    MOVF    (_S + 19), W, B
+    MOVF    0xFEB, W, A             ; tx_buf[tx_pos] (PLUSW0)
+    CALL    _app_tx_byte
+    BANKSEL _S
+    INCF    (_S + 19), F, B
+    MOVLW   1
+    DECFSZ  0xFE3, F, A             ; room-- (PLUSW1)
+    BRA     ltd_loop
+    BRA     ltd_pop
+ltd_end:
+    MOVLW   0
+    CALL    _app_tx_byte            ; the delimiter
+    CLRF    (_link_hot + 10), A
+ltd_pop:
+    MOVF    0xFE4, F, A             ; drop room (PREINC1)
+ltd_ret:
+    RETURN
+    __endasm;
+}
+#else
 static void tx_drain(void)
 {
     uint8_t room;
@@ -874,17 +1353,13 @@ static void tx_drain(void)
         room--;
     }
 }
+#endif
 
 /* ---- command handlers: arguments in R(0..link_hot.n-1), reply in A(..), its length in link_hot.n ---- */
 static uint8_t drive_busy(void)
 {
     int16_t st = app_signal(LINK_SIG_STATE);
     return (uint8_t)(st == (int16_t)LINK_STATE_RUN || st == (int16_t)LINK_STATE_BRAKE);
-}
-
-static uint8_t mask_ok(uint16_t mask)
-{
-    return (uint8_t)(mask != 0u && (mask & (uint16_t)~SIG_ALL) == 0u);
 }
 
 static void rom_copy(uint8_t n) LINK_WPARAM        /* A(link_hot.n..) = n flash bytes from link_hot.ro on */
@@ -924,6 +1399,71 @@ static uint8_t h_param_info(void)
     return 0u;
 }
 
+#if defined(__SDCC_pic16)
+/* PIC18 assembly (the C below, step for step): the index on the software stack (PLUSW1 with
+ * W = 1 reaches it across the calls), every id checked before any value is read */
+static uint8_t h_param_get(void) __naked
+{
+    __asm
+    MOVF    (_link_hot + 5), W, A   ; 1 .. LINK_PARAM_GET_MAX ids
+    BZ      lpg_bad
+    SUBLW   10
+    BNC     lpg_bad
+    CLRF    0xFE5, A                ; i = 0 (POSTDEC1)
+lpg_check:
+    MOVLW   1
+    MOVF    0xFE3, W, A             ; i (PLUSW1)
+    LFSR    0, (_rx_buf + 3)
+    MOVF    0xFEB, W, A             ; R(i) (PLUSW0)
+    CALL    _entry_index
+    XORLW   0xFF
+    BZ      lpg_unknown
+    MOVLW   1
+    INCF    0xFE3, F, A
+    MOVLW   1
+    MOVF    0xFE3, W, A
+    XORWF   (_link_hot + 5), W, A
+    BNZ     lpg_check
+    MOVLW   1
+    CLRF    0xFE3, A
+lpg_value:
+    MOVLW   1
+    MOVF    0xFE3, W, A
+    LFSR    0, (_rx_buf + 3)
+    MOVF    0xFEB, W, A
+    CALL    _entry_index
+    CALL    _value_at
+    MOVLW   1                       ; A(4 i ..) = V
+    MOVF    0xFE3, W, A
+    MULLW   4
+    LFSR    0, (_tx_buf + 4)
+    MOVF    0xFF3, W, A
+    ADDWF   0xFE9, F, A
+    BTFSC   0xFD8, 0, A
+    INCF    0xFEA, F, A
+    MOVFF   _V, 0xFEE
+    MOVFF   (_V + 1), 0xFEE
+    MOVFF   (_V + 2), 0xFEE
+    MOVFF   (_V + 3), 0xFEE
+    MOVLW   1
+    INCF    0xFE3, F, A
+    MOVLW   1
+    MOVF    0xFE3, W, A
+    XORWF   (_link_hot + 5), W, A
+    BNZ     lpg_value
+    MOVF    (_link_hot + 5), W, A   ; 4 bytes an id
+    MULLW   4
+    MOVFF   0xFF3, (_link_hot + 5)
+    MOVF    0xFE4, F, A             ; drop i (PREINC1)
+    RETLW   0
+lpg_unknown:
+    MOVF    0xFE4, F, A
+    RETLW   8
+lpg_bad:
+    RETLW   3
+    __endasm;
+}
+#else
 static uint8_t h_param_get(void)
 {
     uint8_t n = link_hot.n, i, o = 0u;
@@ -943,14 +1483,15 @@ static uint8_t h_param_get(void)
     link_hot.n = o;
     return 0u;
 }
+#endif
 
-/* set id to the value in V; reply the stored value (4 bytes) at A(at) */
-static uint8_t set_reply(uint8_t id, uint8_t at)
+/* set id to the value in V; reply the stored value: the last 4 of the link_hot.n reply bytes */
+static uint8_t set_reply(uint8_t id) LINK_WPARAM
 {
     uint8_t code = set_v(id);
     if (code == 0u) {
         store_get();
-        mcopy(&A(at), V.b, 4u);
+        mcopy(&A((uint8_t)(link_hot.n - 4u)), V.b, 4u);
     }
     return code;
 }
@@ -960,14 +1501,14 @@ static uint8_t h_param_set(void)
     mcopy(V.b, &R(1), 4u);
     A(0) = R(0);
     link_hot.n = 5u;
-    return set_reply(R(0), 1u);
+    return set_reply(R(0));
 }
 
 static uint8_t h_set_speed(void)
 {
     mcopy(V.b, &R(0), 4u);
     link_hot.n = 4u;
-    return set_reply(LINK_ID_SPEED_SETPOINT, 0u);
+    return set_reply(LINK_ID_SPEED_SETPOINT);
 }
 
 static uint8_t h_select_controller(void)
@@ -988,12 +1529,90 @@ static uint8_t h_app(void)
     return code;
 }
 
+#if defined(__SDCC_pic16)
+static void crit_begin(void)           /* LINK_CRITICAL_BEGIN/END as functions, for the assembly */
+{
+    LINK_CRITICAL_BEGIN();
+}
+
+static void crit_end(void)
+{
+    LINK_CRITICAL_END();
+}
+
+/* PIC18 assembly (the C below, step for step).  R(0..1) mask, R(2..3) decimation, R(4) samples
+ * per frame (R(i) = rx_buf[3 + i]); PRODH the bytes per sample, PRODL the frame length, TABLAT
+ * counts; the length and the bytes per sample wait on the software stack across the critical
+ * section. */
+static uint8_t h_telem_config(void) __naked
+{
+    __asm
+    CALL    _mask_nsig
+    MOVWF   0xFF4, A
+    RLNCF   0xFF4, F, A             ; PRODH = 2 signals
+    MOVLW   2
+    MOVWF   0xFF3, A                ; PRODL = the frame length
+    BANKSEL _rx_buf
+    MOVF    (_rx_buf + 5), W, B     ; decimation 0: telemetry off, nothing to check
+    IORWF   (_rx_buf + 6), W, B
+    BZ      ltc_set
+    MOVF    0xFF4, W, A             ; a bad mask
+    BZ      ltc_bad
+    MOVF    (_rx_buf + 7), W, B     ; samples per frame >= 1
+    BZ      ltc_bad
+    MOVWF   0xFF5, A
+ltc_len:
+    MOVF    0xFF4, W, A             ; header + samples x bytes, by additions, <= LINK_MAX_PAYLOAD
+    ADDWF   0xFF3, F, A
+    MOVF    0xFF3, W, A
+    SUBLW   40
+    BNC     ltc_bad
+    DECFSZ  0xFF5, F, A
+    BRA     ltc_len
+ltc_set:
+    MOVFF   0xFF3, 0xFE5            ; the length, the bytes per sample (POSTDEC1)
+    MOVFF   0xFF4, 0xFE5
+    CALL    _crit_begin
+    CLRF    (_link_hot + 13), A     ; tm_dec = 0 while the settings change
+    CLRF    (_link_hot + 14), A
+    MOVFF   (_rx_buf + 3), (_S + 35)    ; tm_mask
+    MOVFF   (_rx_buf + 4), (_S + 36)
+    MOVFF   (_rx_buf + 7), (_S + 20)    ; tm_spf
+    MOVFF   0xFE4, (_link_hot + 12) ; tm_nb (PREINC1)
+    CLRF    (_link_hot + 15), A     ; tr: div, counter, nsamp, len
+    CLRF    (_link_hot + 16), A
+    CLRF    (_link_hot + 17), A
+    CLRF    (_link_hot + 18), A
+    CLRF    (_link_hot + 19), A
+    CLRF    (_link_hot + 20), A
+    CLRF    (_link_hot + 11), A     ; tm_ready
+    BANKSEL _S
+    INCF    (_S + 1), F, B          ; tm_gen
+    MOVFF   (_rx_buf + 5), (_link_hot + 13)   ; tm_dec last
+    MOVFF   (_rx_buf + 6), (_link_hot + 14)
+    CALL    _crit_end
+    MOVFF   (_S + 1), (_tx_buf + 4) ; A(0) = tm_gen, A(1) = the frame length (0: off)
+    MOVFF   0xFE4, 0xFF3            ; (PREINC1)
+    BANKSEL _rx_buf
+    MOVF    (_rx_buf + 5), W, B
+    IORWF   (_rx_buf + 6), W, B
+    BTFSS   0xFD8, 2, A
+    MOVF    0xFF3, W, A
+    MOVFF   0xFE8, (_tx_buf + 5)
+    MOVLW   2
+    MOVWF   (_link_hot + 5), A
+    RETLW   0
+ltc_bad:
+    RETLW   4
+    __endasm;
+}
+#else
 static uint8_t h_telem_config(void)
 {
     uint16_t mask = arg16(0), dec = arg16(2u);
-    uint8_t spf = R(4), nb = (uint8_t)(popcount16(mask) << 1), len = TELEM_HEADER, k;
+    uint8_t spf = R(4), nsig = mask_nsig(), nb = (uint8_t)(nsig << 1), len = TELEM_HEADER, k;
     if (dec != 0u) {
-        if (!mask_ok(mask) || spf == 0u) {
+        if (nsig == 0u || spf == 0u) {
             return LINK_NACK_OUT_OF_RANGE;
         }
         for (k = 0u; k < spf; k++) {   /* TELEM_HEADER + 2 nsig spf, by additions */
@@ -1018,34 +1637,129 @@ static uint8_t h_telem_config(void)
     link_hot.n = 2u;
     return 0u;
 }
+#endif
 
 #if LINK_WITH_CAPTURE
+#if defined(__SDCC_pic16)
+/* PIC18 assembly (the C below, step for step).  R(0..1) mask, R(2..3) samples, R(4..5)
+ * pre-trigger, R(6..7) decimation, R(8) trigger, R(9..10) threshold (R(i) = rx_buf[3 + i]);
+ * PRODL counts the words, PRODH the signals; the byte count and the bytes per sample wait on the
+ * software stack across the critical section. */
+static uint8_t h_capture_arm(void) __naked
+{
+    __asm
+    CLRF    (_link_hot + 5), A      ; no reply payload
+    CALL    _mask_nsig
+    MOVWF   0xFF4, A                ; PRODH = signals (0: a bad mask)
+    BZ      lca_bad
+    BANKSEL _rx_buf
+    MOVF    (_rx_buf + 6), W, B     ; samples, pre-trigger: high bytes 0
+    IORWF   (_rx_buf + 8), W, B
+    BNZ     lca_bad
+    MOVF    (_rx_buf + 5), W, B     ; 1 <= samples <= LINK_CAPTURE_WORDS
+    BZ      lca_bad
+    SUBLW   64
+    BNC     lca_bad
+    MOVF    (_rx_buf + 9), W, B     ; decimation != 0
+    IORWF   (_rx_buf + 10), W, B
+    BZ      lca_bad
+    MOVF    (_rx_buf + 11), W, B    ; trigger <= SPEED_FALLING
+    SUBLW   3
+    BNC     lca_bad
+    MOVF    (_rx_buf + 5), W, B     ; pre-trigger < samples
+    CPFSLT  (_rx_buf + 7), B
+    BRA     lca_bad
+    MOVF    (_rx_buf + 11), W, B    ; IMMEDIATE: no pre-trigger
+    BNZ     lca_words
+    MOVF    (_rx_buf + 7), W, B
+    BNZ     lca_bad
+lca_words:
+    RLNCF   0xFF4, W, A             ; bytes per sample = 2 signals (at most 2 x 16)
+    MOVWF   0xFE5, A                ; (POSTDEC1)
+    CLRF    0xFF3, A                ; PRODL = words
+lca_loop:
+    MOVF    0xFF3, W, A             ; samples > LINK_CAPTURE_WORDS - words: too many
+    SUBLW   64
+    CPFSGT  (_rx_buf + 5), B
+    BRA     lca_add
+    MOVF    0xFE4, F, A             ; drop the pushed byte (PREINC1)
+    BRA     lca_bad
+lca_add:
+    MOVF    (_rx_buf + 5), W, B
+    ADDWF   0xFF3, F, A
+    DECFSZ  0xFF4, F, A
+    BRA     lca_loop
+    DECF    0xFF3, W, A             ; the last byte index: 2 words - 1
+    ADDWF   0xFF3, W, A
+    MOVWF   0xFE5, A                ; (POSTDEC1)
+    CALL    _crit_begin
+    BANKSEL _S
+    CLRF    _S, B                   ; IDLE while the settings change
+    MOVFF   (_rx_buf + 3), (_S + 41)    ; cap_mask
+    MOVFF   (_rx_buf + 4), (_S + 42)
+    MOVFF   0xFE4, (_S + 39)        ; cap_bytes (PREINC1)
+    MOVFF   0xFE4, (_link_hot + 22) ; cap_nb
+    MOVFF   (_rx_buf + 5), (_link_hot + 21) ; cap_n
+    MOVFF   (_rx_buf + 7), (_S + 40)    ; cap_pre
+    MOVFF   (_rx_buf + 9), (_link_hot + 23) ; cap_dec
+    MOVFF   (_rx_buf + 10), (_link_hot + 24)
+    MOVFF   (_rx_buf + 11), (_S + 38)   ; cap_trig
+    MOVFF   (_rx_buf + 12), (_S + 43)   ; cap_thr (SPEED_FALLING: complemented)
+    MOVFF   (_rx_buf + 13), (_S + 44)
+    MOVF    (_S + 38), W, B
+    XORLW   3
+    BNZ     lca_clear
+    COMF    (_S + 43), F, B
+    COMF    (_S + 44), F, B
+lca_clear:
+    LFSR    0, (_S + 45)            ; the record (S.cr, 10 bytes)
+    MOVLW   10
+lca_zero:
+    CLRF    0xFEE, A                ; POSTINC0
+    DECFSZ  0xFE8, F, A
+    BRA     lca_zero
+    CLRF    (_link_hot + 25), A     ; cr_div
+    CLRF    (_link_hot + 26), A
+    CLRF    (_S + 37), B            ; cap_sp_changed
+    MOVLW   1
+    MOVWF   _S, B
+    CALL    _crit_end
+    RETLW   0
+lca_bad:
+    RETLW   4
+    __endasm;
+}
+#else
 static uint8_t h_capture_arm(void)
 {
-    uint16_t mask = arg16(0), dec = arg16(6u);
-    uint8_t n = R(2), pre = R(4), trig = R(8), nsig = popcount16(mask), k, bytes = 0u, words = 0u;
+    /* R(0..1) mask, R(2..3) samples, R(4..5) pre-trigger, R(6..7) decimation, R(8) trigger,
+     * R(9..10) threshold; read in place (no copies in registers) */
+    uint8_t nsig = mask_nsig(), words = 0u, k;
     link_hot.n = 0u;
-    if (!mask_ok(mask) || R(3) != 0u || R(5) != 0u || n == 0u || n > LINK_CAPTURE_WORDS || dec == 0u
-        || trig > LINK_TRIG_SPEED_FALLING || pre >= n || (trig == LINK_TRIG_IMMEDIATE && pre != 0u)) {
+    if (nsig == 0u || R(3) != 0u || R(5) != 0u || R(2) == 0u || R(2) > LINK_CAPTURE_WORDS
+        || (uint8_t)(R(6) | R(7)) == 0u || R(8) > LINK_TRIG_SPEED_FALLING || R(4) >= R(2)
+        || (R(8) == LINK_TRIG_IMMEDIATE && R(4) != 0u)) {
         return LINK_NACK_OUT_OF_RANGE;
     }
-    for (k = 0u; k < nsig; k++) {      /* n * nsig, by additions (n <= LINK_CAPTURE_WORDS) */
-        words = (uint8_t)(words + n);
-        if (words > LINK_CAPTURE_WORDS || words < n) {
+    for (k = 0u; k < nsig; k++) {      /* samples x signals, by additions, within the buffer */
+        if (R(2) > (uint8_t)(LINK_CAPTURE_WORDS - words)) {
             return LINK_NACK_OUT_OF_RANGE;
         }
+        words = (uint8_t)(words + R(2));
     }
-    bytes = (uint8_t)((uint8_t)(words << 1) - 1u);
     LINK_CRITICAL_BEGIN();
     S.cap_state = LINK_CAP_IDLE;
-    S.cap_mask = mask;
+    S.cap_mask = arg16(0u);
     link_hot.cap_nb = (uint8_t)(nsig << 1);
-    link_hot.cap_n = n;
-    S.cap_bytes = bytes;
-    S.cap_pre = pre;
-    link_hot.cap_dec = dec;
-    S.cap_trig = trig;
+    link_hot.cap_n = R(2);
+    S.cap_bytes = (uint8_t)((uint8_t)(words << 1) - 1u);
+    S.cap_pre = R(4);
+    link_hot.cap_dec = arg16(6u);
+    S.cap_trig = R(8);
     S.cap_thr = (int16_t)arg16(9u);
+    if (R(8) == LINK_TRIG_SPEED_FALLING) {
+        S.cap_thr = (int16_t)~S.cap_thr;      /* capture_due compares ~speed with ~threshold */
+    }
     mzero((LINK_DATA uint8_t *)&S.cr, (uint8_t)sizeof S.cr);
     link_hot.cr_div = 0u;
     S.cap_sp_changed = 0u;
@@ -1053,7 +1767,114 @@ static uint8_t h_capture_arm(void)
     LINK_CRITICAL_END();
     return 0u;
 }
+#endif
 
+#if defined(__SDCC_pic16)
+/* PIC18 assembly (the C below, step for step).  R(0..1) start, R(2) count (R(i) = rx_buf[3 + i]).
+ * The samples sent: min(count, total - start, what fits), their bytes by the 8x8 multiplier
+ * (at most 256: the buffer's size); FSR0 walks the ring (wrapping after cap_bytes) and the reply
+ * (cp_d) in turn; PRODH the byte index, TABLAT the bytes left. */
+static uint8_t h_capture_read(void) __naked
+{
+    __asm
+    BANKSEL _S
+    MOVF    _S, W, B                ; cap_state
+    XORLW   3
+    BZ      lcr_done
+    DECF    _S, W, B                ; ARMED or TRIGGERED: busy
+    SUBLW   1
+    BNC     lcr_wrong
+    RETLW   7
+lcr_wrong:
+    RETLW   6
+lcr_done:
+    MOVFF   (_S + 49), 0xFF3        ; PRODL = total
+    BANKSEL _rx_buf
+    MOVF    (_rx_buf + 4), W, B     ; start < 256
+    BNZ     lcr_range
+    MOVF    (_rx_buf + 3), W, B     ; PRODH = total - start (start <= total)
+    SUBWF   0xFF3, W, A
+    BNC     lcr_range
+    MOVWF   0xFF4, A
+    MOVLW   3          ; A(0..6): state, total, trigger index, start (u16 each but the state)
+    MOVFF   0xFE8, (_tx_buf + 4)
+    MOVFF   (_S + 49), (_tx_buf + 5)
+    MOVFF   (_S + 51), (_tx_buf + 7)
+    MOVFF   (_rx_buf + 3), (_tx_buf + 9)
+    MOVLW   0
+    MOVFF   0xFE8, (_tx_buf + 6)
+    MOVFF   0xFE8, (_tx_buf + 8)
+    MOVFF   0xFE8, (_tx_buf + 10)
+    MOVF    (_rx_buf + 5), W, B     ; samples = min(count, total - start)
+    CPFSLT  0xFF4, A
+    MOVWF   0xFF4, A
+    MOVLW   33   ; and what fits after the header
+    MOVWF   0xFF3, A
+    CLRF    0xFF5, A
+lcr_fit:
+    MOVF    (_link_hot + 22), W, A  ; cap_nb
+    SUBWF   0xFF3, F, A
+    BNC     lcr_fitted
+    INCF    0xFF5, F, A
+    BRA     lcr_fit
+lcr_fitted:
+    MOVF    0xFF5, W, A
+    CPFSLT  0xFF4, A
+    MOVWF   0xFF4, A
+    MOVF    0xFF4, W, A             ; bytes = samples x cap_nb (PRODL)
+    MULWF   (_link_hot + 22), A
+    MOVF    0xFF3, W, A             ; reply length = header + bytes
+    ADDLW   7
+    MOVWF   (_link_hot + 5), A
+    MOVFF   0xFF3, 0xFF5            ; TABLAT = bytes
+    BANKSEL _S
+    MOVFF   (_rx_buf + 3), 0xFE8    ; the first sample: (record start + start) mod cap_n
+    ADDWF   (_S + 50), W, B
+    MOVWF   0xFF3, A
+    MOVF    (_link_hot + 21), W, A
+    CPFSLT  0xFF3, A
+    SUBWF   0xFF3, F, A
+    MOVF    0xFF3, W, A             ; its byte index (< 256)
+    MULWF   (_link_hot + 22), A
+    MOVFF   0xFF3, 0xFF4            ; PRODH = the byte index
+    MOVLW   LOW(_tx_buf + 11)   ; cp_d: the reply after its header
+    MOVFF   0xFE8, _cp_d
+    MOVLW   HIGH(_tx_buf + 11)
+    MOVFF   0xFE8, (_cp_d + 1)
+    LFSR    0, _cap_buf
+    MOVF    0xFF4, W, A
+    ADDWF   0xFE9, F, A
+    BTFSC   0xFD8, 0, A
+    INCF    0xFEA, F, A
+    MOVF    0xFF5, F, A
+    BZ      lcr_end
+lcr_loop:
+    MOVFF   0xFEE, 0xFF3            ; PRODL = the ring byte (POSTINC0), then *cp_d++ = PRODL
+    MOVFF   0xFE9, _cp_s            ; (FSR0 only: the ring position waits in cp_s)
+    MOVFF   0xFEA, (_cp_s + 1)
+    MOVFF   _cp_d, 0xFE9
+    MOVFF   (_cp_d + 1), 0xFEA
+    MOVFF   0xFF3, 0xFEE
+    MOVFF   0xFE9, _cp_d
+    MOVFF   0xFEA, (_cp_d + 1)
+    MOVFF   _cp_s, 0xFE9
+    MOVFF   (_cp_s + 1), 0xFEA
+    INCF    0xFF4, F, A
+    DECF    0xFF4, W, A             ; past the last byte: back to the start
+    XORWF   (_S + 39), W, B
+    BNZ     lcr_next
+    CLRF    0xFF4, A
+    LFSR    0, _cap_buf
+lcr_next:
+    DECFSZ  0xFF5, F, A
+    BRA     lcr_loop
+lcr_end:
+    RETLW   0
+lcr_range:
+    RETLW   4
+    __endasm;
+}
+#else
 static uint8_t h_capture_read(void)
 {
     uint8_t start = R(0), want = R(2), nb = link_hot.cap_nb, st = S.cap_state, p, wi = 0u, j, o;
@@ -1096,6 +1917,7 @@ static uint8_t h_capture_read(void)
     return 0u;
 }
 #endif
+#endif
 
 static uint8_t h_eeprom_save(void)
 {
@@ -1106,7 +1928,7 @@ static uint8_t h_eeprom_save(void)
 static uint8_t h_eeprom_load(void)
 {
     link_hot.n = 0u;
-    return (link_eeprom_load() != LINK_EE_OK) ? LINK_NACK_EEPROM_ERROR : 0u;
+    return (ee_load() != LINK_EE_OK) ? LINK_NACK_EEPROM_ERROR : 0u;   /* announced by link_poll */
 }
 
 static uint8_t h_status(void)
@@ -1157,13 +1979,13 @@ static const link_handler_t cmd_fn[N_CMDS] = {
     h_none,
 };
 
-static uint8_t run_command(void)       /* the handler of command S.c: 0 or a NACK code */
+static uint8_t run_command(uint8_t c) LINK_WPARAM  /* the handler of command code c + 1: 0 or a NACK code */
 {
     uint8_t spec;
-    if (S.c >= N_CMDS) {
+    if (c >= N_CMDS) {
         return LINK_NACK_UNKNOWN_COMMAND;
     }
-    rom_at((uint16_t)(ROM_CMD + S.c));
+    rom_at((uint16_t)(ROM_CMD + c));
     spec = rom_next();
     if ((uint8_t)(spec & CMD_ANY_LEN) != CMD_ANY_LEN && (uint8_t)(spec & CMD_ANY_LEN) != link_hot.n) {
         return LINK_NACK_MALFORMED;
@@ -1171,7 +1993,7 @@ static uint8_t run_command(void)       /* the handler of command S.c: 0 or a NAC
     if ((spec & CMD_IDLE) != 0u && drive_busy()) {
         return LINK_NACK_WRONG_STATE;
     }
-    return cmd_fn[S.c]();
+    return cmd_fn[c]();
 }
 
 static void dispatch(void)
@@ -1183,11 +2005,10 @@ static void dispatch(void)
     }
     S.tseq = rx_buf[2];
     link_hot.n = rx_buf[0];
-    S.c = (uint8_t)(type - 1u);
-    if (S.c < N_CMDS) {
+    if ((uint8_t)(type - 1u) < N_CMDS) {
         S.rx_valid = 1u;               /* only a host command feeds the watchdog */
     }
-    S.nack_armed = 1u;
+    S.nack = NACK_ARMED;
     LINK_HOOK_FRAME(type, S.tseq, &R(0), link_hot.n);
     if (type == S.rp_type && S.tseq == S.rp_seq && S.fc0 == S.rp_crc0 && S.fc1 == S.rp_crc1
         && S.rp_len != NONE) {
@@ -1200,7 +2021,7 @@ static void dispatch(void)
     S.rp_crc1 = S.fc1;
     S.rp_type = type;
     S.rp_seq = S.tseq;
-    code = run_command();
+    code = run_command((uint8_t)(type - 1u));
     type = (uint8_t)(type | LINK_ACK_BIT);
     if (code != 0u) {
         A(0) = S.rp_type;
@@ -1250,6 +2071,87 @@ static void wd_arm(void)
     S.wd_armed = (uint8_t)(app_signal(LINK_SIG_STATE) == (int16_t)LINK_STATE_RUN);
 }
 
+#if defined(__SDCC_pic16)
+typedef char link_poll_layout[(offsetof(struct link_state, tm_gen) == 1u && offsetof(struct link_state, nack) == 14u
+                               && offsetof(struct link_state, nack_type) == 15u
+                               && offsetof(struct link_state, nack_seq) == 16u
+                               && offsetof(struct link_state, tseq) == 17u && offsetof(struct link_fast, tr) == 15u)
+                              ? 1 : -1];
+/* PIC18 assembly (the C below, step for step): the pass count on the software stack, no register
+ * held across the calls */
+void link_poll(void) __naked
+{
+    __asm
+    MOVLW   8                       ; at most 8 frames a call
+    MOVWF   0xFE5, A                ; POSTDEC1
+lpl_loop:
+    CALL    _wd_arm
+    CALL    _tx_drain
+    MOVF    (_link_hot + 10), W, A  ; tx_len: a frame still leaving
+    BNZ     lpl_end
+    BANKSEL _S
+    MOVF    (_S + 14), W, B         ; nack == NACK_PENDING: one BAD_CRC NACK
+    XORLW   2
+    BNZ     lpl_rx
+    CLRF    (_S + 14), B
+    MOVFF   (_S + 15), (_tx_buf + 4)   ; A(0) = the frame type, A(1) = BAD_CRC
+    MOVLW   2
+    MOVFF   0xFE8, (_tx_buf + 5)
+    MOVLW   2
+    MOVWF   (_link_hot + 5), A
+    MOVFF   (_S + 16), (_S + 17)    ; SEQ of the bad frame
+    MOVLW   127
+    CALL    _tx_seal
+    BRA     lpl_next
+lpl_rx:
+    MOVF    (_link_hot + 1), W, A   ; rx_ready
+    BZ      lpl_ev
+    CALL    _rx_frame
+    IORLW   0
+    BZ      lpl_release
+    CALL    _dispatch
+    CALL    _link_notify
+lpl_release:
+    CALL    _rx_release
+    BRA     lpl_next
+lpl_ev:
+    CALL    _send_event
+    IORLW   0
+    BNZ     lpl_next
+    MOVF    (_link_hot + 11), W, A  ; tm_ready: the telemetry frame
+    BZ      lpl_end
+    MOVF    (_link_hot + 20), W, A  ; n = tr.len; A(0..) = tm_buf
+    MOVWF   (_link_hot + 5), A
+    MOVLW   LOW(_tx_buf + 4)
+    MOVFF   0xFE8, _cp_d
+    MOVLW   HIGH(_tx_buf + 4)
+    MOVFF   0xFE8, (_cp_d + 1)
+    MOVLW   LOW(_tm_buf)
+    MOVFF   0xFE8, _cp_s
+    MOVLW   HIGH(_tm_buf)
+    MOVFF   0xFE8, (_cp_s + 1)
+    MOVF    (_link_hot + 5), W, A
+    CALL    _mcopy_n
+    MOVFF   (_S + 1), (_S + 17)     ; SEQ = tm_gen
+    MOVLW   96
+    CALL    _tx_seal
+    CLRF    (_link_hot + 19), A     ; tr.nsamp = tr.len = 0, tm_ready = 0
+    CLRF    (_link_hot + 20), A
+    CLRF    (_link_hot + 11), A
+lpl_next:
+    MOVF    0xFE4, W, A             ; the pass count (PREINC1)
+    DECF    0xFE8, F, A
+    BZ      lpl_last
+    MOVWF   0xFE5, A
+    BRA     lpl_loop
+lpl_end:
+    MOVF    0xFE4, F, A             ; drop the pass count
+lpl_last:
+    CALL    _wd_arm                 ; again: a start just executed arms the watchdog at once
+    RETURN
+    __endasm;
+}
+#else
 void link_poll(void)
 {
     uint8_t k;
@@ -1259,8 +2161,8 @@ void link_poll(void)
         if (link_hot.tx_len != 0u) {
             break;
         }
-        if (S.nack_pending != 0u) {
-            S.nack_pending = 0u;
+        if (S.nack == NACK_PENDING) {
+            S.nack = 0u;
             A(0) = S.nack_type;
             A(1) = LINK_NACK_BAD_CRC;
             link_hot.n = 2u;
@@ -1271,6 +2173,7 @@ void link_poll(void)
         if (rx_ready != 0u) {
             if (rx_frame() != 0u) {
                 dispatch();
+                link_notify();
             }
             rx_release();
             continue;
@@ -1292,6 +2195,519 @@ void link_poll(void)
     }
     /* again after dispatching: a start just executed arms the watchdog at once */
     wd_arm();
+}
+#endif
+
+/* ---- per speed-loop sample: telemetry and capture ---- */
+/* One sample's signals, read once each: those of sg.tm (telemetry) to sg.p, those of sg.cm (capture)
+ * to sg.q, int16 little-endian (speed-loop interrupt only).  Each value comes straight from
+ * app_signal_src[j] (no call, no lock: the interrupt owns the values), or through app_signal(j) for
+ * a NULL entry.  The masks are consumed (shifted out); they are within SIG_ALL (mask_nsig). */
+#if defined(__SDCC_pic16)
+/* PIC18 assembly: about 60 cycles a selected signal, no software-stack frame.  The flash table is
+ * read with TBLRD: TBLPTR and TABLAT are saved on entry and restored on exit (hazard a: this runs
+ * in an interrupt, whatever the application's prologue saves).  FSR0 and PROD are saved by the
+ * interrupt's prologue; sg (one bank) holds the pointers and the masks. */
+static void put_signals(void) __naked
+{
+    __asm
+    MOVFF   0xFF8, 0xFE5            ; save TBLPTRU, TBLPTRH, TBLPTRL, TABLAT (POSTDEC1)
+    MOVFF   0xFF7, 0xFE5
+    MOVFF   0xFF6, 0xFE5
+    MOVFF   0xFF5, 0xFE5
+    MOVLW   UPPER(_app_signal_src)
+    MOVWF   0xFF8, A
+    MOVLW   HIGH(_app_signal_src)
+    MOVWF   0xFF7, A
+    MOVLW   LOW(_app_signal_src)
+    MOVWF   0xFF6, A
+    BANKSEL _sg
+lps_loop:
+    TBLRD*+
+    MOVFF   0xFF5, 0xFE9            ; FSR0 = app_signal_src[j]
+    TBLRD*+
+    MOVFF   0xFF5, 0xFEA
+    MOVF    (_sg + 4), W, B
+    IORWF   (_sg + 6), W, B
+    BTFSS   0xFE8, 0, A             ; signal j in neither mask: next
+    BRA     lps_next
+    MOVF    0xFE9, W, A
+    IORWF   0xFEA, W, A
+    BZ      lps_call
+    MOVFF   0xFEE, 0xFF3            ; PRODL, PRODH = *src (POSTINC0)
+    MOVFF   0xFEE, 0xFF4
+    BRA     lps_have
+lps_call:                          ; NULL: app_signal(j), the table pointer kept across the call
+    MOVFF   0xFF8, 0xFE5
+    MOVFF   0xFF7, 0xFE5
+    MOVFF   0xFF6, 0xFE5
+    MOVLW   LOW(_app_signal_src + 2)    ; j = (TBLPTR - (app_signal_src + 2)) / 2, the low bytes suffice
+    SUBWF   0xFF6, W, A
+    RRNCF   0xFE8, W, A
+    CALL    _app_signal             ; low byte in W, high byte in PRODL
+    MOVFF   0xFF3, 0xFF4
+    MOVWF   0xFF3, A
+    MOVFF   0xFE4, 0xFF6            ; PREINC1
+    MOVFF   0xFE4, 0xFF7
+    MOVFF   0xFE4, 0xFF8
+    BANKSEL _sg
+lps_have:
+    BTFSS   (_sg + 4), 0, B
+    BRA     lps_cap
+    MOVFF   _sg, 0xFE9              ; *sg.p++ = value
+    MOVFF   (_sg + 1), 0xFEA
+    MOVFF   0xFF3, 0xFEE
+    MOVFF   0xFF4, 0xFEE
+    MOVFF   0xFE9, _sg
+    MOVFF   0xFEA, (_sg + 1)
+lps_cap:
+    BTFSS   (_sg + 6), 0, B
+    BRA     lps_next
+    MOVFF   (_sg + 2), 0xFE9        ; *sg.q++ = value
+    MOVFF   (_sg + 3), 0xFEA
+    MOVFF   0xFF3, 0xFEE
+    MOVFF   0xFF4, 0xFEE
+    MOVFF   0xFE9, (_sg + 2)
+    MOVFF   0xFEA, (_sg + 3)
+lps_next:
+    BCF     0xFD8, 0, A             ; tm >>= 1, cm >>= 1
+    RRCF    (_sg + 5), F, B
+    RRCF    (_sg + 4), F, B
+    BCF     0xFD8, 0, A
+    RRCF    (_sg + 7), F, B
+    RRCF    (_sg + 6), F, B
+    MOVF    (_sg + 4), W, B
+    IORWF   (_sg + 5), W, B
+    IORWF   (_sg + 6), W, B
+    IORWF   (_sg + 7), W, B
+    BNZ     lps_loop
+    MOVFF   0xFE4, 0xFF5            ; restore TABLAT, TBLPTRL, TBLPTRH, TBLPTRU (PREINC1)
+    MOVFF   0xFE4, 0xFF6
+    MOVFF   0xFE4, 0xFF7
+    MOVFF   0xFE4, 0xFF8
+    RETURN
+    __endasm;
+}
+#else
+static void put_signals(void)
+{
+    uint8_t j = 0u;
+    uint16_t v;
+    LINK_DATA int16_t *src;
+    while ((sg.tm | sg.cm) != 0u) {
+        if ((uint8_t)((uint8_t)(sg.tm | sg.cm) & 1u) != 0u) {
+            src = app_signal_src[j];
+            v = (uint16_t)((src != 0) ? *src : app_signal(j));
+            if (((uint8_t)sg.tm & 1u) != 0u) {
+                *sg.p = (uint8_t)v;
+                sg.p++;
+                *sg.p = (uint8_t)(v >> 8);
+                sg.p++;
+            }
+            if (((uint8_t)sg.cm & 1u) != 0u) {
+                *sg.q = (uint8_t)v;
+                sg.q++;
+                *sg.q = (uint8_t)(v >> 8);
+                sg.q++;
+            }
+        }
+        sg.tm = (uint16_t)(sg.tm >> 1);
+        sg.cm = (uint16_t)(sg.cm >> 1);
+        j++;
+    }
+}
+#endif
+
+/* The speed-loop interrupt's part in PIC18 assembly: no software-stack frame, no register saved
+ * (W, STATUS, BSR, PROD are the interrupt's; app_signal and app_link_lost are called like the C
+ * did).  Offsets into link_hot (access bank) and S are pinned by the layout checks below. */
+#if defined(__SDCC_pic16)
+typedef char link_isr_layout[(offsetof(struct link_fast, tm_ready) == 11u && offsetof(struct link_fast, tm_nb) == 12u
+    && offsetof(struct link_fast, tm_dec) == 13u && offsetof(struct link_fast, tr) == 15u
+    && offsetof(struct link_state, tm_dropped) == 6u && offsetof(struct link_state, rx_valid) == 13u
+    && offsetof(struct link_state, tm_spf) == 20u && offsetof(struct link_state, wd_armed) == 27u
+    && offsetof(struct link_state, wd_ms) == 28u && offsetof(struct link_state, ev_watchdog) == 33u
+    && offsetof(struct link_state, tm_mask) == 35u
+    && offsetof(link_params_t, link_timeout) == 17u) ? 1 : -1];
+#if LINK_WITH_CAPTURE
+typedef char link_cap_layout[(offsetof(struct link_fast, cap_n) == 21u && offsetof(struct link_fast, cap_nb) == 22u
+    && offsetof(struct link_fast, cap_dec) == 23u && offsetof(struct link_fast, cr_div) == 25u
+    && offsetof(struct link_state, cap_sp_changed) == 37u && offsetof(struct link_state, cap_trig) == 38u
+    && offsetof(struct link_state, cap_pre) == 40u && offsetof(struct link_state, cap_bytes) == 39u && offsetof(struct link_state, cap_mask) == 41u
+    && offsetof(struct link_state, cap_thr) == 43u && offsetof(struct link_state, cr) == 45u
+    && sizeof S.cr == 10u) ? 1 : -1];
+
+/* decimation and trigger; a sample due: sg.q, sg.cm set (S.cr: w 45, wi 46, filled 47, post 48,
+ * total 49, start 50, tidx 51, prev_valid 52, prev 53) */
+static void capture_due(void) __naked
+{
+    __asm
+    INFSNZ  (_link_hot + 25), F, A  ; cr_div++
+    INCF    (_link_hot + 26), F, A
+    MOVF    (_link_hot + 23), W, A  ; cr_div - cap_dec: borrow = not due yet
+    SUBWF   (_link_hot + 25), W, A
+    MOVF    (_link_hot + 24), W, A
+    SUBWFB  (_link_hot + 26), W, A
+    BC      lcd_due
+    RETURN
+lcd_due:
+    CLRF    (_link_hot + 25), A
+    CLRF    (_link_hot + 26), A
+    BANKSEL _S
+    MOVF    _S, W, B                ; cap_state
+    XORLW   1
+    BNZ     lcd_slot
+    MOVF    (_S + 38), W, B         ; cap_trig
+    BZ      lcd_fire                ; IMMEDIATE
+    XORLW   1
+    BNZ     lcd_speed
+    MOVF    (_S + 37), W, B         ; SETPOINT_CHANGE: the setpoint was written
+    BZ      lcd_slot
+    BRA     lcd_fire
+lcd_speed:                          ; a crossing: sp in PRODH:PRODL
+    MOVLW   0
+    CALL    _app_signal             ; low byte in W, high byte in PRODL
+    MOVFF   0xFF3, 0xFF4
+    MOVWF   0xFF3, A
+    BANKSEL _S
+    MOVF    (_S + 38), W, B
+    XORLW   3
+    BNZ     lcd_cmp
+    COMF    0xFF3, F, A             ; falling through thr = ~speed rising through ~thr (stored so)
+    COMF    0xFF4, F, A
+lcd_cmp:
+    MOVF    (_S + 52), W, B         ; no previous sample: no crossing
+    BZ      lcd_keep
+    MOVF    (_S + 43), W, B         ; prev - thr: signed less-than is N xor OV
+    SUBWF   (_S + 53), W, B
+    MOVF    (_S + 44), W, B
+    SUBWFB  (_S + 54), W, B
+    BOV     lcd_ov1
+    BNN     lcd_keep
+    BRA     lcd_now
+lcd_ov1:
+    BN      lcd_keep
+lcd_now:
+    MOVF    (_S + 43), W, B         ; sp - thr: greater or equal is N == OV
+    SUBWF   0xFF3, W, A
+    MOVF    (_S + 44), W, B
+    SUBWFB  0xFF4, W, A
+    BOV     lcd_ov2
+    BN      lcd_keep
+    BRA     lcd_yes
+lcd_ov2:
+    BNN     lcd_keep
+lcd_yes:
+    MOVFF   0xFF3, (_S + 53)        ; prev = sp
+    MOVFF   0xFF4, (_S + 54)
+    BRA     lcd_fire
+lcd_keep:
+    MOVFF   0xFF3, (_S + 53)        ; prev = sp, prev_valid = 1
+    MOVFF   0xFF4, (_S + 54)
+    MOVLW   1
+    MOVWF   (_S + 52), B
+    BRA     lcd_slot
+lcd_fire:
+    MOVF    (_S + 47), W, B         ; tidx = min(filled, pre)
+    CPFSGT  (_S + 40), B
+    MOVF    (_S + 40), W, B
+    MOVWF   (_S + 51), B
+    CLRF    (_S + 48), B            ; post = 0
+    MOVLW   2
+    MOVWF   _S, B
+lcd_slot:
+    MOVF    (_S + 46), W, B         ; sg.q = &cap_buf[wi], sg.cm = cap_mask
+    ADDLW   LOW(_cap_buf)
+    MOVFF   0xFE8, (_sg + 2)
+    MOVLW   HIGH(_cap_buf)
+    BTFSC   0xFD8, 0, A
+    ADDLW   1
+    MOVFF   0xFE8, (_sg + 3)
+    MOVFF   (_S + 41), (_sg + 6)
+    MOVFF   (_S + 42), (_sg + 7)
+    RETURN
+    __endasm;
+}
+
+static void capture_done(void) __naked  /* after a sample was written: the ring and the record */
+{
+    __asm
+    BANKSEL _S
+    MOVF    (_link_hot + 22), W, A  ; wi += cap_nb
+    ADDWF   (_S + 46), F, B
+    INCF    (_S + 45), F, B         ; w++
+    MOVF    (_link_hot + 21), W, A  ; W = cap_n
+    CPFSEQ  (_S + 45), B
+    BRA     lcd2_fill
+    CLRF    (_S + 45), B            ; the ring wraps
+    CLRF    (_S + 46), B
+lcd2_fill:
+    CPFSEQ  (_S + 47), B            ; filled < cap_n: one more
+    INCF    (_S + 47), F, B
+    MOVF    _S, W, B
+    XORLW   2
+    BNZ     lcd2_end
+    INCF    (_S + 48), F, B         ; post++
+    MOVF    (_S + 40), W, B         ; post + pre == cap_n: the record is complete
+    ADDWF   (_S + 48), W, B
+    XORWF   (_link_hot + 21), W, A
+    BNZ     lcd2_end
+    MOVF    (_S + 51), W, B         ; total = tidx + post
+    ADDWF   (_S + 48), W, B
+    MOVWF   (_S + 49), B
+    SUBWF   (_S + 45), W, B         ; start = (w - total) mod cap_n
+    BC      lcd2_start
+    ADDWF   (_link_hot + 21), W, A
+lcd2_start:
+    MOVWF   (_S + 50), B
+    MOVLW   3
+    MOVWF   _S, B
+lcd2_end:
+    RETURN
+    __endasm;
+}
+#endif
+
+void link_sample(void) __naked
+{
+    __asm
+    BANKSEL _sg
+    CLRF    (_sg + 4), B            ; sg.tm = sg.cm = 0
+    CLRF    (_sg + 5), B
+    CLRF    (_sg + 6), B
+    CLRF    (_sg + 7), B
+    MOVF    (_link_hot + 13), W, A  ; telemetry on (tm_dec != 0)?
+    IORWF   (_link_hot + 14), W, A
+    BZ      lsm_cap
+    INFSNZ  (_link_hot + 15), F, A  ; tr.div++
+    INCF    (_link_hot + 16), F, A
+    MOVF    (_link_hot + 13), W, A  ; tr.div - tm_dec: borrow = not due yet
+    SUBWF   (_link_hot + 15), W, A
+    MOVF    (_link_hot + 14), W, A
+    SUBWFB  (_link_hot + 16), W, A
+    BNC     lsm_cap
+    CLRF    (_link_hot + 15), A
+    CLRF    (_link_hot + 16), A
+    BANKSEL _S
+    MOVF    (_link_hot + 11), W, A  ; tm_ready: the last frame is not sent yet: a drop
+    BZ      lsm_fill
+    INFSNZ  (_S + 6), F, B          ; tm_dropped++, saturating
+    INCF    (_S + 7), F, B
+    MOVF    (_S + 6), W, B
+    IORWF   (_S + 7), W, B
+    BNZ     lsm_count
+    SETF    (_S + 6), B
+    SETF    (_S + 7), B
+    BRA     lsm_count
+lsm_fill:
+    MOVF    (_link_hot + 19), W, A  ; the first sample of a frame: its counter, the header
+    BNZ     lsm_ptr
+    MOVFF   (_link_hot + 17), _tm_buf
+    MOVFF   (_link_hot + 18), (_tm_buf + 1)
+    MOVLW   2
+    MOVWF   (_link_hot + 20), A
+lsm_ptr:
+    MOVF    (_link_hot + 20), W, A  ; sg.p = &tm_buf[tr.len], sg.tm = tm_mask
+    ADDLW   LOW(_tm_buf)
+    MOVFF   0xFE8, _sg
+    MOVLW   HIGH(_tm_buf)
+    BTFSC   0xFD8, 0, A
+    ADDLW   1
+    MOVFF   0xFE8, (_sg + 1)
+    MOVFF   (_S + 35), (_sg + 4)
+    MOVFF   (_S + 36), (_sg + 5)
+    MOVF    (_link_hot + 12), W, A  ; tr.len += tm_nb, tr.nsamp++
+    ADDWF   (_link_hot + 20), F, A
+    INCF    (_link_hot + 19), F, A
+    MOVF    (_S + 20), W, B         ; tr.nsamp >= tm_spf: the frame is ready (filled before return)
+    CPFSLT  (_link_hot + 19), A
+    BSF     (_link_hot + 11), 0, A
+lsm_count:
+    INFSNZ  (_link_hot + 17), F, A  ; tr.counter++
+    INCF    (_link_hot + 18), F, A
+lsm_cap:
+#if LINK_WITH_CAPTURE
+    BANKSEL _S
+    DECF    _S, W, B                ; cap_state ARMED or TRIGGERED: a capture sample may be due
+    SUBLW   1
+    BTFSC   0xFD8, 0, A
+    CALL    _capture_due
+#endif
+    BANKSEL _sg
+    MOVF    (_sg + 4), W, B
+    IORWF   (_sg + 5), W, B
+    IORWF   (_sg + 6), W, B
+    IORWF   (_sg + 7), W, B
+    BTFSS   0xFD8, 2, A             ; a signal to write (Z clear)
+    CALL    _put_signals
+#if LINK_WITH_CAPTURE
+    BANKSEL _sg
+    MOVF    (_sg + 2), W, B         ; a capture sample was written: sg.q = 0, capture_done
+    IORWF   (_sg + 3), W, B
+    BZ      lsm_end
+    CLRF    (_sg + 2), B
+    CLRF    (_sg + 3), B
+    CALL    _capture_done
+lsm_end:
+#endif
+    RETURN
+    __endasm;
+}
+
+/* ---- time base: watchdog, uptime ---- */
+void link_tick_ms(void) __naked
+{
+    __asm
+    extern  _app_link_lost
+    BANKSEL _S
+    INCF    (_S + 8), F, B          ; uptime_ms++ (32 bits)
+    BNZ     ltk_wd
+    INCF    (_S + 9), F, B
+    BNZ     ltk_wd
+    INCF    (_S + 10), F, B
+    BNZ     ltk_wd
+    INCF    (_S + 11), F, B
+ltk_wd:
+    MOVF    (_S + 27), W, B         ; wd_armed
+    BZ      ltk_clear
+    MOVF    (_S + 13), W, B         ; rx_valid: a host command arrived
+    BZ      ltk_count
+    CLRF    (_S + 13), B
+ltk_clear:
+    CLRF    (_S + 28), B            ; wd_ms = 0
+    CLRF    (_S + 29), B
+    RETURN
+ltk_count:
+    INFSNZ  (_S + 28), F, B         ; wd_ms++, saturating
+    INCF    (_S + 29), F, B
+    MOVF    (_S + 28), W, B
+    IORWF   (_S + 29), W, B
+    BNZ     ltk_cmp
+    SETF    (_S + 28), B
+    SETF    (_S + 29), B
+ltk_cmp:
+    MOVFF   (_link_params + 17), 0xFF3   ; wd_ms - link_timeout: no borrow = expired
+    MOVFF   (_link_params + 18), 0xFF4
+    MOVF    0xFF3, W, A
+    SUBWF   (_S + 28), W, B
+    MOVF    0xFF4, W, A
+    SUBWFB  (_S + 29), W, B
+    BNC     ltk_end
+    CLRF    (_S + 27), B            ; disarm, outputs off (the application), the event
+    CLRF    (_S + 28), B
+    CLRF    (_S + 29), B
+    CALL    _app_link_lost
+    BANKSEL _S
+    MOVLW   1
+    MOVWF   (_S + 33), B
+ltk_end:
+    RETURN
+    __endasm;
+}
+#else  /* the same in C */
+#if LINK_WITH_CAPTURE
+static void capture_due(void)          /* decimation and trigger; a sample due: sg.q, sg.cm set */
+{
+    uint8_t fire = 0u;
+    int16_t sp;
+    link_hot.cr_div++;
+    if (link_hot.cr_div < link_hot.cap_dec) {
+        return;
+    }
+    link_hot.cr_div = 0u;
+    if (S.cap_state == LINK_CAP_ARMED) {
+        if (S.cap_trig == LINK_TRIG_IMMEDIATE) {
+            fire = 1u;
+        } else if (S.cap_trig == LINK_TRIG_SETPOINT_CHANGE) {
+            fire = S.cap_sp_changed;
+        } else {
+            /* falling through thr = ~speed rising through ~thr (capture_arm stored ~thr) */
+            sp = app_signal(LINK_SIG_SPEED);
+            if (S.cap_trig == LINK_TRIG_SPEED_FALLING) {
+                sp = (int16_t)~sp;
+            }
+            fire = (uint8_t)(S.cr.prev_valid != 0u && S.cr.prev < S.cap_thr && sp >= S.cap_thr);
+            S.cr.prev = sp;
+            S.cr.prev_valid = 1u;
+        }
+        if (fire != 0u) {
+            S.cr.tidx = (S.cr.filled < S.cap_pre) ? S.cr.filled : S.cap_pre;
+            S.cr.post = 0u;
+            S.cap_state = LINK_CAP_TRIGGERED;
+        }
+    }
+    sg.q = &cap_buf[S.cr.wi];
+    sg.cm = S.cap_mask;
+}
+
+static void capture_done(void)         /* after a sample was written: the ring and the record */
+{
+    S.cr.wi = (uint8_t)(S.cr.wi + link_hot.cap_nb);
+    S.cr.w++;
+    if (S.cr.w == link_hot.cap_n) {
+        S.cr.w = 0u;
+        S.cr.wi = 0u;
+    }
+    if (S.cr.filled != link_hot.cap_n) {
+        S.cr.filled++;
+    }
+    if (S.cap_state == LINK_CAP_TRIGGERED) {
+        S.cr.post++;
+        if ((uint8_t)(S.cr.post + S.cap_pre) == link_hot.cap_n) {
+            S.cr.total = (uint8_t)(S.cr.tidx + S.cr.post);
+            S.cr.start = (uint8_t)(S.cr.w - S.cr.total);   /* (w - total) mod n */
+            if (S.cr.w < S.cr.total) {
+                S.cr.start = (uint8_t)(S.cr.start + link_hot.cap_n);
+            }
+            S.cap_state = LINK_CAP_DONE;
+        }
+    }
+}
+#endif
+
+void link_sample(void)
+{
+    sg.tm = 0u;
+    sg.cm = 0u;
+    if (link_hot.tm_dec != 0u) {
+        link_hot.tr.div++;
+        if (link_hot.tr.div >= link_hot.tm_dec) {
+            link_hot.tr.div = 0u;
+            if (link_hot.tm_ready != 0u) {
+                if (S.tm_dropped != 0xFFFFu) {
+                    S.tm_dropped++;
+                }
+            } else {
+                if (link_hot.tr.nsamp == 0u) {
+                    tm_buf[0] = (uint8_t)link_hot.tr.counter;
+                    tm_buf[1] = (uint8_t)(link_hot.tr.counter >> 8);
+                    link_hot.tr.len = TELEM_HEADER;
+                }
+                sg.p = &tm_buf[link_hot.tr.len];
+                sg.tm = S.tm_mask;
+                link_hot.tr.len = (uint8_t)(link_hot.tr.len + link_hot.tm_nb);
+                link_hot.tr.nsamp++;
+                if (link_hot.tr.nsamp >= S.tm_spf) {
+                    link_hot.tm_ready = 1u;    /* the interrupt fills tm_buf before it returns */
+                }
+            }
+            link_hot.tr.counter++;
+        }
+    }
+#if LINK_WITH_CAPTURE
+    if ((uint8_t)(S.cap_state - LINK_CAP_ARMED) <= (uint8_t)(LINK_CAP_TRIGGERED - LINK_CAP_ARMED)) {
+        capture_due();
+    }
+#endif
+    if ((sg.tm | sg.cm) != 0u) {
+        put_signals();
+    }
+#if LINK_WITH_CAPTURE
+    if (sg.q != 0) {
+        sg.q = 0;
+        capture_done();
+    }
+#endif
 }
 
 /* ---- time base: watchdog, uptime ---- */
@@ -1315,155 +2731,4 @@ void link_tick_ms(void)
         }
     }
 }
-
-/* ---- per speed-loop sample: telemetry and capture ---- */
-/* One sample's signals, read once each: those of sg.tm (telemetry) to sg.p, those of sg.cm (capture)
- * to sg.q, int16 little-endian (speed-loop interrupt only) */
-static void put_signals(void)
-{
-    /* locals: the compiler keeps them in its access-bank registers (no bank select in the loop) */
-    LINK_DATA uint8_t *p = sg.p, *q = sg.q;
-    uint8_t tl = (uint8_t)sg.tm, th = (uint8_t)(sg.tm >> 8), cl = (uint8_t)sg.cm, ch = (uint8_t)(sg.cm >> 8);
-    uint8_t j = 0u, hi = 0u;
-    uint16_t v;
-    for (;;) {
-        if ((uint8_t)(tl | cl) == 0u) {         /* the low byte done: the high byte's signals, from 8 on */
-            if (hi != 0u || (uint8_t)(th | ch) == 0u) {
-                return;
-            }
-            hi = 1u;
-            tl = th;
-            cl = ch;
-            j = 8u;
-        }
-        if ((uint8_t)((uint8_t)(tl | cl) & 1u) != 0u) {
-            v = (uint16_t)app_signal(j);
-            if ((tl & 1u) != 0u) {
-                *p = (uint8_t)v;
-                p++;
-                *p = (uint8_t)(v >> 8);
-                p++;
-            }
-            if ((cl & 1u) != 0u) {
-                *q = (uint8_t)v;
-                q++;
-                *q = (uint8_t)(v >> 8);
-                q++;
-            }
-        }
-        tl = (uint8_t)(tl >> 1);
-        cl = (uint8_t)(cl >> 1);
-        j++;
-    }
-}
-
-#if LINK_WITH_CAPTURE
-static void capture_due(void)          /* decimation and trigger; a sample due: sg.q, sg.cm set */
-{
-    uint8_t fire = 0u, trig = S.cap_trig;
-    int16_t sp, thr = S.cap_thr;
-    link_hot.cr_div++;
-    if (link_hot.cr_div < link_hot.cap_dec) {
-        return;
-    }
-    link_hot.cr_div = 0u;
-    if (S.cap_state == LINK_CAP_ARMED) {
-        if (trig == LINK_TRIG_IMMEDIATE) {
-            fire = 1u;
-        } else if (trig == LINK_TRIG_SETPOINT_CHANGE) {
-            fire = S.cap_sp_changed;
-        } else {
-            sp = app_signal(LINK_SIG_SPEED);
-            if (trig == LINK_TRIG_SPEED_FALLING) {   /* falling through thr = rising through ~thr */
-                sp = (int16_t)~sp;
-                thr = (int16_t)~thr;
-            }
-            fire = (uint8_t)(S.cr.prev_valid != 0u && S.cr.prev < thr && sp >= thr);
-            S.cr.prev = sp;
-            S.cr.prev_valid = 1u;
-        }
-        if (fire != 0u) {
-            S.cr.tidx = (S.cr.filled < S.cap_pre) ? S.cr.filled : S.cap_pre;
-            S.cr.post = 0u;
-            S.cap_state = LINK_CAP_TRIGGERED;
-        }
-    }
-    sg.q = &cap_buf[S.cr.wi];
-    sg.cm = S.cap_mask;
-}
-
-static void capture_done(void)         /* after a sample was written: the ring and the record */
-{
-    uint8_t wi = (uint8_t)(S.cr.wi + link_hot.cap_nb);
-    S.cr.w++;
-    if (S.cr.w == link_hot.cap_n) {
-        S.cr.w = 0u;
-        wi = 0u;
-    }
-    S.cr.wi = wi;
-    if (S.cr.filled != link_hot.cap_n) {
-        S.cr.filled++;
-    }
-    if (S.cap_state == LINK_CAP_TRIGGERED) {
-        S.cr.post++;
-        if (S.cr.post == (uint8_t)(link_hot.cap_n - S.cap_pre)) {
-            S.cr.total = (uint8_t)(S.cr.tidx + S.cr.post);
-            wi = (uint8_t)(S.cr.w - S.cr.total);   /* (w - total) mod n */
-            if (S.cr.w < S.cr.total) {
-                wi = (uint8_t)(wi + link_hot.cap_n);
-            }
-            S.cr.start = wi;
-            S.cap_state = LINK_CAP_DONE;
-        }
-    }
-}
 #endif
-
-void link_sample(void)
-{
-    uint8_t tel = 0u;
-    sg.tm = 0u;
-    sg.cm = 0u;
-    if (link_hot.tm_dec != 0u) {
-        link_hot.tr.div++;
-        if (link_hot.tr.div >= link_hot.tm_dec) {
-            link_hot.tr.div = 0u;
-            if (link_hot.tm_ready != 0u) {
-                if (S.tm_dropped != 0xFFFFu) {
-                    S.tm_dropped++;
-                }
-            } else {
-                if (link_hot.tr.nsamp == 0u) {
-                    tm_buf[0] = (uint8_t)link_hot.tr.counter;
-                    tm_buf[1] = (uint8_t)(link_hot.tr.counter >> 8);
-                    link_hot.tr.len = TELEM_HEADER;
-                }
-                sg.p = &tm_buf[link_hot.tr.len];
-                sg.tm = S.tm_mask;
-                tel = 1u;
-            }
-            link_hot.tr.counter++;
-        }
-    }
-#if LINK_WITH_CAPTURE
-    if (S.cap_state == LINK_CAP_ARMED || S.cap_state == LINK_CAP_TRIGGERED) {
-        capture_due();
-    }
-#endif
-    if ((sg.tm | sg.cm) != 0u) {
-        put_signals();
-    }
-    if (tel != 0u) {
-        link_hot.tr.len = (uint8_t)(link_hot.tr.len + link_hot.tm_nb);
-        link_hot.tr.nsamp++;
-        if (link_hot.tr.nsamp >= S.tm_spf) {
-            link_hot.tm_ready = 1u;
-        }
-    }
-#if LINK_WITH_CAPTURE
-    if (sg.q != 0) {
-        sg.q = 0;
-        capture_done();
-    }
-#endif
-}

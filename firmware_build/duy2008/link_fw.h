@@ -3,7 +3,7 @@
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
  *
  * protocol 2.0, 30 table entries (2 rules),
- * table hash 0x9E641D7AUL, build id 0x57EDEAD3UL, profile hash 0x4B0E5FBAUL
+ * table hash 0x9E641D7AUL, build id 0x8B82CCBBUL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -17,8 +17,8 @@
  *   replay              8
  *   param_store        37
  *   capture           128
- *   state             106
- *   total             411
+ *   state             105
+ *   total             410
  *
  * Contexts: link_rx_byte(), link_tick_ms() and link_sample() may be called from interrupts,
  * link_poll() from the main loop.  link_rx_byte() stores the byte in the frame buffer and marks
@@ -26,7 +26,8 @@
  * flag, an 8-bit count of bytes lost while a frame waits) with the main loop; link_tick_ms() and link_sample() share 16/32-bit
  * counters read by link_poll() inside LINK_CRITICAL_BEGIN()/END(), which must therefore mask
  * the interrupt that calls them.  None of them calls a compiler helper (multiply, divide,
- * generic pointer, flash table read), so none is shared with the main loop.
+ * generic pointer), so none is shared with the main loop; link_sample() reads the flash table
+ * app_signal_src and saves/restores the table pointer (TBLPTR, TABLAT) around that itself.
  * Parameter-store writes happen in link_poll() between LINK_CRITICAL_BEGIN() and
  * LINK_CRITICAL_END() (define them, e.g. to clear/set GIEH, if the speed-loop interrupt
  * reads link_params).
@@ -46,7 +47,7 @@
 
 #define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0x57EDEAD3UL
+#define LINK_BUILD_ID           0x8B82CCBBUL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
 #define LINK_TABLE_HASH         0x9E641D7AUL
 #define LINK_SAMPLE_HZ          1000u
@@ -81,6 +82,15 @@
 #endif
 #ifndef LINK_ACCESS_AT            /* SDCC: access-bank address of the link's hot scalars (27 B at most), */
 #define LINK_ACCESS_AT          0x25  /* ending at 0x3F: SDCC's registers and drive_core's access RAM below */
+#endif
+/* link_crc16() and link_param_set(): for tests and host tools (nothing on the chip calls them);
+ * left out of a PIC18 build unless -DLINK_WITH_HOST_API=1 */
+#ifndef LINK_WITH_HOST_API
+#if defined(__SDCC_pic16) || defined(__SDCC_PIC16) || defined(__XC8)
+#define LINK_WITH_HOST_API      0
+#else
+#define LINK_WITH_HOST_API      1
+#endif
 #endif
 #ifndef LINK_EE_BASE
 #define LINK_EE_BASE            0u
@@ -243,27 +253,103 @@ typedef struct {
 
 extern link_params_t link_params;
 
-/* ---- the module ---- */
-void     link_init(void);                      /* defaults, queue the BOOT event */
-void     link_rx_byte(uint8_t b) LINK_WPARAM;  /* UART RX interrupt: stores the byte, marks a complete frame */
-void     link_poll(void);                      /* main loop */
-void     link_tick_ms(void);                   /* 1 kHz time base */
-void     link_sample(void);                    /* once per speed-loop sample */
-void     link_event(uint8_t event, uint8_t code);   /* BOOT (reset cause) or FAULT (code) */
-int16_t  link_param_i16(uint8_t id);           /* raw value saturated to int16; 0 if unknown */
-int32_t  link_param_get(uint8_t id);           /* raw value (signals via app_signal); 0 if unknown */
-uint8_t  link_param_set(uint8_t id, int32_t raw);   /* 0 or LINK_NACK_*; calls app_param_changed */
-uint8_t  link_eeprom_load(void);               /* LINK_EE_*; anything but OK keeps the values */
-uint8_t  link_eeprom_save(void);               /* 0 or LINK_NACK_EEPROM_ERROR (read-back verify) */
+/* ---- the module ----
+ * Contracts (CMSIS-DSP style): inputs and their ranges, the result and its range, what happens
+ * at the edges (saturation or refusal, never wrap-around), the context it may run in.  Raw
+ * values are the table's integers (scale in the entry's row); ranges are inclusive. */
+
+/* link_init: every parameter to its default (within [min, max] by construction), counters and
+ * queues cleared, the BOOT event queued.  Main context, interrupts that call the link masked. */
+void     link_init(void);
+
+/* link_rx_byte: b any byte (0x00 = delimiter).  Stores it in the frame buffer (index < LINK_RX_BYTES)
+ * or, while a frame waits for link_poll, counts it lost in an 8-bit counter (wraps; link_poll adds
+ * the difference to the saturating 16-bit rx_overflows); a frame longer than LINK_RX_BYTES is
+ * discarded up to the next delimiter.  Any interrupt priority; touches single bytes only; no
+ * helper, no flash read; about 20 cycles (PIC18). */
+void     link_rx_byte(uint8_t b) LINK_WPARAM;
+
+/* link_poll: decodes and answers at most 8 frames per call (frames of 0..LINK_MAX_PAYLOAD payload
+ * bytes; anything else is dropped and counted in the saturating crc_errors), sends events and
+ * telemetry as app_tx_free() allows (never more bytes than it reports), then announces changed
+ * parameters (app_param_changed).  Main context only (not reentrant). */
+void     link_poll(void);
+
+/* link_tick_ms: uptime_ms += 1 (uint32, wraps after 49.7 days), watchdog: wd_ms saturates at
+ * 65535 and fires at link_params.link_timeout (then app_link_lost, disarmed until the next RUN).
+ * 1 kHz interrupt; about 20 cycles (PIC18). */
+void     link_tick_ms(void);
+
+/* link_sample: one speed-loop sample.  Telemetry: every tm_dec-th call appends the selected
+ * signals (int16, little-endian) to the frame being filled; a frame not sent yet when the next
+ * is due counts a drop (tm_dropped, saturating at 65535).  Capture: every cap_dec-th call one
+ * sample into the ring (at most LINK_CAPTURE_WORDS words), trigger by setpoint write or a signed
+ * int16 threshold crossing (speed - thr cannot overflow: the comparison is on 17 bits).  Signal
+ * values are copied as they are (no scaling, no saturation).  Speed-loop interrupt; no helper;
+ * saves the table pointer around its one flash-table read (app_signal_src). */
+void     link_sample(void);
+
+/* link_event: event LINK_EVENT_BOOT (code: reset cause), LINK_EVENT_FAULT (code: LINK_FAULT_*) or
+ * LINK_EVENT_WATCHDOG (code unused), others ignored; one pending event of each kind (a newer code
+ * replaces an unsent one).  Any context (single bytes). */
+void     link_event(uint8_t event, uint8_t code);
+
+/* link_param_i16: the raw value of table entry id, saturated to [-32768, 32767] (an out-of-range
+ * 32-bit value gives the nearer limit, never its low half); 0 for an unknown id.  Main context
+ * (or with the link's interrupts masked: it reads the store and may call app_signal). */
+int16_t  link_param_i16(uint8_t id) LINK_WPARAM;
+
+/* link_param_get: the raw value of entry id, sign- or zero-extended from its C type to int32
+ * (exact: every type fits); signals through app_signal; 0 for an unknown id.  Main context. */
+int32_t  link_param_get(uint8_t id);
+#if LINK_WITH_HOST_API
+/* link_param_set: raw any int32; stored only if id is writable and min <= raw <= max (compared
+ * on 32 bits, no truncation), else LINK_NACK_UNKNOWN_PARAM / READ_ONLY / OUT_OF_RANGE and the
+ * store unchanged; app_param_changed(id) before it returns.  Main context. */
+uint8_t  link_param_set(uint8_t id, int32_t raw);
+#endif
+
+/* link_eeprom_load: LINK_EE_OK only if the image's magic, version, table hash, length and
+ * CRC-16 match and every value is within its entry's [min, max]; then all persisted parameters
+ * are stored and announced.  Any other result (BLANK, OTHER_BUILD, CORRUPT) changes nothing.
+ * Main context (startup or link_poll); reads at most LINK_EE_IMAGE_BYTES EEPROM bytes. */
+uint8_t  link_eeprom_load(void);
+
+/* link_eeprom_save: writes the image (LINK_EE_IMAGE_BYTES bytes from LINK_EE_BASE) and reads it
+ * back: 0, or LINK_NACK_EEPROM_ERROR if any byte or the CRC differs.  Main context; takes as
+ * long as the EEPROM writes (about 4 ms a byte on the PIC18F4431). */
+uint8_t  link_eeprom_save(void);
+#if LINK_WITH_HOST_API
+/* link_crc16: CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, no final XOR) of
+ * p[0..n-1], n 0..255 (0: 0xFFFF). */
 uint16_t link_crc16(const uint8_t *p, uint8_t n);
+#endif
 
 /* ---- implemented by the application ---- */
-uint8_t  app_command(uint8_t cmd, const uint8_t *arg, uint8_t n);  /* start/stop/brake/fault_clear: 0 or LINK_NACK_* */
-void     app_param_changed(uint8_t id);
-int16_t  app_signal(uint8_t signal);           /* LINK_SIG_*: raw value */
-void     app_link_lost(void);                  /* called from link_tick_ms: outputs off, latch LINK_LOST */
-uint8_t  app_tx_free(void);                    /* free bytes in the UART TX queue */
-void     app_tx_byte(uint8_t b);
+/* app_command: cmd one of LINK_CMD_START/STOP/BRAKE/FAULT_CLEAR (arg, n: the command's argument
+ * bytes, none today); 0 or a LINK_NACK_* code.  From link_poll. */
+uint8_t  app_command(uint8_t cmd, const uint8_t *arg, uint8_t n);
+/* app_param_changed: id a table id whose stored value changed (already range-checked): take it
+ * into use.  From link_poll (after the reply is sealed), link_eeprom_load, link_param_set. */
+void     app_param_changed(uint8_t id) LINK_WPARAM;
+/* app_signal: signal 0..LINK_N_SIGNALS-1 (LINK_SIG_*): its raw int16 value (the application
+ * saturates computed ones to int16).  From link_poll, and from link_sample for a NULL entry of
+ * app_signal_src (the speed-loop interrupt: then it must not take long). */
+int16_t  app_signal(uint8_t signal) LINK_WPARAM;
+/* Where each signal's int16 value lives, in data space (a flash table, indexed by LINK_SIG_*):
+ * link_sample() copies a selected signal straight from there, without a call; a NULL entry (a
+ * computed or 8-bit signal) is read through app_signal() instead.  Read in the speed-loop
+ * interrupt: the application writes these values in that interrupt, or atomically. */
+extern LINK_DATA int16_t * const app_signal_src[LINK_N_SIGNALS];
+/* app_link_lost: the watchdog expired (from link_tick_ms, the 1 kHz interrupt): outputs off,
+ * latch LINK_FAULT_LINK_LOST. */
+void     app_link_lost(void);
+/* app_tx_free: free bytes in the UART TX queue, 0..255; app_tx_byte: queue one (called only
+ * while app_tx_free() > 0).  From link_poll. */
+uint8_t  app_tx_free(void);
+void     app_tx_byte(uint8_t b) LINK_WPARAM;
+/* app_eeprom_read/write: one data-EEPROM byte at addr 0..255 (a write may wait for the previous
+ * one).  From link_poll and link_eeprom_load. */
 uint8_t  app_eeprom_read(uint8_t addr);
 void     app_eeprom_write(uint8_t addr, uint8_t value);
 

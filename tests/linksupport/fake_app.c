@@ -98,6 +98,9 @@ void app_param_changed(uint8_t id)
     last_param_changed = id;
 }
 
+/* every signal is computed from the toy drive's state: all through app_signal */
+LINK_DATA int16_t * const app_signal_src[LINK_N_SIGNALS] = { 0 };
+
 int16_t app_signal(uint8_t signal)
 {
     static const uint8_t hall_seq[6] = {1u, 3u, 2u, 6u, 4u, 5u};

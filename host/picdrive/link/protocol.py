@@ -124,7 +124,7 @@ EEPROM_HEADER_BYTES = 8
 then the persisted parameters in table order (little-endian, C-type width),
 then CRC-16/CCITT-FALSE of everything before it, high byte first."""
 
-STATE_BYTES = 106
+STATE_BYTES = 105
 """Scalar state of the C module (struct S, the value and limit registers V and X, the receive bytes rx_n, rx_ready, rx_ovf and the copy and sample pointers in link_fw.c), bytes, as avr-nm measures it;
 checked by tests/test_protocol.py."""
 

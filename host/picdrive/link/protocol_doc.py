@@ -189,6 +189,7 @@ def render_markdown(table: Table | None = None) -> str:
     a("uint8_t app_command(uint8_t cmd, const uint8_t *arg, uint8_t n);   /* start/stop/brake/fault_clear */")
     a("void    app_param_changed(uint8_t id);")
     a("int16_t app_signal(uint8_t signal);       /* LINK_SIG_* index; raw value */")
+    a("extern int16_t * const app_signal_src[];  /* LINK_SIG_*: where an int16 signal lives, or NULL */")
     a("void    app_link_lost(void);              /* from link_tick_ms: outputs off, latch LINK_LOST */")
     a("uint8_t app_tx_free(void);")
     a("void    app_tx_byte(uint8_t b);")
@@ -203,9 +204,12 @@ def render_markdown(table: Table | None = None) -> str:
       "host sends a command only after the reply to the previous one), and the frame those bytes belonged "
       "to is dropped.  It shares single bytes only, so any interrupt priority may call it.  `link_tick_ms` and `link_sample` share 16/32-bit counters (uptime, "
       "telemetry drops) that `link_poll` reads inside `LINK_CRITICAL_BEGIN()`/`LINK_CRITICAL_END()`, which "
-      "must mask their interrupt.  None of the three calls a compiler helper (no multiplication, division, "
-      "generic pointer or flash-table read), so no non-reentrant helper is shared with the main loop.  "
-      "`app_link_lost` is called from `link_tick_ms`; `app_signal` from `link_sample` and `link_poll`.  "
+      "must mask their interrupt.  None of the three calls a compiler helper (no multiplication, division "
+      "or generic pointer), so no non-reentrant helper is shared with the main loop; `link_sample` reads "
+      "the flash table `app_signal_src` (a selected signal is copied from its address, no call) and saves "
+      "and restores the table pointer around it itself.  "
+      "`app_link_lost` is called from `link_tick_ms`; `app_signal` from `link_poll` and, for a NULL entry "
+      "of `app_signal_src`, from `link_sample`.  "
       "Parameter-store writes happen in `link_poll` inside the same critical section.")
     a("")
     a("## Decisions (where the architecture leaves the choice open)")
