@@ -174,7 +174,7 @@ static void timer_event(timer_t_ *t, int which)
         uint32_t post = ((picsim_sfr[R_T2CON] >> B_T2CON_T2OUTPS0) & 15) + 1;
         if (++t->post >= post) {
             t->post = 0;
-            PIL_TIMER2_FIRED(sfr_bit(R_PIR1, B_PIR1_TMR2IF));
+            PIL_TIMER2_FIRED(sfr_bit(R_PIR1, B_PIR1_TMR2IF), at);
             hw_setbit(R_PIR1, B_PIR1_TMR2IF);
         }
         break;

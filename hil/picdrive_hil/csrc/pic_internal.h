@@ -152,12 +152,12 @@ typedef struct {
 
 /* the processor twin counts speed-loop periods its interrupt missed (pil.c) */
 #ifdef TWIN_PIL
-static void pil_timer2_fired(int flag_was_set);
+static void pil_timer2_fired(int flag_was_set, int64_t at_ps);
 static void pil_adc_started(void);
-#define PIL_TIMER2_FIRED(was) pil_timer2_fired(was)
+#define PIL_TIMER2_FIRED(was, at) pil_timer2_fired(was, at)
 #define PIL_ADC_STARTED() pil_adc_started()
 #else
-#define PIL_TIMER2_FIRED(was) ((void)0)
+#define PIL_TIMER2_FIRED(was, at) ((void)0)
 #define PIL_ADC_STARTED() ((void)0)
 #endif
 

@@ -36,6 +36,8 @@ typedef struct {
     leg_t run_leg[3];         /* inverter state over the present run (the plant step's) */
     uint8_t lines;            /* interrupt request lines driven */
     int dead;                 /* the core stopped on a fault: outputs off until power-on */
+    uint64_t t2_fired;        /* cycle Timer2 last set TMR2IF (its interrupt not yet entered) */
+    int t2_waiting;
     /* interrupts in progress (nesting: low, then high) */
     int nest_n;
     struct { uint8_t what, speed, pos_read, adc_started; uint64_t start; } nest[PIL_NEST];
@@ -258,6 +260,13 @@ static void pil_irq_hook(void *ctx, int what)
             P.nest[P.nest_n].pos_read = P.nest[P.nest_n].adc_started = 0;
             P.nest[P.nest_n].speed = (uint8_t)speed_source_pending(what);
             P.nest[P.nest_n].start = P.cpu.cycles - P.cpu.irq_vector_cycles;
+            /* after the first speed-loop interrupt: fw_init runs with the interrupts off */
+            if (P.nest[P.nest_n].speed && P.t2_waiting && P.st.speed_n > 0) {
+                uint64_t st0 = P.nest[P.nest_n].start;
+                uint64_t lat = st0 > P.t2_fired ? st0 - P.t2_fired : 0;
+                stat_add(lat, &P.st.lat_n, &P.st.lat_min, &P.st.lat_max, &P.st.lat_sum);
+            }
+            if (P.nest[P.nest_n].speed) P.t2_waiting = 0;
         }
         P.nest_n++;
         return;
@@ -278,9 +287,15 @@ static void pil_irq_hook(void *ctx, int what)
 
 /* Timer2 (the speed-loop timer) set TMR2IF: a period is missed when its interrupt is still
    running (it will be re-entered late) or the previous flag was never taken (lost) */
-static void pil_timer2_fired(int flag_was_set)
+static void pil_timer2_fired(int flag_was_set, int64_t at_ps)
 {
     if (!P.loaded) return;
+    if (!flag_was_set) {
+        /* the event runs at the end of the instruction that crossed it: its own time, in cycles
+           (the first cycle boundary at or after it: the flag is seen from there) */
+        P.t2_fired = (uint64_t)((at_ps - P.t0 + g.tcy_ps - 1) / g.tcy_ps);
+        P.t2_waiting = 1;
+    }
     if (flag_was_set) {
         P.st.speed_lost++;
         if (P.st.speed_n == 0) P.st.missed_at_start++;
@@ -367,6 +382,7 @@ int twin_power_on(void)
     P.t_plant = g.now;
     P.dead = 0;
     P.nest_n = 0;
+    P.t2_waiting = 0;
     P.lines = 0;
     memset(&P.st, 0, sizeof P.st);
     pic18_set_irq(&P.cpu, 0);
