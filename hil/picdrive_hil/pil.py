@@ -36,7 +36,7 @@ class PilStats(C.Structure):
         "speed_preempted", "overrun_first_cycle", "pos_reads", "pos_delay_min", "pos_delay_max",
         "pos_read_unmasked", "pos_read_after_adc", "adc_pwm_starts", "adc_in_on_time",
         "adc_phase_min_ppm", "adc_phase_max_ppm", "missed_at_start",
-        "lat_n", "lat_min", "lat_max", "lat_sum")]
+        "lat_n", "lat_min", "lat_max", "lat_sum", "steps", "stops")]
 
 
 def bind(lib: C.CDLL) -> C.CDLL:

@@ -398,6 +398,7 @@ int twin_run_until(int64_t t_end)
     g.irq_dirty = 1;
     while (g.now < t_end && !g.errors) {
         int64_t tn = next_step_end(t_end, max_off);
+        P.st.steps++;
 
         pic_compute_legs();
         memcpy(P.run_leg, g.leg, sizeof P.run_leg);
@@ -408,6 +409,7 @@ int twin_run_until(int64_t t_end)
             P.target = tn;
             pil_update_irq();
             int st = pic18_run(&P.cpu, cyc_target - P.cpu.cycles, UINT64_MAX, ~0u);
+            if (P.cpu.cycles < cyc_target && st == PIC18_OK) P.st.stops++;
             if (st == PIC18_SLEEP) {
                 P.cpu.cycles = cyc_target;           /* asleep until an interrupt request */
                 P.st.sleep_runs++;

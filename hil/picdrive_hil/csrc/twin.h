@@ -192,6 +192,8 @@ typedef struct {
     uint64_t lat_n, lat_min, lat_max, lat_sum;   /* Timer2 interrupt entry latency: cycles from TMR2IF set to
                                                     the vectoring (masked sections, other interrupts): the
                                                     speed sample's instant moves by that much */
+    uint64_t steps, stops;         /* event-loop steps (core run + plant step + events); runs an SFR access
+                                      ended early (an event moved earlier or the inverter state changed) */
 } pil_stats_t;
 
 enum { INJ_HALL = 1, INJ_OVERCURRENT = 2, INJ_LOCK_ROTOR = 3, INJ_ENCODER = 4,
