@@ -180,9 +180,12 @@ static inline void fsr_set(pic18_t *c, unsigned n, unsigned v)
     c->ram[lo[n]] = (uint8_t)v;
     c->ram[lo[n] + 1] = (uint8_t)((v >> 8) & 0x0F);
 }
+/* The indirect operands: 0xFDB-0xFDF (FSR2), 0xFE3-0xFE7 (FSR1), 0xFEB-0xFEF (FSR0), each block
+ * PLUSWn, PREINCn, POSTDECn, POSTINCn, INDFn -- address bits 2-0 = 3..7; the block's FSRnL is at
+ * (address & ~7) + 1 (0xFD9, 0xFE1, 0xFE9). */
 static inline int is_indf(unsigned a)
 {
-    return (a >= 0xFDB && a <= 0xFDF) || (a >= 0xFE3 && a <= 0xFE7) || (a >= 0xFEB && a <= 0xFEF);
+    return a >= 0xFDB && a <= 0xFEF && (a & 7) >= 3;
 }
 
 /* An INDFn/POSTINCn/POSTDECn/PREINCn/PLUSWn operand -> the address it reaches (its FSR
@@ -190,22 +193,24 @@ static inline int is_indf(unsigned a)
  * is the null target (reads 0, writes ignored: section 5.12).  Other addresses: as is. */
 static unsigned resolve(pic18_t *c, unsigned a)
 {
-    unsigned n, k, fsr, ea;
-    if (a >= 0xFEB && a <= 0xFEF) { n = 0; k = 0xFEF - a; }
-    else if (a >= 0xFE3 && a <= 0xFE7) { n = 1; k = 0xFE7 - a; }
-    else if (a >= 0xFDB && a <= 0xFDF) { n = 2; k = 0xFDF - a; }
-    else return a;
-    fsr = fsr_get(c, n);
-    switch (k) {
-    case 0: ea = fsr; break;                                             /* INDF */
-    case 1: ea = fsr; fsr_set(c, n, (fsr + 1) & 0xFFF); break;           /* POSTINC */
-    case 2: ea = fsr; fsr_set(c, n, (fsr - 1) & 0xFFF); break;           /* POSTDEC */
-    case 3: ea = (fsr + 1) & 0xFFF; fsr_set(c, n, ea); break;            /* PREINC */
+    unsigned m = a & 7, lo, fsr, ea;
+    if (a < 0xFDB || a > 0xFEF || m < 3) return a;
+    lo = (a & ~7u) + 1;
+    fsr = c->ram[lo] | ((c->ram[lo + 1] & 0x0F) << 8);
+    switch (m) {
+    case 7: ea = fsr; break;                                              /* INDF */
+    case 6: ea = fsr; fsr = (fsr + 1) & 0xFFF; goto set;                  /* POSTINC */
+    case 5: ea = fsr; fsr = (fsr - 1) & 0xFFF; goto set;                  /* POSTDEC */
+    case 4: ea = fsr = (fsr + 1) & 0xFFF; goto set;                       /* PREINC */
     default: ea = (fsr + (unsigned)(int8_t)c->ram[A_WREG]) & 0xFFF; break; /* PLUSW */
+    set:
+        c->ram[lo] = (uint8_t)fsr;
+        c->ram[lo + 1] = (uint8_t)(fsr >> 8);
+        break;
     }
-    if (n == 1) {             /* the software stack's reach (SDCC: FSR1 is the stack pointer) */
+    if (lo == A_FSR1L) {      /* the software stack's reach (SDCC: FSR1 is the stack pointer) */
         if (ea < c->fsr1_lo) c->fsr1_lo = (uint16_t)ea;
-        if (k == 2 && ea > c->fsr1_hi) c->fsr1_hi = (uint16_t)ea;
+        if (m == 5 && ea > c->fsr1_hi) c->fsr1_hi = (uint16_t)ea;
     }
     return is_indf(ea) ? A_NULL : ea;
 }
@@ -213,13 +218,11 @@ static unsigned resolve(pic18_t *c, unsigned a)
 /* the INDFn / PLUSWn address of an indirect operand without its FSR side effect */
 static unsigned resolve_nofx(pic18_t *c, unsigned a)
 {
-    unsigned n, k, ea;
-    if (a >= 0xFEB && a <= 0xFEF) { n = 0; k = 0xFEF - a; }
-    else if (a >= 0xFE3 && a <= 0xFE7) { n = 1; k = 0xFE7 - a; }
-    else if (a >= 0xFDB && a <= 0xFDF) { n = 2; k = 0xFDF - a; }
-    else return a;
-    ea = fsr_get(c, n);
-    if (k == 4) ea = (ea + (unsigned)(int8_t)c->ram[A_WREG]) & 0xFFF;
+    unsigned m = a & 7, lo, ea;
+    if (a < 0xFDB || a > 0xFEF || m < 3) return a;
+    lo = (a & ~7u) + 1;
+    ea = c->ram[lo] | ((c->ram[lo + 1] & 0x0F) << 8);
+    if (m == 3) ea = (ea + (unsigned)(int8_t)c->ram[A_WREG]) & 0xFFF;
     return is_indf(ea) ? A_NULL : ea;
 }
 
