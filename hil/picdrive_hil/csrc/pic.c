@@ -183,6 +183,27 @@ static void timer_event(timer_t_ *t, int which)
     }
 }
 
+/* Timer2's postscaler: only the wrap that completes the postscale count sets TMR2IF, so the
+   event loop is not stopped at the others.  The count (TMR2) is computed from the anchor at any
+   instant, whatever number of periods passed; the wraps passed are counted (t->post) when the
+   flag's wrap is processed, and by the processor twin before a program write to T2CON, TMR2 or
+   PR2 (the SIL's writes come at a step's end, where every wrap due was processed). */
+static uint32_t t2_postscale(void) { return ((picsim_sfr[R_T2CON] >> B_T2CON_T2OUTPS0) & 15) + 1; }
+
+static int64_t t2_flag_time(void)
+{
+    uint32_t post = t2_postscale();
+    int64_t left = (int64_t)post - 1 - (int64_t)g.t2.post;
+    if (left <= 0) return g.t2.next;
+    return g.t2.next + left * (int64_t)g.t2.modulus * g.t2.tick_ps;
+}
+
+/* the wraps up to now that leave TMR2IF alone (the one that sets it is an event of its own) */
+static void t2_catch_up(void)
+{
+    while (g.t2.on && g.t2.next <= g.now && g.t2.post + 1 < t2_postscale()) timer_event(&g.t2, 2);
+}
+
 /* ------------------------------------------------------------ PCPWM */
 
 static int ptckps(void) { return 1 << (2 * ((picsim_sfr[R_PTCON0] >> B_PTCON0_PTCKPS0) & 3)); }
@@ -967,7 +988,7 @@ int64_t pic_next_event(void)
     int64_t t = g.pwm_next;
     if (g.t0.on && g.t0.next < t) t = g.t0.next;
     if (g.t1.on && g.t1.next < t) t = g.t1.next;
-    if (g.t2.on && g.t2.next < t) t = g.t2.next;
+    if (g.t2.on) { int64_t f = t2_flag_time(); if (f < t) t = f; }
     if (g.t5.on && g.t5.next < t) t = g.t5.next;
     if (g.tx_done < t) t = g.tx_done;
     if (g.rx_arrive < t) t = g.rx_arrive;
@@ -984,7 +1005,7 @@ void pic_events_due(void)
     pic_uart_rx_schedule();
     if (g.t0.on && g.t0.next <= g.now) timer_event(&g.t0, 0);
     if (g.t1.on && g.t1.next <= g.now) timer_event(&g.t1, 1);
-    if (g.t2.on && g.t2.next <= g.now) timer_event(&g.t2, 2);
+    while (g.t2.on && g.t2.next <= g.now) timer_event(&g.t2, 2);
     if (g.t5.on && g.t5.next <= g.now) timer_event(&g.t5, 5);
     if (g.ee_done <= g.now) ee_complete();
     if (g.adc_done <= g.now) adc_complete();

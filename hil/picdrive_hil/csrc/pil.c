@@ -209,6 +209,7 @@ static void pil_sfr_write(void *ctx, uint16_t addr, uint8_t v)
 #ifdef PIL_TRACE
     fprintf(stderr, "W %llu pc=%05X %03X=%02X\n", (unsigned long long)P.cpu.cycles, P.cpu.insn_pc, addr, v);
 #endif
+    if (idx == R_T2CON || idx == R_TMR2 || idx == R_PR2) t2_catch_up();   /* with the old setting */
     picsim_sfr[idx] = v;
     g.shadow[idx] = v;
     /* high bytes of the buffered 16-bit timers: written to the buffer, loaded with the low byte */
