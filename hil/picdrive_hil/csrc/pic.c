@@ -689,6 +689,43 @@ static void adc_start(void)
     g.adc_done = vnow() + tad * (12 + acq);
 }
 
+/* the conversion time adc_start would give now (acquisition + 12 TAD) */
+static int64_t adc_conv_ps(void)
+{
+    uint8_t c2 = picsim_sfr[R_ADCON2];
+    static const int tad_div[8] = {2, 8, 32, 0, 4, 16, 64, 0};
+    int div = tad_div[c2 & 7];
+    int64_t tad = div ? tosc(div) : secs(1e-6);
+    return tad * (12 + 2 * ((c2 >> B_ADCON2_ACQT0) & 15));
+}
+
+/* the special event trigger: it starts a conversion unless one is running (GO already set) */
+static int sev_starts_conversion(void)
+{
+    return ((picsim_sfr[R_ADCON3] >> B_ADCON3_SSRC4) & 1) && g.adc_done == NEVER &&
+           ((picsim_sfr[R_ADCON0] >> B_ADCON0_ADON) & 1);
+}
+
+static void sev_fire(void)
+{
+    g.sev_at = NEVER;
+    if (sev_starts_conversion()) {
+        hw_setbit(R_ADCON0, B_ADCON0_GO);
+        adc_start();
+    }
+}
+
+/* processor twin (sev_lazy): the time the step must end at for a pending special event -- the
+   end of the conversion it starts (at its own cycle, cycle_t0 + n Tcy) when it starts one in
+   single-channel mode, else the event itself */
+static int64_t sev_horizon(void)
+{
+    if (!g.sev_lazy || !sev_starts_conversion() || ((picsim_sfr[R_ADCON0] >> B_ADCON0_ACSCH) & 1))
+        return g.sev_at;
+    int64_t at = g.cycle_t0 + (g.sev_at - g.cycle_t0 + g.tcy_ps - 1) / g.tcy_ps * g.tcy_ps;
+    return at + adc_conv_ps();
+}
+
 static void adc_complete(void)
 {
     g.adc_done = NEVER;
@@ -994,7 +1031,7 @@ int64_t pic_next_event(void)
     if (g.rx_arrive < t) t = g.rx_arrive;
     if (g.ee_done < t) t = g.ee_done;
     if (g.adc_done < t) t = g.adc_done;
-    if (g.sev_at < t) t = g.sev_at;
+    if (g.sev_at < t) { int64_t h = sev_horizon(); if (h < t) t = h; }
     return t;
 }
 
@@ -1009,15 +1046,7 @@ void pic_events_due(void)
     if (g.t5.on && g.t5.next <= g.now) timer_event(&g.t5, 5);
     if (g.ee_done <= g.now) ee_complete();
     if (g.adc_done <= g.now) adc_complete();
-    if (g.sev_at <= g.now) {
-        g.sev_at = NEVER;
-        /* the trigger starts a conversion unless one is running (GO already set) */
-        if (((picsim_sfr[R_ADCON3] >> B_ADCON3_SSRC4) & 1) && g.adc_done == NEVER &&
-            ((picsim_sfr[R_ADCON0] >> B_ADCON0_ADON) & 1)) {
-            hw_setbit(R_ADCON0, B_ADCON0_GO);
-            adc_start();
-        }
-    }
+    if (g.sev_at <= g.now) sev_fire();
     if (g.pwm_on && g.pwm_next <= g.now) pwm_boundary();
 }
 

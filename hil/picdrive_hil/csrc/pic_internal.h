@@ -115,6 +115,10 @@ typedef struct {
     int64_t adc_done;
     uint8_t adc_ch;
     int64_t sev_at;           /* the PCPWM special event (PTMR = SEVTCMP) in this period, NEVER if none */
+    int sev_lazy;             /* processor twin: a special event that starts a conversion does not end a
+                                 step; it is processed at its cycle (cycle_t0 + n Tcy) when the program
+                                 next touches an SFR or the run ends, whichever first */
+    int64_t cycle_t0;         /* processor twin: the time of cycle 0 */
 
     /* pins and inputs */
     uint8_t ext[5];           /* external pin levels A..E */

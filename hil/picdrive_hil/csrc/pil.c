@@ -124,11 +124,24 @@ static void pil_adc_started(void)
 
 /* ------------------------------------------------------------ SFR hooks */
 
+/* a special event passed during the run (it did not end the step: g.sev_lazy): processed at its
+   own cycle before the program sees any SFR, so the conversion it starts (GO, the ADC's sample
+   and completion times) is as if the run had stopped there */
+static void pil_sev_due(void)
+{
+    if (g.sev_at > g.now) return;
+    int64_t now = g.now;
+    g.now = g.cycle_t0 + (g.sev_at - g.cycle_t0 + g.tcy_ps - 1) / g.tcy_ps * g.tcy_ps;
+    sev_fire();
+    g.now = now;
+}
+
 static uint8_t pil_sfr_read(void *ctx, uint16_t addr)
 {
     (void)ctx;
     uint8_t idx = (uint8_t)addr;
     pil_clock();
+    pil_sev_due();
     uint32_t c;
     switch (idx) {
     case R_PORTA: case R_PORTB: case R_PORTC: case R_PORTD: case R_PORTE:
@@ -206,6 +219,7 @@ static void pil_sfr_write(void *ctx, uint16_t addr, uint8_t v)
     (void)ctx;
     uint8_t idx = (uint8_t)addr;
     pil_clock();
+    pil_sev_due();
 #ifdef PIL_TRACE
     fprintf(stderr, "W %llu pc=%05X %03X=%02X\n", (unsigned long long)P.cpu.cycles, P.cpu.insn_pc, addr, v);
 #endif
@@ -380,6 +394,8 @@ int twin_power_on(void)
     pic_compute_legs();
     pic18_power_on(&P.cpu);
     P.t0 = g.now;
+    g.cycle_t0 = P.t0;
+    g.sev_lazy = 1;
     P.t_plant = g.now;
     P.dead = 0;
     P.nest_n = 0;
@@ -426,6 +442,7 @@ int twin_run_until(int64_t t_end)
             P.cpu.cycles = cyc_target;
         }
         pil_clock();
+        pil_sev_due();
         (void)t_prev;
         /* the plant over the same interval (or what a read left of it), with the inverter
            state of its start */
