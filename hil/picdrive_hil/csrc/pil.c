@@ -223,6 +223,13 @@ static void pil_sfr_write(void *ctx, uint16_t addr, uint8_t v)
 #ifdef PIL_TRACE
     fprintf(stderr, "W %llu pc=%05X %03X=%02X\n", (unsigned long long)P.cpu.cycles, P.cpu.insn_pc, addr, v);
 #endif
+    /* GIEH/GIEL alone toggled with the priorities on (an atomic section): the request lines
+       (pic_irq_lines: flags, enables, priorities), the events and the outputs stay as they are;
+       the core masks the interrupts itself */
+    if (idx == R_INTCON && !((v ^ picsim_sfr[idx]) & 0x3F) && sfr_bit(R_RCON, B_RCON_IPEN)) {
+        picsim_sfr[idx] = g.shadow[idx] = v;
+        return;
+    }
     if (idx == R_T2CON || idx == R_TMR2 || idx == R_PR2) t2_catch_up();   /* with the old setting */
     picsim_sfr[idx] = v;
     g.shadow[idx] = v;
