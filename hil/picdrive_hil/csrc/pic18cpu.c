@@ -191,22 +191,21 @@ static inline int is_indf(unsigned a)
 /* An INDFn/POSTINCn/POSTDECn/PREINCn/PLUSWn operand -> the address it reaches (its FSR
  * side effect applied, once per operand); an indirect reach of one of those registers
  * is the null target (reads 0, writes ignored: section 5.12).  Other addresses: as is. */
-static unsigned resolve(pic18_t *c, unsigned a)
+static inline __attribute__((always_inline)) unsigned resolve(pic18_t *c, unsigned a)
 {
+    /* by form (address bits 2-0): the offset of the address reached from the FSR (PREINC +1,
+       PLUSW + signed W) and the FSR's change (PREINC/POSTINC +1, POSTDEC -1): no branch on the form */
+    static const uint8_t pre[8] = {0, 0, 0, 0, 1, 0, 0, 0};
+    static const int8_t step[8] = {0, 0, 0, 0, 1, -1, 1, 0};
     unsigned m = a & 7, lo, fsr, ea;
     if (a < 0xFDB || a > 0xFEF || m < 3) return a;
     lo = (a & ~7u) + 1;
     fsr = c->ram[lo] | ((c->ram[lo + 1] & 0x0F) << 8);
-    switch (m) {
-    case 7: ea = fsr; break;                                              /* INDF */
-    case 6: ea = fsr; fsr = (fsr + 1) & 0xFFF; goto set;                  /* POSTINC */
-    case 5: ea = fsr; fsr = (fsr - 1) & 0xFFF; goto set;                  /* POSTDEC */
-    case 4: ea = fsr = (fsr + 1) & 0xFFF; goto set;                       /* PREINC */
-    default: ea = (fsr + (unsigned)(int8_t)c->ram[A_WREG]) & 0xFFF; break; /* PLUSW */
-    set:
-        c->ram[lo] = (uint8_t)fsr;
-        c->ram[lo + 1] = (uint8_t)(fsr >> 8);
-        break;
+    ea = (fsr + pre[m] + (m == 3 ? (unsigned)(int8_t)c->ram[A_WREG] : 0u)) & 0xFFF;
+    if (step[m]) {
+        unsigned nf = (fsr + (unsigned)(int)step[m]) & 0xFFF;
+        c->ram[lo] = (uint8_t)nf;
+        c->ram[lo + 1] = (uint8_t)(nf >> 8);
     }
     if (lo == A_FSR1L) {      /* the software stack's reach (SDCC: FSR1 is the stack pointer) */
         if (ea < c->fsr1_lo) c->fsr1_lo = (uint16_t)ea;

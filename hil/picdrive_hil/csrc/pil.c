@@ -140,6 +140,8 @@ static uint8_t pil_sfr_read(void *ctx, uint16_t addr)
 {
     (void)ctx;
     uint8_t idx = (uint8_t)addr;
+    /* INTCON (read by every atomic section): only step-end events and the core change it */
+    if (idx == R_INTCON) return picsim_sfr[idx];
     pil_clock();
     pil_sev_due();
     uint32_t c;
