@@ -15,7 +15,13 @@
  * program reaches the model at the cycle it happens (pil_sfr_read / pil_sfr_write): timers,
  * PTMR and the ports are read as they are at that cycle.  Events are processed at the end
  * of the instruction that crosses them (at most 3 Tcy late); periodic ones (timer wraps,
- * PWM periods) keep their exact period.
+ * PWM periods) keep their exact period.  Two kinds of event do not end a step, since nothing
+ * the program or the plant sees changes with them until later: Timer2's wraps short of its
+ * postscale count (pic.c, t2_flag_time: TMR2 is computed at the read, the wraps are counted
+ * when the flag's wrap comes or before a write to T2CON/TMR2/PR2), and a PCPWM special event
+ * that starts a conversion (the step ends at the conversion's end, where the plant is sampled;
+ * the event itself is processed at its own cycle before the program's next SFR access or at
+ * the run's end, pil_sev_due).
  */
 #include "pic18cpu.h"
 #ifdef PIL_TRACE            /* -DPIL_TRACE: log every SFR write (cycle, PC, address, value) on stderr */
