@@ -715,6 +715,36 @@ static void sev_fire(void)
     }
 }
 
+static int64_t cycle_ceil(int64_t t) { return g.cycle_t0 + (t - g.cycle_t0 + g.tcy_ps - 1) / g.tcy_ps * g.tcy_ps; }
+
+/* processor twin (sev_lazy): a PWM period boundary that changes nothing the plant or the request
+   lines see -- free-running edge-aligned time base, no buffered write to load (PTPER, PDCx,
+   PTCON0: pwm_buf_stale), no synchronised override or cycle-by-cycle fault to apply, PTIF's
+   interrupt off -- need not end a step: it is processed at its own time (pil_lazy_due) */
+static int pwm_boundary_quiet(void)
+{
+    if (!g.sev_lazy || !g.pwm_on || ptmod() != 0 || g.pwm_buf_stale) return 0;
+    if ((picsim_sfr[R_PIE3] >> B_PIR3_PTIF) & 1) return 0;
+    if (((picsim_sfr[R_PWMCON1] >> B_PWMCON1_OSYNC) & 1) &&
+        (g.ovd_act != picsim_sfr[R_OVDCOND] || g.ovs_act != picsim_sfr[R_OVDCONS])) return 0;
+    if (g.flt_cbc && !g.flta_asserted) return 0;
+    return 1;
+}
+
+/* the time the step must end at for the next PWM boundary: a quiet one's next special event's
+   conversion end (single channel, started by the trigger) when it comes before the boundary
+   after; otherwise the boundary itself */
+static int64_t pwm_boundary_horizon(void)
+{
+    if (!pwm_boundary_quiet() || !((picsim_sfr[R_ADCON3] >> B_ADCON3_SSRC4) & 1) ||
+        !((picsim_sfr[R_ADCON0] >> B_ADCON0_ADON) & 1) || ((picsim_sfr[R_ADCON0] >> B_ADCON0_ACSCH) & 1))
+        return g.pwm_next;
+    uint16_t sev = (uint16_t)(sfr16(R_SEVTCMPL, R_SEVTCMPH) & 0x0FFF);
+    if (sev > g.ptper_act) return g.pwm_next;
+    int64_t h = cycle_ceil(g.pwm_next + (int64_t)sev * tcy(ptckps())) + adc_conv_ps();
+    return h < g.pwm_next + g.pwm_period ? h : g.pwm_next;
+}
+
 /* processor twin (sev_lazy): the time the step must end at for a pending special event -- the
    end of the conversion it starts (at its own cycle, cycle_t0 + n Tcy) when it starts one in
    single-channel mode, else the event itself */
@@ -722,8 +752,7 @@ static int64_t sev_horizon(void)
 {
     if (!g.sev_lazy || !sev_starts_conversion() || ((picsim_sfr[R_ADCON0] >> B_ADCON0_ACSCH) & 1))
         return g.sev_at;
-    int64_t at = g.cycle_t0 + (g.sev_at - g.cycle_t0 + g.tcy_ps - 1) / g.tcy_ps * g.tcy_ps;
-    return at + adc_conv_ps();
+    return cycle_ceil(g.sev_at) + adc_conv_ps();
 }
 
 static void adc_complete(void)
@@ -1022,7 +1051,7 @@ void pic_process_writes(void)
 
 int64_t pic_next_event(void)
 {
-    int64_t t = g.pwm_next;
+    int64_t t = g.sev_lazy ? pwm_boundary_horizon() : g.pwm_next;
     if (g.t0.on && g.t0.next < t) t = g.t0.next;
     if (g.t1.on && g.t1.next < t) t = g.t1.next;
     if (g.t2.on) { int64_t f = t2_flag_time(); if (f < t) t = f; }

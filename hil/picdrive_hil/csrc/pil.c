@@ -135,11 +135,17 @@ static void pil_adc_started(void)
    and completion times) is as if the run had stopped there */
 static void pil_sev_due(void)
 {
-    if (g.sev_at > g.now) return;
-    int64_t now = g.now;
-    g.now = g.cycle_t0 + (g.sev_at - g.cycle_t0 + g.tcy_ps - 1) / g.tcy_ps * g.tcy_ps;
-    sev_fire();
-    g.now = now;
+    for (;;) {
+        int64_t ts = g.sev_at <= g.now ? g.sev_at : NEVER;
+        /* a quiet PWM boundary passed (pwm_boundary_quiet): the next period starts at its exact
+           time (PTMR, PTIF, the next special event) */
+        int64_t tb = g.pwm_on && g.pwm_next <= g.now && pwm_boundary_quiet() ? g.pwm_next : NEVER;
+        if (ts == NEVER && tb == NEVER) return;
+        int64_t now = g.now;
+        if (ts <= tb) { g.now = cycle_ceil(ts); sev_fire(); }
+        else { g.now = cycle_ceil(tb); pwm_boundary(); }
+        g.now = now;
+    }
 }
 
 static uint8_t pil_sfr_read(void *ctx, uint16_t addr)
