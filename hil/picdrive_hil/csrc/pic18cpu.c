@@ -508,7 +508,7 @@ void pic18_request_stop(pic18_t *c) { c->event |= EV_STOP; }
 unsigned pic18_ram_written(const pic18_t *c)
 {
     unsigned n = 0;
-    for (unsigned a = 0; a < PIC18_RAM_END; a++) n += (c->ram_written[a >> 3] >> (a & 7)) & 1;
+    for (unsigned a = 0; a < PIC18_RAM_END; a++) n += c->ram_written[a] != 0;
     return n;
 }
 
@@ -706,7 +706,7 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 #define RD(a) ((a) < PIC18_RAM_END ? ram[a] : (SFR_FAST(a) && c->rd_plain[(a) & 0xFF]) ? ram[a] \
                : (SYNC(), sfr_rd(c, (a))))
 #ifdef PIC18_TRACK_RAM
-#define NOTE_WR(a) (c->ram_written[(a) >> 3] |= (uint8_t)(1u << ((a) & 7)))
+#define NOTE_WR(a) (c->ram_written[a] = 1)
 #else
 #define NOTE_WR(a) ((void)0)
 #endif

@@ -142,7 +142,8 @@ typedef struct pic18 {
     /* --- measurements (not architectural) --- */
     uint16_t fsr1_lo;          /* lowest data address reached through FSR1 (INDF1/POSTDEC1/...): 0xFFFF none */
     uint16_t fsr1_hi;          /* highest address written through POSTDEC1 (the software stack's top) */
-    uint8_t ram_written[0x1000 / 8];   /* GPR bytes written since power-on (PIC18_TRACK_RAM builds) */
+    uint8_t ram_written[0x1000];       /* GPR bytes written since power-on, one flag a byte (PIC18_TRACK_RAM
+                                          builds: a plain store per write, no read-modify-write of a bit) */
 } pic18_t;
 
 /* All functions are safe on any input: addresses are bounded, nothing allocates. */
