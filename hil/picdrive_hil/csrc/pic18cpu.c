@@ -679,6 +679,8 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
     /* an instruction limit or breakpoints: every instruction through `next` (the twin runs by
        cycles without either: one test per instruction besides the event flag) */
     const int slow = nbp != 0 || ins_end != UINT64_MAX;
+    /* NEXT's one limit test: the cycle limit, or 0 when slow (every instruction goes through next) */
+    const uint64_t cyc_lim = slow ? 0 : cyc_end;
     const pic18_op_t *const ops = c->op;   /* op of the word at byte address pc: OP_AT(pc) */
 
     if (PIC18_FATAL(c->status)) return c->status;
@@ -726,7 +728,7 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 /* threaded dispatch: each handler ends with its own indirect jump (better predicted than one
  * shared jump); anything unusual (an event, a limit, breakpoints) goes through `next` */
 #define NEXT do { \
-        if (__builtin_expect(c->event != 0, 0) || cyc >= cyc_end || slow) goto next; \
+        if (__builtin_expect(c->event != 0, 0) || cyc >= cyc_lim) goto next; \
         o = OP_AT(pc); ipc = pc; pc += 2u + (o->flags & F_2WORD); ins++; \
         goto *o->h; } while (0)
 
