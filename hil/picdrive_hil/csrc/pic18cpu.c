@@ -1000,6 +1000,12 @@ L_BTFSS: { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); if (f & (1u << B
 L_BTFSC: { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); if (!(f & (1u << BITNO(o)))) SKIP(); NEXT; }
 L_MOVFF: {
     unsigned s = o->f, d = o->x, v;
+    if (s < PIC18_RAM_END && d < PIC18_RAM_END) {   /* GPR to GPR (most of SDCC's): no SFR, no INDF */
+        CYC(2);
+        ram[d] = ram[s];
+        NOTE_WR(d);
+        NEXT;
+    }
     RESOLVE(s);
     CYC(1);
     {   /* read in the first cycle, while the PC addresses the second word (a PCL read) */
