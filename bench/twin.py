@@ -429,7 +429,8 @@ def bench_sil_pil(tmp: Path, methods=("fuzzy-hinf",), profiles=PROFILES) -> None
                 if k == "PIL":
                     extra = (f", {st.insns / x['cpu_s'] / 1e6:.0f} M simulated instructions per CPU s (with the plant); "
                              f"{st.steps / max(1e-9, pil.t):,.0f} event-loop steps per simulated s "
-                             f"({st.cycles / max(1, st.steps):.0f} cycles each: PWM periods, ADC and timer events), "
+                             f"({st.cycles / max(1, st.steps):.0f} cycles each: ADC conversion ends, trace samples, PWM periods "
+                             "that load a new duty, timer flags, UART frames), "
                              f"{st.stops / max(1e-9, pil.t):,.0f} cut short by an SFR access")
                 print(f"     {k} real-time factor over the two scenarios: {x['sim_s'] / x['wall_s']:.1f} per wall s, "
                       f"{x['sim_s'] / x['cpu_s']:.1f} per CPU s{extra}")
