@@ -21,7 +21,11 @@
  * when the flag's wrap comes or before a write to T2CON/TMR2/PR2), and a PCPWM special event
  * that starts a conversion (the step ends at the conversion's end, where the plant is sampled;
  * the event itself is processed at its own cycle before the program's next SFR access or at
- * the run's end, pil_sev_due).
+ * the run's end, pil_sev_due), and a PWM period boundary that loads nothing new
+ * (pwm_boundary_quiet: same duty and period, no override or fault to apply, PTIF's interrupt
+ * off), processed likewise at its exact time; the step then ends at the next conversion's end.
+ * What remains ends a step: conversion ends (the plant is sampled), trace samples, boundaries
+ * that load a new duty, timer flags, UART frames, hall edges.
  */
 #include "pic18cpu.h"
 #ifdef PIL_TRACE            /* -DPIL_TRACE: log every SFR write (cycle, PC, address, value) on stderr */
@@ -130,9 +134,10 @@ static void pil_adc_started(void)
 
 /* ------------------------------------------------------------ SFR hooks */
 
-/* a special event passed during the run (it did not end the step: g.sev_lazy): processed at its
-   own cycle before the program sees any SFR, so the conversion it starts (GO, the ADC's sample
-   and completion times) is as if the run had stopped there */
+/* a special event or a quiet PWM boundary passed during the run (they do not end the step:
+   g.sev_lazy): processed in time order at their own cycles before the program sees any SFR, so
+   PTMR, PTIF and the conversion started (GO, the ADC's sample and completion times) are as if
+   the run had stopped there */
 static void pil_sev_due(void)
 {
     for (;;) {
