@@ -90,10 +90,12 @@ typedef void (*pic18_irq_hook_fn)(void *ctx, int what);
 #define PIC18_HOOK_RETFIE 3
 
 typedef struct {
-    uint8_t code, flags;  /* handler; a/d/bit/s fields */
-    uint16_t f;           /* file address (access: absolute; banked: 0-255), literal, FSR index */
+    const void *h;        /* the run loop's handler for code (set by pic18_run_bp: threaded dispatch) */
     uint32_t x;           /* target word index, second operand, branch offset */
+    uint16_t f;           /* file address (access: absolute; banked: 0-255), literal, FSR index */
+    uint8_t code, flags;  /* handler; a/d/bit/s fields */
 } pic18_op_t;
+_Static_assert(sizeof(pic18_op_t) == 16, "OP_AT indexes ops by byte address x 8");
 
 typedef struct pic18 {
     /* --- visible state --- */
@@ -129,6 +131,9 @@ typedef struct pic18 {
     uint8_t eeprom[PIC18_EEPROM_N];
     uint8_t flash[PIC18_FLASH_BYTES];
     pic18_op_t op[PIC18_FLASH_WORDS + 2];   /* + two fault entries past the end */
+    void *const *disp_tab;     /* the run loop's handler table the ops' h point into (NULL: not yet) */
+    uint8_t rd_plain[256];     /* SFR 0xF00+i reads as the core's ram[] (no side effect, no model) */
+    uint8_t wr_mask[256];      /* != 0: a (non-ALU) write of SFR 0xF00+i is ram[] = v & mask, nothing else */
     /* --- peripheral model --- */
     void *ctx;
     pic18_sfr_read_fn sfr_read;
@@ -137,7 +142,8 @@ typedef struct pic18 {
     /* --- measurements (not architectural) --- */
     uint16_t fsr1_lo;          /* lowest data address reached through FSR1 (INDF1/POSTDEC1/...): 0xFFFF none */
     uint16_t fsr1_hi;          /* highest address written through POSTDEC1 (the software stack's top) */
-    uint8_t ram_written[0x1000 / 8];   /* GPR bytes written since power-on (PIC18_TRACK_RAM builds) */
+    uint8_t ram_written[0x1000];       /* GPR bytes written since power-on, one flag a byte (PIC18_TRACK_RAM
+                                          builds: a plain store per write, no read-modify-write of a bit) */
 } pic18_t;
 
 /* All functions are safe on any input: addresses are bounded, nothing allocates. */
