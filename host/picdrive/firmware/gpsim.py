@@ -265,7 +265,7 @@ static const uint8_t steps[] = {{
 }};
 static volatile uint8_t lo, hi;
 static uint16_t t, i;
-static uint8_t op, a, k, n, adc_h, adc_l;
+static uint8_t op, a, k, n, adc_h, adc_l, gie;
 static uint16_t pos;
 
 void harness_done(void) {{ for (;;) {{ }} }}
@@ -290,8 +290,10 @@ void main(void)
         op = steps[i]; a = steps[i + 1u]; k = steps[i + 2u];
         if (op == {OP_END}u) break;
         if (op == {OP_NOP}u) {{
+            gie = INTCON; INTCON = (uint8_t)(gie & 0x3Fu);   /* no interrupt inside the overhead */
             TMR1H = 0; TMR1L = 0;
-            lo = TMR1L; hi = TMR1H; keep();
+            lo = TMR1L; hi = TMR1H;
+            INTCON = gie; keep();
         }} else if (op == {OP_RX}u) {{
             RCREG = a; PIR1 |= 0x20u;
             TMR1H = 0; TMR1L = 0;
