@@ -57,6 +57,7 @@ HARNESS_INPUTS = ("INTCON", "INTCON2", "INTCON3", "PIR1", "PIR2", "PIR3", "PIE1"
                   # read in a loop until two reads agree: SDCC may read one with MOVFF (0xF6x, a GPR in
                   # bank 15 on the timing processor) and the other with a=0 (0x06x): keep them one register
                   "POSCNTL", "POSCNTH")
+OVERHEAD_READS = 8           # the harness's timer-read cost: the least of these reads
 INPUT_BASE = 0x040           # access RAM the inputs move to (0x040-0x05F)
 RESULT_ADDR = 0xB00          # uint16 results, up to 0xEFF
 MAX_RESULTS = 512
@@ -218,7 +219,10 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
         steps.extend([OP_TX, n, key("uart_tx_byte")])
         counts[mode[0] + "uart_tx_byte"] += n - 1
 
-    steps.extend([OP_NOP, 0, key("overhead")])
+    # the timer read's own cost, the least of several reads: the first read after fw_init has been seen
+    # 256 high on gpsim (Timer1's 16-bit read latch), which would lower every figure by 256
+    for _ in range(OVERHEAD_READS):
+        steps.extend([OP_NOP, 0, key("overhead")])
     for what, arg in cases:
         if what == "mode":
             mode[0] = arg + "|"
@@ -286,6 +290,7 @@ void main(void)
     TXSTA |= 0x02u; PIR1 |= 0x10u;
     fw_init();
     T1CON = 0x81;   /* again: fw_init may have configured Timer1 */
+    res[0] = 0xFFFFu;   /* the overhead slot keeps the least */
     for (i = 0u; ; i += 3u) {{
         op = steps[i]; a = steps[i + 1u]; k = steps[i + 2u];
         if (op == {OP_END}u) break;
@@ -293,7 +298,9 @@ void main(void)
             gie = INTCON; INTCON = (uint8_t)(gie & 0x3Fu);   /* no interrupt inside the overhead */
             TMR1H = 0; TMR1L = 0;
             lo = TMR1L; hi = TMR1H;
-            INTCON = gie; keep();
+            INTCON = gie;
+            t = ((uint16_t)hi << 8) | lo;
+            if (t < res[k]) res[k] = t;                     /* the least: see harness_c */
         }} else if (op == {OP_RX}u) {{
             RCREG = a; PIR1 |= 0x20u;
             TMR1H = 0; TMR1L = 0;
