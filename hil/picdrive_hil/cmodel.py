@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import ctypes as C
 
-ABI_VERSION = 1
+ABI_VERSION = 2
 
 EMF_TRAPEZOIDAL, EMF_SINUSOIDAL = 0, 1
 LOAD_ACTIVE, LOAD_PASSIVE = 0, 1
@@ -120,6 +120,7 @@ class TwinState(C.Structure):
         ("pwm_period_s", C.c_double),
         ("board_baud", C.c_double),
         ("dead_time_s", C.c_double),
+        ("outputs_off_ps", C.c_int64),
     ]
 
 

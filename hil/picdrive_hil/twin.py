@@ -418,6 +418,7 @@ class Twin:
             "gate_hi": tuple(s.gate_hi),
             "gate_lo": tuple(s.gate_lo),
             "outputs_active": bool(s.pwm_outputs_active),
+            "outputs_off_t_s": None if s.outputs_off_ps < 0 else s.outputs_off_ps / PS,
             "flta_asserted": bool(s.flta_asserted),
             "pwm_fault_latched": bool(s.pwm_fault_latched),
             "shoot_through": s.shoot_through,

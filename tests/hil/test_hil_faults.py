@@ -68,7 +68,8 @@ def test_link_loss_stops_the_drive_within_the_watchdog_timeout(open_bench):
         while time.monotonic() < end:
             s = b.twin.state()
             if not s["outputs_active"]:
-                t_off = s["t_s"]
+                t_off = s["outputs_off_t_s"]          # the instant they went off, on the twin's clock
+                assert t_off is not None and t_off > t_lo, (t_off, t_lo)
                 break
             time.sleep(0.002)
         assert t_off is not None, "the watchdog never switched the outputs off"

@@ -381,6 +381,11 @@ void pic_compute_legs(void)
         g.gate_hi[x] = (uint8_t)(fh > 0.0 ? sh : 0);
         g.gate_lo[x] = (uint8_t)(fl > 0.0 ? sl : 0);
     }
+    /* the instant the outputs went off, on the twin's clock (tests time the watchdog by it) */
+    int on = 0;
+    for (int x = 0; x < 3; x++) on |= g.leg[x].f_hi > 0.0 || g.leg[x].f_lo > 0.0;
+    if (g.outputs_were_on && !on) g.outputs_off_ps = g.now;
+    g.outputs_were_on = on;
 }
 
 static void flt_update(int64_t t_prev)

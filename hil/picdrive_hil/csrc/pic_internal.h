@@ -41,6 +41,8 @@ typedef struct {
     plant_cache_t pcache;     /* step coefficients (plant_step_cached) */
     int initialised;
     int64_t now;
+    int64_t outputs_off_ps;   /* when the bridge last went from some switch on to all off (-1: never) */
+    int outputs_were_on;
     int64_t tosc_ps, tcy_ps;
     uint8_t shadow[256];
     int in_fw;

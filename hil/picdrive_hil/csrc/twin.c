@@ -211,6 +211,7 @@ int twin_init(const twin_config_t *cfg)
     g.hall_override = -1;
     g.hall_override_until = NEVER;
     g.oc_until = -1;
+    g.outputs_off_ps = -1;
     g.load_n = 1;
     g.load_t[0] = 0.0;
     g.load_v[0] = 0.0;
@@ -307,6 +308,7 @@ void twin_get_state(twin_state_t *o)
         if (g.leg[x].f_hi > 0.0 || g.leg[x].f_lo > 0.0) act = 1;
     }
     o->pwm_outputs_active = (uint8_t)act;
+    o->outputs_off_ps = g.outputs_off_ps;
     o->enc_count = (int32_t)g.enc_count;
     o->pwm_fault_latched = (uint8_t)((picsim_sfr[R_FLTCONFIG] >> B_FLTCONFIG_FLTAS) & 1);
     o->shoot_through = g.shoot_through;

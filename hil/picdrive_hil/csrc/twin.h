@@ -14,7 +14,7 @@
 
 #include <stdint.h>
 
-#define TWIN_ABI_VERSION 1
+#define TWIN_ABI_VERSION 2
 
 /* ------------------------------------------------------------------ plant */
 
@@ -152,6 +152,7 @@ typedef struct {
     double pwm_period_s;
     double board_baud;             /* what SPBRG etc. give */
     double dead_time_s;
+    int64_t outputs_off_ps;        /* when the outputs last went from some switch on to all off; -1: never */
 } twin_state_t;
 
 enum {
