@@ -4,7 +4,7 @@
     python3 bench/pic18sim.py [--minsns 20]
 
 Runs representative programs from the differential corpus (tests/support/pic18diff.py),
-assembled by gpasm, in the simulator's normal (data-sheet) build with no breakpoints, and
+assembled by gpasm, in the simulator's normal (data-sheet) build with no breakpoints, run by cycles, and
 prints simulated instructions and instruction cycles per CPU second (time.process_time of
 the one pic18_run call, best of three runs):
   arith   what compiled code does: 16x16->32 MULWF products, 32-bit add/sub/negate/shift,
@@ -31,6 +31,13 @@ from picdrive_hil.pic18 import Pic18  # noqa: E402
 from support import pic18diff as D  # noqa: E402
 
 
+def cycles_per_insn(prog: D.Program, img) -> float:
+    """The program's cycles per instruction over its first 10^5 instructions."""
+    cpu = Pic18(img)
+    cpu.run(insns=100_000)
+    return cpu.cycles / cpu.insns
+
+
 def measure(prog: D.Program, n_insns: int, wd: Path) -> tuple[float, float, int]:
     hexp, _ = D.assemble(prog, wd)
     img = ihex.load_hex(hexp)
@@ -39,8 +46,10 @@ def measure(prog: D.Program, n_insns: int, wd: Path) -> tuple[float, float, int]
         cpu = Pic18(img)
         cpu.run(insns=10_000)                   # warm caches, past the prologue
         i0, c0 = cpu.insns, cpu.cycles
+        # by cycles, as the twin runs it (an instruction limit checks every instruction)
+        n_cycles = int(n_insns * cycles_per_insn(prog, img))
         t0 = time.process_time()
-        st = cpu.run(insns=n_insns)
+        st = cpu.run(cycles=n_cycles)
         dt = time.process_time() - t0
         if st != "ok":
             raise SystemExit(f"{prog.name}: the core stopped ({cpu.stop.message}) -- not a speed figure")

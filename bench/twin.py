@@ -405,6 +405,11 @@ def bench_sil_pil(tmp: Path, methods=("fuzzy-hinf",), profiles=PROFILES) -> None
                   f"({100 * d['speed_isr_max_fraction']:.0f} % of the period at worst), periods missed "
                   f"{d['speed_periods_missed']}; hall/UART interrupts max {r.high_max} cycles; return stack "
                   f"{r.stack_levels} levels, software stack {r.soft_stack_bytes} B; RAM written {r.ram_written} B")
+            print(f"     PIL speed sample instant: the Timer2 interrupt enters {r.entry_min}..{r.entry_max} cycles "
+                  f"after its flag (masked sections, other interrupts) and reads the position "
+                  f"{st.pos_delay_min}..{st.pos_delay_max} cycles after entering: the sample instant moves by up to "
+                  f"{(r.entry_max - r.entry_min + st.pos_delay_max - st.pos_delay_min) * r.tcy_s * 1e6:.1f} us while the "
+                  "speed estimate takes the samples as one nominal period apart (the SIL samples at the timer instant)")
             busy = st.low_sum + st.high_sum
             print(f"     why they differ: the SIL runs every handler in zero time at its event; the PIL's "
                   f"interrupts took {100 * busy / max(1, st.cycles):.0f} % of the CPU, so each speed-loop "
@@ -420,7 +425,10 @@ def bench_sil_pil(tmp: Path, methods=("fuzzy-hinf",), profiles=PROFILES) -> None
                 x = res[k]
                 extra = ""
                 if k == "PIL":
-                    extra = f", {st.insns / x['cpu_s'] / 1e6:.0f} M simulated instructions per CPU s (with the plant)"
+                    extra = (f", {st.insns / x['cpu_s'] / 1e6:.0f} M simulated instructions per CPU s (with the plant); "
+                             f"{st.steps / max(1e-9, pil.t):,.0f} event-loop steps per simulated s "
+                             f"({st.cycles / max(1, st.steps):.0f} cycles each: PWM periods, ADC and timer events), "
+                             f"{st.stops / max(1e-9, pil.t):,.0f} cut short by an SFR access")
                 print(f"     {k} real-time factor over the two scenarios: {x['sim_s'] / x['wall_s']:.1f} per wall s, "
                       f"{x['sim_s'] / x['cpu_s']:.1f} per CPU s{extra}")
             for tw in tws.values():

@@ -291,3 +291,32 @@ def test_status_reports_the_processor(tmp_path):
         assert d["ram_bytes_written"] == 1             # the delay counter at 0x010
     finally:
         srv.stop()
+
+
+@pytest.mark.parametrize("masked", [0, 40])
+def test_speed_loop_entry_latency_is_measured(tmp_path, masked):
+    """The cycles from Timer2 setting TMR2IF to its interrupt's vectoring: what moves the speed
+    sample's instant on a processor.  A `bra $` main loop delays the entry by at most the one
+    cycle of a 2-cycle instruction; a main loop that masks the interrupts for `masked` NOPs
+    delays it by up to that section's length."""
+    T2CON, PR2, PIE1, IPR1, RCON, INTCON = 0xCA, 0xCB, 0x9D, 0x9F, 0xD0, 0xF2
+    main = [movlw(0x80), movwf(RCON), clrf(IPR1), movlw(0x02), movwf(PIE1),
+            movlw(99), movwf(PR2), movlw(0xC0), movwf(INTCON), movlw(0x04), movwf(T2CON)]
+    head = 0x40 + 2 * len(main)
+    body = [0x9E00 | INTCON] + [NOP] * masked + [0x8E00 | INTCON] if masked else []   # BCF/BSF INTCON, GIEH
+    main += body
+    main += [bra(0x40 + 2 * len(main), head)]
+    isr = [0x9200 | 0x9E, NOP, 0x0010]                 # BCF PIR1, TMR2IF ; NOP ; RETFIE
+    p = write(tmp_path, hex_text({0: words(*goto(0x40)), 0x18: words(*isr), 0x40: words(*main)}))
+    tw = twin_for(p)
+    tw.run(5e-3)
+    st = tw.pil_stats()
+    r = tw.processor_report()
+    print(f"entry latency {st.lat_min}..{st.lat_max} cycles over {st.lat_n} interrupts")
+    assert st.lat_n >= st.speed_n - 2 > 40
+    assert (r.entry_min, r.entry_max) == (st.lat_min, st.lat_max)
+    if masked:
+        assert st.lat_min <= 1 and masked - 2 <= st.lat_max <= masked + 3
+    else:
+        assert st.lat_max <= 1
+    assert any(line.startswith("speed-loop interrupt entry:") for line in r.lines())

@@ -169,3 +169,50 @@ def test_eeprom_save_runs_the_unlock_sequence_on_the_core(build):
     changed = sum(a != b for a, b in zip(before, tw.eeprom()))
     assert s["eeprom_rejected"] == 0
     assert s["eeprom_writes"] >= changed > 10
+
+
+def _sig_index(name: str) -> int:
+    m = re.search(rf"#define\s+LINK_SIG_{name.upper()}\s+(\d+)u", (FW / "link_fw.h").read_text())
+    assert m, f"link_fw.h has no LINK_SIG_{name.upper()}"
+    return int(m.group(1))
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "firmware: core_speed_encoder takes consecutive speed samples as exactly one Timer2 period apart "
+    "(dt = CORE_TS_TICKS - t5 + t5_prev), but on the processor the sample instant is the interrupt's "
+    "entry latency (masked main-loop sections, a running interrupt: measured 0..160 cycles) plus the "
+    "position read's delay after entry (87..225 cycles: a hall/UART interrupt before GIEH is cleared), "
+    "so the coasting speed jumps by up to ~100 rpm from sample to sample at 2,400 rpm (the HIL suite's "
+    "test_stop_coasts_and_brake_stops_faster fails on the PIL for it).  Fix in the firmware: time the "
+    "sample (e.g. TMR2 read with the capture, dt += 4 x (TMR2 - TMR2_prev) ticks at 1:4 prescale) -- "
+    "measured on a patched build: the coast decreases monotonically.  Then remove this marker."))
+def test_hazard_speed_sample_instant_coast_is_monotonic(build):
+    """The speed the firmware measures while the motor coasts (bridge off: no torque but friction
+    and the load) never rises from one sample to the next by more than two counts: the speed
+    estimate is right whatever the speed-loop interrupt's entry latency and preemption (read on
+    the real code through its telemetry, in simulated time, with UART traffic interrupting)."""
+    tw = pil(build)
+    run_at(tw, 2400.0, 0.0)
+    _, scale = link_id_scale("speed")
+    sp, st = _sig_index("speed"), _sig_index("state")
+    command(tw, "telem_config", 20, {"mask": (1 << sp) | (1 << st), "decimation": 1, "samples_per_frame": 4})
+    command(tw, "stop", 21)
+    dec, rows = codec.StreamDecoder(), []
+    seq = 30
+    t_end = tw.t + 0.3
+    while tw.t < t_end:
+        tw.uart_write(codec.encode_command("status", seq & 0xFF))    # receive interrupts preempt
+        seq += 1
+        tw.run(1e-2)
+        for f in dec.feed(tw.uart_read()):
+            if f.type == codec.P.MSG_TELEMETRY:
+                rows.extend(codec.decode_telemetry(f.payload, 2)[1].tolist())
+    # signals travel in index order; the state's IDLE is 0 (the drive stopped: bridge off)
+    i_sp, i_st = (0, 1) if sp < st else (1, 0)
+    idle = [r[i_sp] * scale for r in rows if r[i_st] == 0]
+    assert len(rows) > 250 and len(idle) > 200
+    moving = [s for s in idle if s > 0.05 * 2400.0]
+    rises = [b - a for a, b in zip(moving, moving[1:]) if b - a > 2 * scale]
+    print(f"coast: {len(moving)} samples above 5 % of 2400 rpm, {len(rises)} rises of more than two counts "
+          f"(largest {max(rises, default=0.0):.1f} rpm)")
+    assert not rises

@@ -109,14 +109,15 @@ def _cmd(args: argparse.Namespace) -> int:
     print(srv.url, flush=True)
     if srv.pty_path:
         print(srv.pty_path, flush=True)
-    print("picdrive twin: running in real time" + (f" x{args.speed:g}" if args.speed != 1 else "")
-          + "; Ctrl-C stops", file=sys.stderr, flush=True)
 
     def _term(signum, frame):                   # SIGTERM stops like Ctrl-C (the EEPROM image is saved)
         raise KeyboardInterrupt
     import signal
+    # installed before the line that says so: a SIGTERM sent on reading it is handled
     signal.signal(signal.SIGTERM, _term)
     try:
+        print("picdrive twin: running in real time" + (f" x{args.speed:g}" if args.speed != 1 else "")
+              + "; Ctrl-C stops", file=sys.stderr, flush=True)
         srv.wait()
     except KeyboardInterrupt:
         pass

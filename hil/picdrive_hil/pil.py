@@ -35,7 +35,8 @@ class PilStats(C.Structure):
         "retfie_outside", "in_isr", "resets", "sleep_runs", "adc_starts", "rcreg_reads",
         "speed_preempted", "overrun_first_cycle", "pos_reads", "pos_delay_min", "pos_delay_max",
         "pos_read_unmasked", "pos_read_after_adc", "adc_pwm_starts", "adc_in_on_time",
-        "adc_phase_min_ppm", "adc_phase_max_ppm", "missed_at_start")]
+        "adc_phase_min_ppm", "adc_phase_max_ppm", "missed_at_start",
+        "lat_n", "lat_min", "lat_max", "lat_sum", "steps", "stops")]
 
 
 def bind(lib: C.CDLL) -> C.CDLL:
@@ -186,6 +187,9 @@ class Report:
     flash_top: int
     enlarged: bool
     speed_loop_hz: float
+    entry_min: int = 0           # Timer2 interrupt entry latency (cycles from TMR2IF to the vectoring)
+    entry_mean: float = 0.0
+    entry_max: int = 0
 
     @property
     def tcy_s(self) -> float:
@@ -201,6 +205,8 @@ class Report:
             "speed_isr_us": {"min": round(self.speed_min * us, 2), "mean": round(self.speed_mean * us, 2),
                              "max": round(self.speed_max * us, 2)},
             "speed_isr_max_fraction": round(self.speed_max / per, 4) if per else None,
+            "speed_isr_entry_latency_cycles": {"min": self.entry_min, "mean": round(self.entry_mean, 1),
+                                               "max": self.entry_max},
             "speed_periods_missed": self.speed_overrun + self.speed_lost,
             "speed_periods_overrun": self.speed_overrun, "speed_periods_lost": self.speed_lost,
             "speed_periods_missed_at_start": self.missed_at_start,
@@ -226,6 +232,9 @@ class Report:
                        f"at worst; periods missed {self.speed_overrun + self.speed_lost} "
                        f"(overran {self.speed_overrun}, lost {self.speed_lost}; {self.missed_at_start} of them "
                        "before the first speed-loop interrupt ended)")
+            out.append(f"speed-loop interrupt entry: {self.entry_min} / {self.entry_mean:.0f} / {self.entry_max} cycles "
+                       f"min/mean/max after Timer2 set its flag ({self.entry_min * us:.1f} / {self.entry_mean * us:.1f} / "
+                       f"{self.entry_max * us:.1f} us): the speed sample's instant moves by that much")
         else:
             out.append("speed-loop interrupt: not run yet")
         if self.high_n:
@@ -253,4 +262,5 @@ def report(st: PilStats, img: ihex.HexImage, fosc_hz: float, enlarged: bool, spe
         low_n=int(st.low_n), low_max=int(st.low_max),
         stack_levels=int(st.stack_high), soft_stack_bytes=soft, soft_stack_top=top,
         ram_written=int(st.ram_written), flash_used=img.flash_used, flash_top=img.flash_top,
-        enlarged=enlarged, speed_loop_hz=speed_loop_hz)
+        enlarged=enlarged, speed_loop_hz=speed_loop_hz,
+        entry_min=int(st.lat_min), entry_mean=(st.lat_sum / st.lat_n) if st.lat_n else 0.0, entry_max=int(st.lat_max))

@@ -174,13 +174,34 @@ static void timer_event(timer_t_ *t, int which)
         uint32_t post = ((picsim_sfr[R_T2CON] >> B_T2CON_T2OUTPS0) & 15) + 1;
         if (++t->post >= post) {
             t->post = 0;
-            PIL_TIMER2_FIRED(sfr_bit(R_PIR1, B_PIR1_TMR2IF));
+            PIL_TIMER2_FIRED(sfr_bit(R_PIR1, B_PIR1_TMR2IF), at);
             hw_setbit(R_PIR1, B_PIR1_TMR2IF);
         }
         break;
     }
     case 5: hw_setbit(R_PIR3, B_PIR3_TMR5IF); break;
     }
+}
+
+/* Timer2's postscaler: only the wrap that completes the postscale count sets TMR2IF, so the
+   event loop is not stopped at the others.  The count (TMR2) is computed from the anchor at any
+   instant, whatever number of periods passed; the wraps passed are counted (t->post) when the
+   flag's wrap is processed, and by the processor twin before a program write to T2CON, TMR2 or
+   PR2 (the SIL's writes come at a step's end, where every wrap due was processed). */
+static uint32_t t2_postscale(void) { return ((picsim_sfr[R_T2CON] >> B_T2CON_T2OUTPS0) & 15) + 1; }
+
+static int64_t t2_flag_time(void)
+{
+    uint32_t post = t2_postscale();
+    int64_t left = (int64_t)post - 1 - (int64_t)g.t2.post;
+    if (left <= 0) return g.t2.next;
+    return g.t2.next + left * (int64_t)g.t2.modulus * g.t2.tick_ps;
+}
+
+/* the wraps up to now that leave TMR2IF alone (the one that sets it is an event of its own) */
+static void t2_catch_up(void)
+{
+    while (g.t2.on && g.t2.next <= g.now && g.t2.post + 1 < t2_postscale()) timer_event(&g.t2, 2);
 }
 
 /* ------------------------------------------------------------ PCPWM */
@@ -668,6 +689,43 @@ static void adc_start(void)
     g.adc_done = vnow() + tad * (12 + acq);
 }
 
+/* the conversion time adc_start would give now (acquisition + 12 TAD) */
+static int64_t adc_conv_ps(void)
+{
+    uint8_t c2 = picsim_sfr[R_ADCON2];
+    static const int tad_div[8] = {2, 8, 32, 0, 4, 16, 64, 0};
+    int div = tad_div[c2 & 7];
+    int64_t tad = div ? tosc(div) : secs(1e-6);
+    return tad * (12 + 2 * ((c2 >> B_ADCON2_ACQT0) & 15));
+}
+
+/* the special event trigger: it starts a conversion unless one is running (GO already set) */
+static int sev_starts_conversion(void)
+{
+    return ((picsim_sfr[R_ADCON3] >> B_ADCON3_SSRC4) & 1) && g.adc_done == NEVER &&
+           ((picsim_sfr[R_ADCON0] >> B_ADCON0_ADON) & 1);
+}
+
+static void sev_fire(void)
+{
+    g.sev_at = NEVER;
+    if (sev_starts_conversion()) {
+        hw_setbit(R_ADCON0, B_ADCON0_GO);
+        adc_start();
+    }
+}
+
+/* processor twin (sev_lazy): the time the step must end at for a pending special event -- the
+   end of the conversion it starts (at its own cycle, cycle_t0 + n Tcy) when it starts one in
+   single-channel mode, else the event itself */
+static int64_t sev_horizon(void)
+{
+    if (!g.sev_lazy || !sev_starts_conversion() || ((picsim_sfr[R_ADCON0] >> B_ADCON0_ACSCH) & 1))
+        return g.sev_at;
+    int64_t at = g.cycle_t0 + (g.sev_at - g.cycle_t0 + g.tcy_ps - 1) / g.tcy_ps * g.tcy_ps;
+    return at + adc_conv_ps();
+}
+
 static void adc_complete(void)
 {
     g.adc_done = NEVER;
@@ -967,13 +1025,13 @@ int64_t pic_next_event(void)
     int64_t t = g.pwm_next;
     if (g.t0.on && g.t0.next < t) t = g.t0.next;
     if (g.t1.on && g.t1.next < t) t = g.t1.next;
-    if (g.t2.on && g.t2.next < t) t = g.t2.next;
+    if (g.t2.on) { int64_t f = t2_flag_time(); if (f < t) t = f; }
     if (g.t5.on && g.t5.next < t) t = g.t5.next;
     if (g.tx_done < t) t = g.tx_done;
     if (g.rx_arrive < t) t = g.rx_arrive;
     if (g.ee_done < t) t = g.ee_done;
     if (g.adc_done < t) t = g.adc_done;
-    if (g.sev_at < t) t = g.sev_at;
+    if (g.sev_at < t) { int64_t h = sev_horizon(); if (h < t) t = h; }
     return t;
 }
 
@@ -984,19 +1042,11 @@ void pic_events_due(void)
     pic_uart_rx_schedule();
     if (g.t0.on && g.t0.next <= g.now) timer_event(&g.t0, 0);
     if (g.t1.on && g.t1.next <= g.now) timer_event(&g.t1, 1);
-    if (g.t2.on && g.t2.next <= g.now) timer_event(&g.t2, 2);
+    while (g.t2.on && g.t2.next <= g.now) timer_event(&g.t2, 2);
     if (g.t5.on && g.t5.next <= g.now) timer_event(&g.t5, 5);
     if (g.ee_done <= g.now) ee_complete();
     if (g.adc_done <= g.now) adc_complete();
-    if (g.sev_at <= g.now) {
-        g.sev_at = NEVER;
-        /* the trigger starts a conversion unless one is running (GO already set) */
-        if (((picsim_sfr[R_ADCON3] >> B_ADCON3_SSRC4) & 1) && g.adc_done == NEVER &&
-            ((picsim_sfr[R_ADCON0] >> B_ADCON0_ADON) & 1)) {
-            hw_setbit(R_ADCON0, B_ADCON0_GO);
-            adc_start();
-        }
-    }
+    if (g.sev_at <= g.now) sev_fire();
     if (g.pwm_on && g.pwm_next <= g.now) pwm_boundary();
 }
 

@@ -34,8 +34,8 @@ enum {
     O_BTFSC, O_MOVFF, O_BRA, O_RCALL, O_BCOND, O_CALL, O_LFSR, O_GOTO, O_N
 };
 #define F_BANKED 1
-#define F_DEST 2
-#define F_2WORD 0x80
+#define F_2WORD 2        /* the instruction's length in bytes is 2 + (flags & F_2WORD) */
+#define F_DEST 0x80
 #define BITNO(o) (((o)->flags >> 2) & 7)
 
 /* ---------------------------------------------------------------- decode */
@@ -153,6 +153,7 @@ static void decode(pic18_t *c, uint32_t w)
     }
     }
 #undef FILEOP
+    o->h = c->disp_tab ? c->disp_tab[o->code] : 0;
 }
 
 static void decode_all(pic18_t *c)
@@ -161,6 +162,8 @@ static void decode_all(pic18_t *c)
     memset(&c->op[PIC18_FLASH_WORDS], 0, 2 * sizeof(pic18_op_t));
     c->op[PIC18_FLASH_WORDS].code = O_PCFAULT;
     c->op[PIC18_FLASH_WORDS + 1].code = O_PCFAULT;
+    for (uint32_t w = PIC18_FLASH_WORDS; w < PIC18_FLASH_WORDS + 2; w++)
+        c->op[w].h = c->disp_tab ? c->disp_tab[O_PCFAULT] : 0;
 }
 
 /* ---------------------------------------------------------------- data space */
@@ -177,32 +180,36 @@ static inline void fsr_set(pic18_t *c, unsigned n, unsigned v)
     c->ram[lo[n]] = (uint8_t)v;
     c->ram[lo[n] + 1] = (uint8_t)((v >> 8) & 0x0F);
 }
+/* The indirect operands: 0xFDB-0xFDF (FSR2), 0xFE3-0xFE7 (FSR1), 0xFEB-0xFEF (FSR0), each block
+ * PLUSWn, PREINCn, POSTDECn, POSTINCn, INDFn -- address bits 2-0 = 3..7; the block's FSRnL is at
+ * (address & ~7) + 1 (0xFD9, 0xFE1, 0xFE9). */
 static inline int is_indf(unsigned a)
 {
-    return (a >= 0xFDB && a <= 0xFDF) || (a >= 0xFE3 && a <= 0xFE7) || (a >= 0xFEB && a <= 0xFEF);
+    return a >= 0xFDB && a <= 0xFEF && (a & 7) >= 3;
 }
 
 /* An INDFn/POSTINCn/POSTDECn/PREINCn/PLUSWn operand -> the address it reaches (its FSR
  * side effect applied, once per operand); an indirect reach of one of those registers
  * is the null target (reads 0, writes ignored: section 5.12).  Other addresses: as is. */
-static unsigned resolve(pic18_t *c, unsigned a)
+static inline __attribute__((always_inline)) unsigned resolve(pic18_t *c, unsigned a)
 {
-    unsigned n, k, fsr, ea;
-    if (a >= 0xFEB && a <= 0xFEF) { n = 0; k = 0xFEF - a; }
-    else if (a >= 0xFE3 && a <= 0xFE7) { n = 1; k = 0xFE7 - a; }
-    else if (a >= 0xFDB && a <= 0xFDF) { n = 2; k = 0xFDF - a; }
-    else return a;
-    fsr = fsr_get(c, n);
-    switch (k) {
-    case 0: ea = fsr; break;                                             /* INDF */
-    case 1: ea = fsr; fsr_set(c, n, (fsr + 1) & 0xFFF); break;           /* POSTINC */
-    case 2: ea = fsr; fsr_set(c, n, (fsr - 1) & 0xFFF); break;           /* POSTDEC */
-    case 3: ea = (fsr + 1) & 0xFFF; fsr_set(c, n, ea); break;            /* PREINC */
-    default: ea = (fsr + (unsigned)(int8_t)c->ram[A_WREG]) & 0xFFF; break; /* PLUSW */
+    /* by form (address bits 2-0): the offset of the address reached from the FSR (PREINC +1,
+       PLUSW + signed W) and the FSR's change (PREINC/POSTINC +1, POSTDEC -1): no branch on the form */
+    static const uint8_t pre[8] = {0, 0, 0, 0, 1, 0, 0, 0};
+    static const int8_t step[8] = {0, 0, 0, 0, 1, -1, 1, 0};
+    unsigned m = a & 7, lo, fsr, ea;
+    if (a < 0xFDB || a > 0xFEF || m < 3) return a;
+    lo = (a & ~7u) + 1;
+    fsr = c->ram[lo] | ((c->ram[lo + 1] & 0x0F) << 8);
+    ea = (fsr + pre[m] + (m == 3 ? (unsigned)(int8_t)c->ram[A_WREG] : 0u)) & 0xFFF;
+    if (step[m]) {
+        unsigned nf = (fsr + (unsigned)(int)step[m]) & 0xFFF;
+        c->ram[lo] = (uint8_t)nf;
+        c->ram[lo + 1] = (uint8_t)(nf >> 8);
     }
-    if (n == 1) {             /* the software stack's reach (SDCC: FSR1 is the stack pointer) */
+    if (lo == A_FSR1L) {      /* the software stack's reach (SDCC: FSR1 is the stack pointer) */
         if (ea < c->fsr1_lo) c->fsr1_lo = (uint16_t)ea;
-        if (k == 2 && ea > c->fsr1_hi) c->fsr1_hi = (uint16_t)ea;
+        if (m == 5 && ea > c->fsr1_hi) c->fsr1_hi = (uint16_t)ea;
     }
     return is_indf(ea) ? A_NULL : ea;
 }
@@ -210,13 +217,11 @@ static unsigned resolve(pic18_t *c, unsigned a)
 /* the INDFn / PLUSWn address of an indirect operand without its FSR side effect */
 static unsigned resolve_nofx(pic18_t *c, unsigned a)
 {
-    unsigned n, k, ea;
-    if (a >= 0xFEB && a <= 0xFEF) { n = 0; k = 0xFEF - a; }
-    else if (a >= 0xFE3 && a <= 0xFE7) { n = 1; k = 0xFE7 - a; }
-    else if (a >= 0xFDB && a <= 0xFDF) { n = 2; k = 0xFDF - a; }
-    else return a;
-    ea = fsr_get(c, n);
-    if (k == 4) ea = (ea + (unsigned)(int8_t)c->ram[A_WREG]) & 0xFFF;
+    unsigned m = a & 7, lo, ea;
+    if (a < 0xFDB || a > 0xFEF || m < 3) return a;
+    lo = (a & ~7u) + 1;
+    ea = c->ram[lo] | ((c->ram[lo + 1] & 0x0F) << 8);
+    if (m == 3) ea = (ea + (unsigned)(int8_t)c->ram[A_WREG]) & 0xFFF;
     return is_indf(ea) ? A_NULL : ea;
 }
 
@@ -309,6 +314,7 @@ static void sfr_wr(pic18_t *c, unsigned a, uint8_t v, int alu)
 /* ---------------------------------------------------------------- stack */
 
 static void do_reset(pic18_t *c, int por);
+static void fast_tables(pic18_t *c);
 
 /* A stack fault stops the core after the instruction (EV_STOP) and, with STVREN,
  * resets it there (EV_RESET); the instruction itself completes as the datasheet says. */
@@ -419,6 +425,7 @@ void pic18_init(pic18_t *c)
     c->irq_builtin = 1;
     c->irq_vector_cycles = 2;
     c->table_cycles = 2;
+    fast_tables(c);
     decode_all(c);
     pic18_power_on(c);
 }
@@ -453,6 +460,37 @@ void pic18_flash_write_block(pic18_t *c, uint32_t addr)
     if (addr) decode(c, addr / 2 - 1);
 }
 
+/* the SFR accesses the run loop does inline (what sfr_rd / sfr_wr would do: a plain byte of
+ * ram[], masked on writes); everything else goes through them */
+static void fast_tables(pic18_t *c)
+{
+    for (unsigned i = 0; i < 256; i++) {
+        unsigned a = 0xF00 + i;
+        int model_rd = c->owned[i] && c->sfr_read, model_wr = c->owned[i] && c->sfr_write;
+        int core = 0;
+        uint8_t m = 0;
+        switch (a) {
+        case A_PCLATU: core = 1; m = 0x1F; break;
+        case A_FSR0H: case A_FSR1H: case A_FSR2H: case A_BSR: core = 1; m = 0x0F; break;
+        case A_PCLATH: case A_TABLAT: case A_PRODH: case A_PRODL: case A_FSR0L: case A_WREG:
+        case A_FSR1L: case A_FSR2L: core = 1; m = 0xFF; break;
+        case A_STATUS: core = 1; m = 0; break;      /* the ALU-write rule: sfr_wr */
+        default: break;
+        }
+        if (a < PIC18_SFR_BASE) { c->rd_plain[i] = 0; c->wr_mask[i] = 0; continue; }
+        if (core) { c->rd_plain[i] = 1; c->wr_mask[i] = m; continue; }
+        switch (a) {   /* side effects or state kept elsewhere */
+        case A_TOSU: case A_TOSH: case A_TOSL: case A_STKPTR: case A_PCL:
+        case A_TBLPTRU: case A_TBLPTRH: case A_TBLPTRL:
+            c->rd_plain[i] = 0; c->wr_mask[i] = 0; continue;
+        default: break;
+        }
+        if (is_indf(a)) { c->rd_plain[i] = 0; c->wr_mask[i] = 0; continue; }
+        c->rd_plain[i] = (uint8_t)!model_rd;
+        c->wr_mask[i] = (uint8_t)((model_wr || irq_related(a)) ? 0 : 0xFF);
+    }
+}
+
 void pic18_attach(pic18_t *c, void *ctx, pic18_sfr_read_fn rd, pic18_sfr_write_fn wr,
                   const uint8_t owned[256])
 {
@@ -462,6 +500,7 @@ void pic18_attach(pic18_t *c, void *ctx, pic18_sfr_read_fn rd, pic18_sfr_write_f
     for (int i = 0; i < 256; i++) c->owned[i] = owned ? (owned[i] != 0) : 0;
     c->irq_builtin = 0;
     c->event |= EV_IRQ;
+    fast_tables(c);
 }
 
 void pic18_set_irq_hook(pic18_t *c, pic18_irq_hook_fn fn) { c->irq_hook = fn; }
@@ -637,10 +676,18 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
     uint64_t cyc = c->cycles, ins = c->insns;
     uint32_t ipc = c->insn_pc;
     int first = 1;
+    /* an instruction limit or breakpoints: every instruction through `next` (the twin runs by
+       cycles without either: one test per instruction besides the event flag) */
+    const int slow = nbp != 0 || ins_end != UINT64_MAX;
+    const pic18_op_t *const ops = c->op;   /* op of the word at byte address pc: OP_AT(pc) */
 
     if (PIC18_FATAL(c->status)) return c->status;
     c->status = PIC18_OK;
     c->event |= EV_IRQ;
+    if (c->disp_tab != disp) {            /* first run: each op gets its handler's address */
+        c->disp_tab = disp;
+        for (uint32_t w = 0; w < PIC18_FLASH_WORDS + 2; w++) c->op[w].h = disp[c->op[w].code];
+    }
 
 /* EA: the operand's data address (banked through BSR); RESOLVE applies an INDF form once */
 #define EA() ((o->flags & F_BANKED) ? ((unsigned)(ram[A_BSR] << 8) | o->f) : o->f)
@@ -653,28 +700,35 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 #define RESOLVE_NOFX(a) do { if ((a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve_nofx(c, (a)); } while (0)
 #define RESOLVE(a) do { if ((a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve(c, (a)); } while (0)
 #define SYNC() (c->pc = pc, c->cycles = cyc, c->insn_pc = ipc)
-#define RD(a) ((a) < PIC18_RAM_END ? ram[a] : (SYNC(), sfr_rd(c, (a))))
+/* a GPR, a plain core register (rd_plain / wr_mask), or sfr_rd / sfr_wr (EA() < 0x1000; RESOLVE
+ * gives A_NULL = 0x1000 for an indirect reach of INDF) */
+#define SFR_FAST(a) ((a) >= 0xF00u && (a) < 0x1000u)
+#define RD(a) ((a) < PIC18_RAM_END ? ram[a] : (SFR_FAST(a) && c->rd_plain[(a) & 0xFF]) ? ram[a] \
+               : (SYNC(), sfr_rd(c, (a))))
 #ifdef PIC18_TRACK_RAM
 #define NOTE_WR(a) (c->ram_written[(a) >> 3] |= (uint8_t)(1u << ((a) & 7)))
 #else
 #define NOTE_WR(a) ((void)0)
 #endif
 #define WR(a, v) do { if ((a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a); } \
+                      else if (SFR_FAST(a) && c->wr_mask[(a) & 0xFF]) ram[a] = (uint8_t)((v) & c->wr_mask[(a) & 0xFF]); \
                       else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 0); } } while (0)
 #define WR_ALU(a, v) do { if ((a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a); } \
+                      else if (SFR_FAST(a) && c->wr_mask[(a) & 0xFF]) ram[a] = (uint8_t)((v) & c->wr_mask[(a) & 0xFF]); \
                       else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 1); } } while (0)
 #define DEST_ALU(a, v) do { if (o->flags & F_DEST) WR_ALU(a, v); else ram[A_WREG] = (uint8_t)(v); } while (0)
 #define DEST(a, v) do { if (o->flags & F_DEST) WR(a, v); else ram[A_WREG] = (uint8_t)(v); } while (0)
 #define SETF(mask, s) (ram[A_STATUS] = (uint8_t)((ram[A_STATUS] & ~(mask)) | (s)))
 #define CYC(n) (cyc += (n))
 #define JUMP(t) do { pc = (t) & 0x1FFFFE; if (pc >= PIC18_FLASH_BYTES) goto pc_fault_jump; } while (0)
-#define SKIP() do { unsigned n2 = (c->op[pc >> 1].flags & F_2WORD) ? 4 : 2; pc += n2; CYC(n2 / 2); } while (0)
+#define OP_AT(pc) ((const pic18_op_t *)((const char *)ops + (size_t)(pc) * (sizeof(pic18_op_t) / 2)))
+#define SKIP() do { unsigned n2 = 2u + (OP_AT(pc)->flags & F_2WORD); pc += n2; CYC(n2 / 2); } while (0)
 /* threaded dispatch: each handler ends with its own indirect jump (better predicted than one
  * shared jump); anything unusual (an event, a limit, breakpoints) goes through `next` */
 #define NEXT do { \
-        if (__builtin_expect(c->event != 0, 0) || cyc >= cyc_end || ins >= ins_end || nbp) goto next; \
-        o = &c->op[pc >> 1]; ipc = pc; pc += (o->flags & F_2WORD) ? 4 : 2; ins++; \
-        goto *disp[o->code]; } while (0)
+        if (__builtin_expect(c->event != 0, 0) || cyc >= cyc_end || slow) goto next; \
+        o = OP_AT(pc); ipc = pc; pc += 2u + (o->flags & F_2WORD); ins++; \
+        goto *o->h; } while (0)
 
     pc = c->pc;
 next:
@@ -714,9 +768,9 @@ next:
             if (pc == bps[k]) { c->status = PIC18_BREAK; goto out; }
     }
     first = 0;
-    o = &c->op[pc >> 1];
+    o = OP_AT(pc);
     ipc = pc;
-    pc += (o->flags & F_2WORD) ? 4 : 2;
+    pc += 2u + (o->flags & F_2WORD);
     ins++;
     goto *disp[o->code];
 

@@ -90,10 +90,12 @@ typedef void (*pic18_irq_hook_fn)(void *ctx, int what);
 #define PIC18_HOOK_RETFIE 3
 
 typedef struct {
-    uint8_t code, flags;  /* handler; a/d/bit/s fields */
-    uint16_t f;           /* file address (access: absolute; banked: 0-255), literal, FSR index */
+    const void *h;        /* the run loop's handler for code (set by pic18_run_bp: threaded dispatch) */
     uint32_t x;           /* target word index, second operand, branch offset */
+    uint16_t f;           /* file address (access: absolute; banked: 0-255), literal, FSR index */
+    uint8_t code, flags;  /* handler; a/d/bit/s fields */
 } pic18_op_t;
+_Static_assert(sizeof(pic18_op_t) == 16, "OP_AT indexes ops by byte address x 8");
 
 typedef struct pic18 {
     /* --- visible state --- */
@@ -129,6 +131,9 @@ typedef struct pic18 {
     uint8_t eeprom[PIC18_EEPROM_N];
     uint8_t flash[PIC18_FLASH_BYTES];
     pic18_op_t op[PIC18_FLASH_WORDS + 2];   /* + two fault entries past the end */
+    void *const *disp_tab;     /* the run loop's handler table the ops' h point into (NULL: not yet) */
+    uint8_t rd_plain[256];     /* SFR 0xF00+i reads as the core's ram[] (no side effect, no model) */
+    uint8_t wr_mask[256];      /* != 0: a (non-ALU) write of SFR 0xF00+i is ram[] = v & mask, nothing else */
     /* --- peripheral model --- */
     void *ctx;
     pic18_sfr_read_fn sfr_read;

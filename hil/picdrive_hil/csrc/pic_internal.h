@@ -115,6 +115,10 @@ typedef struct {
     int64_t adc_done;
     uint8_t adc_ch;
     int64_t sev_at;           /* the PCPWM special event (PTMR = SEVTCMP) in this period, NEVER if none */
+    int sev_lazy;             /* processor twin: a special event that starts a conversion does not end a
+                                 step; it is processed at its cycle (cycle_t0 + n Tcy) when the program
+                                 next touches an SFR or the run ends, whichever first */
+    int64_t cycle_t0;         /* processor twin: the time of cycle 0 */
 
     /* pins and inputs */
     uint8_t ext[5];           /* external pin levels A..E */
@@ -152,12 +156,12 @@ typedef struct {
 
 /* the processor twin counts speed-loop periods its interrupt missed (pil.c) */
 #ifdef TWIN_PIL
-static void pil_timer2_fired(int flag_was_set);
+static void pil_timer2_fired(int flag_was_set, int64_t at_ps);
 static void pil_adc_started(void);
-#define PIL_TIMER2_FIRED(was) pil_timer2_fired(was)
+#define PIL_TIMER2_FIRED(was, at) pil_timer2_fired(was, at)
 #define PIL_ADC_STARTED() pil_adc_started()
 #else
-#define PIL_TIMER2_FIRED(was) ((void)0)
+#define PIL_TIMER2_FIRED(was, at) ((void)0)
 #define PIL_ADC_STARTED() ((void)0)
 #endif
 

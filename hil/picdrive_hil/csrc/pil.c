@@ -15,7 +15,13 @@
  * program reaches the model at the cycle it happens (pil_sfr_read / pil_sfr_write): timers,
  * PTMR and the ports are read as they are at that cycle.  Events are processed at the end
  * of the instruction that crosses them (at most 3 Tcy late); periodic ones (timer wraps,
- * PWM periods) keep their exact period.
+ * PWM periods) keep their exact period.  Two kinds of event do not end a step, since nothing
+ * the program or the plant sees changes with them until later: Timer2's wraps short of its
+ * postscale count (pic.c, t2_flag_time: TMR2 is computed at the read, the wraps are counted
+ * when the flag's wrap comes or before a write to T2CON/TMR2/PR2), and a PCPWM special event
+ * that starts a conversion (the step ends at the conversion's end, where the plant is sampled;
+ * the event itself is processed at its own cycle before the program's next SFR access or at
+ * the run's end, pil_sev_due).
  */
 #include "pic18cpu.h"
 #ifdef PIL_TRACE            /* -DPIL_TRACE: log every SFR write (cycle, PC, address, value) on stderr */
@@ -36,6 +42,8 @@ typedef struct {
     leg_t run_leg[3];         /* inverter state over the present run (the plant step's) */
     uint8_t lines;            /* interrupt request lines driven */
     int dead;                 /* the core stopped on a fault: outputs off until power-on */
+    uint64_t t2_fired;        /* cycle Timer2 last set TMR2IF (its interrupt not yet entered) */
+    int t2_waiting;
     /* interrupts in progress (nesting: low, then high) */
     int nest_n;
     struct { uint8_t what, speed, pos_read, adc_started; uint64_t start; } nest[PIL_NEST];
@@ -122,11 +130,26 @@ static void pil_adc_started(void)
 
 /* ------------------------------------------------------------ SFR hooks */
 
+/* a special event passed during the run (it did not end the step: g.sev_lazy): processed at its
+   own cycle before the program sees any SFR, so the conversion it starts (GO, the ADC's sample
+   and completion times) is as if the run had stopped there */
+static void pil_sev_due(void)
+{
+    if (g.sev_at > g.now) return;
+    int64_t now = g.now;
+    g.now = g.cycle_t0 + (g.sev_at - g.cycle_t0 + g.tcy_ps - 1) / g.tcy_ps * g.tcy_ps;
+    sev_fire();
+    g.now = now;
+}
+
 static uint8_t pil_sfr_read(void *ctx, uint16_t addr)
 {
     (void)ctx;
     uint8_t idx = (uint8_t)addr;
+    /* INTCON (read by every atomic section): only step-end events and the core change it */
+    if (idx == R_INTCON) return picsim_sfr[idx];
     pil_clock();
+    pil_sev_due();
     uint32_t c;
     switch (idx) {
     case R_PORTA: case R_PORTB: case R_PORTC: case R_PORTD: case R_PORTE:
@@ -204,9 +227,18 @@ static void pil_sfr_write(void *ctx, uint16_t addr, uint8_t v)
     (void)ctx;
     uint8_t idx = (uint8_t)addr;
     pil_clock();
+    pil_sev_due();
 #ifdef PIL_TRACE
     fprintf(stderr, "W %llu pc=%05X %03X=%02X\n", (unsigned long long)P.cpu.cycles, P.cpu.insn_pc, addr, v);
 #endif
+    /* GIEH/GIEL alone toggled with the priorities on (an atomic section): the request lines
+       (pic_irq_lines: flags, enables, priorities), the events and the outputs stay as they are;
+       the core masks the interrupts itself */
+    if (idx == R_INTCON && !((v ^ picsim_sfr[idx]) & 0x3F) && sfr_bit(R_RCON, B_RCON_IPEN)) {
+        picsim_sfr[idx] = g.shadow[idx] = v;
+        return;
+    }
+    if (idx == R_T2CON || idx == R_TMR2 || idx == R_PR2) t2_catch_up();   /* with the old setting */
     picsim_sfr[idx] = v;
     g.shadow[idx] = v;
     /* high bytes of the buffered 16-bit timers: written to the buffer, loaded with the low byte */
@@ -258,6 +290,13 @@ static void pil_irq_hook(void *ctx, int what)
             P.nest[P.nest_n].pos_read = P.nest[P.nest_n].adc_started = 0;
             P.nest[P.nest_n].speed = (uint8_t)speed_source_pending(what);
             P.nest[P.nest_n].start = P.cpu.cycles - P.cpu.irq_vector_cycles;
+            /* after the first speed-loop interrupt: fw_init runs with the interrupts off */
+            if (P.nest[P.nest_n].speed && P.t2_waiting && P.st.speed_n > 0) {
+                uint64_t st0 = P.nest[P.nest_n].start;
+                uint64_t lat = st0 > P.t2_fired ? st0 - P.t2_fired : 0;
+                stat_add(lat, &P.st.lat_n, &P.st.lat_min, &P.st.lat_max, &P.st.lat_sum);
+            }
+            if (P.nest[P.nest_n].speed) P.t2_waiting = 0;
         }
         P.nest_n++;
         return;
@@ -278,9 +317,15 @@ static void pil_irq_hook(void *ctx, int what)
 
 /* Timer2 (the speed-loop timer) set TMR2IF: a period is missed when its interrupt is still
    running (it will be re-entered late) or the previous flag was never taken (lost) */
-static void pil_timer2_fired(int flag_was_set)
+static void pil_timer2_fired(int flag_was_set, int64_t at_ps)
 {
     if (!P.loaded) return;
+    if (!flag_was_set) {
+        /* the event runs at the end of the instruction that crossed it: its own time, in cycles
+           (the first cycle boundary at or after it: the flag is seen from there) */
+        P.t2_fired = (uint64_t)((at_ps - P.t0 + g.tcy_ps - 1) / g.tcy_ps);
+        P.t2_waiting = 1;
+    }
     if (flag_was_set) {
         P.st.speed_lost++;
         if (P.st.speed_n == 0) P.st.missed_at_start++;
@@ -364,9 +409,12 @@ int twin_power_on(void)
     pic_compute_legs();
     pic18_power_on(&P.cpu);
     P.t0 = g.now;
+    g.cycle_t0 = P.t0;
+    g.sev_lazy = 1;
     P.t_plant = g.now;
     P.dead = 0;
     P.nest_n = 0;
+    P.t2_waiting = 0;
     P.lines = 0;
     memset(&P.st, 0, sizeof P.st);
     pic18_set_irq(&P.cpu, 0);
@@ -382,6 +430,7 @@ int twin_run_until(int64_t t_end)
     g.irq_dirty = 1;
     while (g.now < t_end && !g.errors) {
         int64_t tn = next_step_end(t_end, max_off);
+        P.st.steps++;
 
         pic_compute_legs();
         memcpy(P.run_leg, g.leg, sizeof P.run_leg);
@@ -392,6 +441,7 @@ int twin_run_until(int64_t t_end)
             P.target = tn;
             pil_update_irq();
             int st = pic18_run(&P.cpu, cyc_target - P.cpu.cycles, UINT64_MAX, ~0u);
+            if (P.cpu.cycles < cyc_target && st == PIC18_OK) P.st.stops++;
             if (st == PIC18_SLEEP) {
                 P.cpu.cycles = cyc_target;           /* asleep until an interrupt request */
                 P.st.sleep_runs++;
@@ -407,6 +457,7 @@ int twin_run_until(int64_t t_end)
             P.cpu.cycles = cyc_target;
         }
         pil_clock();
+        pil_sev_due();
         (void)t_prev;
         /* the plant over the same interval (or what a read left of it), with the inverter
            state of its start */

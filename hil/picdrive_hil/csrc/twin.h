@@ -189,6 +189,11 @@ typedef struct {
     uint64_t adc_phase_min_ppm, adc_phase_max_ppm;    /* PWM phase of those starts, 1e-6 of the period */
     uint64_t missed_at_start;      /* of speed_overrun + speed_lost: before the first speed-loop interrupt ended
                                       (fw_init still running with the interrupts off, or that first one late) */
+    uint64_t lat_n, lat_min, lat_max, lat_sum;   /* Timer2 interrupt entry latency: cycles from TMR2IF set to
+                                                    the vectoring (masked sections, other interrupts): the
+                                                    speed sample's instant moves by that much */
+    uint64_t steps, stops;         /* event-loop steps (core run + plant step + events); runs an SFR access
+                                      ended early (an event moved earlier or the inverter state changed) */
 } pil_stats_t;
 
 enum { INJ_HALL = 1, INJ_OVERCURRENT = 2, INJ_LOCK_ROTOR = 3, INJ_ENCODER = 4,
