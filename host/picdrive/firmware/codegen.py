@@ -284,7 +284,8 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
         _d("FW_BAUDCON", _reg("BAUDCON", "BRG16"), "BRG16"),
         _d("FW_TXSTA", _reg("TXSTA", "TXEN", "BRGH"), "TXEN, BRGH, asynchronous"),
         _d("FW_RCSTA", _reg("RCSTA", "SPEN", "CREN"), "SPEN, CREN"),
-        _d("FW_IPR1", _reg("IPR1", "RCIP"), "RCIP high; TMR2IP, TXIP low"),
+        _d("FW_IPR1", _reg("IPR1", "RCIP", "TXIP"), "RCIP, TXIP high (a low-priority TX waits behind the "
+           "speed loop: the UART idles); TMR2IP low"),
         _d("FW_IPR3", _reg("IPR3", *(() if hall_int else ("IC1IP", "IC2QEIP", "IC3DRIP"))), "IC1IP/IC2QEIP/IC3DRIP high (halls on IC)"),
         _d("FW_PIE1", _reg("PIE1", "RCIE", "TMR2IE"), "RCIE, TMR2IE (TXIE while the TX queue holds bytes)"),
         _d("FW_PIE3", _reg("PIE3", *(() if hall_int else ("IC1IE", "IC2QEIE", "IC3DRIE"))), "IC1IE/IC2QEIE/IC3DRIE (halls on IC)"),
