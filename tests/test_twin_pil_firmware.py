@@ -177,15 +177,6 @@ def _sig_index(name: str) -> int:
     return int(m.group(1))
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "firmware: core_speed_encoder takes consecutive speed samples as exactly one Timer2 period apart "
-    "(dt = CORE_TS_TICKS - t5 + t5_prev), but on the processor the sample instant is the interrupt's "
-    "entry latency (masked main-loop sections, a running interrupt: measured 0..160 cycles) plus the "
-    "position read's delay after entry (87..225 cycles: a hall/UART interrupt before GIEH is cleared), "
-    "so the coasting speed jumps by up to ~100 rpm from sample to sample at 2,400 rpm (the HIL suite's "
-    "test_stop_coasts_and_brake_stops_faster fails on the PIL for it).  Fix in the firmware: time the "
-    "sample (e.g. TMR2 read with the capture, dt += 4 x (TMR2 - TMR2_prev) ticks at 1:4 prescale) -- "
-    "measured on a patched build: the coast decreases monotonically.  Then remove this marker."))
 def test_hazard_speed_sample_instant_coast_is_monotonic(build):
     """The speed the firmware measures while the motor coasts (bridge off: no torque but friction
     and the load) never rises from one sample to the next by more than two counts: the speed
