@@ -207,3 +207,28 @@ def test_hazard_speed_sample_instant_coast_is_monotonic(build):
     print(f"coast: {len(moving)} samples above 5 % of 2400 rpm, {len(rises)} rises of more than two counts "
           f"(largest {max(rises, default=0.0):.1f} rpm)")
     assert not rises
+
+
+def test_hazard_lock_in_the_speed_loop_keeps_the_low_priority_on(build):
+    """The speed-loop interrupt takes fw_lock too (link_sample -> app_signal for a computed signal:
+    the state).  Telemetry of the speed and the state streams for a second with no host frame (no
+    receive interrupt re-timing anything): every sample arrives and the low priority stays on.  With
+    fw_lock storing the saved GIEH/GIEL before clearing them, a speed-loop interrupt in between
+    stored GIEL = 0 over the main loop's copy: the low priority stayed off (measured on the twin at
+    0.9 s: the speed loop, 55 samples lost, and the telemetry stopped)."""
+    tw = pil(build)
+    run_at(tw, 2400.0, 0.0)
+    sp, st = _sig_index("speed"), _sig_index("state")
+    command(tw, "telem_config", 20, {"mask": (1 << sp) | (1 << st), "decimation": 1, "samples_per_frame": 4})
+    lost0 = tw.pil_stats().speed_lost
+    dec, n = codec.StreamDecoder(), 0
+    t_end = tw.t + 1.0
+    while tw.t < t_end:
+        tw.run(1e-2)
+        n += sum(len(codec.decode_telemetry(f.payload, 2)[1]) for f in dec.feed(tw.uart_read())
+                 if f.type == codec.P.MSG_TELEMETRY)
+    lost = tw.pil_stats().speed_lost - lost0
+    print(f"telemetry: {n} samples in 1 s without host frames; speed-loop periods lost {lost}")
+    assert n >= 990
+    assert lost == 0
+
