@@ -119,6 +119,31 @@ def test_integrator_only_fills_the_output_headroom():
     assert st.integ == before
 
 
+def test_mt_speed_times_each_sample_by_tmr2():
+    """Constant speed sampled late by a varying delay after the Timer2 match (the interrupt's entry
+    latency): the M/T time step corrected by the change of TMR2 (x 2^t2_t5_shift Timer5 ticks per
+    count: Timer2 1:4, Timer5 1:1 here) gives the exact count rate every sample; the time step
+    taken as exactly Ts (TMR2 ignored) does not."""
+    plan = fx.plan_fixed_point(PROFILE, fixture_law("pi1"), pcpwm.plan_pwm(PROFILE))
+    assert (plan.t2_pre, plan.ps5, plan.t2_t5_shift) == (4, 1, 2)
+    edge = 250                                       # a count every 250 Timer5 ticks (~125 rad/s)
+    exact = plan.k_speed // edge                     # K counts / ticks, whole counts apart
+    delays = [0, 40, 3, 55, 12, 0, 61, 20]           # TMR2 at each sample (entry latency / 4 Tcy)
+
+    def run(timed):
+        st, out = fx.CoreState(), []
+        for k, t2 in enumerate(delays):
+            t = k * plan.ts_ticks + (t2 << plan.t2_t5_shift)
+            fx.speed_encoder(plan, st, (t // edge) & 0xFFFF, t % edge, t2 if timed else 0, 0)
+            out.append(st.w_avg)
+        return out[1:]
+
+    timed = run(True)
+    assert timed == [exact] * len(timed), (timed, exact)
+    assert max(abs(w - exact) for w in run(False)) > exact // 100
+    assert fx.t2_ticks(plan, -3) == -12 and fx.t2_ticks(plan, 255) == 1020
+
+
 def test_integer_primitives():
     assert fx.asr32(-1, 1) == -1 and fx.asr32(-2, 1) == -1 and fx.asr32(5, 1) == 2
     assert fx.shl_sat32(1 << 30, 1) == fx.INT32_MAX and fx.shl_sat32(-(1 << 30), 1) == fx.INT32_MIN

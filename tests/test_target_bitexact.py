@@ -189,6 +189,7 @@ void main(void)
         cs.w_avg = r16();
         cs.pos_prev = (uint16_t)r16();
         cs.t5_prev = (uint16_t)r16();
+        cs.t2_prev = (uint8_t)rnd();
         v = rnd();
         j = (uint8_t)(v >> 24);
         if (j < 100u) pos = (uint16_t)(cs.pos_prev + (uint16_t)(int16_t)(int8_t)(uint8_t)(v >> 8));
@@ -200,10 +201,10 @@ void main(void)
 #if %(hall)d
         core_speed_hall(pos, t5, (uint8_t)(j ^ 1u), (uint8_t)((v >> 20) & 1u));
 #else
-        core_speed_encoder(pos, t5, j);
+        core_speed_encoder(pos, t5, (uint8_t)(v >> 8), j);
 #endif
         fold((uint16_t)cs.speed); fold(cs.speed_valid); fold((uint16_t)cs.speed); fold((uint16_t)cs.w_avg);
-        fold(cs.pos_prev); fold(cs.t5_prev);
+        fold(cs.pos_prev); fold(cs.t5_prev); fold(cs.t2_prev);
         /* core_duty */
         f = 3u;
         fold(core_duty(r16()));
@@ -331,6 +332,7 @@ def model_run(plan, n, t0, n_slots):
         st.w_avg = g.r16()
         st.pos_prev = g.r16() & 0xFFFF
         st.t5_prev = g.r16() & 0xFFFF
+        st.t2_prev = g.rnd() & 0xFF
         v = g.rnd()
         m = v >> 24
         if m < 100:
@@ -343,12 +345,12 @@ def model_run(plan, n, t0, n_slots):
         v = g.rnd()
         t5 = (v & 0xFF) if (v >> 24) < 96 else (v & 0xFFFF)
         j = 1 if ((v >> 16) & 7) == 0 else 0
-        vin["speed"] = (f"state {st}", f"pos={pos} t5={t5} ovf/valid={j} v={v:#x}")
+        vin["speed"] = (f"state {st}", f"pos={pos} t5={t5} t2={(v >> 8) & 0xFF} ovf/valid={j} v={v:#x}")
         if plan.speed_source == "hall":
             w = fx.speed_hall(plan, st, pos, t5, j ^ 1, (v >> 20) & 1)
         else:
-            w = fx.speed_encoder(plan, st, pos, t5, j)
-        for x in (w, st.speed_valid, st.speed, st.w_avg, st.pos_prev, st.t5_prev):
+            w = fx.speed_encoder(plan, st, pos, t5, (v >> 8) & 0xFF, j)
+        for x in (w, st.speed_valid, st.speed, st.w_avg, st.pos_prev, st.t5_prev, st.t2_prev):
             h.fold(x)
         vin["speed"] += (f"-> w={w} state {st}",)
         uu = g.r16()

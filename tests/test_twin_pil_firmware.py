@@ -177,15 +177,6 @@ def _sig_index(name: str) -> int:
     return int(m.group(1))
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "firmware: core_speed_encoder takes consecutive speed samples as exactly one Timer2 period apart "
-    "(dt = CORE_TS_TICKS - t5 + t5_prev), but on the processor the sample instant is the interrupt's "
-    "entry latency (masked main-loop sections, a running interrupt: measured 0..160 cycles) plus the "
-    "position read's delay after entry (87..225 cycles: a hall/UART interrupt before GIEH is cleared), "
-    "so the coasting speed jumps by up to ~100 rpm from sample to sample at 2,400 rpm (the HIL suite's "
-    "test_stop_coasts_and_brake_stops_faster fails on the PIL for it).  Fix in the firmware: time the "
-    "sample (e.g. TMR2 read with the capture, dt += 4 x (TMR2 - TMR2_prev) ticks at 1:4 prescale) -- "
-    "measured on a patched build: the coast decreases monotonically.  Then remove this marker."))
 def test_hazard_speed_sample_instant_coast_is_monotonic(build):
     """The speed the firmware measures while the motor coasts (bridge off: no torque but friction
     and the load) never rises from one sample to the next by more than two counts: the speed
@@ -216,3 +207,49 @@ def test_hazard_speed_sample_instant_coast_is_monotonic(build):
     print(f"coast: {len(moving)} samples above 5 % of 2400 rpm, {len(rises)} rises of more than two counts "
           f"(largest {max(rises, default=0.0):.1f} rpm)")
     assert not rises
+
+
+def test_hazard_lock_in_the_speed_loop_keeps_the_low_priority_on(build):
+    """The speed-loop interrupt takes fw_lock too (link_sample -> app_signal for a computed signal:
+    the state).  Telemetry of the speed and the state streams for a second with no host frame (no
+    receive interrupt re-timing anything): every sample arrives and the low priority stays on.  With
+    fw_lock storing the saved GIEH/GIEL before clearing them, a speed-loop interrupt in between
+    stored GIEL = 0 over the main loop's copy: the low priority stayed off (measured on the twin at
+    0.9 s: the speed loop, 55 samples lost, and the telemetry stopped)."""
+    tw = pil(build)
+    run_at(tw, 2400.0, 0.0)
+    sp, st = _sig_index("speed"), _sig_index("state")
+    command(tw, "telem_config", 20, {"mask": (1 << sp) | (1 << st), "decimation": 1, "samples_per_frame": 4})
+    lost0 = tw.pil_stats().speed_lost
+    dec, n = codec.StreamDecoder(), 0
+    t_end = tw.t + 1.0
+    while tw.t < t_end:
+        tw.run(1e-2)
+        n += sum(len(codec.decode_telemetry(f.payload, 2)[1]) for f in dec.feed(tw.uart_read())
+                 if f.type == codec.P.MSG_TELEMETRY)
+    lost = tw.pil_stats().speed_lost - lost0
+    print(f"telemetry: {n} samples in 1 s without host frames; speed-loop periods lost {lost}")
+    assert n >= 990
+    assert lost == 0
+
+
+def test_hand_written_interrupt_epilogues_restore_w_without_touching_status():
+    """Every hand-written interrupt exit (isr_high in drive.c.j2 and main_sdcc.c.j2) restores
+    STATUS and then only MOVFFs before RETFIE: a 'movf PREINC1, W' after the STATUS restore set
+    Z and N from W, so a high-priority interrupt between a flag-setting instruction and its
+    branch changed the branch (seen on the processor twin: the M/T speed encoder's ovf test
+    cleared speed_valid, the coasting speed jumped by 12 rpm in one sample)."""
+    from picdrive.paths import repo_root
+    flag_free = ("movff", "retfie")
+    n = 0
+    for name in ("drive.c.j2", "main_sdcc.c.j2"):
+        lines = [ln.split(";")[0].strip().lower() for ln in
+                 (repo_root() / "firmware_templates" / name).read_text().splitlines()]
+        for i, ln in enumerate(lines):
+            if ln.startswith("retfie"):
+                j = max(k for k in range(i) if lines[k].replace(" ", "").endswith("0xfd8")
+                        and lines[k].startswith("movff"))
+                tail = [x for x in lines[j + 1:i + 1] if x]
+                assert all(x.split()[0] in flag_free for x in tail), (name, tail)
+                n += 1
+    assert n >= 2

@@ -34,7 +34,8 @@ def core_structs(n_rules: int):
         _fields_ = [("law", Law), ("speed_valid", C.c_uint8), ("pos_prev", C.c_uint16), ("t5_prev", C.c_uint16),
                     ("w_avg", C.c_int16), ("r_applied", C.c_int16), ("cap", C.c_int16),
                     ("speed", C.c_int16), ("current", C.c_int16), ("u", C.c_int16), ("dir", C.c_uint8),
-                    ("hold", C.c_uint8), ("pdc", C.c_uint16), ("umin", C.c_int16), ("umax", C.c_int16)]
+                    ("hold", C.c_uint8), ("pdc", C.c_uint16), ("umin", C.c_int16), ("umax", C.c_int16),
+                    ("t2_prev", C.c_uint8)]
 
     return Params, Law, State
 
@@ -64,7 +65,7 @@ def build_core_lib(folder, out_dir=None, cc: str = "gcc"):
     # the firmware compiles the speed sensor's function only (FW_SPEED_ENCODER)
     if _speed_encoder_of(folder):
         d.core_speed_encoder.restype = None
-        d.core_speed_encoder.argtypes = [C.c_uint16, C.c_uint16, C.c_uint8]
+        d.core_speed_encoder.argtypes = [C.c_uint16, C.c_uint16, C.c_uint8, C.c_uint8]
     else:
         d.core_speed_hall.restype = None
         d.core_speed_hall.argtypes = [C.c_uint16, C.c_uint16, C.c_uint8, C.c_uint8]
@@ -213,15 +214,17 @@ def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
             a16 = (pos_prev + int(rng.integers(-200, 201))) & 0xFFFF
         if rng.random() < 0.2:
             a16 = pos_prev
-        cs.speed_valid, cs.w_avg, cs.pos_prev, cs.t5_prev = valid0, wavg0, pos_prev, prev_t5
-        st2 = CoreState(speed_valid=valid0, w_avg=wavg0, pos_prev=pos_prev, t5_prev=prev_t5)
+        t2, prev_t2 = (int(x) for x in rng.integers(0, 256, size=2))
+        cs.speed_valid, cs.w_avg, cs.pos_prev, cs.t5_prev, cs.t2_prev = valid0, wavg0, pos_prev, prev_t5, prev_t2
+        st2 = CoreState(speed_valid=valid0, w_avg=wavg0, pos_prev=pos_prev, t5_prev=prev_t5, t2_prev=prev_t2)
         if plan.speed_source == "encoder":
-            lib.core_speed_encoder(a16, b16, fl[0])
+            lib.core_speed_encoder(a16, b16, t2, fl[0])
             wc = cs.speed
-            wp = speed_encoder(plan, st2, a16, b16, fl[0])
-            ok = (wc == wp and (cs.speed_valid, cs.speed, cs.w_avg, cs.pos_prev, cs.t5_prev) ==
-                  (st2.speed_valid, st2.speed, st2.w_avg, st2.pos_prev, st2.t5_prev))
-            what = f"speed pos={a16} t5={b16} ovf={fl[0]} prev=({valid0},{wavg0},{pos_prev},{prev_t5})"
+            wp = speed_encoder(plan, st2, a16, b16, t2, fl[0])
+            ok = (wc == wp and (cs.speed_valid, cs.speed, cs.w_avg, cs.pos_prev, cs.t5_prev, cs.t2_prev) ==
+                  (st2.speed_valid, st2.speed, st2.w_avg, st2.pos_prev, st2.t5_prev, st2.t2_prev))
+            what = (f"speed pos={a16} t5={b16} t2={t2} ovf={fl[0]} "
+                    f"prev=({valid0},{wavg0},{pos_prev},{prev_t5},{prev_t2})")
         else:
             lib.core_speed_hall(a16, b16, fl[0], fl[1])
             wc = cs.speed

@@ -121,7 +121,7 @@ def closed_loop_compare(profile, law, plan: FixedPointPlan, *, t_end_s: float = 
             edge = (c if sgn > 0 else c + 1) * 2 * math.pi / cpr
             t_edge = _time_at(hist, t_now, th, edge)
             ticks = 65536 if t_edge is None else math.floor((t_now - t_edge) / tick_s)
-            speed_encoder(plan, st, c & 0xFFFF, min(ticks, 65535), 1 if ticks >= 65536 else 0)
+            speed_encoder(plan, st, c & 0xFFFF, min(ticks, 65535), 0, 1 if ticks >= 65536 else 0)  # TMR2 0: sampled on time
         else:
             yq = w if measurement == "instant" else (th - thq_prev) / ts
             st.speed = sat16(math.floor(yq * 2 ** plan.qs))

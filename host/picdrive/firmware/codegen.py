@@ -284,7 +284,8 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
         _d("FW_BAUDCON", _reg("BAUDCON", "BRG16"), "BRG16"),
         _d("FW_TXSTA", _reg("TXSTA", "TXEN", "BRGH"), "TXEN, BRGH, asynchronous"),
         _d("FW_RCSTA", _reg("RCSTA", "SPEN", "CREN"), "SPEN, CREN"),
-        _d("FW_IPR1", _reg("IPR1", "RCIP"), "RCIP high; TMR2IP, TXIP low"),
+        _d("FW_IPR1", _reg("IPR1", "RCIP", "TXIP"), "RCIP, TXIP high (a low-priority TX waits behind the "
+           "speed loop: the UART idles); TMR2IP low"),
         _d("FW_IPR3", _reg("IPR3", *(() if hall_int else ("IC1IP", "IC2QEIP", "IC3DRIP"))), "IC1IP/IC2QEIP/IC3DRIP high (halls on IC)"),
         _d("FW_PIE1", _reg("PIE1", "RCIE", "TMR2IE"), "RCIE, TMR2IE (TXIE while the TX queue holds bytes)"),
         _d("FW_PIE3", _reg("PIE3", *(() if hall_int else ("IC1IE", "IC2QEIE", "IC3DRIE"))), "IC1IE/IC2QEIE/IC3DRIE (halls on IC)"),
@@ -316,6 +317,11 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
             f"speed = K x counts / ticks: 2 pi Fcy / (T5 prescale {plan.ps5} x {plan.counts_per_rev} counts/rev) x 2^QS"
             if enc else f"speed = K / period: 2 pi / ({plan.counts_per_rev} hall edges/rev) x Fcy / T5 prescale x 2^QS")),
         _d("CORE_TS_TICKS", f"{plan.ts_ticks}", "speed-loop period in Timer5 ticks"),
+        _d("CORE_T2_T5_SH", str(plan.t2_t5_shift), f"Timer5 ticks per Timer2 count = 2^SH: Timer2 1:{plan.t2_pre}, "
+           f"Timer5 1:{plan.ps5} of Tcy (the speed sample's TMR2: its instant after the Timer2 match)"),
+        _d("CORE_T2_T5(x)", (f"((int32_t)(x) * {1 << plan.t2_t5_shift})" if plan.t2_t5_shift >= 0 else
+                             f"((int32_t)(uint16_t)((uint16_t)((x) + 256) >> {-plan.t2_t5_shift}) - {256 >> -plan.t2_t5_shift})"),
+           "a TMR2 change (-255..255) in Timer5 ticks, floor (fixedpoint.t2_ticks)"),
         _d("CORE_MT_DMAX", f"UINT32_C({0xFFFFFFFF // plan.k_speed})", "largest count step whose product with K fits 32 bits"),
         _d("CORE_KDUTY", f"UINT32_C({plan.kduty})", f"PDC counts per u LSB x 2^DUTY_SH: {plan.duty_full} / "
            f"bus_voltage_v {plan.bus_voltage_v:g} V x 2^-QU"),

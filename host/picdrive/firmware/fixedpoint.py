@@ -46,7 +46,7 @@ from ..errors import PicdriveError
 __all__ = ["FixedPointError", "Coef", "FixedPointPlan", "plan_fixed_point", "ParamSpec",
            "param_specs", "signal_specs", "law_parameters", "INT16_MIN", "INT16_MAX", "INT32_MIN", "INT32_MAX",
            "sat16", "sat32", "asr32", "shl_sat32", "shift32", "mul_q15", "premise_k",
-           "law_step", "LawState", "LawParams", "speed_encoder", "speed_hall", "duty_counts",
+           "law_step", "LawState", "LawParams", "speed_encoder", "t2_ticks", "speed_hall", "duty_counts",
            "CoreState", "core_control", "core_reset", "law_params_from_plan"]
 
 INT16_MIN, INT16_MAX = -32768, 32767
@@ -196,6 +196,13 @@ class FixedPointPlan:
     @property
     def speed_lsb_rad_s(self) -> float:
         return 2.0 ** -self.qs
+
+    @property
+    def t2_t5_shift(self) -> int:
+        """log2 of Timer5 ticks per Timer2 count (prescalers 1:t2_pre and 1:ps5 of Tcy, both
+        powers of two): a change of TMR2 at the speed sample, in Timer5 ticks, is the change
+        shifted left by this (right, floor, when negative).  C: CORE_T2_T5_SH."""
+        return (self.t2_pre.bit_length() - 1) - (self.ps5.bit_length() - 1)
 
     def to_speed_raw(self, w_rad_s: float) -> int:
         return sat16(math.floor(w_rad_s * 2 ** self.qs))
@@ -755,6 +762,7 @@ class CoreState:
     dir: int = 0
     hold: int = 0
     pdc: int = 0
+    t2_prev: int = 0             # encoder: TMR2 read with the last sample's position (its instant)
 
 
 def core_reset(plan: FixedPointPlan, st: CoreState) -> None:
@@ -773,23 +781,34 @@ def _s16(x: int) -> int:
     return x - 0x10000 if x & 0x8000 else x
 
 
-def speed_encoder(plan: FixedPointPlan, st: CoreState, pos: int, t5: int, ovf: int) -> int:
+def t2_ticks(plan: FixedPointPlan, dt2: int) -> int:
+    """A change of TMR2 (counts, -255..255) in Timer5 ticks (C: CORE_T2_T5(x))."""
+    sh = plan.t2_t5_shift
+    return dt2 << sh if sh >= 0 else dt2 >> -sh
+
+
+def speed_encoder(plan: FixedPointPlan, st: CoreState, pos: int, t5: int, t2: int, ovf: int) -> int:
     """Speed (Q qs) from the QEI position and Timer5 (C: core_speed_encoder).
 
     M/T average ``w_avg`` = counts since the last sample x K / ticks between
     the last count edges; output ``w_avg + (w_avg - previous w_avg) / 2``
     (half a sample of extrapolation).  ``pos``: POSCNT; ``t5``: Timer5 ticks
-    since the last count edge; ``ovf``: Timer5 overflowed (no edge for 65536
-    ticks).  Without a count in the sample the average may only fall, to one
-    count over the time since the last edge.
+    since the last count edge; ``t2``: TMR2 (0..255) read with them: the
+    sample's instant after the speed-loop interrupt's Timer2 period match
+    (entry latency and the code before the read), so the time between two
+    samples is Ts plus the change of TMR2 in Timer5 ticks; ``ovf``: Timer5
+    overflowed (no edge for 65536 ticks).  Without a count in the sample the
+    average may only fall, to one count over the time since the last edge.
     """
     d = _s16(pos - st.pos_prev)
     st.pos_prev = pos & 0xFFFF
     prev = st.w_avg
+    t2_prev, st.t2_prev = st.t2_prev, t2 & 0xFF
     if ovf:
         st.speed_valid = 0
     if d != 0:
-        dt = plan.ts_ticks - t5 + st.t5_prev if st.speed_valid else plan.ts_ticks
+        dt = (plan.ts_ticks - t5 + st.t5_prev + t2_ticks(plan, (t2 & 0xFF) - t2_prev)
+              if st.speed_valid else plan.ts_ticks)
         if dt < 1:
             dt = 1
         mag = -d if d < 0 else d

@@ -319,7 +319,7 @@ void main(void)
                 PIR1 = (uint8_t)((PIR1 | 0x10u) & ~0x02u); TXSTA |= 0x02u;
                 TMR1H = 0; TMR1L = 0;
                 __asm
-                CALL _isr_low
+                CALL _isr_high             ; the transmit interrupt is high priority
                 __endasm;
                 lo = TMR1L; hi = TMR1H; keep();
             }}
