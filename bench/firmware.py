@@ -76,7 +76,7 @@ def main() -> int:
     folder = Path(a.folder)
     fw = codegen.generate(prof, a.design)
     if a.regenerate:
-        codegen.write_firmware(fw, folder)
+        codegen.write_firmware(fw, folder, hex_build=True)   # the HEX too: it fits the chip
         print(f"regenerated {folder}")
     print("== what the generator chose")
     for line in fw.summary:

@@ -45,54 +45,46 @@ def test_six_bundled_designs():
     assert len(DESIGNS) == 6, [d.name for d in DESIGNS]
 
 
-FIGURES = repo_root() / "tests" / "target_figures.json"
-"""The figures each bundled design measured when they were last recorded.
-
-The issue-9 budgets (picdrive.firmware.target.BUDGETS) are not met yet: no bundled
-design fits the 18F4431 under SDCC (docs/firmware.md, "Target figures").
-Until they are, this ratchet keeps every figure from growing: a build that
-measures more than its recorded figure fails.  Record again after a change
-that shrinks a figure: ``PICDRIVE_RECORD_TARGET=1 python3 -m pytest tests/test_target.py``.
-"""
-
-
 def _figures(b, modes) -> dict[str, int]:
     worst = {k: max(c.worst[k] for c in modes.values()) for k in ("speed_loop_isr", "hall_isr", "uart_rx_byte")}
     return {"flash_bytes": b.flash_bytes, "ram_stack_bytes": b.ram_stack_bytes, **worst}
 
 
-def test_recorded_figures_cover_the_bundled_designs(built):
-    import os
-    if os.environ.get("PICDRIVE_RECORD_TARGET") == "1":
-        FIGURES.write_text(json.dumps({d: _figures(*built[d]) for d in sorted(built)}, indent=1) + "\n")
-    assert sorted(json.loads(FIGURES.read_text())) == sorted(built)
-
-
 @pytest.mark.parametrize("design", [d.name for d in DESIGNS])
-def test_design_measures_no_more_than_its_recorded_figures(built, design):
+def test_design_keeps_the_budgets_on_the_18f4431(built, design):
+    """Issue 9's 'done when': flash, static RAM + worst-case stack, the speed-loop interrupt with 4 signals and
+    a capture armed (the worst over the three telemetry modes), the hall interrupt and the UART receive."""
     b, modes = built[design]
     got = _figures(b, modes)
-    rec = json.loads(FIGURES.read_text())[design]
     figures = "\n".join(target.budget_lines(b, got))
-    grown = {k: (got[k], rec[k]) for k in rec if got[k] is None or got[k] > rec[k]}
-    assert not grown, f"{design} grew past its recorded figures {grown} (measured, recorded):\n{figures}"
+    assert b.on_chip, f"{design} does not link into the 18F4431:\n{figures}"
+    assert target.over_budget(b, got) == [], f"{design} is over the PIC18F4431's budgets:\n{figures}"
+    # a timing figure at or below the interrupt entry alone is a broken measurement (the harness's
+    # timer-read overhead once came out 256 high and made the hall and UART figures negative)
+    for k in ("speed_loop_isr", "hall_isr", "uart_rx_byte"):
+        assert got[k] > gpsim.ENTRY_CYCLES + 10, (k, got[k])
 
 
-def test_design_over_budget_is_refused_by_picdrive_firmware(built, tmp_path):
-    """While a design is over budget, the generator refuses it (nothing written) and says by how much;
-    one design (the generator's HEX path is the same for all; each build costs a gpsim run)."""
-    design = "duy2008.fuzzy-hinf.design.json"
-    b, modes = built[design]
-    bad = target.over_budget(b, _figures(b, modes))
-    profile = load_profile(json.loads((EXAMPLES / design).read_text())["profile"]["name"])
-    fw = codegen.generate(profile, EXAMPLES / design)
-    if bad:
-        with pytest.raises(codegen.CodegenError, match="does not fit the PIC18F4431's budgets"):
-            codegen.write_firmware(fw, tmp_path / "fw", hex_build=True)
-        assert not (tmp_path / "fw").exists()
-    else:
+def test_picdrive_firmware_writes_the_hex_of_a_design_that_fits(tmp_path):
+    """One design through the generator's HEX path (each build costs a gpsim run)."""
+    design = EXAMPLES / "duy2008.fuzzy-hinf.design.json"
+    profile = load_profile(json.loads(design.read_text())["profile"]["name"])
+    fw = codegen.generate(profile, design)
+    report: list[str] = []
+    codegen.write_firmware(fw, tmp_path / "fw", hex_build=True, report=report)
+    assert (tmp_path / "fw" / f"{fw.name}.hex").is_file()
+    assert any("flash" in line for line in report), report
+
+
+def test_a_design_over_budget_is_refused_and_nothing_is_written(tmp_path, monkeypatch):
+    """The refusal path: the same design against a flash budget it cannot meet."""
+    monkeypatch.setattr(target, "BUDGETS", target.Budgets(flash_bytes=4_096))
+    design = EXAMPLES / "duy2008.mixed-pid.design.json"
+    profile = load_profile(json.loads(design.read_text())["profile"]["name"])
+    fw = codegen.generate(profile, design)
+    with pytest.raises(codegen.CodegenError, match=r"does not fit the PIC18F4431's budgets \(flash \d+ B > 4096 B"):
         codegen.write_firmware(fw, tmp_path / "fw", hex_build=True)
-        assert (tmp_path / "fw" / f"{fw.name}.hex").is_file()
+    assert not (tmp_path / "fw").exists()
 
 
 @pytest.mark.parametrize("design", [d.name for d in DESIGNS])

@@ -508,7 +508,7 @@ void pic18_request_stop(pic18_t *c) { c->event |= EV_STOP; }
 unsigned pic18_ram_written(const pic18_t *c)
 {
     unsigned n = 0;
-    for (unsigned a = 0; a < PIC18_RAM_END; a++) n += c->ram_written[a] != 0;
+    for (unsigned a = 0; a < PIC18_RAM_END; a++) n += c->ram_written[a] == 1;
     return n;
 }
 
@@ -708,14 +708,16 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 #define RD(a) ((a) < PIC18_RAM_END ? ram[a] : (SFR_FAST(a) && c->rd_plain[(a) & 0xFF]) ? ram[a] \
                : (SYNC(), sfr_rd(c, (a))))
 #ifdef PIC18_TRACK_RAM
-#define NOTE_WR(a) (c->ram_written[a] = 1)
+/* 1: written; 2: only a first store of zero so far (SDCC's crt0iz clears all RAM at reset: that
+ * clear alone does not use a byte).  One branch-free store a write. */
+#define NOTE_WR(a, v) (c->ram_written[a] = (uint8_t)(((v) & 0xFF) || c->ram_written[a] ? 1 : 2))
 #else
-#define NOTE_WR(a) ((void)0)
+#define NOTE_WR(a, v) ((void)0)
 #endif
-#define WR(a, v) do { if ((a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a); } \
+#define WR(a, v) do { if ((a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a, v); } \
                       else if (SFR_FAST(a) && c->wr_mask[(a) & 0xFF]) ram[a] = (uint8_t)((v) & c->wr_mask[(a) & 0xFF]); \
                       else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 0); } } while (0)
-#define WR_ALU(a, v) do { if ((a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a); } \
+#define WR_ALU(a, v) do { if ((a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a, v); } \
                       else if (SFR_FAST(a) && c->wr_mask[(a) & 0xFF]) ram[a] = (uint8_t)((v) & c->wr_mask[(a) & 0xFF]); \
                       else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 1); } } while (0)
 #define DEST_ALU(a, v) do { if (o->flags & F_DEST) WR_ALU(a, v); else ram[A_WREG] = (uint8_t)(v); } while (0)
@@ -1003,7 +1005,7 @@ L_MOVFF: {
     if (s < PIC18_RAM_END && d < PIC18_RAM_END) {   /* GPR to GPR (most of SDCC's): no SFR, no INDF */
         CYC(2);
         ram[d] = ram[s];
-        NOTE_WR(d);
+        NOTE_WR(d, ram[d]);
         NEXT;
     }
     RESOLVE(s);

@@ -143,7 +143,8 @@ typedef struct pic18 {
     uint16_t fsr1_lo;          /* lowest data address reached through FSR1 (INDF1/POSTDEC1/...): 0xFFFF none */
     uint16_t fsr1_hi;          /* highest address written through POSTDEC1 (the software stack's top) */
     uint8_t ram_written[0x1000];       /* GPR bytes written since power-on, one flag a byte (PIC18_TRACK_RAM
-                                          builds: a plain store per write, no read-modify-write of a bit) */
+                                          builds): 1 written, 2 only cleared (a first store of zero: the
+                                          start-up clear), 0 untouched; pic18_ram_written counts the 1s */
 } pic18_t;
 
 /* All functions are safe on any input: addresses are bounded, nothing allocates. */

@@ -170,7 +170,8 @@ typedef struct {
     uint64_t fault_pc, fault_word, insn_pc;   /* insn_pc: the instruction that stopped the core */
     uint64_t pc, stkptr, stack_high;   /* return stack: STKPTR and its high-water mark (levels) */
     uint64_t fsr1_lo, fsr1_hi;     /* software stack: lowest address reached through FSR1, top (POSTDEC1) */
-    uint64_t ram_written;          /* GPR bytes written since power-on */
+    uint64_t ram_written;          /* GPR bytes written since power-on, not counting a first store of
+                                      zero (the start-up code's clear of all RAM) */
     uint64_t speed_n, speed_min, speed_max, speed_sum, speed_last;   /* speed-loop interrupt, entry to RETFIE */
     uint64_t speed_overrun;        /* Timer2 fired while the speed-loop interrupt still ran */
     uint64_t speed_lost;           /* Timer2 fired while its flag was still set (a period lost) */

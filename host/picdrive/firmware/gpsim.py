@@ -54,9 +54,16 @@ ENTRY_CYCLES = 4             # interrupt latency to the vector (3-4 Tcy) + GOTO 
 HARNESS_INPUTS = ("INTCON", "INTCON2", "INTCON3", "PIR1", "PIR2", "PIR3", "PIE1", "PIE2", "PIE3",
                   "RCREG", "RCSTA", "TXSTA", "TXREG",
                   "PORTA", "PORTB", "PORTC", "PORTD", "PORTE", "TMR5L", "TMR5H",
+                  # the speed sample's Timer2 count: set by the harness from T2_SAMPLE (free-running, it
+                  # made the figures depend on the code's own timing, which decides the M/T path taken)
+                  "TMR2",
                   # read in a loop until two reads agree: SDCC may read one with MOVFF (0xF6x, a GPR in
                   # bank 15 on the timing processor) and the other with a=0 (0x06x): keep them one register
                   "POSCNTL", "POSCNTH")
+#: Timer2 counts (1:4 Tcy) at the speed samples, in turn: the interrupt's entry latency and the
+#: code before the position read move the sample by 0..~70 counts on the chip (bench/twin.py
+#: section 4), so the M/T time step is corrected by +-280 Tcy across this sequence
+T2_SAMPLE = (3, 60, 10, 45, 0, 70, 20)
 OVERHEAD_READS = 8           # the harness's timer-read cost: the least of these reads
 INPUT_BASE = 0x040           # access RAM the inputs move to (0x040-0x05F)
 RESULT_ADDR = 0xB00          # uint16 results, up to 0xEFF
@@ -255,7 +262,7 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
     if len(keys) > 255:
         raise GpsimError("timing corpus has too many keys")
     table = ",\n".join("    " + ", ".join(f"{v}" for v in steps[i:i + 24]) for i in range(0, len(steps), 24))
-    regs = ("TMR1L", "TMR1H", "T1CON", "PIR1", "PIR3", "TXSTA", "RCREG", "INTCON", "INTCON3", "PORTC",
+    regs = ("TMR1L", "TMR1H", "T1CON", "PIR1", "PIR3", "TXSTA", "RCREG", "INTCON", "INTCON3", "PORTC", "TMR2",
             "ADRESH", "ADRESL", "TMR5L", "TMR5H", "POSCNTL", "POSCNTH")
     text = f"""/* timing harness (picdrive.gpsim): GENERATED, measurement build only */
 #include <stdint.h>
@@ -269,7 +276,8 @@ static const uint8_t steps[] = {{
 }};
 static volatile uint8_t lo, hi;
 static uint16_t t, i;
-static uint8_t op, a, k, n, adc_h, adc_l, gie;
+static const uint8_t t2_sample[] = {{{", ".join(str(v) for v in T2_SAMPLE)}}};
+static uint8_t op, a, k, n, adc_h, adc_l, gie, t2i;
 static uint16_t pos;
 
 void harness_done(void) {{ for (;;) {{ }} }}
@@ -329,6 +337,8 @@ void main(void)
             ADRESH = adc_h; ADRESL = adc_l;      /* the bus current the special event converted */
             pos = (uint16_t)(pos + (uint16_t)(int16_t)(int8_t)a);    /* encoder counts in this sample */
             POSCNTL = (uint8_t)pos; POSCNTH = (uint8_t)(pos >> 8);
+            TMR2 = t2_sample[t2i];
+            t2i = (uint8_t)(t2i + 1u == {len(T2_SAMPLE)}u ? 0u : t2i + 1u);
             PIR1 |= 0x12u; TXSTA |= 0x02u;
             TMR1H = 0; TMR1L = 0;
             __asm

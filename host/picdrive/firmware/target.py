@@ -101,14 +101,16 @@ class TargetError(PicdriveError):
 @dataclass(frozen=True)
 class Toolchain:
     sdcc: Path
-    lib_dir: Path          # share/sdcc/lib/pic16 (crt0i.o, libsdcc.lib)
+    lib_dir: Path          # share/sdcc/lib/pic16 (crt0iz.o, libsdcc.lib)
     gplink: str
     gpasm: str
     lkr: Path              # gputils' 18f4431_g.lkr
 
     @property
     def crt0(self) -> Path:
-        return self.lib_dir / "crt0i.o"
+        """SDCC's start-up that initialises data and clears the rest of RAM at every reset (what C
+        promises for statics; the generated fw_init relies on it: FW_BSS_ZEROED)."""
+        return self.lib_dir / "crt0iz.o"
 
     @property
     def libsdcc(self) -> Path:
@@ -121,7 +123,7 @@ def toolchain() -> Toolchain:
     prefix = root / "sdcc-4.2.0-pic16"
     sdcc = prefix / "bin" / "sdcc"
     lib = prefix / "share" / "sdcc" / "lib" / "pic16"
-    missing = [str(p) for p in (sdcc, lib / "crt0i.o", lib / "libsdcc.lib") if not p.is_file()]
+    missing = [str(p) for p in (sdcc, lib / "crt0iz.o", lib / "libsdcc.lib") if not p.is_file()]
     if missing:
         raise TargetError(f"the PIC18 compiler is not installed ({missing[0]} missing): run {TOOLCHAIN_SCRIPT} "
                           "(or set PICDRIVE_TOOLCHAIN to the folder it installed into)")
@@ -615,8 +617,10 @@ def build_measured(folder, out_dir, name: str = "firmware") -> Build:
 # ---------------------------------------------------------------------------
 # Budgets
 # ---------------------------------------------------------------------------
-def over_budget(build: Build, cycles: dict | None = None, budgets: Budgets = BUDGETS) -> list[str]:
-    """What exceeds its budget (empty: the firmware fits); ``cycles`` from picdrive.gpsim."""
+def over_budget(build: Build, cycles: dict | None = None, budgets: Budgets | None = None) -> list[str]:
+    """What exceeds its budget (empty: the firmware fits); ``cycles`` from picdrive.firmware.gpsim;
+    ``budgets`` default: ``BUDGETS`` as it is at the call."""
+    budgets = BUDGETS if budgets is None else budgets
     bad = []
     if not build.on_chip:
         bad.append("does not link into the 18F4431's memory")
@@ -636,8 +640,9 @@ def _cycle_budgets(b: Budgets) -> dict[str, int]:
     return {"speed_loop_isr": b.speed_loop_cycles, "hall_isr": b.hall_isr_cycles, "uart_rx_byte": b.uart_rx_cycles}
 
 
-def budget_lines(build: Build, cycles: dict | None = None, budgets: Budgets = BUDGETS) -> list[str]:
+def budget_lines(build: Build, cycles: dict | None = None, budgets: Budgets | None = None) -> list[str]:
     """The figures of a build against their budgets, one per line."""
+    budgets = BUDGETS if budgets is None else budgets
     st = "not bounded" if build.stack_bytes is None else f"{build.stack_bytes} B"
     rs = "?" if build.ram_stack_bytes is None else f"{build.ram_stack_bytes} B"
     lines = [f"flash            {build.flash_bytes:6d} B   (budget {budgets.flash_bytes} B of {FLASH_BYTES})"
