@@ -46,6 +46,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import PicdriveError
+from . import p18f4431
 
 __all__ = ["GpsimError", "measure", "measure_modes", "build_timing", "TELEMETRY_MODES", "Cycles", "ENTRY_CYCLES", "TIMING_PROCESSOR", "HARNESS_INPUTS"]
 
@@ -197,7 +198,8 @@ def _frames(package: str = "picdrive.link") -> dict[str, list[bytes]]:
 OP_END, OP_RX, OP_POLL, OP_TX, OP_ADC, OP_SPEED, OP_HALL, OP_NOP, OP_PORT = range(9)
 
 
-def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: int) -> tuple[str, list[str], dict]:
+def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: int,
+              tx_vector: str = "isr_high") -> tuple[str, list[str], dict]:
     """The timing harness: a step table and the main() that runs it.
 
     Returns (C text, result slot keys in order, {key: calls measured}).  The
@@ -327,7 +329,7 @@ void main(void)
                 PIR1 = (uint8_t)((PIR1 | 0x10u) & ~0x02u); TXSTA |= 0x02u;
                 TMR1H = 0; TMR1L = 0;
                 __asm
-                CALL _isr_high             ; the transmit interrupt is high priority
+                CALL _{tx_vector}             ; the transmit interrupt's priority (firmware_limits)
                 __endasm;
                 lo = TMR1L; hi = TMR1H; keep();
             }}
@@ -412,9 +414,12 @@ def default_corpus(modes=TELEMETRY_MODES, *, protocol_package: str = "picdrive.l
 
 
 def firmware_limits(folder) -> dict[str, int]:
-    """FW_ADC_TRIP, FW_BUS_UV and FW_BUS_OV (ADC counts) of a generated folder's drive_params.h."""
+    """FW_ADC_TRIP, FW_BUS_UV and FW_BUS_OV (ADC counts) of a generated folder's drive_params.h,
+    and ``tx_high``: 1 when IPR1's TXIP makes the UART transmit a high-priority interrupt
+    (today's firmware; c0631cc's, which bench/target.py measures beside it, had it low)."""
     text = (Path(folder) / "drive_params.h").read_text()
-    out = {}
+    m = re.search(r"#define FW_IPR1 (0x[0-9A-Fa-f]+|\d+)u?\b", text)
+    out = {"tx_high": int(bool(m and int(m[1], 0) & p18f4431.reg_value("IPR1", "TXIP")))}
     for name in ("FW_ADC_TRIP", "FW_BUS_UV", "FW_BUS_OV"):
         m = re.search(rf"#define {name} (\d+)u?\b", text)
         if not m:
@@ -461,7 +466,8 @@ def build_timing(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3,
     cases = default_corpus(modes, protocol_package=protocol_package, adc_trip=lim["FW_ADC_TRIP"])
     bus_v = 5.0 * (lim["FW_BUS_UV"] + lim["FW_BUS_OV"]) / 2 / 1023
     hall_codes = [1, 3, 2, 6, 4, 5, 1, 5, 4, 6, 2, 3, 1]    # forward, then reverse; HALL_INVALID apart
-    harness, keys, counts = harness_c(cases, hall_codes, hall_shift)
+    harness, keys, counts = harness_c(cases, hall_codes, hall_shift,
+                                      tx_vector="isr_high" if lim["tx_high"] else "isr_low")
     hdr, sfr = timing_device()
     (out / "timing.lkr").write_text(timing_lkr())
     b = build_hex(folder, out, name="timing", linker_script=out / "timing.lkr",
