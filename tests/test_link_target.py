@@ -104,13 +104,30 @@ def _bench():
     return mod
 
 
+def _host_exchange(files, frames, after=None) -> bytes:
+    """What the host build (linksupport's fake board, gcc) sends: its boot bytes, then its bytes after
+    each frame; ``after(board)`` runs on the board before it closes."""
+    from linksupport.fakeboard import FakeBoard
+    b = FakeBoard(files=files, txq_bytes=4096)
+    try:
+        b.boot()
+        host = b.take_tx()
+        for f in frames:
+            b.feed(f)
+            host += b.take_tx()
+        if after is not None:
+            after(b)
+    finally:
+        b.close()
+    return host
+
+
 def test_the_chip_answers_byte_for_byte_like_the_host_build():
     """The module on the PIC18 core (gpsim, with its assembly RX byte path and CRC) and its host
     build (gcc) get the same frames byte by byte and send the same bytes back: replies, NACKs
     (malformed, unknown, bad CRC), a duplicate replayed, a frame lost to a waiting one, garbage
     and the EEPROM image written and read back."""
     from picdrive.link import codec
-    from linksupport.fakeboard import FakeBoard
     files = build.render()
     cmd = codec.encode_command
     frames = [cmd("hello", 1), cmd("param_get", 2, {"ids": [0x00, 0x04, 0x07, 0x41]}),
@@ -124,16 +141,9 @@ def test_the_chip_answers_byte_for_byte_like_the_host_build():
               cmd("param_get", 11, {"ids": [0x07]}), bytes([0x01] * 60) + b"\x00", cmd("status", 12)]
     bench = _bench()
     chip = bench.chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
-    b = FakeBoard(files=files, txq_bytes=4096)
-    try:
-        b.boot()
-        host = b.take_tx()
-        for f in frames:
-            b.feed(f)
-            host += b.take_tx()
-        host_i16 = {i: b.lib.link_param_i16(i) for i in bench.I16_IDS}
-    finally:
-        b.close()
+    host_i16 = {}
+    host = _host_exchange(files, frames, after=lambda b: host_i16.update(
+        {i: b.lib.link_param_i16(i) for i in bench.I16_IDS}))
     # link_param_i16 (the assembly's saturation on the chip): the same for every parameter id,
     # 0 for unknown ids, the harness's values for the signals
     sig_index = {e.id: i for i, e in enumerate(t for t in P.build_table(2) if t.signal)}
@@ -221,7 +231,6 @@ def test_capture_arm_checks_on_the_chip():
     """capture_arm's argument checks (the assembly on the PIC18 core) give the host build's
     replies: every NACK reason and the largest record that fits."""
     from picdrive.link import codec
-    from linksupport.fakeboard import FakeBoard
     files = build.render()
     T = P.Trigger
     bad = [dict(mask=0), dict(mask=0x8001), dict(n_samples=0), dict(n_samples=P.CAPTURE_BYTES_DEFAULT // 2 + 1),
@@ -232,15 +241,7 @@ def test_capture_arm_checks_on_the_chip():
     frames = [codec.encode_command("capture_arm", k + 1, {**base, **d}) for k, d in enumerate(bad)]
     frames.append(codec.encode_command("capture_read", 40, {"start": 0, "count": 1}))
     chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
-    b = FakeBoard(files=files, txq_bytes=4096)
-    try:
-        b.boot()
-        host = b.take_tx()
-        for f in frames:
-            b.feed(f)
-            host += b.take_tx()
-    finally:
-        b.close()
+    host = _host_exchange(files, frames)
     dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
     assert dec_chip[1:] == dec_host[1:] and len(dec_chip) == len(frames) + 1
     nacks = [f for f in dec_chip if f.type == P.MSG_NACK and f.seq <= len(bad)]
@@ -251,22 +252,13 @@ def test_telem_config_checks_on_the_chip():
     """telem_config (the assembly on the PIC18 core) gives the host build's replies: the frame
     length, 0 when off, and OUT_OF_RANGE for an empty or foreign mask, no samples, too long a frame."""
     from picdrive.link import codec
-    from linksupport.fakeboard import FakeBoard
     files = build.render()
     cases = [(0xF, 1, 4), (0xF, 0, 0), (0x8000, 0, 9), (0, 1, 1), (0x8001, 1, 1), (0x3, 1, 0), (0xF, 1, 5),
              (0xF, 2, 4), (0x7FF, 3, 1), (0x7FF, 1, 2)]
     frames = [codec.encode_command("telem_config", k + 1, {"mask": m, "decimation": d, "samples_per_frame": n})
               for k, (m, d, n) in enumerate(cases)]
     chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
-    b = FakeBoard(files=files, txq_bytes=4096)
-    try:
-        b.boot()
-        host = b.take_tx()
-        for f in frames:
-            b.feed(f)
-            host += b.take_tx()
-    finally:
-        b.close()
+    host = _host_exchange(files, frames)
     dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
     assert dec_chip[1:] == dec_host[1:] and len(dec_chip) == len(frames) + 1
     assert [f.type == P.MSG_NACK for f in dec_chip[1:]] == [False, False, False, True, True, True, True, False,
@@ -277,7 +269,6 @@ def test_param_get_checks_on_the_chip():
     """param_get (the assembly on the PIC18 core): the host build's replies for no id, too many,
     an unknown one among known ones, and the most ids with signals among them."""
     from picdrive.link import codec
-    from linksupport.fakeboard import FakeBoard
     files = build.render()
     ids = [e.id for e in P.build_table(2).entries if not e.signal]
     frames = [codec.encode_frame(P.COMMAND_BY_NAME["param_get"].code, 1, b"", lead=True),
@@ -286,15 +277,7 @@ def test_param_get_checks_on_the_chip():
               codec.encode_command("param_get", 4, {"ids": [ids[0], 0x30, ids[1]]}),
               codec.encode_command("param_get", 5, {"ids": [e.id for e in P.build_table(2).entries][-P.PARAM_GET_MAX - 4:-4]})]
     chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames)
-    b = FakeBoard(files=files, txq_bytes=4096)
-    try:
-        b.boot()
-        host = b.take_tx()
-        for f in frames:
-            b.feed(f)
-            host += b.take_tx()
-    finally:
-        b.close()
+    host = _host_exchange(files, frames)
     dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
     assert dec_chip[1:5] == dec_host[1:5] and len(dec_chip) == len(dec_host) == len(frames) + 1
     assert [f.type == P.MSG_NACK for f in dec_chip[1:]] == [True, False, True, True, False]
@@ -312,20 +295,11 @@ def test_small_tx_room_on_the_chip():
     """With a UART queue reporting 3 free bytes (tx_drain's room running out on every poll), the
     chip still sends every frame whole and in order: the host build's bytes."""
     from picdrive.link import codec
-    from linksupport.fakeboard import FakeBoard
     files = build.render()
     frames = [codec.encode_command("hello", 1), codec.encode_command("param_get", 2, {"ids": [0x00, 0x07]}),
               codec.encode_command("status", 3)]
     chip = _bench().chip_exchange(files["link_fw.c"], files["link_fw.h"], frames, [40, 40, 40], tx_room=3)
-    b = FakeBoard(files=files, txq_bytes=4096)
-    try:
-        b.boot()
-        host = b.take_tx()
-        for f in frames:
-            b.feed(f)
-            host += b.take_tx()
-    finally:
-        b.close()
+    host = _host_exchange(files, frames)
     dec_chip, dec_host = codec.StreamDecoder().feed(chip), codec.StreamDecoder().feed(host)
     assert len(dec_chip) == len(frames) + 1
     assert dec_chip[1:3] == dec_host[1:3]                       # hello, param_get (status: uptime differs)
