@@ -406,18 +406,8 @@ uint8_t pil_peek(uint16_t addr) { return pic18_peek(&P.cpu, addr); }
 int twin_power_on(void)
 {
     if (!g.initialised || !P.loaded) return TWIN_ERR_NOT_INIT;
-    pic_reset();
+    board_reset();
     g.errors &= ~(uint32_t)TWIN_ERR_CPU;
-    g.legs_dirty = 1;
-    g.hall_pins = (uint8_t)plant_hall_code(&g.pp, g.ps.theta_rad);
-    pic_set_pins_from_plant();
-    if (g.pp.encoder_lines > 0) {
-        g.enc_count = (int64_t)floor(theta_measured() * 4.0 * g.pp.encoder_lines / (2.0 * M_PI));
-        g.enc_index_count = g.enc_count;
-    }
-    g.th_meas_prev = theta_measured();
-    pic_after_plant_step(g.now, theta_measured());
-    pic_compute_legs();
     pic18_power_on(&P.cpu);
     P.t0 = g.now;
     g.cycle_t0 = P.t0;

@@ -234,11 +234,10 @@ int twin_init(const twin_config_t *cfg)
     return 0;
 }
 
-#ifndef TWIN_PIL
-/* reset the chip and run fw_init (the motor keeps its state) */
-int twin_power_on(void)
+/* the chip's reset as the peripherals and pins see it, the motor keeping its state: the hall and
+ * encoder inputs from the rotor's angle, the bridge off (both twins' power-on) */
+static void board_reset(void)
 {
-    if (!g.initialised) return TWIN_ERR_NOT_INIT;
     pic_reset();
     g.legs_dirty = 1;
     g.hall_pins = (uint8_t)plant_hall_code(&g.pp, g.ps.theta_rad);
@@ -250,6 +249,14 @@ int twin_power_on(void)
     g.th_meas_prev = theta_measured();
     pic_after_plant_step(g.now, theta_measured());
     pic_compute_legs();
+}
+
+#ifndef TWIN_PIL
+/* reset the chip and run fw_init (the motor keeps its state) */
+int twin_power_on(void)
+{
+    if (!g.initialised) return TWIN_ERR_NOT_INIT;
+    board_reset();
     fw_call(fw_init);
     service_irqs();
     return (int)g.errors;
