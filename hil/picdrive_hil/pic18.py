@@ -75,7 +75,7 @@ def library(gpsim_compat: bool = False) -> Path:
     """Build (cached) the simulator's shared library; returns its path.  `gpsim_compat`:
     the build that reproduces gpsim 0.31's known departures from the datasheet
     (docs/twin.md, "Processor core"), for the differential test only."""
-    flags = build.twin_cflags() + (("-DPIC18_GPSIM_COMPAT",) if gpsim_compat else ())
+    flags = build.twin_cflags() + build.core_cflags() + (("-DPIC18_GPSIM_COMPAT",) if gpsim_compat else ())
     g = build.Group(tuple(build.CSRC / s for s in SOURCES), (), flags,
                     tuple(build.CSRC / h for h in HEADERS))
     return build.build_library([g], name="libpic18gpsim" if gpsim_compat else "libpic18")

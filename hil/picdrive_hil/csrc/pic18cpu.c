@@ -679,8 +679,9 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
     /* an instruction limit or breakpoints: every instruction through `next` (the twin runs by
        cycles without either: one test per instruction besides the event flag) */
     const int slow = nbp != 0 || ins_end != UINT64_MAX;
-    /* NEXT's one limit test: the cycle limit, or 0 when slow (every instruction goes through next) */
-    const uint64_t cyc_lim = slow ? 0 : cyc_end;
+    /* NEXT's one test: the cycle limit, or 0 when slow (every instruction goes through next) or
+       when an event is pending (EVT: events arise only inside the calls a handler makes) */
+    uint64_t lim = slow ? 0 : cyc_end;
     const pic18_op_t *const ops = c->op;   /* op of the word at byte address pc: OP_AT(pc) */
 
     if (PIC18_FATAL(c->status)) return c->status;
@@ -702,11 +703,14 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 #define RESOLVE_NOFX(a) do { if ((a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve_nofx(c, (a)); } while (0)
 #define RESOLVE(a) do { if ((a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve(c, (a)); } while (0)
 #define SYNC() (c->pc = pc, c->cycles = cyc, c->insn_pc = ipc)
+/* after a call that may have raised an event (a peripheral hook, the stack, the interrupt
+   logic): the next NEXT goes through `next` */
+#define EVT() do { if (__builtin_expect(c->event != 0, 0)) lim = 0; } while (0)
 /* a GPR, a plain core register (rd_plain / wr_mask), or sfr_rd / sfr_wr (EA() < 0x1000; RESOLVE
  * gives A_NULL = 0x1000 for an indirect reach of INDF) */
 #define SFR_FAST(a) ((a) >= 0xF00u && (a) < 0x1000u)
 #define RD(a) ((a) < PIC18_RAM_END ? ram[a] : (SFR_FAST(a) && c->rd_plain[(a) & 0xFF]) ? ram[a] \
-               : (SYNC(), sfr_rd(c, (a))))
+               : ({ uint8_t v_; SYNC(); v_ = sfr_rd(c, (a)); EVT(); v_; }))
 #ifdef PIC18_TRACK_RAM
 /* 1: written; 2: only a first store of zero so far (SDCC's crt0iz clears all RAM at reset: that
  * clear alone does not use a byte).  One branch-free store a write. */
@@ -716,10 +720,10 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 #endif
 #define WR(a, v) do { if ((a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a, v); } \
                       else if (SFR_FAST(a) && c->wr_mask[(a) & 0xFF]) ram[a] = (uint8_t)((v) & c->wr_mask[(a) & 0xFF]); \
-                      else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 0); } } while (0)
+                      else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 0); EVT(); } } while (0)
 #define WR_ALU(a, v) do { if ((a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a, v); } \
                       else if (SFR_FAST(a) && c->wr_mask[(a) & 0xFF]) ram[a] = (uint8_t)((v) & c->wr_mask[(a) & 0xFF]); \
-                      else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 1); } } while (0)
+                      else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 1); EVT(); } } while (0)
 #define DEST_ALU(a, v) do { if (o->flags & F_DEST) WR_ALU(a, v); else ram[A_WREG] = (uint8_t)(v); } while (0)
 #define DEST(a, v) do { if (o->flags & F_DEST) WR(a, v); else ram[A_WREG] = (uint8_t)(v); } while (0)
 #define SETF(mask, s) (ram[A_STATUS] = (uint8_t)((ram[A_STATUS] & ~(mask)) | (s)))
@@ -728,11 +732,11 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 #define OP_AT(pc) ((const pic18_op_t *)((const char *)ops + (size_t)(pc) * (sizeof(pic18_op_t) / 2)))
 #define SKIP() do { unsigned n2 = 2u + (OP_AT(pc)->flags & F_2WORD); pc += n2; CYC(n2 / 2); } while (0)
 /* threaded dispatch: each handler ends with its own indirect jump (better predicted than one
- * shared jump); anything unusual (an event, a limit, breakpoints) goes through `next` */
-#define NEXT do { \
-        if (__builtin_expect(c->event != 0, 0) || cyc >= cyc_lim) goto next; \
-        o = OP_AT(pc); ipc = pc; pc += 2u + (o->flags & F_2WORD); ins++; \
-        goto *o->h; } while (0)
+ * shared jump), one basic block with no branch so that the compiler keeps a copy in every
+ * handler; anything unusual (an event, a limit, breakpoints) goes through `next`.  A handler
+ * starts with ADV(its length in bytes): the PC past it, the instruction counted. */
+#define NEXT do { o = OP_AT(pc); goto *(cyc >= lim ? &&next : o->h); } while (0)
+#define ADV(n) (ipc = pc, pc += (n), ins++)
 
     pc = c->pc;
 next:
@@ -772,20 +776,18 @@ next:
             if (pc == bps[k]) { c->status = PIC18_BREAK; goto out; }
     }
     first = 0;
+    lim = slow ? 0 : cyc_end;
     o = OP_AT(pc);
-    ipc = pc;
-    pc += 2u + (o->flags & F_2WORD);
-    ins++;
     goto *disp[o->code];
 
-L_ILL:
+L_ILL: ADV(2);
     pc = ipc;
     c->status = PIC18_FAULT_ILLEGAL;
     c->fault_pc = pc;
     c->fault_word = flash_word(c, pc >> 1);
     ins--;
     goto out;
-L_PCFAULT:
+L_PCFAULT: ADV(2);
     pc = ipc;
     c->insn_pc = ipc;               /* execution ran past the end of the flash */
     ins--;
@@ -800,20 +802,20 @@ pc_fault_jump:
     c->fault_word = 0xFFFF;
     goto out;
 
-L_NOP: CYC(1); NEXT;
-L_SLEEP:
+L_NOP: ADV(2); CYC(1); NEXT;
+L_SLEEP: ADV(2);
     CYC(1);
     if (!c->owned[A_RCON & 0xFF]) ram[A_RCON] = (uint8_t)((ram[A_RCON] | 0x08) & ~0x04);   /* TO=1, PD=0 */
     c->sleeping = 1;
     c->event |= EV_IRQ;
-    NEXT;
-L_CLRWDT:
+    goto next;
+L_CLRWDT: ADV(2);
     CYC(1);
     if (!c->owned[A_RCON & 0xFF]) ram[A_RCON] |= 0x0C;
     NEXT;
-L_PUSH: CYC(1); push(c, pc, ipc); NEXT;
-L_POP: CYC(1); pop(c, ipc); NEXT;
-L_DAW: {
+L_PUSH: ADV(2); CYC(1); push(c, pc, ipc); EVT(); NEXT;
+L_POP: ADV(2); CYC(1); pop(c, ipc); EVT(); NEXT;
+L_DAW: ADV(2); {
     /* DS39616: low nibble +6 if > 9 or DC; high nibble +6 if > 9 or C, and then C = 1.  A carry out
      * of the low adjust (W = 0xFA-0xFF) sets C and leaves the high nibble as carried (W<7:4> is
      * then 0: no high adjust unless C was set) -- the data sheet's two steps read on the 8-bit W */
@@ -826,21 +828,21 @@ L_DAW: {
     SETF(S_C, cy);
     NEXT;
 }
-L_TBLRD:
+L_TBLRD: ADV(2);
     CYC(c->table_cycles);
     if (o->f == 3) c->tblptr = (c->tblptr + 1) & 0x3FFFFF;
     ram[A_TABLAT] = table_byte(c, c->tblptr);
     if (o->f == 1) c->tblptr = (c->tblptr + 1) & 0x3FFFFF;
     else if (o->f == 2) c->tblptr = (c->tblptr - 1) & 0x3FFFFF;
     NEXT;
-L_TBLWT:
+L_TBLWT: ADV(2);
     CYC(c->table_cycles);
     if (o->f == 3) c->tblptr = (c->tblptr + 1) & 0x3FFFFF;
     if (c->tblptr < PIC18_FLASH_BYTES) c->holding[c->tblptr & 7] = ram[A_TABLAT];
     if (o->f == 1) c->tblptr = (c->tblptr + 1) & 0x3FFFFF;
     else if (o->f == 2) c->tblptr = (c->tblptr - 1) & 0x3FFFFF;
     NEXT;
-L_RETFIE: {
+L_RETFIE: ADV(2); {
     uint32_t t;
     CYC(2);
     SYNC();
@@ -857,17 +859,18 @@ L_RETFIE: {
     }
     if (c->irq_hook) c->irq_hook(c->ctx, PIC18_HOOK_RETFIE);
     JUMP(t);
-    NEXT;
+    goto next;
 }
-L_RETURN: {
+L_RETURN: ADV(2); {
     uint32_t t;
     CYC(2);
     t = pop(c, ipc);
+    EVT();
     if (o->f) { ram[A_WREG] = c->shadow_w; ram[A_STATUS] = c->shadow_status; ram[A_BSR] = c->shadow_bsr; }
     JUMP(t);
     NEXT;
 }
-L_RESET:
+L_RESET: ADV(2);
     CYC(1);
     SYNC();
     do_reset(c, 0);
@@ -877,33 +880,34 @@ L_RESET:
     c->fault_word = 0x00FF;
     pc = 0;
     goto out;
-L_MOVLB: CYC(1); ram[A_BSR] = (uint8_t)o->f; NEXT;
-L_SUBLW: {
+L_MOVLB: ADV(2); CYC(1); ram[A_BSR] = (uint8_t)o->f; NEXT;
+L_SUBLW: ADV(2); {
     unsigned w = ram[A_WREG], k = o->f, r = k + (~w & 0xFF) + 1;
     CYC(1);
     ram[A_WREG] = (uint8_t)r;
     SETF(0x1F, flags_add(k, ~w & 0xFF, 1, r));
     NEXT;
 }
-L_IORLW: { uint8_t r = ram[A_WREG] | (uint8_t)o->f; CYC(1); ram[A_WREG] = r; SETF(S_Z | S_N, ZN(r)); NEXT; }
-L_XORLW: { uint8_t r = ram[A_WREG] ^ (uint8_t)o->f; CYC(1); ram[A_WREG] = r; SETF(S_Z | S_N, ZN(r)); NEXT; }
-L_ANDLW: { uint8_t r = ram[A_WREG] & (uint8_t)o->f; CYC(1); ram[A_WREG] = r; SETF(S_Z | S_N, ZN(r)); NEXT; }
-L_RETLW: {
+L_IORLW: ADV(2); { uint8_t r = ram[A_WREG] | (uint8_t)o->f; CYC(1); ram[A_WREG] = r; SETF(S_Z | S_N, ZN(r)); NEXT; }
+L_XORLW: ADV(2); { uint8_t r = ram[A_WREG] ^ (uint8_t)o->f; CYC(1); ram[A_WREG] = r; SETF(S_Z | S_N, ZN(r)); NEXT; }
+L_ANDLW: ADV(2); { uint8_t r = ram[A_WREG] & (uint8_t)o->f; CYC(1); ram[A_WREG] = r; SETF(S_Z | S_N, ZN(r)); NEXT; }
+L_RETLW: ADV(2); {
     uint32_t t;
     CYC(2);
     ram[A_WREG] = (uint8_t)o->f;
     t = pop(c, ipc);
+    EVT();
     JUMP(t);
     NEXT;
 }
-L_MULLW: {
+L_MULLW: ADV(2); {
     unsigned p = ram[A_WREG] * (unsigned)o->f;
     CYC(1);
     ram[A_PRODL] = (uint8_t)p; ram[A_PRODH] = (uint8_t)(p >> 8);
     NEXT;
 }
-L_MOVLW: CYC(1); ram[A_WREG] = (uint8_t)o->f; NEXT;
-L_ADDLW: {
+L_MOVLW: ADV(2); CYC(1); ram[A_WREG] = (uint8_t)o->f; NEXT;
+L_ADDLW: ADV(2); {
     unsigned w = ram[A_WREG], k = o->f, r = w + k;
     CYC(1);
     uint8_t st_ = flags_add(w, k, 0, r);
@@ -912,7 +916,7 @@ L_ADDLW: {
     SETF(0x1F, st_);
     NEXT;
 }
-L_MULWF: {
+L_MULWF: ADV(2); {
     unsigned a = EA(), p;
     CYC(1);
     RESOLVE(a);
@@ -922,7 +926,7 @@ L_MULWF: {
 }
 
 #define ARITH(label, expr_a, expr_b, cin, gsrc, nofx) \
-label: { unsigned a = EA(), f, r, x, y, ci, w0 = ram[A_WREG]; uint8_t st_; CYC(1); \
+label: ADV(2); { unsigned a = EA(), f, r, x, y, ci, w0 = ram[A_WREG]; uint8_t st_; CYC(1); \
     if (nofx) { RESOLVE_NOFX(a); } else { RESOLVE(a); } f = RD(a); \
     (void)w0; \
     x = (expr_a); y = (expr_b); ci = (cin); r = x + y + ci; \
@@ -938,7 +942,7 @@ ARITH(L_SUBWFB, f, ~ram[A_WREG] & 0xFF, ram[A_STATUS] & S_C, -1, 0)
 ARITH(L_SUBFWB, ram[A_WREG], ~f & 0xFF, ram[A_STATUS] & S_C, -1, 0)
 
 #define LOGIC(label, expr) \
-label: { unsigned a = EA(), f; uint8_t r; CYC(1); RESOLVE(a); f = RD(a); r = (uint8_t)(expr); \
+label: ADV(2); { unsigned a = EA(), f; uint8_t r; CYC(1); RESOLVE(a); f = RD(a); r = (uint8_t)(expr); \
     DEST_ALU(a, r); SETF(S_Z | S_N, ZN(r)); NEXT; }
 LOGIC(L_IORWF, ram[A_WREG] | f)
 LOGIC(L_ANDWF, ram[A_WREG] & f)
@@ -948,7 +952,7 @@ LOGIC(L_MOVF, f)
 LOGIC(L_RLNCF, (f << 1) | (f >> 7))
 LOGIC(L_RRNCF, (f >> 1) | (f << 7))
 
-L_RLCF: {
+L_RLCF: ADV(2); {
     unsigned a = EA(), f; uint8_t r;
     CYC(1); RESOLVE(a); f = RD(a);
     r = (uint8_t)((f << 1) | (ram[A_STATUS] & S_C));
@@ -956,7 +960,7 @@ L_RLCF: {
     SETF(S_C | S_Z | S_N, ZN(r) | ((f >> 7) & 1));
     NEXT;
 }
-L_RRCF: {
+L_RRCF: ADV(2); {
     unsigned a = EA(), f; uint8_t r;
     CYC(1); RESOLVE(a); f = RD(a);
     r = (uint8_t)((f >> 1) | ((ram[A_STATUS] & S_C) << 7));
@@ -964,10 +968,10 @@ L_RRCF: {
     SETF(S_C | S_Z | S_N, ZN(r) | (f & 1));
     NEXT;
 }
-L_SWAPF: { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); DEST(a, (f << 4) | (f >> 4)); NEXT; }
+L_SWAPF: ADV(2); { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); DEST(a, (f << 4) | (f >> 4)); NEXT; }
 
 #define SKIPOP(label, expr, dest) \
-label: { unsigned a = EA(), f; uint8_t r; CYC(1); RESOLVE(a); f = RD(a); r = (uint8_t)(expr); \
+label: ADV(2); { unsigned a = EA(), f; uint8_t r; CYC(1); RESOLVE(a); f = RD(a); r = (uint8_t)(expr); \
     if (dest) { DEST(a, r); } if (SKIPCOND) { SKIP(); } NEXT; }
 #define SKIPCOND (r == 0)
 SKIPOP(L_DECFSZ, f - 1, 1)
@@ -984,10 +988,10 @@ SKIPOP(L_CPFSGT, f > ram[A_WREG], 0)
 SKIPOP(L_CPFSLT, f < ram[A_WREG], 0)
 #undef SKIPCOND
 
-L_SETF: { unsigned a = EA(); CYC(1); RESOLVE(a); WR(a, 0xFF); NEXT; }
-L_CLRF: { unsigned a = EA(); CYC(1); RESOLVE(a); WR_ALU(a, 0); SETF(S_Z, S_Z); NEXT; }
-L_MOVWF: { unsigned a = EA(); CYC(1); RESOLVE(a); WR(a, ram[A_WREG]); NEXT; }
-L_NEGF: {
+L_SETF: ADV(2); { unsigned a = EA(); CYC(1); RESOLVE(a); WR(a, 0xFF); NEXT; }
+L_CLRF: ADV(2); { unsigned a = EA(); CYC(1); RESOLVE(a); WR_ALU(a, 0); SETF(S_Z, S_Z); NEXT; }
+L_MOVWF: ADV(2); { unsigned a = EA(); CYC(1); RESOLVE(a); WR(a, ram[A_WREG]); NEXT; }
+L_NEGF: ADV(2); {
     unsigned a = EA(), f, r;
     CYC(1); RESOLVE(a); f = RD(a);
     r = (~f & 0xFF) + 1;
@@ -995,12 +999,12 @@ L_NEGF: {
     SETF(0x1F, flags_add(0, ~f & 0xFF, 1, r));
     NEXT;
 }
-L_BTG: { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); WR(a, f ^ (1u << BITNO(o))); NEXT; }
-L_BSF: { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); WR(a, f | (1u << BITNO(o))); NEXT; }
-L_BCF: { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); WR(a, f & ~(1u << BITNO(o))); NEXT; }
-L_BTFSS: { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); if (f & (1u << BITNO(o))) SKIP(); NEXT; }
-L_BTFSC: { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); if (!(f & (1u << BITNO(o)))) SKIP(); NEXT; }
-L_MOVFF: {
+L_BTG: ADV(2); { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); WR(a, f ^ (1u << BITNO(o))); NEXT; }
+L_BSF: ADV(2); { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); WR(a, f | (1u << BITNO(o))); NEXT; }
+L_BCF: ADV(2); { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); WR(a, f & ~(1u << BITNO(o))); NEXT; }
+L_BTFSS: ADV(2); { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); if (f & (1u << BITNO(o))) SKIP(); NEXT; }
+L_BTFSC: ADV(2); { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); if (!(f & (1u << BITNO(o)))) SKIP(); NEXT; }
+L_MOVFF: ADV(4); {
     unsigned s = o->f, d = o->x, v;
     if (s < PIC18_RAM_END && d < PIC18_RAM_END) {   /* GPR to GPR (most of SDCC's): no SFR, no INDF */
         CYC(2);
@@ -1021,26 +1025,28 @@ L_MOVFF: {
     WR(d, v);                  /* written in the second */
     NEXT;
 }
-L_BRA: CYC(2); JUMP(pc + 2 * o->x); NEXT;
-L_RCALL: {
+L_BRA: ADV(2); CYC(2); JUMP(pc + 2 * o->x); NEXT;
+L_RCALL: ADV(2); {
     uint32_t ret = pc;
     CYC(2);
     push(c, ret, ipc);
+    EVT();
     JUMP(ret + 2 * o->x);
     NEXT;
 }
-L_BCOND:
+L_BCOND: ADV(2);
     if (((ram[A_STATUS] & o->f) != 0) == o->flags) { CYC(2); JUMP(pc + 2 * o->x); }
     else CYC(1);
     NEXT;
-L_CALL:
+L_CALL: ADV(4);
     CYC(2);
     if (o->f) { c->shadow_w = ram[A_WREG]; c->shadow_status = ram[A_STATUS]; c->shadow_bsr = ram[A_BSR]; }
     push(c, pc, ipc);
+    EVT();
     JUMP(o->x);
     NEXT;
-L_LFSR: CYC(2); fsr_set(c, o->f, o->x); NEXT;
-L_GOTO: CYC(2); JUMP(o->x); NEXT;
+L_LFSR: ADV(4); CYC(2); fsr_set(c, o->f, o->x); NEXT;
+L_GOTO: ADV(4); CYC(2); JUMP(o->x); NEXT;
 
 out:
     c->pc = pc;
