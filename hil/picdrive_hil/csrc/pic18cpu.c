@@ -31,7 +31,12 @@ enum {
     O_ADDWFC, O_ADDWF, O_INCF, O_DECFSZ, O_RRCF, O_RLCF, O_SWAPF, O_INCFSZ, O_RRNCF,
     O_RLNCF, O_INFSNZ, O_DCFSNZ, O_MOVF, O_SUBFWB, O_SUBWFB, O_SUBWF, O_CPFSLT, O_CPFSEQ,
     O_CPFSGT, O_TSTFSZ, O_SETF, O_CLRF, O_NEGF, O_MOVWF, O_BTG, O_BSF, O_BCF, O_BTFSS,
-    O_BTFSC, O_MOVFF, O_BRA, O_RCALL, O_BCOND, O_CALL, O_LFSR, O_GOTO, O_N
+    O_BTFSC, O_MOVFF, O_BRA, O_RCALL, O_BCOND, O_CALL, O_LFSR, O_GOTO,
+    O_MOVFF_GG,          /* MOVFF from a GPR to a GPR */
+    /* the file-register instructions O_MULWF..O_BTFSC on an access-bank GPR (a = 0, f below the
+       split): the address is f, no BSR, no indirect form, no SFR -- code O_G0 + (op - O_MULWF) */
+    O_G0,
+    O_N = O_G0 + (O_BTFSC - O_MULWF + 1)
 };
 #define F_BANKED 1
 #define F_2WORD 2        /* the instruction's length in bytes is 2 + (flags & F_2WORD) */
@@ -153,6 +158,10 @@ static void decode(pic18_t *c, uint32_t w)
     }
     }
 #undef FILEOP
+    if (o->code >= O_MULWF && o->code <= O_BTFSC && !(o->flags & F_BANKED) && o->f < PIC18_ACCESS_SPLIT)
+        o->code = (uint8_t)(O_G0 + (o->code - O_MULWF));
+    else if (o->code == O_MOVFF && o->f < PIC18_RAM_END && o->x < PIC18_RAM_END)
+        o->code = O_MOVFF_GG;
     o->h = c->disp_tab ? c->disp_tab[o->code] : 0;
 }
 
@@ -665,7 +674,18 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
         [O_BCF] = &&L_BCF, [O_BTFSS] = &&L_BTFSS, [O_BTFSC] = &&L_BTFSC,
         [O_MOVFF] = &&L_MOVFF, [O_BRA] = &&L_BRA, [O_RCALL] = &&L_RCALL,
         [O_BCOND] = &&L_BCOND, [O_CALL] = &&L_CALL, [O_LFSR] = &&L_LFSR, [O_GOTO] = &&L_GOTO,
+        [O_MOVFF_GG] = &&L_MOVFF_GG,
+#define GV(X) [O_G0 + (O_##X - O_MULWF)] = &&L_##X##_G
+        GV(MULWF), GV(DECF), GV(IORWF), GV(ANDWF), GV(XORWF), GV(COMF), GV(ADDWFC), GV(ADDWF),
+        GV(INCF), GV(DECFSZ), GV(RRCF), GV(RLCF), GV(SWAPF), GV(INCFSZ), GV(RRNCF), GV(RLNCF),
+        GV(INFSNZ), GV(DCFSNZ), GV(MOVF), GV(SUBFWB), GV(SUBWFB), GV(SUBWF), GV(CPFSLT),
+        GV(CPFSEQ), GV(CPFSGT), GV(TSTFSZ), GV(SETF), GV(CLRF), GV(NEGF), GV(MOVWF), GV(BTG),
+        GV(BSF), GV(BCF), GV(BTFSS), GV(BTFSC),
+#undef GV
     };
+    /* G_: 1 inside the access-GPR copy of a file-register handler (TWO), where EA, RESOLVE, RD
+       and WR reduce to ram[f]; 0 everywhere else */
+    enum { G_ = 0 };
     uint8_t *const ram = c->ram;
     const pic18_op_t *o;
     uint32_t pc;
@@ -693,15 +713,15 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
     }
 
 /* EA: the operand's data address (banked through BSR); RESOLVE applies an INDF form once */
-#define EA() ((o->flags & F_BANKED) ? ((unsigned)(ram[A_BSR] << 8) | o->f) : o->f)
+#define EA() (G_ ? (unsigned)o->f : (o->flags & F_BANKED) ? ((unsigned)(ram[A_BSR] << 8) | o->f) : o->f)
 #ifdef PIC18_GPSIM_COMPAT
 /* gpsim 0.31: ADDWF POSTINCn/POSTDECn/PREINCn, W reads INDFn and leaves the FSR */
 #define GPSIM_ADDWF_W_NOFX (!(o->flags & F_DEST))
 #else
 #define GPSIM_ADDWF_W_NOFX 0
 #endif
-#define RESOLVE_NOFX(a) do { if ((a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve_nofx(c, (a)); } while (0)
-#define RESOLVE(a) do { if ((a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve(c, (a)); } while (0)
+#define RESOLVE_NOFX(a) do { if (!G_ && (a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve_nofx(c, (a)); } while (0)
+#define RESOLVE(a) do { if (!G_ && (a) >= 0xFDB && (a) <= 0xFEF) (a) = resolve(c, (a)); } while (0)
 #define SYNC() (c->pc = pc, c->cycles = cyc, c->insn_pc = ipc)
 /* after a call that may have raised an event (a peripheral hook, the stack, the interrupt
    logic): the next NEXT goes through `next` */
@@ -709,7 +729,7 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 /* a GPR, a plain core register (rd_plain / wr_mask), or sfr_rd / sfr_wr (EA() < 0x1000; RESOLVE
  * gives A_NULL = 0x1000 for an indirect reach of INDF) */
 #define SFR_FAST(a) ((a) >= 0xF00u && (a) < 0x1000u)
-#define RD(a) ((a) < PIC18_RAM_END ? ram[a] : (SFR_FAST(a) && c->rd_plain[(a) & 0xFF]) ? ram[a] \
+#define RD(a) ((G_ || (a) < PIC18_RAM_END) ? ram[a] : (SFR_FAST(a) && c->rd_plain[(a) & 0xFF]) ? ram[a] \
                : ({ uint8_t v_; SYNC(); v_ = sfr_rd(c, (a)); EVT(); v_; }))
 #ifdef PIC18_TRACK_RAM
 /* 1: written; 2: only a first store of zero so far (SDCC's crt0iz clears all RAM at reset: that
@@ -718,10 +738,10 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 #else
 #define NOTE_WR(a, v) ((void)0)
 #endif
-#define WR(a, v) do { if ((a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a, v); } \
+#define WR(a, v) do { if (G_ || (a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a, v); } \
                       else if (SFR_FAST(a) && c->wr_mask[(a) & 0xFF]) ram[a] = (uint8_t)((v) & c->wr_mask[(a) & 0xFF]); \
                       else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 0); EVT(); } } while (0)
-#define WR_ALU(a, v) do { if ((a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a, v); } \
+#define WR_ALU(a, v) do { if (G_ || (a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a, v); } \
                       else if (SFR_FAST(a) && c->wr_mask[(a) & 0xFF]) ram[a] = (uint8_t)((v) & c->wr_mask[(a) & 0xFF]); \
                       else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 1); EVT(); } } while (0)
 #define DEST_ALU(a, v) do { if (o->flags & F_DEST) WR_ALU(a, v); else ram[A_WREG] = (uint8_t)(v); } while (0)
@@ -737,6 +757,9 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
  * starts with ADV(its length in bytes): the PC past it, the instruction counted. */
 #define NEXT do { o = OP_AT(pc); goto *(cyc >= lim ? &&next : o->h); } while (0)
 #define ADV(n) (ipc = pc, pc += (n), ins++)
+/* a file-register handler in two copies: any operand, and an access-bank GPR (O_G0 + ...) */
+#define TWO(label, ...) label: ADV(2); { __VA_ARGS__ } \
+                        label##_G: ADV(2); { enum { G_ = 1 }; __VA_ARGS__ }
 
     pc = c->pc;
 next:
@@ -916,22 +939,22 @@ L_ADDLW: ADV(2); {
     SETF(0x1F, st_);
     NEXT;
 }
-L_MULWF: ADV(2); {
+TWO(L_MULWF, {
     unsigned a = EA(), p;
     CYC(1);
     RESOLVE(a);
     p = ram[A_WREG] * (unsigned)RD(a);
     ram[A_PRODL] = (uint8_t)p; ram[A_PRODH] = (uint8_t)(p >> 8);
     NEXT;
-}
+})
 
 #define ARITH(label, expr_a, expr_b, cin, gsrc, nofx) \
-label: ADV(2); { unsigned a = EA(), f, r, x, y, ci, w0 = ram[A_WREG]; uint8_t st_; CYC(1); \
+TWO(label, unsigned a = EA(), f, r, x, y, ci, w0 = ram[A_WREG]; uint8_t st_; CYC(1); \
     if (nofx) { RESOLVE_NOFX(a); } else { RESOLVE(a); } f = RD(a); \
     (void)w0; \
     x = (expr_a); y = (expr_b); ci = (cin); r = x + y + ci; \
     DEST_ALU(a, r); st_ = flags_add(x, y, ci, r); \
-    if ((gsrc) >= 0) { GPSIM_OV(st_, (unsigned)(gsrc), r); } SETF(0x1F, st_); NEXT; }
+    if ((gsrc) >= 0) { GPSIM_OV(st_, (unsigned)(gsrc), r); } SETF(0x1F, st_); NEXT;)
 #define GDST ((o->flags & F_DEST) ? (int)f : (int)w0)   /* the destination's old value */
 ARITH(L_ADDWF, ram[A_WREG], f, 0, GDST, GPSIM_ADDWF_W_NOFX)
 ARITH(L_ADDWFC, ram[A_WREG], f, ram[A_STATUS] & S_C, (int)f, 0)
@@ -942,8 +965,8 @@ ARITH(L_SUBWFB, f, ~ram[A_WREG] & 0xFF, ram[A_STATUS] & S_C, -1, 0)
 ARITH(L_SUBFWB, ram[A_WREG], ~f & 0xFF, ram[A_STATUS] & S_C, -1, 0)
 
 #define LOGIC(label, expr) \
-label: ADV(2); { unsigned a = EA(), f; uint8_t r; CYC(1); RESOLVE(a); f = RD(a); r = (uint8_t)(expr); \
-    DEST_ALU(a, r); SETF(S_Z | S_N, ZN(r)); NEXT; }
+TWO(label, unsigned a = EA(), f; uint8_t r; CYC(1); RESOLVE(a); f = RD(a); r = (uint8_t)(expr); \
+    DEST_ALU(a, r); SETF(S_Z | S_N, ZN(r)); NEXT;)
 LOGIC(L_IORWF, ram[A_WREG] | f)
 LOGIC(L_ANDWF, ram[A_WREG] & f)
 LOGIC(L_XORWF, ram[A_WREG] ^ f)
@@ -952,27 +975,27 @@ LOGIC(L_MOVF, f)
 LOGIC(L_RLNCF, (f << 1) | (f >> 7))
 LOGIC(L_RRNCF, (f >> 1) | (f << 7))
 
-L_RLCF: ADV(2); {
+TWO(L_RLCF, {
     unsigned a = EA(), f; uint8_t r;
     CYC(1); RESOLVE(a); f = RD(a);
     r = (uint8_t)((f << 1) | (ram[A_STATUS] & S_C));
     DEST_ALU(a, r);
     SETF(S_C | S_Z | S_N, ZN(r) | ((f >> 7) & 1));
     NEXT;
-}
-L_RRCF: ADV(2); {
+})
+TWO(L_RRCF, {
     unsigned a = EA(), f; uint8_t r;
     CYC(1); RESOLVE(a); f = RD(a);
     r = (uint8_t)((f >> 1) | ((ram[A_STATUS] & S_C) << 7));
     DEST_ALU(a, r);
     SETF(S_C | S_Z | S_N, ZN(r) | (f & 1));
     NEXT;
-}
-L_SWAPF: ADV(2); { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); DEST(a, (f << 4) | (f >> 4)); NEXT; }
+})
+TWO(L_SWAPF, { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); DEST(a, (f << 4) | (f >> 4)); NEXT; })
 
 #define SKIPOP(label, expr, dest) \
-label: ADV(2); { unsigned a = EA(), f; uint8_t r; CYC(1); RESOLVE(a); f = RD(a); r = (uint8_t)(expr); \
-    if (dest) { DEST(a, r); } if (SKIPCOND) { SKIP(); } NEXT; }
+TWO(label, unsigned a = EA(), f; uint8_t r; CYC(1); RESOLVE(a); f = RD(a); r = (uint8_t)(expr); \
+    if (dest) { DEST(a, r); } if (SKIPCOND) { SKIP(); } NEXT;)
 #define SKIPCOND (r == 0)
 SKIPOP(L_DECFSZ, f - 1, 1)
 SKIPOP(L_INCFSZ, f + 1, 1)
@@ -988,30 +1011,31 @@ SKIPOP(L_CPFSGT, f > ram[A_WREG], 0)
 SKIPOP(L_CPFSLT, f < ram[A_WREG], 0)
 #undef SKIPCOND
 
-L_SETF: ADV(2); { unsigned a = EA(); CYC(1); RESOLVE(a); WR(a, 0xFF); NEXT; }
-L_CLRF: ADV(2); { unsigned a = EA(); CYC(1); RESOLVE(a); WR_ALU(a, 0); SETF(S_Z, S_Z); NEXT; }
-L_MOVWF: ADV(2); { unsigned a = EA(); CYC(1); RESOLVE(a); WR(a, ram[A_WREG]); NEXT; }
-L_NEGF: ADV(2); {
+TWO(L_SETF, { unsigned a = EA(); CYC(1); RESOLVE(a); WR(a, 0xFF); NEXT; })
+TWO(L_CLRF, { unsigned a = EA(); CYC(1); RESOLVE(a); WR_ALU(a, 0); SETF(S_Z, S_Z); NEXT; })
+TWO(L_MOVWF, { unsigned a = EA(); CYC(1); RESOLVE(a); WR(a, ram[A_WREG]); NEXT; })
+TWO(L_NEGF, {
     unsigned a = EA(), f, r;
     CYC(1); RESOLVE(a); f = RD(a);
     r = (~f & 0xFF) + 1;
     WR_ALU(a, r);
     SETF(0x1F, flags_add(0, ~f & 0xFF, 1, r));
     NEXT;
+})
+TWO(L_BTG, { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); WR(a, f ^ (1u << BITNO(o))); NEXT; })
+TWO(L_BSF, { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); WR(a, f | (1u << BITNO(o))); NEXT; })
+TWO(L_BCF, { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); WR(a, f & ~(1u << BITNO(o))); NEXT; })
+TWO(L_BTFSS, { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); if (f & (1u << BITNO(o))) SKIP(); NEXT; })
+TWO(L_BTFSC, { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); if (!(f & (1u << BITNO(o)))) SKIP(); NEXT; })
+L_MOVFF_GG: ADV(4); {    /* GPR to GPR (most of SDCC's): no SFR, no INDF */
+    unsigned d = o->x;
+    CYC(2);
+    ram[d] = ram[o->f];
+    NOTE_WR(d, ram[d]);
+    NEXT;
 }
-L_BTG: ADV(2); { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); WR(a, f ^ (1u << BITNO(o))); NEXT; }
-L_BSF: ADV(2); { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); WR(a, f | (1u << BITNO(o))); NEXT; }
-L_BCF: ADV(2); { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); WR(a, f & ~(1u << BITNO(o))); NEXT; }
-L_BTFSS: ADV(2); { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); if (f & (1u << BITNO(o))) SKIP(); NEXT; }
-L_BTFSC: ADV(2); { unsigned a = EA(), f; CYC(1); RESOLVE(a); f = RD(a); if (!(f & (1u << BITNO(o)))) SKIP(); NEXT; }
 L_MOVFF: ADV(4); {
     unsigned s = o->f, d = o->x, v;
-    if (s < PIC18_RAM_END && d < PIC18_RAM_END) {   /* GPR to GPR (most of SDCC's): no SFR, no INDF */
-        CYC(2);
-        ram[d] = ram[s];
-        NOTE_WR(d, ram[d]);
-        NEXT;
-    }
     RESOLVE(s);
     CYC(1);
     {   /* read in the first cycle, while the PC addresses the second word (a PCL read) */
