@@ -33,6 +33,8 @@ enum {
     O_CPFSGT, O_TSTFSZ, O_SETF, O_CLRF, O_NEGF, O_MOVWF, O_BTG, O_BSF, O_BCF, O_BTFSS,
     O_BTFSC, O_MOVFF, O_BRA, O_RCALL, O_BCOND, O_CALL, O_LFSR, O_GOTO,
     O_MOVFF_GG,          /* MOVFF from a GPR to a GPR */
+    O_MOVFF_PUSH,        /* MOVFF gpr, POSTDEC1 (SDCC's push on its software stack) */
+    O_MOVFF_POP,         /* MOVFF PREINC1, gpr (its pop) */
     /* the file-register instructions O_MULWF..O_BTFSC on an access-bank GPR (a = 0, f below the
        split): the address is f, no BSR, no indirect form, no SFR -- code O_G0 + (op - O_MULWF) */
     O_G0,
@@ -162,6 +164,10 @@ static void decode(pic18_t *c, uint32_t w)
         o->code = (uint8_t)(O_G0 + (o->code - O_MULWF));
     else if (o->code == O_MOVFF && o->f < PIC18_RAM_END && o->x < PIC18_RAM_END)
         o->code = O_MOVFF_GG;
+    else if (o->code == O_MOVFF && o->f < PIC18_RAM_END && o->x == 0xFE5)
+        o->code = O_MOVFF_PUSH;
+    else if (o->code == O_MOVFF && o->f == 0xFE4 && o->x < PIC18_RAM_END)
+        o->code = O_MOVFF_POP;
     o->h = c->disp_tab ? c->disp_tab[o->code] : 0;
 }
 
@@ -674,7 +680,7 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
         [O_BCF] = &&L_BCF, [O_BTFSS] = &&L_BTFSS, [O_BTFSC] = &&L_BTFSC,
         [O_MOVFF] = &&L_MOVFF, [O_BRA] = &&L_BRA, [O_RCALL] = &&L_RCALL,
         [O_BCOND] = &&L_BCOND, [O_CALL] = &&L_CALL, [O_LFSR] = &&L_LFSR, [O_GOTO] = &&L_GOTO,
-        [O_MOVFF_GG] = &&L_MOVFF_GG,
+        [O_MOVFF_GG] = &&L_MOVFF_GG, [O_MOVFF_PUSH] = &&L_MOVFF_PUSH, [O_MOVFF_POP] = &&L_MOVFF_POP,
 #define GV(X) [O_G0 + (O_##X - O_MULWF)] = &&L_##X##_G
         GV(MULWF), GV(DECF), GV(IORWF), GV(ANDWF), GV(XORWF), GV(COMF), GV(ADDWFC), GV(ADDWF),
         GV(INCF), GV(DECFSZ), GV(RRCF), GV(RLCF), GV(SWAPF), GV(INCFSZ), GV(RRNCF), GV(RLNCF),
@@ -702,7 +708,6 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
     /* NEXT's one test: the cycle limit, or 0 when slow (every instruction goes through next) or
        when an event is pending (EVT: events arise only inside the calls a handler makes) */
     uint64_t lim = slow ? 0 : cyc_end;
-    const pic18_op_t *const ops = c->op;   /* op of the word at byte address pc: OP_AT(pc) */
 
     if (PIC18_FATAL(c->status)) return c->status;
     c->status = PIC18_OK;
@@ -749,7 +754,8 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 #define SETF(mask, s) (ram[A_STATUS] = (uint8_t)((ram[A_STATUS] & ~(mask)) | (s)))
 #define CYC(n) (cyc += (n))
 #define JUMP(t) do { pc = (t) & 0x1FFFFE; if (pc >= PIC18_FLASH_BYTES) goto pc_fault_jump; } while (0)
-#define OP_AT(pc) ((const pic18_op_t *)((const char *)ops + (size_t)(pc) * (sizeof(pic18_op_t) / 2)))
+/* op of the word at byte address pc: an offset from c (no base pointer to keep in a register) */
+#define OP_AT(pc) ((const pic18_op_t *)((const char *)c->op + (size_t)(pc) * (sizeof(pic18_op_t) / 2)))
 #define SKIP() do { unsigned n2 = 2u + (OP_AT(pc)->flags & F_2WORD); pc += n2; CYC(n2 / 2); } while (0)
 /* threaded dispatch: each handler ends with its own indirect jump (better predicted than one
  * shared jump), one basic block with no branch so that the compiler keeps a copy in every
@@ -1032,6 +1038,41 @@ L_MOVFF_GG: ADV(4); {    /* GPR to GPR (most of SDCC's): no SFR, no INDF */
     CYC(2);
     ram[d] = ram[o->f];
     NOTE_WR(d, ram[d]);
+    NEXT;
+}
+/* MOVFF's two stack forms: what RESOLVE does for POSTDEC1 / PREINC1, written out (FSR1 and its
+ * reach, resolve()); a GPR reached moves in one step, anything else as L_MOVFF does it */
+L_MOVFF_PUSH: ADV(4); {
+    unsigned fsr = ram[A_FSR1L] | ((ram[A_FSR1H] & 0x0F) << 8), nf = (fsr - 1) & 0xFFF;
+    uint8_t v = ram[o->f];
+    ram[A_FSR1L] = (uint8_t)nf;
+    ram[A_FSR1H] = (uint8_t)(nf >> 8);
+    if (fsr < c->fsr1_lo) c->fsr1_lo = (uint16_t)fsr;
+    if (fsr > c->fsr1_hi) c->fsr1_hi = (uint16_t)fsr;
+    CYC(2);
+    if (fsr < PIC18_RAM_END) { ram[fsr] = v; NOTE_WR(fsr, v); NEXT; }
+    fsr = is_indf(fsr) ? A_NULL : fsr;
+    WR(fsr, v);
+    NEXT;
+}
+L_MOVFF_POP: ADV(4); {
+    unsigned d = o->x, ea = ((ram[A_FSR1L] | ((ram[A_FSR1H] & 0x0F) << 8)) + 1) & 0xFFF;
+    uint8_t v;
+    ram[A_FSR1L] = (uint8_t)ea;
+    ram[A_FSR1H] = (uint8_t)(ea >> 8);
+    if (ea < c->fsr1_lo) c->fsr1_lo = (uint16_t)ea;
+    if (ea < PIC18_RAM_END) { CYC(2); ram[d] = ram[ea]; NOTE_WR(d, ram[d]); NEXT; }
+    ea = is_indf(ea) ? A_NULL : ea;
+    CYC(1);
+    {
+        uint32_t pc2 = pc;
+        pc = ipc + 2;
+        v = RD(ea);
+        pc = pc2;
+    }
+    CYC(1);
+    ram[d] = v;
+    NOTE_WR(d, v);
     NEXT;
 }
 L_MOVFF: ADV(4); {
