@@ -184,6 +184,17 @@ static void decode_all(pic18_t *c)
 /* ---------------------------------------------------------------- data space */
 
 static inline unsigned sp_of(const pic18_t *c) { return c->stkptr & 0x1F; }
+/* TBLPTR (22 bits) lives in its three SFR bytes: a write to them is a plain store */
+static inline uint32_t tblptr_get(const pic18_t *c)
+{
+    return c->ram[A_TBLPTRL] | ((uint32_t)c->ram[A_TBLPTRH] << 8) | ((uint32_t)(c->ram[A_TBLPTRU] & 0x3F) << 16);
+}
+static inline void tblptr_set(pic18_t *c, uint32_t v)
+{
+    c->ram[A_TBLPTRL] = (uint8_t)v;
+    c->ram[A_TBLPTRH] = (uint8_t)(v >> 8);
+    c->ram[A_TBLPTRU] = (uint8_t)((v >> 16) & 0x3F);
+}
 static inline unsigned fsr_get(const pic18_t *c, unsigned n)
 {
     static const uint16_t lo[3] = {A_FSR0L, A_FSR1L, A_FSR2L};
@@ -241,7 +252,10 @@ static unsigned resolve_nofx(pic18_t *c, unsigned a)
 }
 
 static void stack_fault(pic18_t *c, int st, uint32_t ipc);
-static void irq_recheck(pic18_t *c) { c->event |= EV_IRQ; }
+/* an interrupt-control register was written: look at the requests at the next boundary.  With a
+ * model attached and no request line up, irq_check would find nothing (the lines change only
+ * through pic18_set_irq, which asks for the look itself): no look */
+static void irq_recheck(pic18_t *c) { if (c->irq_builtin || c->irq_lines) c->event |= EV_IRQ; }
 static int irq_related(unsigned a)
 {
     return a == A_INTCON || a == A_INTCON2 || a == A_INTCON3 || a == A_RCON ||
@@ -271,9 +285,7 @@ static uint8_t sfr_rd(pic18_t *c, unsigned a)
         c->ram[A_PCLATH] = (uint8_t)(c->pc >> 8);
         c->ram[A_PCLATU] = (uint8_t)((c->pc >> 16) & 0x1F);
         return (uint8_t)c->pc;
-    case A_TBLPTRU: return (uint8_t)((c->tblptr >> 16) & 0x3F);
-    case A_TBLPTRH: return (uint8_t)(c->tblptr >> 8);
-    case A_TBLPTRL: return (uint8_t)c->tblptr;
+    case A_TBLPTRU: case A_TBLPTRH: case A_TBLPTRL:
     case A_PCLATU: case A_PCLATH: case A_TABLAT: case A_PRODH: case A_PRODL:
     case A_FSR0H: case A_FSR0L: case A_WREG: case A_FSR1H: case A_FSR1L: case A_BSR:
     case A_FSR2H: case A_FSR2L: case A_STATUS:
@@ -302,9 +314,7 @@ static void sfr_wr(pic18_t *c, unsigned a, uint8_t v, int alu)
         c->event |= EV_PCL;
         return;
     case A_PCLATU: c->ram[a] = v & 0x1F; return;
-    case A_TBLPTRU: c->tblptr = (c->tblptr & 0x00FFFF) | ((uint32_t)(v & 0x3F) << 16); return;
-    case A_TBLPTRH: c->tblptr = (c->tblptr & 0x3F00FF) | ((uint32_t)v << 8); return;
-    case A_TBLPTRL: c->tblptr = (c->tblptr & 0x3FFF00) | v; return;
+    case A_TBLPTRU: c->ram[a] = v & 0x3F; return;
     case A_FSR0H: case A_FSR1H: case A_FSR2H: case A_BSR: c->ram[a] = v & 0x0F; return;
 #ifdef PIC18_GPSIM_COMPAT
     /* gpsim 0.31 keeps STATUS bits 7-5 (unimplemented on the chip: read 0) and writes an
@@ -315,7 +325,7 @@ static void sfr_wr(pic18_t *c, unsigned a, uint8_t v, int alu)
     case A_STATUS: if (!alu) c->ram[a] = v & 0x1F; return;
 #endif
     case A_PCLATH: case A_TABLAT: case A_PRODH: case A_PRODL: case A_FSR0L: case A_WREG:
-    case A_FSR1L: case A_FSR2L:
+    case A_FSR1L: case A_FSR2L: case A_TBLPTRH: case A_TBLPTRL:
         c->ram[a] = v; return;
     default:
         if (is_indf(a)) return;
@@ -385,7 +395,7 @@ static void do_reset(pic18_t *c, int por)
     c->stkptr = por ? 0 : (uint8_t)(c->stkptr & 0xC0);
     memset(c->stack, 0, sizeof c->stack);
     c->ram[A_PCLATU] = c->ram[A_PCLATH] = c->ram[A_PCL] = 0;
-    c->tblptr = 0;
+    tblptr_set(c, 0);
     c->ram[A_TABLAT] = 0;
     c->ram[A_BSR] = 0;
     if (!c->owned[A_INTCON & 0xFF]) c->ram[A_INTCON] = por ? 0 : (c->ram[A_INTCON] & 1);
@@ -486,9 +496,10 @@ static void fast_tables(pic18_t *c)
         uint8_t m = 0;
         switch (a) {
         case A_PCLATU: core = 1; m = 0x1F; break;
+        case A_TBLPTRU: core = 1; m = 0x3F; break;
         case A_FSR0H: case A_FSR1H: case A_FSR2H: case A_BSR: core = 1; m = 0x0F; break;
         case A_PCLATH: case A_TABLAT: case A_PRODH: case A_PRODL: case A_FSR0L: case A_WREG:
-        case A_FSR1L: case A_FSR2L: core = 1; m = 0xFF; break;
+        case A_FSR1L: case A_FSR2L: case A_TBLPTRH: case A_TBLPTRL: core = 1; m = 0xFF; break;
         case A_STATUS: core = 1; m = 0; break;      /* the ALU-write rule: sfr_wr */
         default: break;
         }
@@ -496,7 +507,6 @@ static void fast_tables(pic18_t *c)
         if (core) { c->rd_plain[i] = 1; c->wr_mask[i] = m; continue; }
         switch (a) {   /* side effects or state kept elsewhere */
         case A_TOSU: case A_TOSH: case A_TOSL: case A_STKPTR: case A_PCL:
-        case A_TBLPTRU: case A_TBLPTRH: case A_TBLPTRL:
             c->rd_plain[i] = 0; c->wr_mask[i] = 0; continue;
         default: break;
         }
@@ -857,20 +867,26 @@ L_DAW: ADV(2); {
     SETF(S_C, cy);
     NEXT;
 }
-L_TBLRD: ADV(2);
+L_TBLRD: ADV(2); {
+    uint32_t t = tblptr_get(c);
     CYC(c->table_cycles);
-    if (o->f == 3) c->tblptr = (c->tblptr + 1) & 0x3FFFFF;
-    ram[A_TABLAT] = table_byte(c, c->tblptr);
-    if (o->f == 1) c->tblptr = (c->tblptr + 1) & 0x3FFFFF;
-    else if (o->f == 2) c->tblptr = (c->tblptr - 1) & 0x3FFFFF;
+    if (o->f == 3) t = (t + 1) & 0x3FFFFF;
+    ram[A_TABLAT] = table_byte(c, t);
+    if (o->f == 1) t = (t + 1) & 0x3FFFFF;
+    else if (o->f == 2) t = (t - 1) & 0x3FFFFF;
+    tblptr_set(c, t);
     NEXT;
-L_TBLWT: ADV(2);
+}
+L_TBLWT: ADV(2); {
+    uint32_t t = tblptr_get(c);
     CYC(c->table_cycles);
-    if (o->f == 3) c->tblptr = (c->tblptr + 1) & 0x3FFFFF;
-    if (c->tblptr < PIC18_FLASH_BYTES) c->holding[c->tblptr & 7] = ram[A_TABLAT];
-    if (o->f == 1) c->tblptr = (c->tblptr + 1) & 0x3FFFFF;
-    else if (o->f == 2) c->tblptr = (c->tblptr - 1) & 0x3FFFFF;
+    if (o->f == 3) t = (t + 1) & 0x3FFFFF;
+    if (t < PIC18_FLASH_BYTES) c->holding[t & 7] = ram[A_TABLAT];
+    if (o->f == 1) t = (t + 1) & 0x3FFFFF;
+    else if (o->f == 2) t = (t - 1) & 0x3FFFFF;
+    tblptr_set(c, t);
     NEXT;
+}
 L_RETFIE: ADV(2); {
     uint32_t t;
     CYC(2);
@@ -1127,7 +1143,7 @@ void pic18_info(const pic18_t *c, uint64_t out[10])
 {
     out[0] = c->pc; out[1] = c->cycles; out[2] = c->insns; out[3] = (uint64_t)c->status;
     out[4] = c->fault_pc; out[5] = c->fault_word; out[6] = c->stkptr; out[7] = c->stack_high;
-    out[8] = c->tblptr; out[9] = c->sleeping;
+    out[8] = tblptr_get(c); out[9] = c->sleeping;
 }
 uint32_t pic18_stack_entry(const pic18_t *c, unsigned level) { return level < 32 ? c->stack[level] : 0; }
 void pic18_set_pc(pic18_t *c, uint32_t pc) { c->pc = pc & 0x1FFFFE; }
@@ -1146,7 +1162,7 @@ void pic18_snapshot(const pic18_t *c, uint8_t out[18 + PIC18_RAM_END])
     static const uint16_t a[15] = {A_WREG, A_STATUS, A_BSR, A_FSR0L, A_FSR0H, A_FSR1L, A_FSR1H,
                                    A_FSR2L, A_FSR2H, A_PRODL, A_PRODH, A_TABLAT, 0, 0, 0};
     for (int i = 0; i < 12; i++) out[i] = c->ram[a[i]];
-    out[12] = (uint8_t)c->tblptr; out[13] = (uint8_t)(c->tblptr >> 8); out[14] = (uint8_t)(c->tblptr >> 16);
+    out[12] = c->ram[A_TBLPTRL]; out[13] = c->ram[A_TBLPTRH]; out[14] = c->ram[A_TBLPTRU];
     out[15] = c->stkptr; out[16] = c->ram[A_PCLATH]; out[17] = c->ram[A_PCLATU];
     memcpy(out + 18, c->ram, PIC18_RAM_END);
 }

@@ -9,7 +9,7 @@
  *
  * The core owns WREG, STATUS, BSR, FSR0-2 and the INDF/POSTINC/POSTDEC/PREINC/
  * PLUSW operands, PCL/PCLATH/PCLATU, TOSU/TOSH/TOSL, STKPTR, PRODH/PRODL,
- * TBLPTRU/H/L, TABLAT, and the interrupt bits it acts on (INTCON GIEH/GIEL,
+ * TBLPTRU/H/L (kept in their SFR bytes), TABLAT, and the interrupt bits it acts on (INTCON GIEH/GIEL,
  * RCON IPEN).  Every other SFR (0xF60-0xFFF) is either kept in the core's own
  * register array (no peripheral model attached: the differential tests) or
  * belongs to a peripheral model (pic18_attach): the core then calls the
@@ -108,7 +108,6 @@ typedef struct pic18 {
     uint8_t stkptr;            /* STKFUL | STKUNF | SP<4:0> */
     uint32_t stack[32];        /* stack[1..31]; stack[0] reads 0 */
     uint8_t shadow_w, shadow_status, shadow_bsr;   /* fast register stack */
-    uint32_t tblptr;           /* 22 bits */
     uint8_t holding[8];        /* table-write holding registers (TBLWT) */
     uint8_t sleeping;
     uint8_t irq_lines;         /* PIC18_IRQ_* driven by the model */
