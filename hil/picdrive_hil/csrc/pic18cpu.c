@@ -815,7 +815,7 @@ next:
             if (pc == bps[k]) { c->status = PIC18_BREAK; goto out; }
     }
     first = 0;
-    lim = slow ? 0 : cyc_end;
+    lim = (slow || c->event) ? 0 : cyc_end;   /* an event raised by a hook called above: after this instruction */
     o = OP_AT(pc);
     goto *disp[o->code];
 
