@@ -713,7 +713,7 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
     uint32_t ipc = c->insn_pc;
     int first = 1;
     /* an instruction limit or breakpoints: every instruction through `next` (the twin runs by
-       cycles without either: one test per instruction besides the event flag) */
+       cycles without either: one test per instruction, NEXT's) */
     const int slow = nbp != 0 || ins_end != UINT64_MAX;
     /* NEXT's one test: the cycle limit, or 0 when slow (every instruction goes through next) or
        when an event is pending (EVT: events arise only inside the calls a handler makes) */
