@@ -100,8 +100,8 @@ CLAIMS: tuple[Claim, ...] = (
     _c("2008-t3-prop", "2008", "Table 3", "proposed PID: rise / settling / overshoot", "0.59 ms / 1.07 ms / 0.58 %"),
     _c("2008-order", "2008", "Table 3", "the proposed PID is faster than Yu & Hwang's", "faster"),
     _c("2008-fig4", "2008", "Fig. 4", "d does not have much influence on the output", "little influence"),
-    _c("2008-pic", "2008", "sec. 6", "the speed loop runs on a PIC18F4431 with hall sensors and encoder",
-       "implemented"),
+    _c("2008-pic", "2008", "sec. 5, Fig. 9", "the proposed PID on the PIC18F4431 drive tracks a step reference well",
+       "tracks well"),
     # --- 2016's fuzzy claims beside what picdrive measured on the six-step drive (issue 14)
     _c("drive-rules", "2016 vs drive", "sec. 4, 6",
        "the motor's dynamics change with speed: two TS rules at N1 = 0, N2 = 3000 differ", "A_1 != A_2"),

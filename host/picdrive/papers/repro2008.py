@@ -306,9 +306,13 @@ def claim_rows(c: dict | Exception) -> list:
                 "decades below the loop bandwidth, where T ~ 1 and S ~ 0")
 
     def pic():
-        return ("the firmware picdrive generates for the PIC18F4431 (hall sensors, encoder M/T, PCPWM bridge)",
-                "bench", "bench/target.py prints its flash, RAM, stack and interrupt cycles against the budgets "
-                "(docs/firmware.md); tests/test_target.py holds them")
+        v = need()["cost"]["proposed"]
+        ok = v["sampled_stable_at_speed_loop"]
+        return (f"the printed gains sampled at the drive's speed-loop rate (zero-order hold, one sample of delay): "
+                f"{'stable' if ok else 'UNSTABLE'}", "agree" if ok else "disagree",
+                "the paper's continuous design ignores the sampling and the voltage limit; picdrive's mixed-pid "
+                "'drive' variant designs for the sampled loop, and bench/target.py prints what its firmware costs "
+                "on the PIC18F4431 against the budgets")
 
     comps = {"2008-eq18": eq18, "2008-eq19": eq19, "2008-eq20": eq20, "2008-eq23": eq23, "2008-eq24": eq24,
              "2008-eq25": eq25, "2008-eq6": eq6, "2008-eq21": eq21, "2008-eq17": eq17,
