@@ -14,7 +14,7 @@ from picdrive.papers.report import write_report
 @pytest.fixture(scope="module")
 def report(tmp_path_factory):
     out = tmp_path_factory.mktemp("rep") / "rep"
-    md = write_report(out, quick=True, profiles=("assawinchaichote2016",), progress=False)
+    md = write_report(out, quick=True, profiles=("duy2008",), progress=False)
     return out, md.read_text()
 
 
@@ -33,7 +33,7 @@ def test_every_registered_claim_has_its_row(report):
 def test_claim_rows_say_what_picdrive_computes(report):
     out, text = report
     rows = reg.parse_rows(text)
-    for png in ("fig2016_speed.png", "fig2016_disturbance_ratio.png", "compare_assawinchaichote2016.png",
+    for png in ("fig2016_speed.png", "fig2016_disturbance_ratio.png", "compare_duy2008.png",
                 "repro2008_fig3.png", "repro2008_fig4.png"):
         assert (out / png).stat().st_size > 1000
     assert rows["2016-thm1"]["computed"].startswith("infeasible") and rows["2016-thm1"]["verdict"] == "disagree"
@@ -71,7 +71,7 @@ def test_flat_speed_trace_is_explained(report):
 def test_report_folder_is_replaced_whole(report):
     out, _ = report
     md2 = write_report(out, quick=True, profiles=(), progress=False)
-    assert md2.exists() and not (out / "compare_assawinchaichote2016.png").exists()
+    assert md2.exists() and not (out / "compare_duy2008.png").exists()
     text = md2.read_text()
     # without a compared profile the rows that need one fail, with the reason, and are not dropped
     assert reg.check_rows(text) == []
