@@ -105,15 +105,10 @@ class _Runs:
     def __getattr__(self, name):
         if name.startswith("_"):
             raise AttributeError(name)
+        from .claims import once
         if name not in self._done:
-            try:
-                self._done[name] = (True, getattr(self, "_" + name)())
-            except Exception as e:       # kept, raised again for each claim that needs it
-                self._done[name] = (False, e)
-        ok, v = self._done[name]
-        if not ok:
-            raise v
-        return v
+            self._done[name] = once(getattr(self, "_" + name))
+        return self._done[name]()
 
     def _ts_pr(self):
         return paper_as_printed_model()
@@ -326,6 +321,7 @@ def claims(quick: bool = False) -> dict:
                 kinds: dict = {}
                 for t_ in tries:
                     k_ = t_["status"].split(". Try")[0]
+                    k_ += ")" * (k_.count("(") - k_.count(")"))
                     kinds[k_] = kinds.get(k_, 0) + 1
                 disks = (f"; all {len(tries)} pole disks tried ({tries[0]['pole_disk_rad_s']:.0f} .. "
                          f"{tries[-1]['pole_disk_rad_s']:.0f} rad/s) failed: "
