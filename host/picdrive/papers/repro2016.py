@@ -326,6 +326,9 @@ def claims(quick: bool = False) -> dict:
                 disks = (f"; all {len(tries)} pole disks tried ({tries[0]['pole_disk_rad_s']:.0f} .. "
                          f"{tries[-1]['pole_disk_rad_s']:.0f} rad/s) failed: "
                          + ", ".join(f"{k_} x{n_}" for k_, n_ in kinds.items())) if tries else ""
+                if tries and all("solver error" in k_ or "inaccurate" in k_ for k_ in kinds):
+                    disks += (": no disk was proven infeasible, the LMI solver failed numerically at each, "
+                              "which is not a certificate that none exists")
                 return (f"failed: no law (design status {fz.status})", "failed",
                         "; ".join(fz.reasons[:1]) + disks + f" ({setup})")
             from ..analysis.metrics import step_metrics
