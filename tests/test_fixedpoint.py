@@ -36,6 +36,8 @@ def fixture_law(kind: str) -> ScheduledLaw:
         return ScheduledLaw(rules=(Rule(0.2, 5.0),), **base)
     if kind == "pi1-ff":        # reference feedforward (integrator preload), the motor's Kb + R B / Kt
         return ScheduledLaw(rules=(Rule(0.2, 5.0),), reference_ff_v_s_per_rad=0.158, **base)
+    if kind == "pi1-ff-big":    # a feedforward gain whose shift is left (saturating)
+        return ScheduledLaw(rules=(Rule(0.2, 5.0),), reference_ff_v_s_per_rad=5.0, **base)
     if kind == "fuzzy2-ff-neg":  # b > 1 with current feedback: a negative feedforward gain
         return ScheduledLaw(rules=(Rule(0.5, 20.0, 0.001, 1.0), Rule(0.3, 10.0, 0.0005, 0.5)), setpoint_weight=1.5,
                             reference_ff_v_s_per_rad=-0.09, **base)
@@ -164,7 +166,7 @@ def _bit_exact(tmp_path, kind, n, profile=PROFILE, seed=0):
 
 
 @pytest.mark.parametrize("kind,profile", [("fuzzy2", PROFILE), ("pid1-big", PROFILE),
-                                          ("fuzzy3-filter", HALL_PROFILE), ("pi1-ff", PROFILE),
+                                          ("fuzzy3-filter", HALL_PROFILE), ("pi1-ff", PROFILE), ("pi1-ff-big", PROFILE),
                                           ("fuzzy2-ff-neg", HALL_PROFILE)])
 def test_c_matches_python_model_bit_for_bit(tmp_path, kind, profile):
     fw, res = _bit_exact(tmp_path, kind, 4000, profile)
@@ -173,8 +175,10 @@ def test_c_matches_python_model_bit_for_bit(tmp_path, kind, profile):
     if kind == "fuzzy3-filter":
         assert fw.plan.dfilt_a > 0 and fw.plan.speed_source == "hall" and any(fw.plan.kc)
         assert fw.plan.qi < fw.plan.qu + 16          # +-200 V integrator: fewer fraction bits
-    if kind.endswith("-ff") or kind.endswith("-ff-neg"):
-        assert (fw.plan.kff > 0) == (kind == "pi1-ff") and fw.plan.kff != 0
+    if "-ff" in kind:
+        assert (fw.plan.kff < 0) == kind.endswith("-neg") and fw.plan.kff != 0
+        if kind.endswith("-big"):
+            assert fw.plan.shift_ff < 0              # the saturating left shift of the preload
     for name, r in res.items():
         assert r["mismatches"] == 0, (name, r["first"])
     assert res["total"]["vectors"] == 5 * 4000
