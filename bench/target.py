@@ -22,6 +22,8 @@ handlers, no table-pointer save).  The baseline does not fit the 18F4431's
 Usage:
   python3 bench/target.py                 # all six designs, today and baseline
   python3 bench/target.py --design duy2008.fuzzy-hinf --no-baseline
+  python3 bench/target.py --no-baseline --reference-feedforward   # also each design with the
+      # reference feedforward compiled in ("today+ff": control.reference_feedforward, the DC gain)
 """
 from __future__ import annotations
 
@@ -42,8 +44,16 @@ BASELINE_COMMIT = "c0631cc"
 HERE = Path(__file__).resolve().parent
 
 
-def generate_new(design: Path, out: Path) -> tuple[Path, str]:
+def generate_new(design: Path, out: Path, reference_ff: bool = False) -> tuple[Path, str]:
     profile = load_profile(json.loads(design.read_text())["profile"]["name"])
+    if reference_ff:                # the design's law with the reference feedforward's gain set
+        import dataclasses
+        from picdrive.design.verify import with_reference_ff
+        from picdrive.result import load_design, save_design
+        res = load_design(str(design))
+        res = dataclasses.replace(res, law=with_reference_ff(profile, res.law))
+        out.parent.mkdir(parents=True, exist_ok=True)
+        design = save_design(res, out.parent / "ff.design.json")
     fw = codegen.generate(profile, design)
     codegen.write_firmware(fw, out)
     return out, fw.name
@@ -106,6 +116,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--design", action="append", help="design stem (e.g. duy2008.fuzzy-hinf); default all")
     ap.add_argument("--no-baseline", action="store_true", help="skip today's-build-before-the-rewrite baseline")
+    ap.add_argument("--reference-feedforward", action="store_true",
+                    help="also measure each design with the reference feedforward compiled in (today+ff)")
     a = ap.parse_args()
     designs = sorted((repo_root() / "examples").glob("*.design.json"))
     if a.design:
@@ -126,6 +138,9 @@ def main() -> int:
             runs = {}
             folder, name = generate_new(d, work / stem / "new" / "fw")
             runs["today"] = measure(folder, name, work / stem / "new")
+            if a.reference_feedforward:
+                folder, name = generate_new(d, work / stem / "ff" / "fw", reference_ff=True)
+                runs["today+ff"] = measure(folder, name, work / stem / "ff")
             if not a.no_baseline:
                 folder, name = generate_baseline(d, work / stem / "base" / "fw", work)
                 runs["baseline"] = measure(folder, name, work / stem / "base",
@@ -133,11 +148,11 @@ def main() -> int:
             for mode in gpsim.TELEMETRY_MODES:
                 print(f"{stem}, telemetry {mode}")
                 print(head)
-                for label in ("baseline", "today"):
+                for label in ("baseline", "today", "today+ff"):
                     if label in runs:
                         b, cm = runs[label]
                         print(_row(label, b, cm[mode], period))
-                if len(runs) == 2:
+                if "baseline" in runs:
                     (b0, c0), (b1, c1) = runs["baseline"], (runs["today"][0], runs["today"][1])
                     k = ("speed_loop_isr", "hall_isr", "uart_rx_byte", "link_poll_max_frame")
                     r = [c1[mode].worst[x] / c0[mode].worst[x] for x in k]

@@ -16,7 +16,11 @@ Per bundled design (examples/*.design.json) and load (none; the profile's load f
   without a feedforward voltage;
 * without load, the same step in the motor twin with the design's firmware in the loop
   (picdrive.gate.twin_run), its time, overshoot and ratio;
-* ratios design / bound, and times in units of J w / (Kt I_lim) as the issue quotes them.
+* ratios design / bound, and times in units of J w / (Kt I_lim) as the issue quotes them;
+* ff: the same design with the reference feedforward (profile ``control.reference_feedforward``: the
+  law's integrator preloaded by G_ff x each change of r, G_ff from the averaged model's no-load steady
+  state, picdrive.design.verify.with_reference_ff) in the verification's plant, and without load in
+  the twin with that firmware; the load step's dip (rpm) and recovery with and without it.
 
     PYTHONPATH=$PWD/host:$PWD/hil python3 bench/time_optimal.py
 """
@@ -86,6 +90,26 @@ def window_time(profile, plant_factory, load: float, rpm: float) -> float:
     return float(run["t"][hit[0]]) if hit.size else math.inf
 
 
+def load_dip(profile, law, drive, rpm: float) -> dict:
+    """The verification's load step (picdrive.analysis.steptest.run_sim, sim_plan): the sector-mean
+    dip below the target after the load step, rpm, and the time back within 1 %."""
+    from picdrive.analysis.steptest import run_sim, sector_mean, sim_plan
+    plan = {**sim_plan(profile), "target_rpm": rpm}
+    sim = run_sim(profile, law, plan, measurement=drive.speed_measurement(profile, law),
+                  three_phase=drive.three_phase_plant, disturbances=False)
+    sm = sector_mean(profile, sim.rpm, law.sample_time_s, rpm)
+    after = sim.t >= plan["t_load_s"]
+    dip = float(rpm - np.min(sm[after]))
+    out = np.nonzero(after & (np.abs(sm - rpm) > 0.01 * rpm))[0]
+    rec = float(sim.t[out[-1]] - plan["t_load_s"]) if out.size else 0.0
+    return {"dip_rpm": dip, "recovery_s": rec}
+
+
+def ff_law(profile, law, drive):
+    from picdrive.design.verify import with_reference_ff
+    return with_reference_ff(profile, law, drive)
+
+
 def main(argv):
     from picdrive.analysis.timeoptimal import t_unit, time_to_band, trajectory
     from picdrive.gate import BuiltDrive, three_phase_plant
@@ -116,10 +140,24 @@ def main(argv):
                 shaped = " | " + "  ".join(f"{f['t_band_s'] / b['t_s']:5.2f} {f['overshoot_pct']:5.2f}" for f in sh)
                 tw = "" if load else (lambda f: f" | twin {1e3 * f['t_band_s']:.0f} ms ovs {f['overshoot_pct']:.2f} % "
                                                 f"ratio {f['t_band_s'] / b['t_s']:.2f}")(twin_step(p, path, res.law, rpm))
+                lf = ff_law(p, res.law, drive)
+                dff = design_step(p, lf, drive, load, rpm)
+                ffs = (f" | ff G={lf.reference_ff_v_s_per_rad:.4f}: {1e3 * dff['t_band_s']:.0f} ms ovs "
+                       f"{dff['overshoot_pct']:.2f} % ratio {dff['t_band_s'] / b['t_s']:.2f}")
+                if not load:
+                    import dataclasses, tempfile
+                    from picdrive.result import save_design
+                    with tempfile.TemporaryDirectory() as td:
+                        fp = save_design(dataclasses.replace(res, law=lf), Path(td) / path.name)
+                        f = twin_step(p, fp, lf, rpm)
+                    ffs += f" twin {1e3 * f['t_band_s']:.0f} ms ovs {f['overshoot_pct']:.2f} % ratio {f['t_band_s'] / b['t_s']:.2f}"
+                    d0, d1 = load_dip(p, res.law, drive, rpm), load_dip(p, lf, drive, rpm)
+                    ffs += (f" | load dip {d0['dip_rpm']:.1f} / ff {d1['dip_rpm']:.1f} rpm, back in 1 % "
+                            f"{1e3 * d0['recovery_s']:.0f} / ff {1e3 * d1['recovery_s']:.0f} ms")
                 print(f"{path.name[:-12]:30} {load:8.3g} | {1e3 * b['t_s']:9.2f} ({b['t_s'] / unit:4.2f})"
                       f" {1e3 * bdc['t_s']:11.2f} | {1e3 * win:9.2f} | {1e3 * d['t_band_s']:9.2f} "
                       f"({d['t_band_s'] / unit:5.2f}) {d['overshoot_pct']:6.2f} | {d['t_band_s'] / b['t_s']:12.2f}"
-                      f"  {win / b['t_s']:12.2f}{shaped}{tw}", flush=True)
+                      f"  {win / b['t_s']:12.2f}{shaped}{tw}{ffs}", flush=True)
 
 
 if __name__ == "__main__":

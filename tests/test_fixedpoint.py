@@ -34,6 +34,13 @@ def fixture_law(kind: str) -> ScheduledLaw:
                             setpoint_weight=0.6, integrator_limit_v=200.0, **base)
     if kind == "pi1":
         return ScheduledLaw(rules=(Rule(0.2, 5.0),), **base)
+    if kind == "pi1-ff":        # reference feedforward (integrator preload), the motor's Kb + R B / Kt
+        return ScheduledLaw(rules=(Rule(0.2, 5.0),), reference_ff_v_s_per_rad=0.158, **base)
+    if kind == "pi1-ff-big":    # a feedforward gain whose shift is left (saturating)
+        return ScheduledLaw(rules=(Rule(0.2, 5.0),), reference_ff_v_s_per_rad=5.0, **base)
+    if kind == "fuzzy2-ff-neg":  # b > 1 with current feedback: a negative feedforward gain
+        return ScheduledLaw(rules=(Rule(0.5, 20.0, 0.001, 1.0), Rule(0.3, 10.0, 0.0005, 0.5)), setpoint_weight=1.5,
+                            reference_ff_v_s_per_rad=-0.09, **base)
     raise ValueError(kind)
 
 
@@ -159,7 +166,8 @@ def _bit_exact(tmp_path, kind, n, profile=PROFILE, seed=0):
 
 
 @pytest.mark.parametrize("kind,profile", [("fuzzy2", PROFILE), ("pid1-big", PROFILE),
-                                          ("fuzzy3-filter", HALL_PROFILE)])
+                                          ("fuzzy3-filter", HALL_PROFILE), ("pi1-ff", PROFILE), ("pi1-ff-big", PROFILE),
+                                          ("fuzzy2-ff-neg", HALL_PROFILE)])
 def test_c_matches_python_model_bit_for_bit(tmp_path, kind, profile):
     fw, res = _bit_exact(tmp_path, kind, 4000, profile)
     if kind == "pid1-big":
@@ -167,6 +175,10 @@ def test_c_matches_python_model_bit_for_bit(tmp_path, kind, profile):
     if kind == "fuzzy3-filter":
         assert fw.plan.dfilt_a > 0 and fw.plan.speed_source == "hall" and any(fw.plan.kc)
         assert fw.plan.qi < fw.plan.qu + 16          # +-200 V integrator: fewer fraction bits
+    if "-ff" in kind:
+        assert (fw.plan.kff < 0) == kind.endswith("-neg") and fw.plan.kff != 0
+        if kind.endswith("-big"):
+            assert fw.plan.shift_ff < 0              # the saturating left shift of the preload
     for name, r in res.items():
         assert r["mismatches"] == 0, (name, r["first"])
     assert res["total"]["vectors"] == 5 * 4000
@@ -190,7 +202,7 @@ def test_c_matches_python_model_on_1e5_vectors(tmp_path):
     assert res["total"]["mismatches"] == 0, res["total"]["first"]
 
 
-@pytest.mark.parametrize("kind", ["fuzzy2", "pi1"])
+@pytest.mark.parametrize("kind", ["fuzzy2", "pi1", "pi1-ff"])
 def test_fixed_point_loop_follows_the_float_law(kind):
     law = fixture_law(kind)
     plan = fx.plan_fixed_point(PROFILE, law, pcpwm.plan_pwm(PROFILE))

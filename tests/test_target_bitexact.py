@@ -163,6 +163,9 @@ void main(void)
         f = 0u;
         law_state(&cs.law);
         cs.r_applied = r16(); cs.speed = r16(); cs.current = r16();
+#if CORE_KFF
+        cs.ff = r32();
+#endif
         cs.umin = cp.u_min; cs.umax = cp.u_max;
         core_law();
         fold((uint16_t)cs.u); fold_law(&cs.law);
@@ -308,8 +311,9 @@ def model_run(plan, n, t0, n_slots):
         h = sums[0]
         ls = law_state()
         r, y, i = g.r16(), g.r16(), g.r16()
-        vin = {"law": (f"params set {k % N_PARAM_SETS} {p}", f"state {ls}", f"r={r} y={y} i={i}")}
-        u = fx.law_step(plan, p, ls, r, y, i, p.u_min, p.u_max)
+        ff = g.r32() if plan.kff else 0
+        vin = {"law": (f"params set {k % N_PARAM_SETS} {p}", f"state {ls}", f"r={r} y={y} i={i} ff={ff}")}
+        u = fx.law_step(plan, p, ls, r, y, i, p.u_min, p.u_max, ff)
         h.fold(u), fold_law(h, ls)
         vin["law"] += (f"-> u={u} state {ls}",)
         h = sums[1]
@@ -435,6 +439,27 @@ def design(tmp_path_factory):
     return fw.plan, out, tmp
 
 
+def ff_firmware(tmp):
+    """duy2008 fuzzy-hinf with the reference feedforward on (control.reference_feedforward: the
+    gain of picdrive.design.verify.with_reference_ff on the DC equivalent), generated into tmp."""
+    import dataclasses
+    from picdrive.design.verify import with_reference_ff
+    from picdrive.result import load_design, save_design
+    prof = load_profile("duy2008")
+    res = load_design(str(repo_root() / "examples" / "duy2008.fuzzy-hinf.design.json"))
+    res = dataclasses.replace(res, law=with_reference_ff(prof, res.law))
+    path = save_design(res, tmp / "ff.design.json")
+    fw = codegen.generate(prof, path)
+    return fw, codegen.write_firmware(fw, tmp / "fw-ff", check=False)
+
+
+@pytest.fixture(scope="module")
+def design_ff(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("bitexact-ff")
+    fw, out = ff_firmware(tmp)
+    return fw.plan, out, tmp
+
+
 def test_generator_mirrors_are_consistent():
     # the Python mirror of the harness's xorshift32: the published sequence for seed 1
     g = Rng(1)
@@ -445,6 +470,31 @@ def test_pic18_code_matches_the_model(design):
     plan, folder, tmp = design
     verdict = compare(folder, tmp / "good", plan)
     assert verdict == {f: None for f in CHECKED}, verdict
+
+
+def test_pic18_code_matches_the_model_with_reference_feedforward(design_ff):
+    """The reference feedforward's code (core_control's preload of each reference change, core_law's
+    add before the clamp) is compiled in only when the plan has a gain: the same vectors on that
+    build (the control vectors change r_applied at almost every vector, the law vectors give any
+    int32 preload)."""
+    plan, folder, tmp = design_ff
+    assert plan.kff != 0 and "ctl_ff_store" in (folder / "drive_core.c").read_text()
+    verdict = compare(folder, tmp / "good", plan)
+    assert verdict == {f: None for f in CHECKED}, verdict
+
+
+def test_a_changed_feedforward_constant_is_caught(design_ff):
+    """KFF one LSB off in core_control's assembly must make the chip's control disagree with the model."""
+    plan, folder, tmp = design_ff
+    text = (folder / "drive_core.c").read_text()
+    start = text.index("    ; reference feedforward: ff = ")
+    m = re.compile(r"    MOVLW   (\d+)\n    MOVWF   _core_acc \+ 8, A\n").search(text, start)
+    assert m and m.start() - start < 600, "the feedforward's literal was not found"
+    v = int(m[1])
+    lit = m[0].replace(f"MOVLW   {v}", f"MOVLW   {v + 1 if v < 255 else v - 1}")
+    bad = _mutated(folder, tmp, "kff", "drive_core.c", text[start:m.end()], text[start:m.start()] + lit)
+    verdict = compare(bad, tmp / "kff-run", plan, n=500, funcs=("law", "control"))
+    assert verdict["control"] is not None and verdict["law"] is None, verdict
 
 
 def test_a_changed_law_instruction_is_caught(design):

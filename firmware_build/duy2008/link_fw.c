@@ -2491,13 +2491,12 @@ void link_sample(void) __naked
     BANKSEL _S
     MOVF    (_link_hot + 11), W, A  ; tm_ready: the last frame is not sent yet: a drop
     BZ      lsm_fill
-    INFSNZ  (_S + 6), F, B          ; tm_dropped++, saturating
+    MOVF    (_S + 6), W, B          ; tm_dropped++, saturating: not at 0xFFFF
+    ANDWF   (_S + 7), W, B
+    INCF    0xFE8, W, A
+    BZ      lsm_count
+    INFSNZ  (_S + 6), F, B
     INCF    (_S + 7), F, B
-    MOVF    (_S + 6), W, B
-    IORWF   (_S + 7), W, B
-    BNZ     lsm_count
-    SETF    (_S + 6), B
-    SETF    (_S + 7), B
     BRA     lsm_count
 lsm_fill:
     MOVF    (_link_hot + 19), W, A  ; the first sample of a frame: its counter, the header
@@ -2578,13 +2577,12 @@ ltk_clear:
     CLRF    (_S + 29), B
     RETURN
 ltk_count:
-    INFSNZ  (_S + 28), F, B         ; wd_ms++, saturating
+    MOVF    (_S + 28), W, B         ; wd_ms++, saturating: not at 0xFFFF
+    ANDWF   (_S + 29), W, B
+    INCF    0xFE8, W, A
+    BZ      ltk_cmp
+    INFSNZ  (_S + 28), F, B
     INCF    (_S + 29), F, B
-    MOVF    (_S + 28), W, B
-    IORWF   (_S + 29), W, B
-    BNZ     ltk_cmp
-    SETF    (_S + 28), B
-    SETF    (_S + 29), B
 ltk_cmp:
     MOVFF   (_link_params + 17), 0xFF3   ; wd_ms - link_timeout: no borrow = expired
     MOVFF   (_link_params + 18), 0xFF4

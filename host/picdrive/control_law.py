@@ -20,6 +20,7 @@ two-degree-of-freedom PID with optional current feedback:
       dI  = Ki Ts e                             scheduled gain inside the integral (bumpless)
       I   = min(I + dI, max(I, u_max - Q))  if dI > 0     integrate only into the output headroom,
             max(I + dI, min(I, u_min - Q))  if dI < 0     never discharge the integrator by force
+      I   = I + G_ff (r - r_prev)          reference feedforward (integrator preload), when r changes
       I   = clamp(I, -I_lim, I_lim)                        I_lim = integrator_limit_v
       u   = clamp(Q + I, u_lo, u_hi)
 
@@ -30,6 +31,12 @@ the current limit when the law has one (``current_limit_a``)::
       u_lo = max(u_min, Kb y - R I_max)       within +-I_max at every sample
       (each then bounded into [u_min, u_max]: beyond reach both meet at the rail
        next to the EMF)
+
+The reference feedforward ``G_ff`` (``reference_ff_v_s_per_rad``, V per rad/s; 0 = off) moves the
+integrator by the steady-state voltage a change of the applied reference needs (r_prev starts at 0
+with the law's memory), so that the integrator does not have to climb to it at ``Ki Ts e`` per
+sample once the output leaves the current window (issue 14 item 3; :func:`reference_ff_gain`).  It
+acts only on reference changes: the load rejection (w -> z) is the law's own.
 
 This back-EMF-based voltage clamp limits the current without waiting for a
 current measurement (the speed loop samples far slower than the winding's
@@ -60,7 +67,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-__all__ = ["Rule", "ScheduledLaw", "LawState", "memberships", "law_step", "law_from_dict"]
+__all__ = ["Rule", "ScheduledLaw", "LawState", "memberships", "law_step", "law_from_dict", "reference_ff_gain"]
 
 
 @dataclass(frozen=True)
@@ -88,6 +95,7 @@ class ScheduledLaw:
     current_limit_a: float | None = None        # None: no back-EMF voltage clamp
     kb_v_s_per_rad: float = 0.0                 # clamp: six-step DC-equivalent back-EMF constant
     r_ohm: float = 0.0                          # clamp: six-step DC-equivalent (line) resistance
+    reference_ff_v_s_per_rad: float = 0.0       # integrator preload per rad/s of reference change (0 = off)
     notes: str = ""
 
     def __post_init__(self):
@@ -153,7 +161,8 @@ def law_from_dict(d: dict) -> ScheduledLaw:
         setpoint_weight=d.get("setpoint_weight", 1.0),
         derivative_filter_hz=d.get("derivative_filter_hz"),
         integrator_limit_v=d.get("integrator_limit_v"), current_limit_a=d.get("current_limit_a"),
-        kb_v_s_per_rad=d.get("kb_v_s_per_rad", 0.0), r_ohm=d.get("r_ohm", 0.0), notes=d.get("notes", ""))
+        kb_v_s_per_rad=d.get("kb_v_s_per_rad", 0.0), r_ohm=d.get("r_ohm", 0.0),
+        reference_ff_v_s_per_rad=d.get("reference_ff_v_s_per_rad", 0.0), notes=d.get("notes", ""))
 
 
 def memberships(law: ScheduledLaw, speed_rad_s: float) -> np.ndarray:
@@ -179,6 +188,7 @@ class LawState:
     integ_v: float = 0.0
     y_prev: float | None = None
     d_filt_v: float = 0.0
+    r_prev: float = 0.0          # the reference of the last sample (reference feedforward)
     log: list = field(default_factory=list, repr=False)
 
 
@@ -203,7 +213,26 @@ def law_step(law: ScheduledLaw, st: LawState, r: float, y: float, i: float = 0.0
         st.integ_v = min(st.integ_v + d_i, max(st.integ_v, u_hi - q))
     elif d_i < 0:
         st.integ_v = max(st.integ_v + d_i, min(st.integ_v, u_lo - q))
+    if r != st.r_prev:                      # reference feedforward: preload by the change of r
+        st.integ_v += law.reference_ff_v_s_per_rad * (r - st.r_prev)
+        st.r_prev = r
     lim = law.i_lim_v
     st.integ_v = min(max(st.integ_v, -lim), lim)
     st.y_prev = y
     return min(max(q + st.integ_v, u_lo), u_hi)
+
+
+def reference_ff_gain(law: ScheduledLaw, w_rad_s: float, u_ss_v: float, i_ss_a: float) -> float:
+    """The reference feedforward gain G_ff, V per rad/s, from the drive's no-load steady state at speed
+    ``w_rad_s``: voltage ``u_ss_v`` and current ``i_ss_a`` there.
+
+    At y = r in steady state (D = 0) the law's output is ``Kp (b - 1) r - Kc i + I``; the integrator
+    that gives ``u_ss`` is ``u_ss + Kp (1 - b) r + Kc i_ss``, so per rad/s of reference
+    ``G_ff = u_ss / w + Kp (1 - b) + Kc i_ss / w`` (gains blended at ``w``).  It is linear in r
+    (one constant in the firmware): exact at ``w``, at other speeds off by the variation of
+    ``u_ss / w`` (the friction's and the commutation's share) and of the blended Kp, Kc.
+    """
+    if not w_rad_s > 0:
+        raise ValueError("reference_ff_gain: the speed must be positive")
+    g = law.gains_at(w_rad_s)
+    return (u_ss_v + g.kc * i_ss_a) / w_rad_s + g.kp * (1.0 - law.setpoint_weight)

@@ -16,8 +16,9 @@ from picdrive.firmware.fixedpoint import (INT16_MAX, INT16_MIN, INT32_MAX, INT32
 __all__ = ["core_structs", "build_core_lib", "rand_params", "rand_law_state", "compare_with_c"]
 
 
-def core_structs(n_rules: int):
-    """ctypes mirrors of core_params_t, core_law_t, core_state_t for ``n_rules`` rules."""
+def core_structs(n_rules: int, kff: bool = False):
+    """ctypes mirrors of core_params_t, core_law_t, core_state_t for ``n_rules`` rules (``kff``: a
+    build with the reference feedforward, core_s.ff)."""
     import ctypes as C
 
     class Params(C.Structure):
@@ -35,7 +36,7 @@ def core_structs(n_rules: int):
                     ("w_avg", C.c_int16), ("r_applied", C.c_int16), ("cap", C.c_int16),
                     ("speed", C.c_int16), ("current", C.c_int16), ("u", C.c_int16), ("dir", C.c_uint8),
                     ("hold", C.c_uint8), ("pdc", C.c_uint16), ("umin", C.c_int16), ("umax", C.c_int16),
-                    ("t2_prev", C.c_uint8)]
+                    ("t2_prev", C.c_uint8)] + ([("ff", C.c_int32)] if kff else [])
 
     return Params, Law, State
 
@@ -56,7 +57,7 @@ def build_core_lib(folder, out_dir=None, cc: str = "gcc"):
     if r.returncode != 0:
         raise FixedPointError(f"drive_core.c does not compile: {r.stderr.strip()}")
     d = C.CDLL(str(lib))
-    Params, Law, State = core_structs(_n_rules_of(folder))
+    Params, Law, State = core_structs(_n_rules_of(folder), _kff_of(folder))
     # the C's parameters and state are globals (core_p, core_s): the functions take no pointers
     d.core_law.restype = None
     d.core_law.argtypes = []
@@ -88,6 +89,15 @@ def _speed_encoder_of(folder) -> bool:
     if not m:
         raise FixedPointError(f"{folder}/drive_params.h has no FW_SPEED_ENCODER")
     return m.group(1) == "1"
+
+
+def _kff_of(folder) -> bool:
+    import re
+    from pathlib import Path
+    m = re.search(r"#define CORE_KFF (-?\d+)\n", (Path(folder) / "drive_params.h").read_text())
+    if not m:
+        raise FixedPointError(f"{folder}/drive_params.h has no CORE_KFF")
+    return m.group(1) != "0"
 
 
 def _n_rules_of(folder) -> int:
@@ -182,11 +192,16 @@ def compare_with_c(plan: FixedPointPlan, lib, n: int, seed: int = 0) -> dict:
         r_, y_ = _i16(rng, span=span_y), _i16(rng, span=span_y)
         i_ = _i16(rng, span=1023)
         cs.r_applied, cs.speed, cs.current, cs.umin, cs.umax = r_, y_, i_, umin, umax
+        ff = 0
+        if plan.kff:                                # the preload core_control would set, any int32
+            ff = int(rng.choice([INT32_MIN, INT32_MAX, int(rng.integers(-2 ** 31, 2 ** 31)),
+                                 int(rng.integers(-plan.i_lim, plan.i_lim + 1))]))
+            cs.ff = ff
         lib.core_law()
         uc = cs.u
-        up = law_step(plan, p, s, r_, y_, i_, umin, umax)
+        up = law_step(plan, p, s, r_, y_, i_, umin, umax, ff)
         ok = uc == up and law_tuple(cl) == law_tuple(s)
-        note("law", ok, f"law r={r_} y={y_} i={i_} params={p} -> C {uc} {law_tuple(cl)} Py {up} {law_tuple(s)}")
+        note("law", ok, f"law r={r_} y={y_} i={i_} ff={ff} params={p} -> C {uc} {law_tuple(cl)} Py {up} {law_tuple(s)}")
         # a whole control step (limiter, ramp, law, duty, direction)
         st = CoreState(law=rand_law_state(rng, plan.i_lim), speed_valid=int(rng.integers(0, 2)),
                        r_applied=_i16(rng, span=span_y), cap=int(rng.integers(0, plan.u_limit + 1)),

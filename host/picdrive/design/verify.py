@@ -299,6 +299,25 @@ def _sim_checks(profile, law, drive) -> dict:
     return out
 
 
+def with_reference_ff(profile, law, drive=None):
+    """``law`` with its reference feedforward gain set (profile ``control.reference_feedforward``;
+    :func:`picdrive.control_law.reference_ff_gain` at the profile's step speed): the no-load steady
+    state of the speed-dependent averaged model identified from the drive's three-phase plant
+    (:func:`picdrive.models.averaged.identify`, what the simulations run on) when ``drive`` is given,
+    else of the DC equivalent (u = (Kb + R B / Kt) w, i = B w / Kt)."""
+    import dataclasses
+    from ..control_law import reference_ff_gain
+    m = profile.motor
+    w = profile.speed_step_rpm() * math.pi / 30.0
+    if drive is not None:
+        from ..models.averaged import identify
+        u_ss, i_ss = identify(profile, drive.three_phase_plant).equilibrium(w, 0.0)
+    else:
+        i_ss = m.viscous_friction_n_m_s * w / m.kt_n_m_per_a
+        u_ss = m.kb_v_s_per_rad * w + m.r_line_ohm * i_ss
+    return dataclasses.replace(law, reference_ff_v_s_per_rad=reference_ff_gain(law, w, u_ss, i_ss))
+
+
 def verify_design(profile, result, *, drive=None, simulate: bool = True):
     """Run every applicable check, fill ``result.verification``, fail on any failed check.
 
@@ -328,6 +347,8 @@ def verify_design(profile, result, *, drive=None, simulate: bool = True):
         reasons).
     """
     checks: dict[str, Any] = {}
+    if result.law is not None and getattr(profile.control, "reference_feedforward", False):
+        result.law = with_reference_ff(profile, result.law, drive)
     law = result.law
     if law is not None and simulate and drive is None:
         raise ValueError("verify_design: simulating a law needs the built drive (drive=picdrive.gate.BuiltDrive())")

@@ -335,6 +335,10 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
         _d("CORE_R_CNT", str(plan.r_cnt), f"motor r_line_ohm per ADC count = {plan.r_cnt * 2 ** -plan.q_r:.6g} V "
            f"in Q{plan.q_r}"),
         _d("CORE_SHIFT_R(x)", shift_macro("R", plan.shift_r), f"Q_R - QU = {plan.shift_r}"),
+        _d("CORE_KFF", str(plan.kff), (f"reference feedforward = {plan.kff * 2 ** -plan.q_kff:.6g} V s/rad in "
+                                       f"Q{plan.q_kff} (integrator preload per reference change)" if plan.kff else
+                                       "reference feedforward off (design reference_ff_v_s_per_rad = 0)")),
+        _d("CORE_SHIFT_FF(x)", shift_macro("FF", plan.shift_ff), f"Q_KFF + QS - QI = {plan.shift_ff}"),
     ]})
     gains = []
     for c in plan.coefs:

@@ -47,7 +47,7 @@ __all__ = ["FixedPointError", "Coef", "FixedPointPlan", "plan_fixed_point", "Par
            "param_specs", "signal_specs", "law_parameters", "INT16_MIN", "INT16_MAX", "INT32_MIN", "INT32_MAX",
            "sat16", "sat32", "asr32", "shl_sat32", "shift32", "mul_q15", "premise_k",
            "law_step", "LawState", "LawParams", "speed_encoder", "t2_ticks", "speed_hall", "duty_counts",
-           "CoreState", "core_control", "core_reset", "law_params_from_plan"]
+           "CoreState", "core_control", "core_reset", "law_params_from_plan", "reference_ff"]
 
 INT16_MIN, INT16_MAX = -32768, 32767
 INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
@@ -190,6 +190,9 @@ class FixedPointPlan:
     stall_ms: int
     link_timeout_ms: int
     bus_voltage_v: float
+    kff: int = 0                 # reference feedforward, Q q_kff V/(rad/s); 0 = off
+    q_kff: int = 0
+    shift_ff: int = 0            # q_kff + qs - qi
     coefs: tuple = field(default=())
     notes: tuple = field(default=())
 
@@ -516,6 +519,18 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
     coefs.append(Coef("kb", kb_v, q_kb, kb_raw, "V/(rad/s)", "motor kb_v_s_per_rad (current-limit window)"))
     coefs.append(Coef("r_per_count", r_cnt_v, q_r, r_raw, "V/count", "motor r_line_ohm / counts per A"))
 
+    # reference feedforward (integrator preload per speed LSB of reference change)
+    g_ff = getattr(law, "reference_ff_v_s_per_rad", 0.0)
+    kff = q_kff = shift_ff = 0
+    if g_ff:
+        q_kff = _q_for(abs(g_ff), 1.0)
+        kff = round(g_ff * 2 ** q_kff)
+        shift_ff = q_kff + qs - qi
+        if not -31 <= shift_ff <= 31:
+            raise FixedPointError(f"reference feedforward {g_ff:g} V s/rad cannot be represented "
+                                  "(set control.reference_feedforward = false)")
+        coefs.append(Coef("kff", g_ff, q_kff, kff, "V/(rad/s)", "design reference_ff_v_s_per_rad"))
+
     pre, post, pr2, div, ticks, achieved = _timer2(loop_hz)
     return FixedPointPlan(
         n_rules=law.n_rules, ts_s=ts, qs=qs, qu=qu, qi=qi, q_kp=q_kp, q_kits=q_kits, q_kdts=q_kdts, q_kc=q_kc,
@@ -530,7 +545,8 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
         kb=kb_raw, q_kb=q_kb, shift_kb=shift_kb, r_cnt=r_raw, q_r=q_r, shift_r=shift_r,
         t2_pre=pre, t2_post=post, pr2=pr2, loop_div=div, tcy_per_tick=ticks, loop_hz=achieved,
         stall_ms=int(round(co.stall_timeout_ms)), link_timeout_ms=int(round(profile.uart.link_timeout_ms)),
-        bus_voltage_v=inv.bus_voltage_v, coefs=tuple(coefs), notes=tuple(notes))
+        bus_voltage_v=inv.bus_voltage_v, kff=kff, q_kff=q_kff, shift_ff=shift_ff,
+        coefs=tuple(coefs), notes=tuple(notes))
 
 
 # ---------------------------------------------------------------------------
@@ -684,8 +700,11 @@ def _blend(g: list, j: int, frac: int) -> int:
 
 
 def law_step(plan: FixedPointPlan, p: LawParams, st: LawState, r: int, y: int, i: int,
-             umin: int, umax: int) -> int:
-    """One sample of the fixed-point law (C: core_law).  Returns u (Q qu)."""
+             umin: int, umax: int, ff: int = 0) -> int:
+    """One sample of the fixed-point law (C: core_law).  Returns u (Q qu).
+
+    ``ff``: the reference feedforward of the sample (Q qi, C: core_s.ff, :func:`reference_ff`),
+    added to the integrator after the headroom rule and before its clamp (plans with kff only)."""
     nr = plan.n_rules
     if nr == 1 or p.controller == 0:
         kp, kits, kdts, kc = p.kp[0], p.kits[0], p.kdts[0], p.kc[0]
@@ -736,6 +755,8 @@ def law_step(plan: FixedPointPlan, p: LawParams, st: LawState, r: int, y: int, i
     elif inc < 0:
         head = shl_sat32(sat32(umin - q), di) if di else sat32(umin - q)
         st.integ = max(i_new, min(st.integ, head))
+    if plan.kff:
+        st.integ = sat32(st.integ + ff)
     if st.integ > plan.i_lim:
         st.integ = plan.i_lim
     elif st.integ < -plan.i_lim:
@@ -855,6 +876,13 @@ def duty_counts(plan: FixedPointPlan, u: int) -> int:
     return plan.pdc_max if d > plan.pdc_max else d
 
 
+def reference_ff(plan: FixedPointPlan, dr: int) -> int:
+    """The integrator preload (Q qi) of a change ``dr`` of the applied reference (speed LSB):
+    shift(kff x sat16(dr)), 0 without a change or without feedforward (C: core_s.ff)."""
+    dr = sat16(dr)
+    return shift32(plan.kff * dr, plan.shift_ff) if plan.kff and dr else 0
+
+
 def core_control(plan: FixedPointPlan, p: LawParams, st: CoreState, target: int, adc: int) -> int:
     """C: core_control: current limits, setpoint ramp, law, duty and direction.  Returns u.
 
@@ -885,8 +913,9 @@ def core_control(plan: FixedPointPlan, p: LawParams, st: CoreState, target: int,
             t = st.r_applied + p.accel_step
         elif d < -p.accel_step:
             t = st.r_applied - p.accel_step
+    ff = reference_ff(plan, t - st.r_applied)
     st.r_applied = t
-    u = law_step(plan, p, st.law, t, st.speed, i, umin, umax)
+    u = law_step(plan, p, st.law, t, st.speed, i, umin, umax, ff)
     st.u = u
     newdir = 1 if u < 0 else 0
     st.hold = 0

@@ -1,0 +1,84 @@
+"""The reference feedforward (issue 14 item 3): the law's integrator preloaded by G_ff x each change of
+the applied reference, in the float law, the fixed-point model and from the profile option.
+
+The firmware's C and assembly against the model: tests/test_fixedpoint.py (kinds "pi1-ff",
+"fuzzy2-ff-neg") and tests/test_target_bitexact.py (the duy2008 build with the feedforward)."""
+import dataclasses
+import math
+
+import pytest
+
+from picdrive.control_law import LawState, Rule, ScheduledLaw, law_step, reference_ff_gain
+from picdrive.design.verify import verify_design, with_reference_ff
+from picdrive.firmware import fixedpoint as fx, pcpwm
+from picdrive.paths import repo_root
+from picdrive.profile import load_profile
+from picdrive.result import load_design
+
+RPM = math.pi / 30
+BASE = dict(premise_rad_s=(0.0, 300.0), sample_time_s=1e-3, u_min_v=-1000.0, u_max_v=1000.0)
+
+
+def test_the_preload_acts_on_reference_changes_only():
+    """Two PI laws, with and without G_ff, wide limits (the headroom rule never binds): the integrators
+    differ by G_ff x r after the reference steps (also when it steps back) and a speed disturbance at a
+    constant reference moves both alike (load rejection unchanged)."""
+    g = 0.15
+    off = ScheduledLaw(rules=(Rule(0.4, 30.0),), **BASE)
+    on = dataclasses.replace(off, reference_ff_v_s_per_rad=g)
+    s0, s1 = LawState(), LawState()
+    ys = [0.0, 10.0, 50.0, 120.0, 200.0, 180.0, 150.0, 160.0]          # a speed record with a dip
+    rs = [200.0] * 5 + [200.0, 120.0, 120.0]
+    for r, y in zip(rs, ys):
+        law_step(off, s0, r, y)
+        law_step(on, s1, r, y)
+        assert s1.integ_v - s0.integ_v == pytest.approx(g * r, abs=1e-9)
+    assert s1.r_prev == 120.0
+
+
+def test_the_gain_gives_the_steady_state_voltage_at_y_equal_r():
+    """G_ff = u_ss / w + Kp (1 - b) + Kc i_ss / w: with y = r = w and i = i_ss the law's output with the
+    integrator at G_ff w (no integration: e = 0) is u_ss."""
+    law = ScheduledLaw(rules=(Rule(0.5, 40.0, 0.0, 5.0),), setpoint_weight=1.27, **BASE)
+    w, u_ss, i_ss = 250.0, 38.2, 0.19
+    g = reference_ff_gain(law, w, u_ss, i_ss)
+    st = LawState(y_prev=w)
+    ff = dataclasses.replace(law, reference_ff_v_s_per_rad=g)
+    assert law_step(ff, st, w, w, i_ss) == pytest.approx(u_ss, rel=1e-12)
+    with pytest.raises(ValueError):
+        reference_ff_gain(law, 0.0, u_ss, i_ss)
+
+
+def test_the_fixed_point_preload_is_the_gain_times_the_change():
+    prof = load_profile("duy2008")
+    law = dataclasses.replace(ScheduledLaw(rules=(Rule(0.4, 30.0),), premise_rad_s=(0.0, 2600 * RPM),
+                                           sample_time_s=1e-3, u_min_v=-44.16, u_max_v=44.16),
+                              reference_ff_v_s_per_rad=0.158)
+    plan = fx.plan_fixed_point(prof, law, pcpwm.plan_pwm(prof))
+    assert plan.kff and any(c.name == "kff" for c in plan.coefs)
+    for dr in (1, -1, 37, -1000, 20000):
+        want = 0.158 * dr * 2.0 ** (plan.qi - plan.qs)
+        assert fx.reference_ff(plan, dr) == pytest.approx(want, rel=2e-4, abs=2)
+    assert fx.reference_ff(plan, 0) == 0
+    assert fx.reference_ff(plan, 70000) == fx.reference_ff(plan, 32767)       # the change saturates to int16
+    off = fx.plan_fixed_point(prof, dataclasses.replace(law, reference_ff_v_s_per_rad=0.0), pcpwm.plan_pwm(prof))
+    assert off.kff == 0 and fx.reference_ff(off, 1000) == 0
+
+
+def test_the_profile_option_sets_the_gain_at_verification():
+    """control.reference_feedforward = true: verify_design puts the DC-equivalent gain on the law (no
+    built drive here: no averaged model) and the result's law carries it (the firmware's CORE_KFF)."""
+    prof = load_profile("duy2008")
+    assert prof.control.reference_feedforward is False
+    on = prof.replace(control={"reference_feedforward": True})
+    assert on.control.reference_feedforward is True
+    res = load_design(str(repo_root() / "examples" / "duy2008.zn.design.json"))
+    assert res.law.reference_ff_v_s_per_rad == 0.0
+    m = prof.motor
+    dc = m.kb_v_s_per_rad + m.r_line_ohm * m.viscous_friction_n_m_s / m.kt_n_m_per_a     # b = 1, kc = 0
+    assert with_reference_ff(on, res.law).reference_ff_v_s_per_rad == pytest.approx(dc, rel=1e-12)
+    verify_design(on, res, simulate=False)
+    assert res.law.reference_ff_v_s_per_rad == pytest.approx(dc, rel=1e-12)
+    verify_design(prof, res2 := load_design(str(repo_root() / "examples" / "duy2008.zn.design.json")),
+                  simulate=False)
+    assert res2.law.reference_ff_v_s_per_rad == 0.0
