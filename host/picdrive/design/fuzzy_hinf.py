@@ -348,10 +348,11 @@ OPTIONS: dict[str, str] = {
                              "corner (B + Kt Kb/R)/J; dq tracking, 0.2 of it)",
     "max_spectral_radius": "six-step: the disk search's bound on the sampled loop's spectral radius (default 0.95)",
     "emf_polytope": "six-step: the EMF polytope over the commutated pair's EMF range (default true)",
-    "plant_model": "six-step: 'six-step' (default, DC equivalent with the commutated EMF range), 'averaged' (the "
+    "plant_model": "six-step: 'averaged' (default profile design.plant_model = \"averaged\": the "
                    "speed-dependent averaged six-step model identified from the drive's three-phase plant, "
-                   "picdrive.models.averaged: one linearisation per rule centre, distinct rule gains) or 'dq' (the "
-                   "dq tracking model with v_d = 0, zero gain on i_d)",
+                   "picdrive.models.averaged: one linearisation per rule centre, distinct rule gains), 'six-step' "
+                   "(the DC equivalent with the commutated EMF range) or 'dq' (the dq tracking model with v_d = 0, "
+                   "zero gain on i_d)",
     "solver": f"cvxpy solver (default {DEFAULT_SOLVER})",
     "simulate": "run the nonlinear verification simulation (default true)",
     "setpoint_weight": "six-step: law's b (default: the largest of 1 + Kb/kp, its midpoint with 1, and 1 that "
@@ -521,7 +522,11 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     delta = None if delta is None else float(delta)
     solver = options.get("solver", DEFAULT_SOLVER)
     simulate = bool(options.get("simulate", True))
-    plant_model = options.get("plant_model", "six-step")
+    # the six-step design's plant: the option, else the profile's design.plant_model (default "averaged");
+    # the other variants have their own model
+    plant_model = options.get("plant_model")
+    if plant_model is None:
+        plant_model = d.get("plant_model", "averaged") if variant == "six-step" else "six-step"
     if plant_model not in ("six-step", "averaged", "dq"):
         raise FuzzyHinfError(f"option plant_model={plant_model!r}: 'six-step', 'averaged' or 'dq'")
     if plant_model == "averaged" and variant != "six-step":
@@ -536,18 +541,23 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     t_ident = None
     if variant == "six-step" and plant_model in ("six-step", "averaged"):
         model = "six-step"
-        if plant_model == "averaged":
-            from ..models.averaged import identify
-            model = "six-step-averaged"
-            ti = _t.perf_counter()
-            model_opts["averaged"] = identify(profile, drive.three_phase_plant).to_dict()
-            t_ident = _t.perf_counter() - ti
         if options.get("emf_polytope") is not None:
             model_opts["emf_polytope"] = bool(options["emf_polytope"])
         if model_opts["integral_weight_rad_s"] is None:
             m = profile.motor
             model_opts["integral_weight_rad_s"] = (m.viscous_friction_n_m_s + m.kt_n_m_per_a * m.kb_v_s_per_rad
                                                    / m.r_line_ohm) / m.inertia_kg_m2
+        # a winding no pole disk can hold (no_certificate_reason: R/L alone decides) is refused before the
+        # identification, which would cost seconds for nothing
+        top_disk = math.pi / 2.0 * profile.control.speed_loop_hz if options.get("pole_disk_rad_s") is None \
+            else float(options["pole_disk_rad_s"])
+        if plant_model == "averaged" and not no_certificate_reason(profile, model_for(profile, "six-step", model_opts),
+                                                                   top_disk):
+            from ..models.averaged import identify_cached
+            model = "six-step-averaged"
+            ti = _t.perf_counter()
+            model_opts["averaged"] = identify_cached(profile, drive.three_phase_plant).to_dict()
+            t_ident = _t.perf_counter() - ti
     else:
         model = {"paper": "paper", "tracking": "tracking-dq", "six-step": "tracking-six-step"}[variant]
     t0 = _t.perf_counter()
@@ -561,6 +571,8 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     b = None if sw is None else float(sw)
     rho_max = float(options.get("max_spectral_radius", 0.95))
     res_opts = {"gamma": gamma, **{k: v for k, v in options.items()}, "alpha": alpha, "rho": rho, "delta": delta}
+    if variant == "six-step":
+        res_opts["plant_model"] = plant_model      # the record names the model the gains were designed on
 
     def solve(disk):
         if gamma is None:
