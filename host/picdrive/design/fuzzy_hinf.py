@@ -528,7 +528,8 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     if plant_model is None:
         plant_model = d.get("plant_model", "averaged") if variant == "six-step" else "six-step"
     if plant_model not in ("six-step", "averaged", "dq"):
-        raise FuzzyHinfError(f"option plant_model={plant_model!r}: 'six-step', 'averaged' or 'dq'")
+        raise FuzzyHinfError(f"option plant_model={plant_model!r}: expected 'averaged' (the default), 'six-step' "
+                             "(the DC equivalent) or 'dq'")
     if plant_model == "averaged" and variant != "six-step":
         raise FuzzyHinfError(f"option plant_model='averaged' is a six-step model: drop --variant {variant} "
                              "(or the option)")
