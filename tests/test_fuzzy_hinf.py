@@ -209,14 +209,24 @@ def test_the_bundled_duy2008_design_schedules_distinct_rules():
     assert v["sim_overshoot_pct"]["value"] <= 2.0 and v["sim_resistance_uncertainty"]["ok"]
 
 
-def test_a_design_on_the_dc_equivalent_is_asked_for_by_option():
-    """plant_model = "six-step" (option or profile) designs on the DC equivalent: equal rule gains, no
-    identification; the record says so."""
+def test_a_design_on_the_dc_equivalent_by_profile_field_or_visible_fallback():
+    """design.plant_model = "six-step" designs on the DC equivalent: equal rule gains, no identification,
+    the record says so.  Without a built drive the default (averaged) cannot be identified: the design
+    falls back to the DC equivalent with a warning and the reason in the record, never silently; an
+    explicit request for the averaged model without a drive is refused (tests/test_averaged.py)."""
     import dataclasses
     p = load_profile("duy2008")
     p6 = dataclasses.replace(p, design={**p.design, "plant_model": "six-step"})
-    r = fuzzy_hinf.design(p6, drive=DRIVE, progress=False, simulate=False)
+    kw = dict(progress=False, simulate=False, pole_disk_rad_s=412.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        r = fuzzy_hinf.design(p6, drive=DRIVE, **kw)
     assert r.options["plant_model"] == "six-step" and r.certificate["model"] == "six-step"
-    assert "identify" not in r.timings_s
+    assert "identify" not in r.timings_s and "plant_model_fallback" not in r.certificate
     r1, r2 = r.law.rules
     assert r1.kp == pytest.approx(r2.kp, rel=1e-6) and r1.kc == pytest.approx(r2.kc, rel=1e-6)
+    with pytest.warns(UserWarning, match="not the default averaged model: no built drive"):
+        f = fuzzy_hinf.design(p, **kw)
+    assert f.options["plant_model"] == "six-step" and f.certificate["model"] == "six-step"
+    assert "no built drive" in f.certificate["plant_model_fallback"]
+    assert f.law.rules[0].kp == pytest.approx(r1.kp, rel=1e-3)

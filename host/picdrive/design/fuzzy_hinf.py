@@ -525,8 +525,19 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     # the six-step design's plant: the option, else the profile's design.plant_model (default "averaged");
     # the other variants have their own model
     plant_model = options.get("plant_model")
-    if plant_model is None:
-        plant_model = d.get("plant_model", "averaged") if variant == "six-step" else "six-step"
+    plant_note = None
+    if plant_model is None and variant != "six-step":
+        plant_model = "six-step"
+    elif plant_model is None:
+        plant_model = d.get("plant_model", "averaged")
+        if plant_model == "averaged" and drive is None and "plant_model" not in (profile.raw.get("design") or {}):
+            # the default, not asked for, cannot be had without the drive's plant: say so, never silently
+            plant_note = ("designed on the DC equivalent (plant_model 'six-step'), not the default averaged model: "
+                          "no built drive was given to identify it from (pass drive=picdrive.gate.BuiltDrive(), "
+                          "as picdrive design does)")
+            import warnings
+            warnings.warn(f"fuzzy-hinf, profile {profile.name!r}: {plant_note}", stacklevel=2)
+            plant_model = "six-step"
     if plant_model not in ("six-step", "averaged", "dq"):
         raise FuzzyHinfError(f"option plant_model={plant_model!r}: expected 'averaged' (the default), 'six-step' "
                              "(the DC equivalent) or 'dq'")
@@ -596,12 +607,16 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
                                                and delta is None else "try a larger gamma or delta=None"))
             res.certificate = {"model": model, "model_options": model_opts, "solver_status": sol.status,
                                "gamma": sol.gamma, "feasible": False, "pole_disk_rad_s": disk}
+            if plant_note:
+                res.certificate["plant_model_fallback"] = plant_note
             return res
         cert = sol.certificate()
         cert.update(model=model, model_options=model_opts, certified_gain=certified_gain(ts, sol.gamma, alpha),
                     pole_disk_rad_s=disk, premise_rad_s=list(ts.premise_rad_s),
                     state_names=list(ts.state_names), input_names=list(ts.input_names))
         cert.pop("ellipsoid_P", None)
+        if plant_note:
+            cert["plant_model_fallback"] = plant_note
         if "emf_range_v_s" in ts.info:
             cert["emf_range_v_s"] = list(ts.info["emf_range_v_s"])
         res.certificate = cert
