@@ -526,6 +526,9 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     # the other variants have their own model
     plant_model = options.get("plant_model")
     plant_note = None
+    # the averaged model by default, not asked for (no option, not in the profile's [design]): it may fall back
+    by_default = (plant_model is None and variant == "six-step"
+                  and "plant_model" not in (profile.raw.get("design") or {}))
     if plant_model is None and variant != "six-step":
         plant_model = "six-step"
     elif plant_model is None:
@@ -731,4 +734,30 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
                  "; ".join(f"{t['pole_disk_rad_s']:.0f} rad/s: {t['status']}" for t in tries))
     res.certificate["disk_tries"] = tries
     res.timings_s = {**timings, "lmi": t_lmi, "verify": t_ver}
+    if by_default and model == "six-step-averaged" and not res.ok:
+        return _fall_back_to_dc(profile, res, drive=drive, progress=progress, gamma=gamma, options=options)
     return res
+
+
+def _fall_back_to_dc(profile, failed, *, drive, progress, gamma, options):
+    """The default averaged-model design failed: design on the DC equivalent; when that verifies, return it
+    with the reason in ``certificate.plant_model_fallback`` and a warning (never silently), else the
+    averaged-model failure with the DC equivalent's reason added.
+
+    Seen on motors picdrive has never seen (docs/motors.md): on some windings (BLY171D, Multistar 4225)
+    the averaged model's rules make Theorem 1 numerically fragile (solver errors at most disks) and the
+    gains it returns fail the sampled-loop check; the DC-equivalent design verifies there."""
+    import warnings
+    why = "; ".join(x[:200] for x in failed.reasons[:2]) or failed.status
+    dc = design(profile, drive=drive, progress=progress, variant="six-step", gamma=gamma,
+                **{**options, "plant_model": "six-step"})
+    if not dc.ok:
+        failed.reasons.append("on the DC equivalent (plant_model 'six-step') the design fails too: "
+                              + ("; ".join(x[:200] for x in dc.reasons[:1]) or dc.status))
+        return failed
+    note = (f"designed on the DC equivalent (plant_model 'six-step'), not the default averaged model: the "
+            f"averaged-model design failed ({why})")
+    dc.certificate["plant_model_fallback"] = note
+    dc.timings_s = {"averaged_attempt": float(sum(failed.timings_s.values())), **dc.timings_s}
+    warnings.warn(f"fuzzy-hinf, profile {profile.name!r}: {note}", stacklevel=3)
+    return dc
