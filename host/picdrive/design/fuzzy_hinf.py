@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -533,12 +534,11 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
         plant_model = "six-step"
     elif plant_model is None:
         plant_model = d.get("plant_model", "averaged")
-        if plant_model == "averaged" and drive is None and "plant_model" not in (profile.raw.get("design") or {}):
+        if plant_model == "averaged" and drive is None and by_default:
             # the default, not asked for, cannot be had without the drive's plant: say so, never silently
             plant_note = ("designed on the DC equivalent (plant_model 'six-step'), not the default averaged model: "
                           "no built drive was given to identify it from (pass drive=picdrive.gate.BuiltDrive(), "
                           "as picdrive design does)")
-            import warnings
             warnings.warn(f"fuzzy-hinf, profile {profile.name!r}: {plant_note}", stacklevel=2)
             plant_model = "six-step"
     if plant_model not in ("six-step", "averaged", "dq"):
@@ -747,7 +747,6 @@ def _fall_back_to_dc(profile, failed, *, drive, progress, gamma, options):
     Seen on motors picdrive has never seen (docs/motors.md): on some windings (BLY171D, Multistar 4225)
     the averaged model's rules make Theorem 1 numerically fragile (solver errors at most disks) and the
     gains it returns fail the sampled-loop check; the DC-equivalent design verifies there."""
-    import warnings
     why = "; ".join(x[:200] for x in failed.reasons[:2]) or failed.status
     dc = design(profile, drive=drive, progress=progress, variant="six-step", gamma=gamma,
                 **{**options, "plant_model": "six-step"})
