@@ -230,4 +230,8 @@ def test_a_design_on_the_dc_equivalent_by_profile_field_or_visible_fallback():
         f = fuzzy_hinf.design(p, **kw)
     assert f.options["plant_model"] == "six-step" and f.certificate["model"] == "six-step"
     assert "no built drive" in f.certificate["plant_model_fallback"]
+    from picdrive.gate import summary_lines          # what picdrive design prints: the model and why
+    lines = summary_lines(f)
+    assert "model       six-step (plant_model 'six-step')" in lines
+    assert any(ln.startswith("  note      designed on the DC equivalent") for ln in lines)
     assert f.law.rules[0].kp == pytest.approx(r1.kp, rel=1e-3)
