@@ -74,6 +74,9 @@ def run_case(profile_path: str, method: str) -> dict:
         res = run_design(prof, method, progress=False)
     except PicdriveError as e:
         return {**out, "outcome": "refused", "stage": "design", "reason": str(e), "wall_s": time.perf_counter() - t0}
+    if method == "fuzzy-hinf":      # the model the gains were designed on, and why when not the default's
+        out["plant_model"] = (res.certificate or {}).get("model")
+        out["plant_model_fallback"] = (res.certificate or {}).get("plant_model_fallback")
     if not res.ok:
         return {**out, "outcome": "refused", "stage": "design", "reason": "; ".join(res.reasons),
                 "wall_s": time.perf_counter() - t0}
@@ -141,7 +144,10 @@ def cell(case: dict) -> str:
     if case["outcome"] == "refused":
         return f"refused ({case['stage']}): {_short(case['reason']).replace('|', '/')}"
     tw, mo = case["twin"], case["model"]
-    return (f"verified; twin / verification: rise {1e3 * tw['rise_s']:.1f} / {1e3 * mo['rise_s']:.1f} ms, "
+    plant = {"six-step-averaged": "averaged model; ", "six-step": "DC equivalent; "}.get(case.get("plant_model"), "")
+    if case.get("plant_model_fallback"):
+        plant = "DC equivalent (fallback: the averaged-model design failed its verification); "
+    return (f"verified; {plant}twin / verification: rise {1e3 * tw['rise_s']:.1f} / {1e3 * mo['rise_s']:.1f} ms, "
             f"overshoot {tw['overshoot_pct']:.2f} / {mo['overshoot_pct']:.2f} %, final error "
             f"{tw['final_error_rpm']:.2f} / {mo['final_error_rpm']:.2f} rpm at {case['target_rpm']:.0f} rpm"
             + ("" if not judge(case) else " -- OUT OF TOLERANCE: " + "; ".join(judge(case))))
@@ -170,7 +176,10 @@ and load step (`picdrive.gate.twin_run`).  A verified design must behave in the 
 25 % (+ one sample) of its verification's rise time, 1 percentage point of its overshoot and
 0.1 % of the target in final error, and pass the verification's own limits there
 (`bench/motors.py` `judge`, asserted by `tests/test_motors_corpus.py`); a refusal names its stage
-and reason.  Figures: twin / verification, on the speed averaged over one hall sector.
+and reason.  Figures: twin / verification, on the speed averaged over one hall sector.  A verified
+fuzzy-hinf design names the plant model its gains were designed on: the averaged model (the default,
+docs/scheduling.md), or the DC equivalent where the averaged-model design failed its verification and
+the design fell back (recorded in the design's `certificate.plant_model_fallback`).
 """
 
 

@@ -37,7 +37,7 @@ def candidates(profile):
     top = profile.speed_step_rpm()
     n1, n2 = profile.design["premise_rpm"]
     lo, hi = LEVELS[0] * top, LEVELS[-1] * top
-    out = [("dc-2", profile, {}), ("avg-2", profile, {"plant_model": "averaged"}),
+    out = [("dc-2", profile, {"plant_model": "six-step"}), ("avg-2", profile, {"plant_model": "averaged"}),
            (f"avg-2@{lo:.0f}-{hi:.0f}", profile.replace(design={"premise_rpm": [lo, hi]}), {"plant_model": "averaged"})]
     for f in LEVELS:
         c = f * top

@@ -117,6 +117,13 @@ CASES = {
                                 _files(g_toml=GOOD), r"alpha.*(finite|expected a number)"),
     "design-option-simulate-3": (["design", "--profile", "g.toml", "--method", "fuzzy-hinf", "--option", "simulate=3"],
                                  _files(g_toml=GOOD), r"option simulate=3: expected true or false"),
+    "design-option-plant-model-bad": (["design", "--profile", "g.toml", "--method", "fuzzy-hinf", "--option",
+                                       "plant_model=dc"], _files(g_toml=GOOD),
+                                      r"option plant_model='dc': expected 'averaged' \(the default\), 'six-step'"),
+    "design-profile-plant-model-bad": (["design", "--profile", "p.toml", "--method", "fuzzy-hinf"],
+                                       _files(p_toml=_duy(rules='2\nplant_model = "dc"')),
+                                       r"profile field 'design.plant_model' = 'dc': expected one of 'averaged', "
+                                       r"'six-step'"),
     "design-option-no-equals": (["design", "--profile", "g.toml", "--method", "zn", "--option", "rules"],
                                 _files(g_toml=GOOD), r"--option 'rules': expected KEY=VALUE"),
     "design-option-delay": (["design", "--profile", "g.toml", "--method", "zn", "--option", "delay_samples=7"],

@@ -78,6 +78,15 @@ def test_every_case_is_verified_and_agrees_with_the_twin_or_refused_with_a_reaso
         assert c["outcome"] == "refused" and c["stage"] == "profile" and "switch_vds_max_v" in c["reason"]
     assert any(by[("industrial_310v_irfp460", m)]["outcome"] == "verified" for m in bench.METHODS)
     assert sum(c["outcome"] == "verified" for c in cases) >= 12
+    # issue 14: the averaged-model default refuses nothing the DC-equivalent design verified (BLY171D and the
+    # Multistar 4225 fall back to it, visibly); every verified fuzzy design names its model
+    for name in ("anaheim_bly171d_24v_4000", "turnigy_multistar_4225_610kv"):
+        assert by[(name, "fuzzy-hinf")]["outcome"] == "verified", by[(name, "fuzzy-hinf")].get("reason")
+    for c in cases:
+        if c["method"] == "fuzzy-hinf" and c["outcome"] == "verified":
+            fb = c["plant_model_fallback"]
+            assert (c["plant_model"], bool(fb)) in (("six-step-averaged", False), ("six-step", True)), c
+            assert not fb or "the averaged-model design failed" in fb
 
 
 @pytest.mark.timeout(2400)

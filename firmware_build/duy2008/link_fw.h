@@ -3,7 +3,7 @@
  * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
  *
  * protocol 2.0, 30 table entries (2 rules),
- * table hash 0x9E641D7AUL, build id 0x54FE3362UL, profile hash 0x4B0E5FBAUL
+ * table hash 0x3A3718B4UL, build id 0x30F09560UL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -47,9 +47,9 @@
 
 #define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0x54FE3362UL
+#define LINK_BUILD_ID           0x30F09560UL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
-#define LINK_TABLE_HASH         0x9E641D7AUL
+#define LINK_TABLE_HASH         0x3A3718B4UL
 #define LINK_SAMPLE_HZ          1000u
 #define LINK_N_RULES            2u
 #define LINK_N_ENTRIES          30u
@@ -206,14 +206,14 @@
 #define LINK_ID_FAULT                0x28u   /* code, scale 1, read-only signal */
 #define LINK_ID_MU1                  0x29u   /* 1, scale 0.000244140625, read-only signal */
 #define LINK_ID_POSITION             0x2Au   /* counts, scale 1, read-only signal */
-#define LINK_ID_RULE1_KP             0x40u   /* V/(rad/s), scale 6.10351562e-05 */
-#define LINK_ID_RULE1_KI             0x41u   /* V/rad, scale 0.00381469727 */
+#define LINK_ID_RULE1_KP             0x40u   /* V/(rad/s), scale 0.000244140625 */
+#define LINK_ID_RULE1_KI             0x41u   /* V/rad, scale 0.0152587891 */
 #define LINK_ID_RULE1_KD             0x42u   /* V s^2/rad, scale 1.52587898e-08 */
-#define LINK_ID_RULE1_KC             0x43u   /* V/A, scale 0.000390625006 */
-#define LINK_ID_RULE2_KP             0x44u   /* V/(rad/s), scale 6.10351562e-05 */
-#define LINK_ID_RULE2_KI             0x45u   /* V/rad, scale 0.00381469727 */
+#define LINK_ID_RULE1_KC             0x43u   /* V/A, scale 0.00312500005 */
+#define LINK_ID_RULE2_KP             0x44u   /* V/(rad/s), scale 0.000244140625 */
+#define LINK_ID_RULE2_KI             0x45u   /* V/rad, scale 0.0152587891 */
 #define LINK_ID_RULE2_KD             0x46u   /* V s^2/rad, scale 1.52587898e-08 */
-#define LINK_ID_RULE2_KC             0x47u   /* V/A, scale 0.000390625006 */
+#define LINK_ID_RULE2_KC             0x47u   /* V/A, scale 0.00312500005 */
 
 /* ---- signal indices: app_signal() argument, bit of telemetry/capture masks ---- */
 #define LINK_SIG_SPEED                 0u
@@ -234,21 +234,21 @@ typedef struct {
     uint8_t   controller;      /* enum, raw x 1, [0, 1], default 1, persisted */
     int16_t   premise_low;     /* rpm, raw x 0.149207756, [0, 32767], default 0, persisted */
     int16_t   premise_high;    /* rpm, raw x 0.149207756, [0, 32767], default 17425, persisted */
-    int16_t   setpoint_weight; /* 1, raw x 6.10351562e-05, [0, 32767], default 20884, persisted */
+    int16_t   setpoint_weight; /* 1, raw x 6.10351562e-05, [0, 32767], default 16942, persisted */
     int16_t   u_min;           /* V, raw x 0.00390625, [-11304, 0], default -11304, persisted */
     int16_t   u_max;           /* V, raw x 0.00390625, [0, 11304], default 11304, persisted */
     int16_t   current_limit;   /* A, raw x 0.0048828125, [0, 1023], default 307, persisted */
     uint16_t  accel_limit;     /* rpm/s, raw x 149.207764, [0, 65535], default 0, persisted */
     uint16_t  link_timeout;    /* ms, raw x 1, [20, 60000], default 500, persisted */
     uint16_t  stall_timeout;   /* ms, raw x 1, [10, 60000], default 500, persisted */
-    int16_t   rule1_kp;        /* V/(rad/s), raw x 6.10351562e-05, [-32768, 32767], default 8548, persisted */
-    int16_t   rule1_ki;        /* V/rad, raw x 0.00381469727, [-32768, 32767], default 10599, persisted */
+    int16_t   rule1_kp;        /* V/(rad/s), raw x 0.000244140625, [-32768, 32767], default 9329, persisted */
+    int16_t   rule1_ki;        /* V/rad, raw x 0.0152587891, [-32768, 32767], default 12254, persisted */
     int16_t   rule1_kd;        /* V s^2/rad, raw x 1.52587898e-08, [-32768, 32767], default 0, persisted */
-    int16_t   rule1_kc;        /* V/A, raw x 0.000390625006, [-32768, 32767], default 13449, persisted */
-    int16_t   rule2_kp;        /* V/(rad/s), raw x 6.10351562e-05, [-32768, 32767], default 8548, persisted */
-    int16_t   rule2_ki;        /* V/rad, raw x 0.00381469727, [-32768, 32767], default 10599, persisted */
+    int16_t   rule1_kc;        /* V/A, raw x 0.00312500005, [-32768, 32767], default 9348, persisted */
+    int16_t   rule2_kp;        /* V/(rad/s), raw x 0.000244140625, [-32768, 32767], default 8553, persisted */
+    int16_t   rule2_ki;        /* V/rad, raw x 0.0152587891, [-32768, 32767], default 9989, persisted */
     int16_t   rule2_kd;        /* V s^2/rad, raw x 1.52587898e-08, [-32768, 32767], default 0, persisted */
-    int16_t   rule2_kc;        /* V/A, raw x 0.000390625006, [-32768, 32767], default 13449, persisted */
+    int16_t   rule2_kc;        /* V/A, raw x 0.00312500005, [-32768, 32767], default 5927, persisted */
 } link_params_t;
 
 extern link_params_t link_params;

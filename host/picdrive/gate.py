@@ -250,6 +250,12 @@ def summary_lines(r: DesignResult) -> list[str]:
     out = [f"method      {r.method}" + (f" ({r.variant})" if r.variant else ""),
            f"profile     {r.profile_name} ({r.profile_sha256[:12]})",
            f"status      {r.status.upper()}"]
+    cert = r.certificate or {}
+    if cert.get("model"):
+        out.append(f"model       {cert['model']}" + (f" (plant_model {r.options['plant_model']!r})"
+                                                      if r.options.get("plant_model") else ""))
+    if cert.get("plant_model_fallback"):
+        out.append(f"  note      {cert['plant_model_fallback']}")
     for reason in r.reasons:
         out.append(f"  reason    {reason}")
     if r.law is not None:

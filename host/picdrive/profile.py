@@ -121,6 +121,9 @@ SCHEMA: dict[str, dict[str, tuple]] = {
         # common
         "premise_rpm": ("range", [0.0, 3000.0], 0.0, 1e5, "fuzzy premise (speed) range [N1, N2], rpm"),
         "rules": ("int", 2, 1, 8, "number of fuzzy rules r (1 = plain PID)"),
+        "plant_model": ("enum:averaged|six-step", "averaged", None, None,
+                        "fuzzy-hinf six-step design's plant: the speed-dependent averaged model identified from the "
+                        "three-phase plant, or the DC equivalent (docs/scheduling.md); --option plant_model overrides"),
         # fuzzy H-inf (2016)
         "gamma": ("float", 1.0, 1e-6, 1e6, "prescribed H-inf level gamma"),
         "delta": ("float", 1.0, 1e-6, 1e6, "Theorem 1 scaling delta"),

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -348,10 +349,11 @@ OPTIONS: dict[str, str] = {
                              "corner (B + Kt Kb/R)/J; dq tracking, 0.2 of it)",
     "max_spectral_radius": "six-step: the disk search's bound on the sampled loop's spectral radius (default 0.95)",
     "emf_polytope": "six-step: the EMF polytope over the commutated pair's EMF range (default true)",
-    "plant_model": "six-step: 'six-step' (default, DC equivalent with the commutated EMF range), 'averaged' (the "
+    "plant_model": "six-step: 'averaged' (default profile design.plant_model = \"averaged\": the "
                    "speed-dependent averaged six-step model identified from the drive's three-phase plant, "
-                   "picdrive.models.averaged: one linearisation per rule centre, distinct rule gains) or 'dq' (the "
-                   "dq tracking model with v_d = 0, zero gain on i_d)",
+                   "picdrive.models.averaged: one linearisation per rule centre, distinct rule gains), 'six-step' "
+                   "(the DC equivalent with the commutated EMF range) or 'dq' (the dq tracking model with v_d = 0, "
+                   "zero gain on i_d)",
     "solver": f"cvxpy solver (default {DEFAULT_SOLVER})",
     "simulate": "run the nonlinear verification simulation (default true)",
     "setpoint_weight": "six-step: law's b (default: the largest of 1 + Kb/kp, its midpoint with 1, and 1 that "
@@ -521,9 +523,27 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     delta = None if delta is None else float(delta)
     solver = options.get("solver", DEFAULT_SOLVER)
     simulate = bool(options.get("simulate", True))
-    plant_model = options.get("plant_model", "six-step")
+    # the six-step design's plant: the option, else the profile's design.plant_model (default "averaged");
+    # the other variants have their own model
+    plant_model = options.get("plant_model")
+    plant_note = None
+    # the averaged model by default, not asked for (no option, not in the profile's [design]): it may fall back
+    by_default = (plant_model is None and variant == "six-step"
+                  and "plant_model" not in (profile.raw.get("design") or {}))
+    if plant_model is None and variant != "six-step":
+        plant_model = "six-step"
+    elif plant_model is None:
+        plant_model = d.get("plant_model", "averaged")
+        if plant_model == "averaged" and drive is None and by_default:
+            # the default, not asked for, cannot be had without the drive's plant: say so, never silently
+            plant_note = ("designed on the DC equivalent (plant_model 'six-step'), not the default averaged model: "
+                          "no built drive was given to identify it from (pass drive=picdrive.gate.BuiltDrive(), "
+                          "as picdrive design does)")
+            warnings.warn(f"fuzzy-hinf, profile {profile.name!r}: {plant_note}", stacklevel=2)
+            plant_model = "six-step"
     if plant_model not in ("six-step", "averaged", "dq"):
-        raise FuzzyHinfError(f"option plant_model={plant_model!r}: 'six-step', 'averaged' or 'dq'")
+        raise FuzzyHinfError(f"option plant_model={plant_model!r}: expected 'averaged' (the default), 'six-step' "
+                             "(the DC equivalent) or 'dq'")
     if plant_model == "averaged" and variant != "six-step":
         raise FuzzyHinfError(f"option plant_model='averaged' is a six-step model: drop --variant {variant} "
                              "(or the option)")
@@ -536,18 +556,23 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     t_ident = None
     if variant == "six-step" and plant_model in ("six-step", "averaged"):
         model = "six-step"
-        if plant_model == "averaged":
-            from ..models.averaged import identify
-            model = "six-step-averaged"
-            ti = _t.perf_counter()
-            model_opts["averaged"] = identify(profile, drive.three_phase_plant).to_dict()
-            t_ident = _t.perf_counter() - ti
         if options.get("emf_polytope") is not None:
             model_opts["emf_polytope"] = bool(options["emf_polytope"])
         if model_opts["integral_weight_rad_s"] is None:
             m = profile.motor
             model_opts["integral_weight_rad_s"] = (m.viscous_friction_n_m_s + m.kt_n_m_per_a * m.kb_v_s_per_rad
                                                    / m.r_line_ohm) / m.inertia_kg_m2
+        # a winding no pole disk can hold (no_certificate_reason: R/L alone decides) is refused before the
+        # identification, which would cost seconds for nothing
+        top_disk = math.pi / 2.0 * profile.control.speed_loop_hz if options.get("pole_disk_rad_s") is None \
+            else float(options["pole_disk_rad_s"])
+        if plant_model == "averaged" and not no_certificate_reason(profile, model_for(profile, "six-step", model_opts),
+                                                                   top_disk):
+            from ..models.averaged import identify_cached
+            model = "six-step-averaged"
+            ti = _t.perf_counter()
+            model_opts["averaged"] = identify_cached(profile, drive.three_phase_plant).to_dict()
+            t_ident = _t.perf_counter() - ti
     else:
         model = {"paper": "paper", "tracking": "tracking-dq", "six-step": "tracking-six-step"}[variant]
     t0 = _t.perf_counter()
@@ -561,6 +586,8 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     b = None if sw is None else float(sw)
     rho_max = float(options.get("max_spectral_radius", 0.95))
     res_opts = {"gamma": gamma, **{k: v for k, v in options.items()}, "alpha": alpha, "rho": rho, "delta": delta}
+    if variant == "six-step":
+        res_opts["plant_model"] = plant_model      # the record names the model the gains were designed on
 
     def solve(disk):
         if gamma is None:
@@ -583,12 +610,16 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
                                                and delta is None else "try a larger gamma or delta=None"))
             res.certificate = {"model": model, "model_options": model_opts, "solver_status": sol.status,
                                "gamma": sol.gamma, "feasible": False, "pole_disk_rad_s": disk}
+            if plant_note:
+                res.certificate["plant_model_fallback"] = plant_note
             return res
         cert = sol.certificate()
         cert.update(model=model, model_options=model_opts, certified_gain=certified_gain(ts, sol.gamma, alpha),
                     pole_disk_rad_s=disk, premise_rad_s=list(ts.premise_rad_s),
                     state_names=list(ts.state_names), input_names=list(ts.input_names))
         cert.pop("ellipsoid_P", None)
+        if plant_note:
+            cert["plant_model_fallback"] = plant_note
         if "emf_range_v_s" in ts.info:
             cert["emf_range_v_s"] = list(ts.info["emf_range_v_s"])
         res.certificate = cert
@@ -703,4 +734,29 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
                  "; ".join(f"{t['pole_disk_rad_s']:.0f} rad/s: {t['status']}" for t in tries))
     res.certificate["disk_tries"] = tries
     res.timings_s = {**timings, "lmi": t_lmi, "verify": t_ver}
+    if by_default and model == "six-step-averaged" and not res.ok:
+        return _fall_back_to_dc(profile, res, drive=drive, progress=progress, gamma=gamma, options=options)
     return res
+
+
+def _fall_back_to_dc(profile, failed, *, drive, progress, gamma, options):
+    """The default averaged-model design failed: design on the DC equivalent; when that verifies, return it
+    with the reason in ``certificate.plant_model_fallback`` and a warning (never silently), else the
+    averaged-model failure with the DC equivalent's reason added.
+
+    Seen on motors picdrive has never seen (docs/motors.md): on some windings (BLY171D, Multistar 4225)
+    the averaged model's rules make Theorem 1 numerically fragile (solver errors at most disks) and the
+    gains it returns fail the sampled-loop check; the DC-equivalent design verifies there."""
+    why = "; ".join(x[:200] for x in failed.reasons[:2]) or failed.status
+    dc = design(profile, drive=drive, progress=progress, variant="six-step", gamma=gamma,
+                **{**options, "plant_model": "six-step"})
+    if not dc.ok:
+        failed.reasons.append("on the DC equivalent (plant_model 'six-step') the design fails too: "
+                              + ("; ".join(x[:200] for x in dc.reasons[:1]) or dc.status))
+        return failed
+    note = (f"designed on the DC equivalent (plant_model 'six-step'), not the default averaged model: the "
+            f"averaged-model design failed ({why})")
+    dc.certificate["plant_model_fallback"] = note
+    dc.timings_s = {"averaged_attempt": float(sum(failed.timings_s.values())), **dc.timings_s}
+    warnings.warn(f"fuzzy-hinf, profile {profile.name!r}: {note}", stacklevel=3)
+    return dc

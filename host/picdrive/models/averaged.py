@@ -50,7 +50,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-__all__ = ["SectorPoint", "AveragedModel", "hold_sector_means", "identify", "open_loop_run", "model_from_dict"]
+__all__ = ["SectorPoint", "AveragedModel", "hold_sector_means", "identify", "identify_cached", "open_loop_run",
+           "model_from_dict"]
 
 RPM = 2.0 * math.pi / 60.0
 
@@ -348,6 +349,32 @@ def identify(profile, plant_factory: Callable, *, speeds_rpm: Sequence[float] | 
         order = np.argsort(uu)
         maps.append((w, uu[order], np.array([d[0] for d in data])[order], np.array([d[1] for d in data])[order]))
     return _build(profile, pts, maps)
+
+
+#: identifications of this process, by the physical content they depend on (see :func:`identify_cached`)
+_IDENTIFIED: dict[tuple, AveragedModel] = {}
+_IDENTIFIED_MAX = 32
+
+
+def identify_cached(profile, plant_factory: Callable) -> AveragedModel:
+    """:func:`identify` with the default grid, remembered in this process.
+
+    The key is what the identification depends on: the profile's motor, inverter, sensors and
+    control sections (frozen dataclasses, compared by value: not the profile's name, design
+    section or file) and the plant factory's function (module and qualified name).  The same
+    physical drive designed again (another rule count, premise or option; a test's second design)
+    then costs nothing; any change of a physical number identifies afresh.  At most
+    ``_IDENTIFIED_MAX`` models are kept (oldest dropped)."""
+    fn = getattr(plant_factory, "__func__", plant_factory)
+    key = (repr((profile.motor, profile.inverter, profile.sensors, profile.control)),
+           getattr(fn, "__module__", ""), getattr(fn, "__qualname__", repr(fn)))
+    model = _IDENTIFIED.get(key)
+    if model is None:
+        model = identify(profile, plant_factory)
+        if len(_IDENTIFIED) >= _IDENTIFIED_MAX:
+            _IDENTIFIED.pop(next(iter(_IDENTIFIED)))
+        _IDENTIFIED[key] = model
+    return model
 
 
 def open_loop_run(profile, plant, u_of_t: Callable[[float], float], t_end_s: float, load_n_m: float,
