@@ -26,6 +26,7 @@ Per bundled design (examples/*.design.json) and load (none; the profile's load f
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import warnings
@@ -36,23 +37,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def band_figures(profile, t, rpm_run, rpm: float, ts: float) -> dict:
-    """Time until the sector-mean speed stays within 1 % of ``rpm``, and its overshoot."""
-    from picdrive.analysis.steptest import sector_mean
-    sm = sector_mean(profile, rpm_run, ts, rpm)
-    out = np.nonzero(np.abs(sm - rpm) > 0.01 * rpm)[0]
-    t_band = 0.0 if out.size == 0 else (math.inf if out[-1] == sm.size - 1 else float(t[out[-1] + 1]))
-    return {"t_band_s": t_band, "overshoot_pct": max(0.0, 100 * (float(np.max(sm)) - rpm) / rpm)}
-
-
 def design_step(profile, law, drive, load: float, rpm: float) -> dict:
-    from picdrive.analysis.timeoptimal import t_unit
-    from picdrive.models.simulate import simulate_six_step
-    w_t = rpm * 2 * math.pi / 60
-    t_end = max(0.3, 40 * t_unit(profile, w_t))
-    sim = simulate_six_step(profile, law, t_end=t_end, ref_rpm=rpm, load=load, commutated=True,
-                            **drive.speed_measurement(profile, law), three_phase=drive.three_phase_plant(profile))
-    return band_figures(profile, sim.t, sim.rpm, rpm, law.sample_time_s)
+    from picdrive.analysis.timeoptimal import law_step_to_band
+    return law_step_to_band(profile, law, drive, load, rpm)
 
 
 def twin_step(profile, path, law, rpm: float) -> dict:
@@ -62,12 +49,14 @@ def twin_step(profile, path, law, rpm: float) -> dict:
     plan = {**sim_plan(profile), "target_rpm": rpm}
     tw = twin_run(profile, path, plan)
     sel = tw.t < plan["t_load_s"]
+    from picdrive.analysis.timeoptimal import band_figures
     return band_figures(profile, tw.t[sel], tw.rpm[sel], rpm, law.sample_time_s)
 
 
 def shaped_step(profile, law, drive, load: float, rpm: float, traj, stretch: float) -> dict:
     """The design's law (unchanged) with its reference following the bound's trajectory stretched in time by
     ``stretch`` (reference shaping alone, no feedforward), in the verification's plant."""
+    from picdrive.analysis.timeoptimal import band_figures
     from picdrive.models.simulate import simulate_six_step
     t_tr, w_tr = traj
     k = 60 / (2 * math.pi)
@@ -134,6 +123,10 @@ def main(argv):
                 res = load_design(str(path))
                 if res.law is None:
                     continue
+                bundled_ff = res.law.reference_ff_v_s_per_rad
+                # the law without the feedforward ("design" columns) and with it ("ff"), whatever the
+                # bundled design chose (its verification's reference_feedforward entry)
+                res.law = dataclasses.replace(res.law, reference_ff_v_s_per_rad=0.0)
                 d = design_step(p, res.law, drive, load, rpm)
                 traj = trajectory(p, w_t, load, model=avg)
                 sh = [shaped_step(p, res.law, drive, load, rpm, traj, k) for k in (1.0, 1.2)]
@@ -143,9 +136,10 @@ def main(argv):
                 lf = ff_law(p, res.law, drive)
                 dff = design_step(p, lf, drive, load, rpm)
                 ffs = (f" | ff G={lf.reference_ff_v_s_per_rad:.4f}: {1e3 * dff['t_band_s']:.0f} ms ovs "
-                       f"{dff['overshoot_pct']:.2f} % ratio {dff['t_band_s'] / b['t_s']:.2f}")
+                       f"{dff['overshoot_pct']:.2f} % ratio {dff['t_band_s'] / b['t_s']:.2f}"
+                       f" (bundled design: {'with' if bundled_ff else 'without'})")
                 if not load:
-                    import dataclasses, tempfile
+                    import tempfile
                     from picdrive.result import save_design
                     with tempfile.TemporaryDirectory() as td:
                         fp = save_design(dataclasses.replace(res, law=lf), Path(td) / path.name)

@@ -9,7 +9,7 @@ import math
 import pytest
 
 from picdrive.control_law import LawState, Rule, ScheduledLaw, law_step, reference_ff_gain
-from picdrive.design.verify import verify_design, with_reference_ff
+from picdrive.design.verify import choose_reference_ff, verify_design, with_reference_ff
 from picdrive.firmware import fixedpoint as fx, pcpwm
 from picdrive.paths import repo_root
 from picdrive.profile import load_profile
@@ -66,12 +66,12 @@ def test_the_fixed_point_preload_is_the_gain_times_the_change():
 
 
 def test_the_profile_option_sets_the_gain_at_verification():
-    """control.reference_feedforward = true: verify_design puts the DC-equivalent gain on the law (no
+    """control.reference_feedforward = "on": verify_design puts the DC-equivalent gain on the law (no
     built drive here: no averaged model) and the result's law carries it (the firmware's CORE_KFF)."""
     prof = load_profile("duy2008")
-    assert prof.control.reference_feedforward is False
-    on = prof.replace(control={"reference_feedforward": True})
-    assert on.control.reference_feedforward is True
+    assert prof.control.reference_feedforward == "off"
+    on = prof.replace(control={"reference_feedforward": "on"})
+    assert on.control.reference_feedforward == "on"
     res = load_design(str(repo_root() / "examples" / "duy2008.zn.design.json"))
     assert res.law.reference_ff_v_s_per_rad == 0.0
     m = prof.motor
@@ -82,3 +82,51 @@ def test_the_profile_option_sets_the_gain_at_verification():
     verify_design(prof, res2 := load_design(str(repo_root() / "examples" / "duy2008.zn.design.json")),
                   simulate=False)
     assert res2.law.reference_ff_v_s_per_rad == 0.0
+
+
+def test_a_bad_reference_feedforward_value_is_refused(tmp_path):
+    """The profile field takes off / on / auto: anything else exits 2 naming the field and the choices."""
+    import subprocess
+    import sys
+    text = (repo_root() / "examples" / "duy2008.toml").read_text(encoding="utf-8")
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace("stall_timeout_ms = 500.0", "stall_timeout_ms = 500.0\nreference_feedforward = true"),
+                   encoding="utf-8")
+    r = subprocess.run([sys.executable, "-m", "picdrive", "design", "--profile", str(bad), "--method", "zn",
+                        "-o", str(tmp_path / "out.design.json")], capture_output=True, text=True)
+    assert r.returncode == 2, r.stderr
+    assert "reference_feedforward" in r.stderr and "'auto'" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "out.design.json").exists()
+
+
+@pytest.fixture(scope="module")
+def drive():
+    from picdrive.gate import BuiltDrive
+    return BuiltDrive()
+
+
+def test_auto_chooses_by_the_steps_to_the_band(drive):
+    """'auto' keeps the feedforward when the worse of the two steps (no load, the profile's load) reaches
+    the 1 % band sooner within 1 % overshoot: the duy2008 fuzzy-hinf law (57 -> 40 ms measured), not the
+    duy2008 mixed-pid law (its step without load overshoots 1.7 % with it)."""
+    prof = load_profile("duy2008").replace(control={"reference_feedforward": "auto"})
+    fz = load_design(str(repo_root() / "examples" / "duy2008.fuzzy-hinf.design.json")).law
+    law, chk = choose_reference_ff(prof, fz, drive, "auto")
+    assert chk["value"] > 0 and law.reference_ff_v_s_per_rad == pytest.approx(chk["value"], rel=1e-5)
+    assert chk["note"].startswith("with the feedforward")
+    pid = load_design(str(repo_root() / "examples" / "duy2008.mixed-pid.design.json")).law
+    law, chk = choose_reference_ff(prof, pid, drive, "auto")
+    assert chk["value"] == 0 and law.reference_ff_v_s_per_rad == 0 and chk["note"].startswith("without")
+
+
+def test_auto_is_an_add_on_that_must_pass_every_check(drive):
+    """verify_design with 'auto': the duy2008 fuzzy-hinf law verifies without the feedforward; with it the
+    steady-state saturation check fails, so the law keeps no feedforward, stays verified, and the
+    record says why."""
+    prof = load_profile("duy2008").replace(control={"reference_feedforward": "auto"})
+    res = load_design(str(repo_root() / "examples" / "duy2008.fuzzy-hinf.design.json"))
+    verify_design(prof, res, drive=drive)
+    assert res.status == "verified"
+    assert res.law.reference_ff_v_s_per_rad == 0.0
+    chk = res.verification["reference_feedforward"]
+    assert chk["value"] == 0.0 and chk["note"].startswith("left off: the law with it fails sim_saturated_steady_fraction")

@@ -109,9 +109,12 @@ SCHEMA: dict[str, dict[str, tuple]] = {
         "reference_rpm": ("float", REQUIRED, 0.0, 1e5, "nominal speed step target, rpm"),
         "load_torque_n_m": ("float", 0.0, 0.0, 1e3, "load-torque step used by demos and tests, N m"),
         "stall_timeout_ms": ("float", 500.0, 10.0, 60000.0, "commanded with no motion for this long = stall fault, ms"),
-        "reference_feedforward": ("bool", False, None, None, "preload the law's integrator by the no-load steady-state "
-                                  "voltage of each reference change (picdrive.control_law.reference_ff_gain), set "
-                                  "on the law at verification"),
+        "reference_feedforward": ("enum:off|on|auto", "off", None, None, "preload the law's integrator by the "
+                                  "no-load steady-state voltage of each reference change "
+                                  "(picdrive.control_law.reference_ff_gain), set on the law at verification; 'auto': "
+                                  "only on a law that verifies without it, when the verification's steps from rest (no "
+                                  "load and the profile's load) reach the 1 % band sooner with it, overshoot no more "
+                                  "than 1 % (or than without), and the law with it passes every check"),
     },
     "uart": {
         "baud": ("int", 115200, 1200, 1000000, "EUSART baud rate"),
@@ -293,7 +296,7 @@ class Control:
     reference_rpm: float
     load_torque_n_m: float
     stall_timeout_ms: float
-    reference_feedforward: bool = False
+    reference_feedforward: str = "off"
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["time_to_band", "trajectory", "t_unit"]
+__all__ = ["time_to_band", "trajectory", "t_unit", "band_figures", "law_step_to_band"]
 
 
 def t_unit(profile, w_t: float) -> float:
@@ -91,3 +91,27 @@ def trajectory(profile, w_t: float, load_n_m: float = 0.0, *, model=None, n: int
             return ts[:k + 1], ws[:k + 1]
         ts[k + 1] = ts[k] + (ws[k + 1] - ws[k]) / a
     return ts, ws
+
+
+def band_figures(profile, t, rpm_run, rpm: float, ts: float) -> dict:
+    """Time until the sector-mean speed stays within 1 % of ``rpm`` (s; ``inf`` if it never does) and
+    the sector-mean speed's overshoot (%), of a run sampled at ``t`` (s) with speed ``rpm_run`` (rpm)."""
+    import numpy as np
+    from .steptest import sector_mean
+    sm = sector_mean(profile, rpm_run, ts, rpm)
+    out = np.nonzero(np.abs(sm - rpm) > 0.01 * rpm)[0]
+    t_band = 0.0 if out.size == 0 else (math.inf if out[-1] == sm.size - 1 else float(t[out[-1] + 1]))
+    return {"t_band_s": t_band, "overshoot_pct": max(0.0, 100 * (float(np.max(sm)) - rpm) / rpm)}
+
+
+def law_step_to_band(profile, law, drive, load_n_m: float, rpm: float) -> dict:
+    """The law's step from rest to ``rpm`` under a constant load (N m, from t = 0) in the verification's
+    plant (the three-phase winding, the firmware's speed measurement and current window;
+    :func:`picdrive.models.simulate.simulate_six_step`), judged by :func:`band_figures`.  ``drive``:
+    the built drive (:class:`picdrive.gate.BuiltDrive`)."""
+    from ..models.simulate import simulate_six_step
+    w_t = rpm * math.pi / 30.0
+    t_end = max(0.3, 40 * t_unit(profile, w_t))
+    sim = simulate_six_step(profile, law, t_end=t_end, ref_rpm=rpm, load=load_n_m, commutated=True,
+                            **drive.speed_measurement(profile, law), three_phase=drive.three_phase_plant(profile))
+    return band_figures(profile, sim.t, sim.rpm, rpm, law.sample_time_s)

@@ -73,6 +73,7 @@ Checks:
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -310,12 +311,43 @@ def with_reference_ff(profile, law, drive=None):
     m = profile.motor
     w = profile.speed_step_rpm() * math.pi / 30.0
     if drive is not None:
-        from ..models.averaged import identify
-        u_ss, i_ss = identify(profile, drive.three_phase_plant).equilibrium(w, 0.0)
+        from ..models.averaged import identify_cached
+        u_ss, i_ss = identify_cached(profile, drive.three_phase_plant).equilibrium(w, 0.0)
     else:
         i_ss = m.viscous_friction_n_m_s * w / m.kt_n_m_per_a
         u_ss = m.kb_v_s_per_rad * w + m.r_line_ohm * i_ss
     return dataclasses.replace(law, reference_ff_v_s_per_rad=reference_ff_gain(law, w, u_ss, i_ss))
+
+
+def choose_reference_ff(profile, law, drive, mode: str, *, simulate: bool = True):
+    """The law with or without its reference feedforward, by the profile's ``control.reference_feedforward``
+    (``mode``): ``"on"`` always; ``"auto"`` only when, in the verification's plant
+    (:func:`picdrive.analysis.timeoptimal.law_step_to_band`: step from rest to the profile's step speed,
+    without load and under the profile's load), the law with it reaches the 1 % band sooner in the worse
+    of the two runs and its worse overshoot of the sector-mean speed stays within 1 % (or within the law's
+    without it).  ``"auto"`` needs the simulation (``drive``, ``simulate``); without them it keeps the
+    law as it is.  Returns ``(law, check)``: the check records the gain and the figures it was chosen on."""
+    import dataclasses
+    base = dataclasses.replace(law, reference_ff_v_s_per_rad=0.0)
+    ff = with_reference_ff(profile, base, drive)
+    g = ff.reference_ff_v_s_per_rad
+    if mode == "on":
+        return ff, {"value": round(g, 6), "limit": "", "ok": True, "unit": "V s/rad",
+                    "note": "control.reference_feedforward = 'on'"}
+    if not simulate or drive is None:
+        return base, {"value": 0.0, "limit": "", "ok": True, "unit": "V s/rad",
+                      "note": "'auto' without the simulation: left off"}
+    from ..analysis.timeoptimal import law_step_to_band
+    rpm = profile.speed_step_rpm()
+    loads = sorted({0.0, float(profile.control.load_torque_n_m)})
+    runs = {k: [law_step_to_band(profile, lw, drive, ld, rpm) for ld in loads] for k, lw in (("off", base), ("on", ff))}
+    t = {k: max(f["t_band_s"] for f in v) for k, v in runs.items()}
+    ovs = {k: max(f["overshoot_pct"] for f in v) for k, v in runs.items()}
+    use = t["on"] < t["off"] and ovs["on"] <= max(1.0, ovs["off"])
+    note = "; ".join(f"{k}: worst time to the 1 % band {1e3 * t[k]:.1f} ms, worst overshoot {ovs[k]:.2f} %"
+                     for k in ("off", "on")) + f" (loads {', '.join(f'{ld:g}' for ld in loads)} N m, step to {rpm:g} rpm)"
+    return (ff if use else base), {"value": round(g if use else 0.0, 6), "limit": "auto", "ok": True,
+                                   "unit": "V s/rad", "note": ("with the feedforward: " if use else "without: ") + note}
 
 
 def verify_design(profile, result, *, drive=None, simulate: bool = True):
@@ -346,12 +378,50 @@ def verify_design(profile, result, *, drive=None, simulate: bool = True):
         ``ok``; ``status`` is ``"verified"`` unless a check failed (then ``"failed"`` with the
         reasons).
     """
-    checks: dict[str, Any] = {}
-    if result.law is not None and getattr(profile.control, "reference_feedforward", False):
-        result.law = with_reference_ff(profile, result.law, drive)
-    law = result.law
-    if law is not None and simulate and drive is None:
+    if result.law is not None and simulate and drive is None:
         raise ValueError("verify_design: simulating a law needs the built drive (drive=picdrive.gate.BuiltDrive())")
+    ff_mode = getattr(profile.control, "reference_feedforward", "off")
+    ff_check = None
+    if result.law is not None and ff_mode == "on":
+        result.law, ff_check = choose_reference_ff(profile, result.law, drive, "on", simulate=simulate)
+    elif result.law is not None and ff_mode == "auto":       # judged as an add-on to the law without it
+        result.law = dataclasses.replace(result.law, reference_ff_v_s_per_rad=0.0)
+    checks = _law_checks(profile, result, drive, simulate)
+    if result.law is not None and ff_mode == "auto":
+        # kept only if the law verifies without it and the law with it passes every check too
+        plain = result.law
+        law_ff, ff_check = choose_reference_ff(profile, plain, drive, "auto", simulate=simulate)
+        if ff_check["value"] and not all(c.get("ok", True) for c in checks.values()):
+            ff_check = {**ff_check, "value": 0.0, "note": "left off: the law fails without it; " + ff_check["note"]}
+        elif ff_check["value"]:
+            result.law = law_ff
+            checks_ff = _law_checks(profile, result, drive, simulate)
+            failed = [k for k, c in checks_ff.items() if not c.get("ok", True)]
+            if failed:
+                result.law = plain
+                ff_check = {**ff_check, "value": 0.0,
+                            "note": f"left off: the law with it fails {', '.join(failed)}; " + ff_check["note"]}
+            else:
+                checks = checks_ff
+    if ff_check is not None:
+        checks = {"reference_feedforward": ff_check, **checks}
+    if result.law is None and not checks:
+        checks["nothing_to_verify"] = {"value": "no law and no certificate", "limit": "", "ok": False, "unit": ""}
+    result.verification.update(checks)
+    for name, c in checks.items():
+        if not c.get("ok", True):
+            lim = c.get("limit")
+            result.fail(f"verification '{name}' failed: {c['value']!r} (limit {lim!r} {c.get('unit', '')})"
+                        + (f": {c['note']}" if c.get("note") else ""))
+    if result.status != "failed" and not result.reasons:
+        result.status = "verified"
+    return result
+
+
+def _law_checks(profile, result, drive, simulate: bool) -> dict:
+    """Every applicable check of ``result``'s law and certificate (see :func:`verify_design`)."""
+    checks: dict[str, Any] = {}
+    law = result.law
     if law is not None:
         checks["law_current_window"] = _window_check(profile, law)
         checks["sampled_spectral_radius"] = _sampled_check(profile, law)
@@ -372,17 +442,7 @@ def verify_design(profile, result, *, drive=None, simulate: bool = True):
     elif law is not None and simulate:
         checks["sim_skipped"] = {"value": "skipped", "limit": "", "ok": False, "unit": "",
                                  "note": "the sampled closed loop is unstable; no simulation"}
-    if law is None and not checks:
-        checks["nothing_to_verify"] = {"value": "no law and no certificate", "limit": "", "ok": False, "unit": ""}
-    result.verification.update(checks)
-    for name, c in checks.items():
-        if not c.get("ok", True):
-            lim = c.get("limit")
-            result.fail(f"verification '{name}' failed: {c['value']!r} (limit {lim!r} {c.get('unit', '')})"
-                        + (f": {c['note']}" if c.get("note") else ""))
-    if result.status != "failed" and not result.reasons:
-        result.status = "verified"
-    return result
+    return checks
 
 
 # ---------------------------------------------------------------------------

@@ -528,7 +528,7 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
         shift_ff = q_kff + qs - qi
         if not -31 <= shift_ff <= 31:
             raise FixedPointError(f"reference feedforward {g_ff:g} V s/rad cannot be represented "
-                                  "(set control.reference_feedforward = false)")
+                                  "(set control.reference_feedforward = \"off\")")
         coefs.append(Coef("kff", g_ff, q_kff, kff, "V/(rad/s)", "design reference_ff_v_s_per_rad"))
 
     pre, post, pr2, div, ticks, achieved = _timer2(loop_hz)
