@@ -524,12 +524,21 @@ void pic18_attach(pic18_t *c, void *ctx, pic18_sfr_read_fn rd, pic18_sfr_write_f
     c->sfr_write = wr;
     for (int i = 0; i < 256; i++) c->owned[i] = owned ? (owned[i] != 0) : 0;
     c->irq_builtin = 0;
+    c->intcon_ext = NULL;
+    c->intcon_quiet = 0;
     c->event |= EV_IRQ;
     fast_tables(c);
 }
 
 void pic18_set_irq_hook(pic18_t *c, pic18_irq_hook_fn fn) { c->irq_hook = fn; }
 void pic18_request_stop(pic18_t *c) { c->event |= EV_STOP; }
+void pic18_share_intcon(pic18_t *c, volatile uint8_t *reg, uint8_t *mirror)
+{
+    c->intcon_ext = c->owned[A_INTCON & 0xFF] ? reg : NULL;
+    c->intcon_mirror = mirror;
+    c->intcon_quiet = 0;
+}
+void pic18_set_intcon_quiet(pic18_t *c, uint8_t quiet) { c->intcon_quiet = c->intcon_ext ? quiet : 0; }
 unsigned pic18_ram_written(const pic18_t *c)
 {
     unsigned n = 0;
@@ -745,7 +754,13 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
  * gives A_NULL = 0x1000 for an indirect reach of INDF) */
 #define SFR_FAST(a) ((a) >= 0xF00u && (a) < 0x1000u)
 #define RD(a) ((G_ || (a) < PIC18_RAM_END) ? ram[a] : (SFR_FAST(a) && c->rd_plain[(a) & 0xFF]) ? ram[a] \
+               : ((a) == A_INTCON && c->intcon_ext) ? *c->intcon_ext \
                : ({ uint8_t v_; SYNC(); v_ = sfr_rd(c, (a)); EVT(); v_; }))
+/* a write of a shared INTCON that changes only its quiet bits (pic18_share_intcon): stored, no
+ * hook; the interrupt look as sfr_wr asks for it (irq_related) */
+#define INTCON_QUIET(a, v) ((a) == A_INTCON && c->intcon_quiet && \
+                            !((((uint8_t)(v)) ^ *c->intcon_ext) & (uint8_t)~c->intcon_quiet))
+#define INTCON_STORE(v) do { *c->intcon_ext = *c->intcon_mirror = (uint8_t)(v); irq_recheck(c); EVT(); } while (0)
 #ifdef PIC18_TRACK_RAM
 /* 1: written; 2: only a first store of zero so far (SDCC's crt0iz clears all RAM at reset: that
  * clear alone does not use a byte).  One branch-free store a write. */
@@ -755,9 +770,11 @@ int pic18_run_bp(pic18_t *c, uint64_t max_cycles, uint64_t max_insns, const uint
 #endif
 #define WR(a, v) do { if (G_ || (a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a, v); } \
                       else if (SFR_FAST(a) && c->wr_mask[(a) & 0xFF]) ram[a] = (uint8_t)((v) & c->wr_mask[(a) & 0xFF]); \
+                      else if (INTCON_QUIET(a, v)) INTCON_STORE(v); \
                       else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 0); EVT(); } } while (0)
 #define WR_ALU(a, v) do { if (G_ || (a) < PIC18_RAM_END) { ram[a] = (uint8_t)(v); NOTE_WR(a, v); } \
                       else if (SFR_FAST(a) && c->wr_mask[(a) & 0xFF]) ram[a] = (uint8_t)((v) & c->wr_mask[(a) & 0xFF]); \
+                      else if (INTCON_QUIET(a, v)) INTCON_STORE(v); \
                       else { SYNC(); sfr_wr(c, (a), (uint8_t)(v), 1); EVT(); } } while (0)
 #define DEST_ALU(a, v) do { if (o->flags & F_DEST) WR_ALU(a, v); else ram[A_WREG] = (uint8_t)(v); } while (0)
 #define DEST(a, v) do { if (o->flags & F_DEST) WR(a, v); else ram[A_WREG] = (uint8_t)(v); } while (0)

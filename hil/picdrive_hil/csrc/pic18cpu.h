@@ -138,6 +138,11 @@ typedef struct pic18 {
     pic18_sfr_read_fn sfr_read;
     pic18_sfr_write_fn sfr_write;
     pic18_irq_hook_fn irq_hook;
+    /* INTCON kept by the model in its own byte (pic18_share_intcon): read inline, and a write
+       that changes only intcon_quiet's bits (0: none) stored there without the write hook */
+    volatile uint8_t *intcon_ext;
+    uint8_t *intcon_mirror;
+    uint8_t intcon_quiet;
     /* --- measurements (not architectural) --- */
     uint16_t fsr1_lo;          /* lowest data address reached through FSR1 (INDF1/POSTDEC1/...): 0xFFFF none */
     uint16_t fsr1_hi;          /* highest address written through POSTDEC1 (the software stack's top) */
@@ -162,6 +167,13 @@ PIC18_API void pic18_set_irq(pic18_t *c, unsigned lines);
 PIC18_API void pic18_set_irq_hook(pic18_t *c, pic18_irq_hook_fn fn);
 /* from a peripheral hook: return from pic18_run after the present instruction (status OK) */
 PIC18_API void pic18_request_stop(pic18_t *c);
+/* a model-owned INTCON that the model keeps in *reg (and a copy in *mirror): the core reads it
+ * there without the read hook; a write whose changed bits are all in `quiet` (the model's word
+ * that nothing it computes depends on them: with IPEN, GIEH/GIEL) goes there, and to *mirror,
+ * without the write hook -- the core still looks for an interrupt when a request line is up.
+ * reg NULL: every access through the hooks.  pic18_set_intcon_quiet changes the bits. */
+PIC18_API void pic18_share_intcon(pic18_t *c, volatile uint8_t *reg, uint8_t *mirror);
+PIC18_API void pic18_set_intcon_quiet(pic18_t *c, uint8_t quiet);
 /* GPR bytes written since power-on (PIC18_TRACK_RAM builds; 0 otherwise) */
 PIC18_API unsigned pic18_ram_written(const pic18_t *c);
 

@@ -69,6 +69,19 @@ static void pil_update_irq(void)
     }
 }
 
+/* INTCON writes the core may store without pil_sfr_write (pic18_share_intcon): with the
+   priorities on, GIEH/GIEL alone -- the request lines (pic_irq_lines: flags, enables, priorities),
+   the events and the outputs do not depend on them; the core masks the interrupts itself.  The
+   write hook did nothing else for them: the deferred events it would process first (pil_sev_due)
+   are processed at their own cycles at the next SFR access, as before; nothing they do reads
+   INTCON's enable bits.  IPEN changes only through an RCON write or a reset */
+static void pil_intcon_quiet(void)
+{
+#ifndef PIL_TRACE
+    pic18_set_intcon_quiet(&P.cpu, sfr_bit(R_RCON, B_RCON_IPEN) ? 0xC0 : 0);
+#endif
+}
+
 /* ------------------------------------------------------------ plant */
 
 /* the plant (and the pins and QEI it drives) up to g.now, with the inverter state of the
@@ -259,6 +272,7 @@ static void pil_sfr_write(void *ctx, uint16_t addr, uint8_t v)
     if (idx == R_ADCON0 && sfr_bit(R_ADCON0, B_ADCON0_GO) && g.adc_done == NEVER) note_adc_start();
     reg_written(idx);
     if (idx == R_PIR1 || idx == R_TXSTA || idx == R_TXREG || idx == R_RCSTA) enforce_readonly();
+    if (idx == R_RCON) pil_intcon_quiet();
     g.irq_dirty = 1;
     pil_update_irq();
     /* the run stops here when the write moved an event before its end or changed the inverter
@@ -380,6 +394,9 @@ int pil_load(const uint8_t *flash, uint32_t n, const uint8_t *config)
     for (int i = 0x60; i < 0x100; i++) owned[i] = 1;     /* the core keeps its own registers anyway */
     pic18_attach(&P.cpu, NULL, pil_sfr_read, pil_sfr_write, owned);
     pic18_set_irq_hook(&P.cpu, pil_irq_hook);
+#ifndef PIL_TRACE
+    pic18_share_intcon(&P.cpu, &picsim_sfr[R_INTCON], &g.shadow[R_INTCON]);
+#endif
     P.loaded = 1;
     return 0;
 }
@@ -421,6 +438,7 @@ int twin_power_on(void)
     pic18_set_irq(&P.cpu, 0);
     g.irq_dirty = 1;
     pil_update_irq();
+    pil_intcon_quiet();
     return (int)g.errors;
 }
 
@@ -441,6 +459,7 @@ int twin_run_until(int64_t t_end)
         if (!P.dead && P.cpu.cycles < cyc_target) {
             P.target = tn;
             pil_update_irq();
+            pil_intcon_quiet();                   /* RCON after a reset or a fault */
             int st = pic18_run(&P.cpu, cyc_target - P.cpu.cycles, UINT64_MAX, ~0u);
             if (P.cpu.cycles < cyc_target && st == PIC18_OK) P.st.stops++;
             if (st == PIC18_SLEEP) {
