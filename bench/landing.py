@@ -1,0 +1,214 @@
+"""A landing that knows the load: the integrator at the current window's exit set from a load estimate
+(issue 14 item 3, a float-law study; docs/scheduling.md section 3, "A landing that knows the load").
+
+The bundled designs (examples/*.design.json), loads 0 and the profile's load from t = 0, the step of
+bench/time_optimal.py (its functions: the verification's plant, ``simulate_six_step`` with the
+three-phase winding and the firmware's speed measurement; ratio design / bound, overshoot of the
+sector-mean speed), four laws:
+
+* today: the bundled law (``control_law.law_step``);
+* preload: the reference feedforward (``design.verify.with_reference_ff``: ``G_ff dr`` into the
+  integrator on each reference change);
+* hold: the preload, then no integration until the error changes sign or the speed stops approaching
+  within half the step (the third landing of docs/scheduling.md, re-implemented here);
+* landing: the bundled law plus, after a reference change and while the output sits on the window's
+  top, the integrator set (back-calculation) to ``G_ff r + (R_L + Kc) i_L``: the no-load steady state
+  at the reference (with the setpoint-weight and current-feedback terms, ``reference_ff_gain``) plus
+  the load's share, from a load-current estimate the firmware could make from what it measures::
+
+      x    = i - (J / kt) (y - y_prev) / Ts - (i_ss / w_s) y     measured current minus acceleration and
+      i_L += a (x - i_L)                                          no-load current; first-order filter
+
+  (``kt`` the averaged model's torque per sensed ampere and ``i_ss`` its no-load current, both at the
+  step speed ``w_s``; ``R_L`` the averaged model's voltage per ampere of load current there, the secant
+  from no load to the profile's load).  At the window's exit the normal conditional integration takes
+  over; a constant reference never arms it, so the load rejection is the law's own.
+
+Besides the steps: the load dip of the profile's load step (``time_optimal.load_dip``) with each law,
+and the same laws at 2 and 5 kHz (the law's sample time changed, gains unchanged: Ki Ts and Kd / Ts are
+per second already).  The laws are substituted for ``picdrive.models.simulate.law_step`` only inside
+this script.
+
+    PYTHONPATH=$PWD/host:$PWD/hil python3 bench/landing.py [--rates] [--tau-ms 2]
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import math
+import sys
+import warnings
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import time_optimal  # noqa: E402  (bench/time_optimal.py: band_figures, design_step, load_dip, ff_law)
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@contextlib.contextmanager
+def law_substituted(step):
+    """Run ``simulate_six_step`` with ``step`` (same signature as ``control_law.law_step``) as its law."""
+    from picdrive.models import simulate
+    if step is None:
+        yield
+        return
+    old = simulate.law_step
+    simulate.law_step = step
+    try:
+        yield
+    finally:
+        simulate.law_step = old
+
+
+def _q(law, st, r: float, y: float, i: float) -> float:
+    """The law's output without the integral (P + D - Kc i) after ``law_step`` ran this sample (its D state)."""
+    g = law.gains_at(y)
+    return g.kp * (law.setpoint_weight * r - y) + st.d_filt_v - g.kc * i
+
+
+def hold_step(law_ff):
+    """The preload, then no integration until the error changes sign or, within half the step, the speed
+    stops approaching (``law_ff`` carries G_ff)."""
+    from picdrive.control_law import law_step
+
+    def step(law, st, r, y, i):
+        if r != getattr(st, "h_r", 0.0):
+            st.h_armed, st.h_sign, st.h_half = True, math.copysign(1.0, r - getattr(st, "h_r", 0.0)), \
+                0.5 * abs(r - getattr(st, "h_r", 0.0))
+            st.h_r, st.h_e = r, None
+        i0 = st.integ_v
+        changed = r != st.r_prev
+        dr = r - st.r_prev
+        u = law_step(law, st, r, y, i)
+        if st.h_armed:
+            e = r - y
+            approaching = st.h_e is None or abs(e) < abs(st.h_e)
+            st.h_e = e
+            if e * st.h_sign <= 0.0 or (abs(e) < st.h_half and not approaching):
+                st.h_armed = False
+            else:
+                lim = law.i_lim_v
+                st.integ_v = min(max(i0 + (law.reference_ff_v_s_per_rad * dr if changed else 0.0), -lim), lim)
+                lo, hi = law.output_limits(y)
+                u = min(max(_q(law, st, r, y, i) + st.integ_v, lo), hi)
+        return u
+    return step
+
+
+@dataclasses.dataclass(frozen=True)
+class Landing:
+    """The landing's constants (SI), as the firmware would hold them."""
+
+    g_ff: float            # V per rad/s: no-load integrator per rad/s of reference (reference_ff_gain)
+    k_load: float          # V per A of load current: R_L + Kc (Kc blended at the step speed)
+    j_over_kt: float       # A per rad/s^2
+    i0_per_w: float        # A per rad/s: no-load current per speed
+    tau_s: float           # estimator's filter time constant
+
+
+def landing_constants(profile, law, avg, tau_s: float) -> Landing:
+    from picdrive.control_law import reference_ff_gain
+    w = profile.speed_step_rpm() * math.pi / 30.0
+    tl = profile.control.load_torque_n_m
+    u0, i0 = avg.equilibrium(w, 0.0)
+    u1, i1 = avg.equilibrium(w, tl)
+    return Landing(g_ff=reference_ff_gain(law, w, u0, i0), k_load=(u1 - u0) / (i1 - i0) + law.gains_at(w).kc,
+                   j_over_kt=avg.j_kg_m2 / avg.kt(w), i0_per_w=i0 / w, tau_s=tau_s)
+
+
+def landing_step(c: Landing, trace: list | None = None):
+    """The bundled law plus the load-aware landing (module docstring)."""
+    from picdrive.control_law import law_step
+
+    def step(law, st, r, y, i):
+        ts = law.sample_time_s
+        if not hasattr(st, "l_est"):
+            st.l_est, st.l_y, st.l_r, st.l_armed = 0.0, y, 0.0, False
+        x = i - c.j_over_kt * (y - st.l_y) / ts - c.i0_per_w * y
+        st.l_est += ts / (ts + c.tau_s) * (x - st.l_est)
+        st.l_y = y
+        if r != st.l_r:
+            st.l_armed = r > st.l_r          # steps up: the output sits on the window's top
+            st.l_r = r
+        u = law_step(law, st, r, y, i)
+        if st.l_armed:
+            lo, hi = law.output_limits(y)
+            q = _q(law, st, r, y, i)
+            if r - y <= 0.0:
+                st.l_armed = False
+            else:
+                lim = law.i_lim_v
+                st.integ_v = min(max(c.g_ff * r + c.k_load * max(0.0, st.l_est), -lim), lim)
+                u = min(max(q + st.integ_v, lo), hi)
+                if q + st.integ_v < hi:        # released: conditional integration from here on
+                    st.l_armed = False
+                    if trace is not None:
+                        trace.append((y, st.l_est, st.integ_v))
+        return u
+    return step
+
+
+def run_case(p, law, step, drive, load, rpm, bound_s) -> dict:
+    with law_substituted(step):
+        d = time_optimal.design_step(p, law, drive, load, rpm)
+    return {"ratio": d["t_band_s"] / bound_s, "ovs": d["overshoot_pct"], "ms": 1e3 * d["t_band_s"]}
+
+
+def variants(p, law, drive, avg, tau_s, trace=None):
+    lf = time_optimal.ff_law(p, law, drive)
+    return {"today": (law, None), "preload": (lf, None), "hold": (lf, hold_step(lf)),
+            "landing": (law, landing_step(landing_constants(p, law, avg, tau_s), trace))}
+
+
+def main(argv):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tau-ms", type=float, default=2.0, help="load estimator's filter time constant, ms")
+    ap.add_argument("--rates", action="store_true", help="also run every law at 2 and 5 kHz")
+    ap.add_argument("--only", default="", help="substring of the design names to run")
+    a = ap.parse_args(argv)
+    from picdrive.analysis.timeoptimal import time_to_band
+    from picdrive.gate import BuiltDrive, three_phase_plant
+    from picdrive.models.averaged import identify
+    from picdrive.profile import load_profile
+    from picdrive.result import load_design
+    warnings.simplefilter("ignore")
+    drive = BuiltDrive()
+    names = ("today", "preload", "hold", "landing")
+    print(f"estimator filter tau {a.tau_ms} ms; per law: ratio design/bound (overshoot % of the sector mean)")
+    for prof_name in ("duy2008", "assawinchaichote2016"):
+        p = load_profile(str(ROOT / f"examples/{prof_name}.toml"))
+        avg = identify(p, three_phase_plant)
+        rpm = p.speed_step_rpm()
+        w_t = rpm * math.pi / 30.0
+        bounds = {ld: time_to_band(p, w_t, ld, model=avg)["t_s"] for ld in (0.0, p.control.load_torque_n_m)}
+        for path in sorted((ROOT / "examples").glob(f"{prof_name}.*.design.json")):
+            name = path.name[:-12]
+            res = load_design(str(path))
+            if res.law is None or a.only not in name:
+                continue
+            rates = (None, 2000.0, 5000.0) if a.rates else (None,)
+            for hz in rates:
+                law = res.law if hz is None else dataclasses.replace(res.law, sample_time_s=1.0 / hz)
+                for load, b in bounds.items():
+                    trace = []
+                    cells = []
+                    for n, (lw, st) in variants(p, law, drive, avg, 1e-3 * a.tau_ms, trace).items():
+                        f = run_case(p, lw, st, drive, load, rpm, b)
+                        cells.append(f"{n} {f['ratio']:5.2f} ({f['ovs']:4.2f})")
+                    rel = "" if not trace else (f" | release at {trace[0][0] * 30 / math.pi:.0f} rpm, "
+                                                f"i_L est {trace[0][1]:.3f} A, I {trace[0][2]:.2f} V")
+                    hzs = f"{1 / law.sample_time_s:5.0f} Hz"
+                    print(f"{name:30} {hzs} load {load:6.3g} | " + "  ".join(cells) + rel, flush=True)
+                if hz is None:
+                    dips = []
+                    for n, (lw, st) in variants(p, law, drive, avg, 1e-3 * a.tau_ms).items():
+                        with law_substituted(st):
+                            dd = time_optimal.load_dip(p, lw, drive, rpm)
+                        dips.append(f"{n} {dd['dip_rpm']:.1f} rpm / {1e3 * dd['recovery_s']:.0f} ms")
+                    print(f"{name:30} load step dip / back in 1 %: " + "  ".join(dips), flush=True)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
