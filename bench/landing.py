@@ -22,14 +22,16 @@ sector-mean speed), four laws:
   (``kt`` the averaged model's torque per sensed ampere and ``i_ss`` its no-load current, both at the
   step speed ``w_s``; ``R_L`` the averaged model's voltage per ampere of load current there, the secant
   from no load to the profile's load).  At the window's exit the normal conditional integration takes
-  over; a constant reference never arms it, so the load rejection is the law's own.
+  over; a constant reference never arms it, so the load rejection is the law's own;
+* landing+hold: the landing, then after the release no integration until the hold ends (the hold
+  variant's rule), with the integrator holding the load-aware value.
 
 Besides the steps: the load dip of the profile's load step (``time_optimal.load_dip``) with each law,
 and the same laws at 2 and 5 kHz (the law's sample time changed, gains unchanged: Ki Ts and Kd / Ts are
 per second already).  The laws are substituted for ``picdrive.models.simulate.law_step`` only inside
 this script.
 
-    PYTHONPATH=$PWD/host:$PWD/hil python3 bench/landing.py [--rates] [--tau-ms 2]
+    PYTHONPATH=$PWD/host:$PWD/hil python3 bench/landing.py [--rates] [--tau-ms 8] [--only NAME]
 """
 from __future__ import annotations
 
@@ -68,31 +70,42 @@ def _q(law, st, r: float, y: float, i: float) -> float:
     return g.kp * (law.setpoint_weight * r - y) + st.d_filt_v - g.kc * i
 
 
+def _arm_hold(st, r: float, r_prev: float) -> None:
+    """A reference change arms the hold: the step's sign and half its size."""
+    st.h_armed, st.h_sign, st.h_half, st.h_e = True, math.copysign(1.0, r - r_prev), 0.5 * abs(r - r_prev), None
+
+
+def _hold_over(st, e: float) -> bool:
+    """The hold ends when the error changes sign or, within half the step, the speed stops approaching."""
+    approaching = st.h_e is None or abs(e) < abs(st.h_e)
+    st.h_e = e
+    return e * st.h_sign <= 0.0 or (abs(e) < st.h_half and not approaching)
+
+
+def _held(law, st, r, y, i, integ: float) -> float:
+    """The output with the integrator set to ``integ`` (clamped to its range) this sample."""
+    lim = law.i_lim_v
+    st.integ_v = min(max(integ, -lim), lim)
+    lo, hi = law.output_limits(y)
+    return min(max(_q(law, st, r, y, i) + st.integ_v, lo), hi)
+
+
 def hold_step(law_ff):
-    """The preload, then no integration until the error changes sign or, within half the step, the speed
-    stops approaching (``law_ff`` carries G_ff)."""
+    """The preload, then no integration until the hold ends (``_hold_over``; ``law_ff`` carries G_ff)."""
     from picdrive.control_law import law_step
 
     def step(law, st, r, y, i):
         if r != getattr(st, "h_r", 0.0):
-            st.h_armed, st.h_sign, st.h_half = True, math.copysign(1.0, r - getattr(st, "h_r", 0.0)), \
-                0.5 * abs(r - getattr(st, "h_r", 0.0))
-            st.h_r, st.h_e = r, None
+            _arm_hold(st, r, getattr(st, "h_r", 0.0))
+            st.h_r = r
         i0 = st.integ_v
-        changed = r != st.r_prev
         dr = r - st.r_prev
         u = law_step(law, st, r, y, i)
         if st.h_armed:
-            e = r - y
-            approaching = st.h_e is None or abs(e) < abs(st.h_e)
-            st.h_e = e
-            if e * st.h_sign <= 0.0 or (abs(e) < st.h_half and not approaching):
+            if _hold_over(st, r - y):
                 st.h_armed = False
             else:
-                lim = law.i_lim_v
-                st.integ_v = min(max(i0 + (law.reference_ff_v_s_per_rad * dr if changed else 0.0), -lim), lim)
-                lo, hi = law.output_limits(y)
-                u = min(max(_q(law, st, r, y, i) + st.integ_v, lo), hi)
+                u = _held(law, st, r, y, i, i0 + law.reference_ff_v_s_per_rad * dr)
         return u
     return step
 
@@ -118,34 +131,40 @@ def landing_constants(profile, law, avg, tau_s: float) -> Landing:
                    j_over_kt=avg.j_kg_m2 / avg.kt(w), i0_per_w=i0 / w, tau_s=tau_s)
 
 
-def landing_step(c: Landing, trace: list | None = None):
-    """The bundled law plus the load-aware landing (module docstring)."""
+def landing_step(c: Landing, trace: list | None = None, hold: bool = False):
+    """The bundled law plus the load-aware landing (module docstring); ``hold``: after the release the
+    integrator also holds its value until the hold ends (``_hold_over``), as the hold variant does."""
     from picdrive.control_law import law_step
 
     def step(law, st, r, y, i):
         ts = law.sample_time_s
         if not hasattr(st, "l_est"):
-            st.l_est, st.l_y, st.l_r, st.l_armed = 0.0, y, 0.0, False
+            st.l_est, st.l_y, st.l_r, st.l_armed, st.h_armed = 0.0, y, 0.0, False, False
         x = i - c.j_over_kt * (y - st.l_y) / ts - c.i0_per_w * y
         st.l_est += ts / (ts + c.tau_s) * (x - st.l_est)
         st.l_y = y
         if r != st.l_r:
             st.l_armed = r > st.l_r          # steps up: the output sits on the window's top
+            _arm_hold(st, r, st.l_r)
+            st.h_armed = st.h_armed and hold and st.l_armed
             st.l_r = r
+        i0 = st.integ_v
         u = law_step(law, st, r, y, i)
         if st.l_armed:
-            lo, hi = law.output_limits(y)
-            q = _q(law, st, r, y, i)
             if r - y <= 0.0:
-                st.l_armed = False
+                st.l_armed = st.h_armed = False
             else:
-                lim = law.i_lim_v
-                st.integ_v = min(max(c.g_ff * r + c.k_load * max(0.0, st.l_est), -lim), lim)
-                u = min(max(q + st.integ_v, lo), hi)
-                if q + st.integ_v < hi:        # released: conditional integration from here on
+                u = _held(law, st, r, y, i, c.g_ff * r + c.k_load * max(0.0, st.l_est))
+                lo, hi = law.output_limits(y)
+                if u < hi:                     # released: conditional integration (or the hold) from here on
                     st.l_armed = False
                     if trace is not None:
                         trace.append((y, st.l_est, st.integ_v))
+        elif st.h_armed:
+            if _hold_over(st, r - y):
+                st.h_armed = False
+            else:
+                u = _held(law, st, r, y, i, i0)
         return u
     return step
 
@@ -159,12 +178,13 @@ def run_case(p, law, step, drive, load, rpm, bound_s) -> dict:
 def variants(p, law, drive, avg, tau_s, trace=None):
     lf = time_optimal.ff_law(p, law, drive)
     return {"today": (law, None), "preload": (lf, None), "hold": (lf, hold_step(lf)),
-            "landing": (law, landing_step(landing_constants(p, law, avg, tau_s), trace))}
+            "landing": (law, landing_step(landing_constants(p, law, avg, tau_s), trace)),
+            "landing+hold": (law, landing_step(landing_constants(p, law, avg, tau_s), hold=True))}
 
 
 def main(argv):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--tau-ms", type=float, default=2.0, help="load estimator's filter time constant, ms")
+    ap.add_argument("--tau-ms", type=float, default=8.0, help="load estimator's filter time constant, ms")
     ap.add_argument("--rates", action="store_true", help="also run every law at 2 and 5 kHz")
     ap.add_argument("--only", default="", help="substring of the design names to run")
     a = ap.parse_args(argv)
@@ -175,7 +195,6 @@ def main(argv):
     from picdrive.result import load_design
     warnings.simplefilter("ignore")
     drive = BuiltDrive()
-    names = ("today", "preload", "hold", "landing")
     print(f"estimator filter tau {a.tau_ms} ms; per law: ratio design/bound (overshoot % of the sector mean)")
     for prof_name in ("duy2008", "assawinchaichote2016"):
         p = load_profile(str(ROOT / f"examples/{prof_name}.toml"))
