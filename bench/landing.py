@@ -26,7 +26,9 @@ sector-mean speed), four laws:
 * landing+hold: the landing, then after the release no integration until the hold ends (the hold
   variant's rule), with the integrator holding the load-aware value.
 
-Besides the steps: the load dip of the profile's load step (``time_optimal.load_dip``) with each law,
+Per profile and load, the floor of the measure: the bound's own speed profile
+(``timeoptimal.trajectory``) measured as the designs are (sector-mean speed, a centred mean over one
+hall sector, into the 1 % band).  Besides the steps: the load dip of the profile's load step (``time_optimal.load_dip``) with each law,
 and the same laws at 2 and 5 kHz (the law's sample time changed, gains unchanged: Ki Ts and Kd / Ts are
 per second already).  The laws are substituted for ``picdrive.models.simulate.law_step`` only inside
 this script.
@@ -188,7 +190,9 @@ def main(argv):
     ap.add_argument("--rates", action="store_true", help="also run every law at 2 and 5 kHz")
     ap.add_argument("--only", default="", help="substring of the design names to run")
     a = ap.parse_args(argv)
-    from picdrive.analysis.timeoptimal import time_to_band
+    import numpy as np
+    from picdrive.analysis.steptest import sector_period_s
+    from picdrive.analysis.timeoptimal import time_to_band, trajectory
     from picdrive.gate import BuiltDrive, three_phase_plant
     from picdrive.models.averaged import identify
     from picdrive.profile import load_profile
@@ -202,6 +206,18 @@ def main(argv):
         rpm = p.speed_step_rpm()
         w_t = rpm * math.pi / 30.0
         bounds = {ld: time_to_band(p, w_t, ld, model=avg)["t_s"] for ld in (0.0, p.control.load_torque_n_m)}
+        for ld, b in bounds.items():
+            # the bound's own speed profile measured as the designs are (sector mean, 1 % band): the
+            # ratio no law can beat under this measure
+            t_tr, w_tr = trajectory(p, w_t, ld, model=avg)
+            floors = []
+            for hz in (1000.0, 5000.0):
+                t = np.arange(0.0, 4.0 * b, 1.0 / hz)
+                f = time_optimal.band_figures(p, t, np.interp(t, t_tr, w_tr, right=w_tr[-1]) * 30 / math.pi,
+                                              rpm, 1.0 / hz)
+                floors.append(f"{f['t_band_s'] / b:.2f} at {hz:.0f} Hz")
+            print(f"{prof_name} load {ld:6.3g}: bound {1e3 * b:.1f} ms; the bound's trajectory, sector mean "
+                  f"({1e3 * sector_period_s(p, rpm):.1f} ms window): ratio " + ", ".join(floors), flush=True)
         for path in sorted((ROOT / "examples").glob(f"{prof_name}.*.design.json")):
             name = path.name[:-12]
             res = load_design(str(path))
