@@ -4,7 +4,7 @@
 The bundled designs (examples/*.design.json), loads 0 and the profile's load from t = 0, the step of
 bench/time_optimal.py (its functions: the verification's plant, ``simulate_six_step`` with the
 three-phase winding and the firmware's speed measurement; ratio design / bound, overshoot of the
-sector-mean speed), four laws:
+sector-mean speed), five laws:
 
 * today: the bundled law (``control_law.law_step``);
 * preload: the reference feedforward (``design.verify.with_reference_ff``: ``G_ff dr`` into the
@@ -28,9 +28,9 @@ sector-mean speed), four laws:
 
 Per profile and load, the floor of the measure: the bound's own speed profile
 (``timeoptimal.trajectory``) measured as the designs are (sector-mean speed, a centred mean over one
-hall sector, into the 1 % band).  Besides the steps: the load dip of the profile's load step (``time_optimal.load_dip``) with each law,
-and the same laws at 2 and 5 kHz (the law's sample time changed, gains unchanged: Ki Ts and Kd / Ts are
-per second already).  The laws are substituted for ``picdrive.models.simulate.law_step`` only inside
+hall sector, into the 1 % band).  Besides the steps: the load dip of the profile's load step
+(``time_optimal.load_dip``) with each law, and with ``--rates`` the same laws at 2 and 5 kHz (the
+law's sample time changed, gains unchanged: Ki Ts and Kd / Ts are per second already).  The laws are substituted for ``picdrive.models.simulate.law_step`` only inside
 this script.
 
     PYTHONPATH=$PWD/host:$PWD/hil python3 bench/landing.py [--rates] [--tau-ms 8] [--only NAME]
