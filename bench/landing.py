@@ -46,7 +46,8 @@ import warnings
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import time_optimal  # noqa: E402  (bench/time_optimal.py: band_figures, design_step, load_dip, ff_law)
+import time_optimal  # noqa: E402  (bench/time_optimal.py: design_step, load_dip, ff_law)
+from picdrive.analysis.timeoptimal import band_figures  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -213,7 +214,7 @@ def main(argv):
             floors = []
             for hz in (1000.0, 5000.0):
                 t = np.arange(0.0, 4.0 * b, 1.0 / hz)
-                f = time_optimal.band_figures(p, t, np.interp(t, t_tr, w_tr, right=w_tr[-1]) * 30 / math.pi,
+                f = band_figures(p, t, np.interp(t, t_tr, w_tr, right=w_tr[-1]) * 30 / math.pi,
                                               rpm, 1.0 / hz)
                 floors.append(f"{f['t_band_s'] / b:.2f} at {hz:.0f} Hz")
             print(f"{prof_name} load {ld:6.3g}: bound {1e3 * b:.1f} ms; the bound's trajectory, sector mean "
