@@ -365,7 +365,7 @@ def step_and_load(tw, prof, target: float, step_s: float = 1.0, load_s: float = 
             "cpu_s": c1 - c0, "wall_s": w1 - w0, "sim_s": step_s + load_s}
 
 
-def bench_sil_pil(tmp: Path, methods=("fuzzy-hinf",), profiles=PROFILES) -> None:
+def bench_sil_pil(tmp: Path, methods=("fuzzy-hinf",), profiles=PROFILES, run_s: float = 10.0) -> None:
     """Section 4: the same step and load-step scenarios on the SIL twin (the firmware's C on
     this machine, zero-time) and the PIL twin (its HEX on the PIC18 simulator), side by side."""
     from picdrive_hil.twin import Twin
@@ -432,6 +432,17 @@ def bench_sil_pil(tmp: Path, methods=("fuzzy-hinf",), profiles=PROFILES) -> None
                              f"{st.stops / max(1e-9, pil.t):,.0f} cut short by an SFR access")
                 print(f"     {k} real-time factor over the two scenarios: {x['sim_s'] / x['wall_s']:.1f} per wall s, "
                       f"{x['sim_s'] / x['cpu_s']:.1f} per CPU s{extra}")
+            # the scenarios take ~80 ms of CPU on the PIL: too short to time on a shared machine; running on
+            # under load for run_s simulated seconds, in 5 slices, gives the figure its spread
+            for k, tw in tws.items():
+                f = []
+                for _ in range(5):
+                    c0 = time.process_time()
+                    tw.run(run_s / 5)
+                    f.append(run_s / 5 / max(1e-9, time.process_time() - c0))
+                f.sort()
+                print(f"     {k} real-time factor running on under load, {run_s:g} simulated s in 5 slices: "
+                      f"median {f[2]:.1f} per CPU s ({f[0]:.1f} .. {f[-1]:.1f})")
             for tw in tws.values():
                 tw.close()
 
@@ -469,7 +480,7 @@ def main() -> int:
         if "step" in sections:
             bench_physical_limit(tmp)
         if "pil" in sections:
-            bench_sil_pil(tmp)
+            bench_sil_pil(tmp, run_s=secs)
     return 0
 
 
