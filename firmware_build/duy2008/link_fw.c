@@ -2,7 +2,7 @@
  * link_fw.c -- picdrive serial link, C side: COBS framing, CRC, dispatcher with ACK/NACK and
  * duplicate-SEQ replay, parameter store with range checks, EEPROM image, telemetry, triggered
  * capture, link-loss watchdog.
- * Rendered by picdrive.protocol.render_c() from host/picdrive/protocol.py.  DO NOT EDIT.
+ * Rendered by picdrive.link.protocol_c.render_c() from host/picdrive/link/protocol.py.  DO NOT EDIT.
  * protocol 2.0, table hash 0x3A3718B4UL
  *
  * Written for an 8-bit core (PIC18, SDCC or XC8): no heap, no floating point (scales are
