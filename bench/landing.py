@@ -46,8 +46,9 @@ import warnings
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import time_optimal  # noqa: E402  (bench/time_optimal.py: design_step, load_dip, ff_law)
-from picdrive.analysis.timeoptimal import band_figures  # noqa: E402
+import time_optimal  # noqa: E402  (bench/time_optimal.py: load_dip)
+from picdrive.analysis.timeoptimal import band_figures, law_step_to_band  # noqa: E402
+from picdrive.design.verify import with_reference_ff  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -174,12 +175,12 @@ def landing_step(c: Landing, trace: list | None = None, hold: bool = False):
 
 def run_case(p, law, step, drive, load, rpm, bound_s) -> dict:
     with law_substituted(step):
-        d = time_optimal.design_step(p, law, drive, load, rpm)
+        d = law_step_to_band(p, law, drive, load, rpm)
     return {"ratio": d["t_band_s"] / bound_s, "ovs": d["overshoot_pct"], "ms": 1e3 * d["t_band_s"]}
 
 
 def variants(p, law, drive, avg, tau_s, trace=None):
-    lf = time_optimal.ff_law(p, law, drive)
+    lf = with_reference_ff(p, law, drive)
     return {"today": (law, None), "preload": (lf, None), "hold": (lf, hold_step(lf)),
             "landing": (law, landing_step(landing_constants(p, law, avg, tau_s), trace)),
             "landing+hold": (law, landing_step(landing_constants(p, law, avg, tau_s), hold=True))}

@@ -37,11 +37,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def design_step(profile, law, drive, load: float, rpm: float) -> dict:
-    from picdrive.analysis.timeoptimal import law_step_to_band
-    return law_step_to_band(profile, law, drive, load, rpm)
-
-
 def twin_step(profile, path, law, rpm: float) -> dict:
     """The design's firmware in the motor twin (picdrive.gate.twin_run), step from rest without load."""
     from picdrive.analysis.steptest import sim_plan
@@ -94,13 +89,9 @@ def load_dip(profile, law, drive, rpm: float) -> dict:
     return {"dip_rpm": dip, "recovery_s": rec}
 
 
-def ff_law(profile, law, drive):
-    from picdrive.design.verify import with_reference_ff
-    return with_reference_ff(profile, law, drive)
-
-
 def main(argv):
-    from picdrive.analysis.timeoptimal import t_unit, time_to_band, trajectory
+    from picdrive.analysis.timeoptimal import law_step_to_band, t_unit, time_to_band, trajectory
+    from picdrive.design.verify import with_reference_ff
     from picdrive.gate import BuiltDrive, three_phase_plant
     from picdrive.models.averaged import identify
     from picdrive.profile import load_profile
@@ -127,14 +118,14 @@ def main(argv):
                 # the law without the feedforward ("design" columns) and with it ("ff"), whatever the
                 # bundled design chose (its verification's reference_feedforward entry)
                 res.law = dataclasses.replace(res.law, reference_ff_v_s_per_rad=0.0)
-                d = design_step(p, res.law, drive, load, rpm)
+                d = law_step_to_band(p, res.law, drive, load, rpm)
                 traj = trajectory(p, w_t, load, model=avg)
                 sh = [shaped_step(p, res.law, drive, load, rpm, traj, k) for k in (1.0, 1.2)]
                 shaped = " | " + "  ".join(f"{f['t_band_s'] / b['t_s']:5.2f} {f['overshoot_pct']:5.2f}" for f in sh)
                 tw = "" if load else (lambda f: f" | twin {1e3 * f['t_band_s']:.0f} ms ovs {f['overshoot_pct']:.2f} % "
                                                 f"ratio {f['t_band_s'] / b['t_s']:.2f}")(twin_step(p, path, res.law, rpm))
-                lf = ff_law(p, res.law, drive)
-                dff = design_step(p, lf, drive, load, rpm)
+                lf = with_reference_ff(p, res.law, drive)
+                dff = law_step_to_band(p, lf, drive, load, rpm)
                 ffs = (f" | ff G={lf.reference_ff_v_s_per_rad:.4f}: {1e3 * dff['t_band_s']:.0f} ms ovs "
                        f"{dff['overshoot_pct']:.2f} % ratio {dff['t_band_s'] / b['t_s']:.2f}"
                        f" (bundled design: {'with' if bundled_ff else 'without'})")

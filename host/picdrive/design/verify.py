@@ -306,7 +306,6 @@ def with_reference_ff(profile, law, drive=None):
     state of the speed-dependent averaged model identified from the drive's three-phase plant
     (:func:`picdrive.models.averaged.identify`, what the simulations run on) when ``drive`` is given,
     else of the DC equivalent (u = (Kb + R B / Kt) w, i = B w / Kt)."""
-    import dataclasses
     from ..control_law import reference_ff_gain
     m = profile.motor
     w = profile.speed_step_rpm() * math.pi / 30.0
@@ -327,7 +326,6 @@ def choose_reference_ff(profile, law, drive, mode: str, *, simulate: bool = True
     of the two runs and its worse overshoot of the sector-mean speed stays within 1 % (or within the law's
     without it).  ``"auto"`` needs the simulation (``drive``, ``simulate``); without them it keeps the
     law as it is.  Returns ``(law, check)``: the check records the gain and the figures it was chosen on."""
-    import dataclasses
     base = dataclasses.replace(law, reference_ff_v_s_per_rad=0.0)
     ff = with_reference_ff(profile, base, drive)
     g = ff.reference_ff_v_s_per_rad
@@ -390,10 +388,12 @@ def verify_design(profile, result, *, drive=None, simulate: bool = True):
     if result.law is not None and ff_mode == "auto":
         # kept only if the law verifies without it and the law with it passes every check too
         plain = result.law
-        law_ff, ff_check = choose_reference_ff(profile, plain, drive, "auto", simulate=simulate)
-        if ff_check["value"] and not all(c.get("ok", True) for c in checks.values()):
-            ff_check = {**ff_check, "value": 0.0, "note": "left off: the law fails without it; " + ff_check["note"]}
-        elif ff_check["value"]:
+        if not all(c.get("ok", True) for c in checks.values()):     # no step runs for a law that fails anyway
+            ff_check = {"value": 0.0, "limit": "auto", "ok": True, "unit": "V s/rad",
+                        "note": "left off: the law fails without it"}
+        else:
+            law_ff, ff_check = choose_reference_ff(profile, plain, drive, "auto", simulate=simulate)
+        if ff_check["value"]:
             result.law = law_ff
             checks_ff = _law_checks(profile, result, drive, simulate)
             failed = [k for k, c in checks_ff.items() if not c.get("ok", True)]
