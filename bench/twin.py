@@ -354,6 +354,12 @@ def step_and_load(tw, prof, target: float, step_s: float = 1.0, load_s: float = 
     dip = float(np.max(target - rpm2))
     out = np.nonzero(np.abs(rpm2 - target) > 0.01 * target)[0]
     rec_s = float(rec2["t_s"][out[-1]] - t_load) if out.size else 0.0
+    # the same on the speed averaged over a hall sector (the designs' measure): where the commutation
+    # ripple is wider than the 1 % band (the 2016 motor under load) the shaft speed never stays inside
+    from picdrive.analysis.steptest import sector_mean
+    sm2 = sector_mean(prof, rpm2, 1e-4, target)
+    out_sm = np.nonzero(np.abs(sm2 - target) > 0.01 * target)[0]
+    rec_sm_s = float(rec2["t_s"][out_sm[-1]] - t_load) if out_sm.size else 0.0
     tail = rpm2[rec2["t_s"] >= rec2["t_s"][-1] - 0.2]
     loaded = rec2["t_s"] >= rec2["t_s"][-1] - 0.5
     dlim = float(np.max(rec2["duty_max"]))
@@ -361,6 +367,7 @@ def step_and_load(tw, prof, target: float, step_s: float = 1.0, load_s: float = 
     return {"duty_at_limit_pct": 100.0 * at_limit, "duty_limit": dlim,"first_duty_ms": (t0 - (rec["t_s"][0])) * 1e3, "t_reach_ms": t_reach * 1e3,
             "overshoot_pct": m.overshoot_pct, "ss_err_pct": m.steady_state_error_pct,
             "load_dip_rpm": dip, "load_recovery_ms": rec_s * 1e3 if rec_s < load_s - 0.01 else math.inf,
+            "load_recovery_sm_ms": rec_sm_s * 1e3 if rec_sm_s < load_s - 0.01 else math.inf,
             "loaded_mean_rpm": float(np.mean(tail)), "loaded_ripple_rpm": float(np.ptp(tail)),
             "cpu_s": c1 - c0, "wall_s": w1 - w0, "sim_s": step_s + load_s}
 
@@ -389,6 +396,7 @@ def bench_sil_pil(tmp: Path, methods=("fuzzy-hinf",), profiles=PROFILES, run_s: 
             rows = (("first duty after start", "first_duty_ms", "ms", 2), ("reach 1 % band", "t_reach_ms", "ms", 1),
                     ("overshoot", "overshoot_pct", "%", 3), ("steady error", "ss_err_pct", "%", 4),
                     ("load dip", "load_dip_rpm", "rpm", 1), ("load recovery (1 %)", "load_recovery_ms", "ms", 1),
+                    ("  on the sector mean", "load_recovery_sm_ms", "ms", 1),
                     ("loaded mean speed", "loaded_mean_rpm", "rpm", 1), ("loaded ripple p-p", "loaded_ripple_rpm", "rpm", 1),
                     ("loaded: duty at its top", "duty_at_limit_pct", "%", 1))
             print(f"     {'metric':24s} {'SIL':>12s} {'PIL':>12s} {'PIL - SIL':>12s}")

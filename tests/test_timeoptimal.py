@@ -5,7 +5,8 @@ import warnings
 import numpy as np
 import pytest
 
-from picdrive.analysis.timeoptimal import t_unit, time_to_band, trajectory
+from picdrive.analysis.steptest import sector_period_s
+from picdrive.analysis.timeoptimal import band_figures, measured_bound, t_unit, time_to_band, trajectory
 from picdrive.gate import three_phase_plant
 from picdrive.models.averaged import identify, open_loop_run
 from picdrive.profile import load_profile
@@ -61,3 +62,31 @@ def test_trajectory_reaches_the_band_at_the_bound(duy):
     assert ws[-1] == pytest.approx(w) and np.all(np.diff(t) > 0)
     t99 = float(np.interp(0.99 * w, ws, t))
     assert t99 == pytest.approx(time_to_band(duy, w, duy.control.load_torque_n_m)["t_s"], rel=2e-3)
+
+
+def test_band_figures_first_entry_and_settling_on_a_ramp(duy):
+    """A ramp that crosses 99 % of the target at 20 ms and holds it from 25 ms: the shaft speed's first
+    entry is 20 ms; the sector-mean speed settles half a sector's window around 25 ms, no overshoot."""
+    rpm, ts = 2400.0, 1e-4
+    t = np.arange(0.0, 0.1, ts)
+    y = np.minimum(rpm, rpm * t / 0.025) * (t < 0.1)
+    f = band_figures(duy, t, y, rpm, ts)
+    assert f["t_first_s"] == pytest.approx(0.99 * 0.025, abs=ts)
+    half = 0.5 * sector_period_s(duy, rpm)
+    assert 0.025 - half <= f["t_band_s"] <= 0.025 + half
+    assert f["overshoot_pct"] == 0.0
+    assert band_figures(duy, t, 0.5 * y, rpm, ts)["t_first_s"] == math.inf
+
+
+@pytest.mark.parametrize("name, lo, hi", [("duy2008", 1.0, 1.10), ("assawinchaichote2016", 1.2, 1.5)])
+def test_measured_bound_is_the_bound_on_the_designs_measure(name, lo, hi):
+    """The bound's own trajectory judged on the sector-mean speed: within a few samples of the bound where a
+    hall sector is short against the step (duy2008: 2.1 ms against 28 ms), a third later where a sector
+    lasts as long as the whole step (the 2016 motor: 13.1 ms at 381 rpm, bound 13.1 ms)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        p = load_profile(name)
+    w = p.speed_step_rpm() * RPM
+    b = time_to_band(p, w, 0.0)["t_s"]
+    assert lo <= measured_bound(p, w, 0.0) / b <= hi
+    assert measured_bound(p, 1.2 * p.control.speed_max_rpm * RPM, 0.0) == math.inf

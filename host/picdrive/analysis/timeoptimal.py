@@ -15,12 +15,19 @@ without one, the DC equivalent: ``R_e = R``, ``E = Kb w``, ``k_t = Kt``,
 the band ``(1 - band) w_t`` (a perfect law then holds it there): the bound a
 law's time to the band is compared with.  ``t_unit = J w_t / (Kt I_lim)`` is the
 scale the issue quotes ratios in.
+
+The designs are judged on the speed averaged over one hall sector (:func:`band_figures`), because the
+shaft speed carries the commutation's ripple (up to +-2 % under load on the 2016 motor) and never
+stays inside a 1 % band.  That centred mean lags a trajectory that bends into the band, so
+:func:`measured_bound` gives the bound's own speed profile judged the same way: the time a perfect
+bang-bang-then-hold law scores on the designs' measure.  Where a hall sector lasts as long as the
+step itself (the 2016 motor: 13.1 ms at 381 rpm against a 13.1 ms bound) the two differ by a third.
 """
 from __future__ import annotations
 
 import math
 
-__all__ = ["time_to_band", "trajectory", "t_unit", "band_figures", "law_step_to_band"]
+__all__ = ["time_to_band", "trajectory", "t_unit", "band_figures", "measured_bound", "law_step_to_band"]
 
 
 def t_unit(profile, w_t: float) -> float:
@@ -94,14 +101,34 @@ def trajectory(profile, w_t: float, load_n_m: float = 0.0, *, model=None, n: int
 
 
 def band_figures(profile, t, rpm_run, rpm: float, ts: float) -> dict:
-    """Time until the sector-mean speed stays within 1 % of ``rpm`` (s; ``inf`` if it never does) and
-    the sector-mean speed's overshoot (%), of a run sampled at ``t`` (s) with speed ``rpm_run`` (rpm)."""
+    """Figures of a step to ``rpm`` sampled at ``t`` (s, ``ts`` apart) with speed ``rpm_run`` (rpm):
+    ``t_band_s``, the time until the sector-mean speed stays within 1 % of ``rpm`` (``inf`` if it never
+    does); ``overshoot_pct``, the sector-mean speed's overshoot (%); ``t_first_s``, the first time the
+    speed itself reaches 99 % of ``rpm`` (``inf`` if it never does): the acceleration alone, without the
+    landing or the measure."""
     import numpy as np
     from .steptest import sector_mean
     sm = sector_mean(profile, rpm_run, ts, rpm)
     out = np.nonzero(np.abs(sm - rpm) > 0.01 * rpm)[0]
     t_band = 0.0 if out.size == 0 else (math.inf if out[-1] == sm.size - 1 else float(t[out[-1] + 1]))
-    return {"t_band_s": t_band, "overshoot_pct": max(0.0, 100 * (float(np.max(sm)) - rpm) / rpm)}
+    hit = np.nonzero(np.asarray(rpm_run) >= 0.99 * rpm)[0]
+    return {"t_band_s": t_band, "overshoot_pct": max(0.0, 100 * (float(np.max(sm)) - rpm) / rpm),
+            "t_first_s": float(t[hit[0]]) if hit.size else math.inf}
+
+
+def measured_bound(profile, w_t: float, load_n_m: float = 0.0, *, model=None, ts: float | None = None) -> float:
+    """The bound's own speed profile (:func:`trajectory`, then held at ``w_t``) judged as the designs are
+    (:func:`band_figures`, sampled every ``ts`` s, default the speed loop's period): its time to the 1 %
+    band of the sector-mean speed, s (``inf`` when the bridge cannot reach ``w_t``).  A ratio against it
+    is a ratio on the same measure."""
+    import numpy as np
+    ts = ts or 1.0 / profile.control.speed_loop_hz
+    t_tr, w_tr = trajectory(profile, w_t, load_n_m, model=model)
+    if w_tr[-1] < w_t:
+        return math.inf
+    rpm = w_t * 30.0 / math.pi
+    t = np.arange(0.0, 4.0 * float(t_tr[-1]) + 50 * ts, ts)
+    return band_figures(profile, t, np.interp(t, t_tr, w_tr, right=w_t) * 30.0 / math.pi, rpm, ts)["t_band_s"]
 
 
 def law_step_to_band(profile, law, drive, load_n_m: float, rpm: float) -> dict:
