@@ -10,7 +10,9 @@ premise_k), and nothing else may change.
 from __future__ import annotations
 
 import re
+import tempfile
 import warnings
+from pathlib import Path
 
 import pytest
 
@@ -88,3 +90,33 @@ def test_param_set_loads_each_speed_loop_parameter_into_core_p(twin):
             phi = int.from_bytes(want[8 * nr + 2:8 * nr + 4], "little", signed=True)
             want[8 * nr + 4:8 * nr + 6] = fixedpoint.premise_k(plo, phi, nr, mu_sh).to_bytes(2, "little")
         assert after == bytes(want), (name, before.hex(), after.hex(), bytes(want).hex())
+
+
+def test_duty_registers_follow_the_law_output_while_running(twin):
+    """write_duty (assembly): the three PDC pairs hold core_s.pdc and SEVTCMP pdc / 8 (mid on-time)
+    between speed-loop samples, at several instants of a run in both directions."""
+    from picdrive.firmware import p18f4431
+    tw, _ = twin
+    reg = p18f4431.registers()
+    b = target.build_measured(FW, Path(tempfile.mkdtemp()), name="duy2008")
+    _, symbols = target.parse_map(b.hex_path.with_suffix(".map").read_text())
+    core_s = next(s.address for s in symbols if s.name == "_core_s")
+    h = (FW / "link_fw.h").read_text()
+    lt = _define(h, "LINK_ID_LINK_TIMEOUT")
+
+    def word(lo, hi):
+        return tw.peek(lo) | (tw.peek(hi) << 8)
+
+    seen = set()
+    for k, (cmd, args) in enumerate((("param_set", {"id": lt, "value": 60000}), ("set_speed", {"value": 4000}),
+                                     ("start", None), ("set_speed", {"value": -4000}))):
+        tw.uart_write(codec.encode_command(cmd, 0x80 + k, args))
+        for _ in range(12):
+            tw.run(0.0173)
+            tw.uart_read()
+            pdc = word(core_s + 32, core_s + 33)
+            pdcs = [word(reg[f"PDC{j}L"], reg[f"PDC{j}H"]) for j in range(3)]
+            sev = word(reg["SEVTCMPL"], reg["SEVTCMPH"])
+            assert pdcs == [pdc] * 3 and sev == pdc >> 3, (cmd, pdc, pdcs, sev)
+            seen.add(pdc)
+    assert len(seen) > 5, seen                 # the duty moved: the checks saw the law at work

@@ -866,8 +866,8 @@ uint8_t link_eeprom_save(void)
     uint8_t i, k;
     ee_off = 0u;
     CRC_INIT();
+    rom_at(ROM_EE_HEAD);               /* (ee_put reads no table: link_hot.ro runs on) */
     for (k = 0u; k < EE_HEADER; k++) {
-        rom_at((uint16_t)(ROM_EE_HEAD + k));
         ee_put(rom_next());
     }
     for (i = 0u; i < LINK_N_PERSISTED; i++) {
@@ -900,8 +900,8 @@ static uint8_t ee_load(void)           /* link_eeprom_load without the announcem
     uint8_t i, k, pass, r = LINK_EE_BLANK;
     ee_off = 0u;
     CRC_INIT();
+    rom_at(ROM_EE_HEAD);               /* (ee_next reads no table: link_hot.ro runs on) */
     for (k = 0u; k < EE_HEADER; k++) {   /* magic (BLANK), then version, hash, length (OTHER_BUILD) */
-        rom_at((uint16_t)(ROM_EE_HEAD + k));
         if (ee_next() != rom_next()) {
             return r;
         }
@@ -1362,6 +1362,96 @@ static uint8_t drive_busy(void)
     return (uint8_t)(st == (int16_t)LINK_STATE_RUN || st == (int16_t)LINK_STATE_BRAKE);
 }
 
+#if defined(__SDCC_pic16)
+#if LINK_MAX_PAYLOAD > 127u
+#error "rom_copy indexes the reply with PLUSW0 (a signed offset): at most 127 payload bytes"
+#endif
+/* PIC18 assembly (the C below, step for step): no frame, no register saved; PROD counts and
+ * carries (rom_next keeps it) */
+static void rom_copy(uint8_t n) LINK_WPARAM __naked /* A(link_hot.n..) = n flash bytes from link_hot.ro on */
+{
+    (void)n;
+    __asm
+    MOVWF   0xFF3, A                ; PRODL = n
+    MOVF    0xFF3, F, A
+    BZ      lrc_end
+lrc_loop:
+    CALL    _rom_next
+    MOVWF   0xFF4, A                ; PRODH = the byte
+    LFSR    0, (_tx_buf + 4)        ; A(0)
+    MOVF    (_link_hot + 5), W, A   ; link_hot.n
+    MOVFF   0xFF4, 0xFEB            ; A(link_hot.n) (PLUSW0)
+    INCF    (_link_hot + 5), F, A
+    DECFSZ  0xFF3, F, A
+    BRA     lrc_loop
+lrc_end:
+    RETURN
+    __endasm;
+}
+
+static uint8_t h_hello(void) __naked
+{
+    __asm
+    CLRF    (_link_hot + 5), A      ; link_hot.n = 0
+    MOVLW   178              ; rom_at(ROM_HELLO)
+    MOVWF   (_link_hot + 6), A
+    MOVLW   2
+    MOVWF   (_link_hot + 7), A
+    MOVLW   20
+    CALL    _rom_copy
+    RETLW   0
+    __endasm;
+}
+
+/* the index and then the name's offset and length on the software stack across the calls (read
+ * above FSR1 or popped by one instruction: an interrupt pushes at FSR1) */
+static uint8_t h_param_info(void) __naked
+{
+    __asm
+    MOVFF   (_rx_buf + 3), 0xFE9    ; FSR0L = idx = R(0): the lengths to add
+    MOVF    0xFE9, W, A
+    SUBLW   29
+    BNC     lpi_bad                 ; idx >= LINK_N_ENTRIES
+    MOVFF   0xFE9, 0xFE5            ; push idx (POSTDEC1)
+    MOVLW   148              ; rom_at(ROM_NAME_LEN)
+    MOVWF   (_link_hot + 6), A
+    MOVLW   2
+    MOVWF   (_link_hot + 7), A
+    MOVLW   215             ; PROD = ROM_NAMES
+    MOVWF   0xFF3, A
+    MOVLW   2
+    MOVWF   0xFF4, A
+    MOVF    0xFE9, F, A
+    BZ      lpi_len
+lpi_sum:                            ; the name offset: the lengths before it
+    CALL    _rom_next
+    ADDWF   0xFF3, F, A
+    MOVLW   0
+    ADDWFC  0xFF4, F, A
+    DECFSZ  0xFE9, F, A
+    BRA     lpi_sum
+lpi_len:
+    CALL    _rom_next               ; the name length
+    MOVWF   0xFE5, A                ; push the length, the offset (idx stays below them)
+    MOVFF   0xFF4, 0xFE5
+    MOVFF   0xFF3, 0xFE5
+    CLRF    (_link_hot + 5), A      ; link_hot.n = 0
+    MOVLW   4
+    MOVF    0xFE3, W, A             ; idx (PLUSW1)
+    CALL    _row_of
+    MOVLW   20
+    CALL    _rom_copy
+    MOVFF   0xFE4, (_link_hot + 6)  ; rom_at(offset) (PREINC1)
+    MOVFF   0xFE4, (_link_hot + 7)
+    MOVF    0xFE4, W, A             ; the length
+    MOVF    0xFE4, F, A             ; drop idx (each pop one instruction: an interrupt pushes at FSR1)
+    CALL    _rom_copy
+    RETLW   0
+lpi_bad:
+    RETLW   8
+    __endasm;
+}
+#else
 static void rom_copy(uint8_t n) LINK_WPARAM        /* A(link_hot.n..) = n flash bytes from link_hot.ro on */
 {
     while (n != 0u) {
@@ -1398,6 +1488,7 @@ static uint8_t h_param_info(void)
     rom_copy(i);
     return 0u;
 }
+#endif
 
 #if defined(__SDCC_pic16)
 /* PIC18 assembly (the C below, step for step): the index on the software stack (PLUSW1 with
