@@ -581,6 +581,33 @@ static void row_of(uint8_t idx) LINK_WPARAM        /* link_hot.ro = the entry's 
 #endif
 #define row_at(idx, k) do { row_of(idx); link_hot.ro = (uint16_t)(link_hot.ro + (k)); } while (0)
 
+#if defined(__SDCC_pic16)
+typedef char link_entry_layout[(offsetof(struct link_fast, ro) == 6u && offsetof(struct link_fast, e_off) == 8u
+                                && offsetof(struct link_fast, e_sz) == 9u && ROM_SIZE == ROM_OFF + LINK_N_ENTRIES
+                                && ROM_OFF == 420u) ? 1 : -1];
+/* PIC18 assembly (the C below, step for step): ROM_SIZE + idx is one table further on */
+static void entry_load(uint8_t idx) LINK_WPARAM __naked   /* link_hot.e_off, link_hot.e_sz */
+{
+    (void)idx;
+    __asm
+    ADDLW   164                 ; rom_at(ROM_OFF + idx)
+    MOVWF   (_link_hot + 6), A
+    MOVLW   1
+    BTFSC   0xFD8, 0, A
+    ADDLW   1
+    MOVWF   (_link_hot + 7), A
+    CALL    _rom_next
+    MOVWF   (_link_hot + 8), A      ; e_off
+    MOVLW   29                  ; rom_at(ROM_SIZE + idx): LINK_N_ENTRIES - 1 past the byte read
+    ADDWF   (_link_hot + 6), F, A
+    MOVLW   0
+    ADDWFC  (_link_hot + 7), F, A
+    CALL    _rom_next
+    MOVWF   (_link_hot + 9), A      ; e_sz
+    RETURN
+    __endasm;
+}
+#else
 static void entry_load(uint8_t idx) LINK_WPARAM   /* link_hot.e_off, link_hot.e_sz */
 {
     rom_at((uint16_t)(ROM_OFF + idx));
@@ -588,6 +615,7 @@ static void entry_load(uint8_t idx) LINK_WPARAM   /* link_hot.e_off, link_hot.e_
     rom_at((uint16_t)(ROM_SIZE + idx));
     link_hot.e_sz = rom_next();
 }
+#endif
 
 /* V.b[0..n-1] hold a value of size code link_hot.e_sz (n bytes, bit 7: signed): extend it to 32 bits */
 #if defined(__SDCC_pic16)
@@ -642,6 +670,28 @@ static void store_put(void)            /* the parameter at link_hot.e_off = V (a
     LINK_CRITICAL_END();
 }
 
+#if defined(__SDCC_pic16)
+/* PIC18 assembly (the C below, step for step): idx in PRODL across entry_load (which keeps PROD) */
+static void value_at(uint8_t idx) LINK_WPARAM __naked      /* V = parameter or signal */
+{
+    (void)idx;
+    __asm
+    MOVWF   0xFF3, A                ; PRODL = idx
+    CALL    _entry_load
+    INCF    (_link_hot + 8), W, A   ; e_off == NONE: a signal
+    BNZ     lva_store
+    MOVLW   11
+    SUBWF   0xFF3, W, A             ; app_signal(idx - SIG_INDEX): low byte in W, high in PRODL
+    CALL    _app_signal
+    BANKSEL _V
+    MOVWF   _V, B
+    MOVFF   0xFF3, (_V + 1)
+    GOTO    _sign_extend
+lva_store:
+    GOTO    _store_get
+    __endasm;
+}
+#else
 static void value_at(uint8_t idx) LINK_WPARAM      /* V = parameter or signal */
 {
     entry_load(idx);
@@ -654,6 +704,7 @@ static void value_at(uint8_t idx) LINK_WPARAM      /* V = parameter or signal */
         store_get();
     }
 }
+#endif
 
 #if defined(__SDCC_pic16)
 /* The next 4 table bytes (an int32 limit X, little-endian) against V, signed: 1 if V < X
@@ -713,13 +764,27 @@ lrc_ge:
     __endasm;
 }
 
-static uint8_t in_range(uint8_t idx) LINK_WPARAM   /* V within the entry's [min, max] (entry idx loaded) */
+/* (the C below, step for step: row_at(idx, 8), V < min: 0, else not max < V) */
+static uint8_t in_range(uint8_t idx) LINK_WPARAM __naked   /* V within the entry's [min, max] (entry idx loaded) */
 {
-    row_at(idx, 8u);
-    if (rom_cmp(0u) != 0u) {           /* V < min */
-        return 0u;
-    }
-    return (uint8_t)(rom_cmp(1u) == 0u);   /* not max < V */
+    (void)idx;
+    __asm
+    CALL    _row_of
+    MOVLW   8                       ; the row min
+    ADDWF   (_link_hot + 6), F, A
+    MOVLW   0
+    ADDWFC  (_link_hot + 7), F, A
+    MOVLW   0
+    CALL    _rom_cmp                ; V < min
+    IORLW   0
+    BZ      lir_max
+    RETLW   0
+lir_max:
+    MOVLW   1
+    CALL    _rom_cmp                ; max < V
+    XORLW   1
+    RETURN
+    __endasm;
 }
 #else
 static union { int32_t l; uint8_t b[4]; } X;   /* a limit read from the table */
