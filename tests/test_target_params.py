@@ -1,11 +1,13 @@
-"""drive.c's load_param on the chip: every parameter the speed loop reads lands in core_p.
+"""drive.c's load_param and write_duty on the chip: every parameter the speed loop reads lands
+in core_p, and the duty registers follow the law's output.
 
 load_param is PIC18 assembly under SDCC (the host twin runs its C twin), so this runs the
 bundled HEX on the processor twin (picdrive_hil's PIL, simulated time): each parameter is
 written over the UART with param_set, then the data memory of core_p is read back (peek) and
 must hold every parameter's raw value at its field (drive_core.h's core_params_t, little-endian),
 the membership slope core_premise_k() of the premise bounds (picdrive.firmware.fixedpoint's
-premise_k), and nothing else may change.
+premise_k), and nothing else may change.  write_duty (assembly too) is checked at several
+instants of a run in both directions.
 """
 from __future__ import annotations
 
