@@ -39,7 +39,9 @@
 #define NACK_ARMED         1u                        /* S.nack: a bad frame may be NACKed */
 #define NACK_PENDING       2u                        /* S.nack: a BAD_CRC NACK to send */
 #define EE_ALL             0xFEu                     /* S.changed: every persisted parameter (not an id) */
-#define ROW                20u          /* bytes of a table row (= param_info reply head) */
+#define ROW                14u          /* bytes of a table row (the param_info reply head with min, max, default as 16 bits) */
+#define ROW16              1u           /* 1: a row's min, max, default are 16 bits, widened by the size code */
+#define ROW_DEFAULT        12u          /* the default's offset in a row */
 #define EE_HEADER          8u
 #define EE_DATA_BYTES      35u
 #define TELEM_HEADER       2u
@@ -64,47 +66,47 @@
 link_params_t link_params;
 
 /* ---- flash: one byte table, read through rom_next() only ---- */
-#define ROM_ROWS           0u   /* 600 B */
-#define ROM_OFF            600u   /* 30 B */
-#define ROM_SIZE           630u   /* 30 B */
-#define ROM_NAME_LEN       660u   /* 30 B */
-#define ROM_HELLO          690u   /* 20 B */
-#define ROM_CMD            710u   /* 17 B */
-#define ROM_NAMES          727u   /* 251 B */
-#define ROM_EE_HEAD        978u   /* 8 B */
-#define ROM_PERSIST        986u   /* 18 B */
-static const uint8_t link_rom[1004] = {
+#define ROM_ROWS           0u   /* 420 B */
+#define ROM_OFF            420u   /* 30 B */
+#define ROM_SIZE           450u   /* 30 B */
+#define ROM_NAME_LEN       480u   /* 30 B */
+#define ROM_HELLO          510u   /* 20 B */
+#define ROM_CMD            530u   /* 17 B */
+#define ROM_NAMES          547u   /* 251 B */
+#define ROM_EE_HEAD        798u   /* 8 B */
+#define ROM_PERSIST        806u   /* 18 B */
+static const uint8_t link_rom[824] = {
     /* ROM_ROWS */
-    0x00u, 0x04u, 0x01u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0xEFu, 0xBBu, 0xFFu, 0xFFu, 0x11u, 0x44u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* speed_setpoint */
-    0x01u, 0x01u, 0x03u, 0x0Cu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x01u, 0x00u, 0x00u, 0x00u, 0x01u, 0x00u, 0x00u, 0x00u,   /* controller */
-    0x02u, 0x04u, 0x03u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0x00u, 0x00u, 0x00u, 0x00u, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* premise_low */
-    0x03u, 0x04u, 0x03u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0x00u, 0x00u, 0x00u, 0x00u, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x11u, 0x44u, 0x00u, 0x00u,   /* premise_high */
-    0x04u, 0x04u, 0x03u, 0x00u, 0x00u, 0x00u, 0x80u, 0x38u, 0x00u, 0x00u, 0x00u, 0x00u, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x2Eu, 0x42u, 0x00u, 0x00u,   /* setpoint_weight */
-    0x05u, 0x04u, 0x03u, 0x03u, 0x00u, 0x00u, 0x80u, 0x3Bu, 0xD8u, 0xD3u, 0xFFu, 0xFFu, 0x00u, 0x00u, 0x00u, 0x00u, 0xD8u, 0xD3u, 0xFFu, 0xFFu,   /* u_min */
-    0x06u, 0x04u, 0x03u, 0x03u, 0x00u, 0x00u, 0x80u, 0x3Bu, 0x00u, 0x00u, 0x00u, 0x00u, 0x28u, 0x2Cu, 0x00u, 0x00u, 0x28u, 0x2Cu, 0x00u, 0x00u,   /* u_max */
-    0x07u, 0x04u, 0x03u, 0x04u, 0x00u, 0x00u, 0xA0u, 0x3Bu, 0x00u, 0x00u, 0x00u, 0x00u, 0xFFu, 0x03u, 0x00u, 0x00u, 0x33u, 0x01u, 0x00u, 0x00u,   /* current_limit */
-    0x08u, 0x03u, 0x03u, 0x02u, 0x30u, 0x35u, 0x15u, 0x43u, 0x00u, 0x00u, 0x00u, 0x00u, 0xFFu, 0xFFu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* accel_limit */
-    0x09u, 0x03u, 0x03u, 0x09u, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x14u, 0x00u, 0x00u, 0x00u, 0x60u, 0xEAu, 0x00u, 0x00u, 0xF4u, 0x01u, 0x00u, 0x00u,   /* link_timeout */
-    0x0Au, 0x03u, 0x03u, 0x09u, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x0Au, 0x00u, 0x00u, 0x00u, 0x60u, 0xEAu, 0x00u, 0x00u, 0xF4u, 0x01u, 0x00u, 0x00u,   /* stall_timeout */
-    0x20u, 0x04u, 0x04u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* speed */
-    0x21u, 0x04u, 0x04u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* setpoint */
-    0x22u, 0x04u, 0x04u, 0x03u, 0x00u, 0x00u, 0x80u, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* voltage */
-    0x23u, 0x04u, 0x04u, 0x04u, 0x00u, 0x00u, 0xA0u, 0x3Bu, 0x01u, 0xFCu, 0xFFu, 0xFFu, 0xFFu, 0x03u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* current */
-    0x24u, 0x04u, 0x04u, 0x03u, 0x00u, 0x00u, 0x80u, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* integrator */
-    0x25u, 0x04u, 0x04u, 0x0Au, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x30u, 0xF8u, 0xFFu, 0xFFu, 0xD0u, 0x07u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* duty */
-    0x26u, 0x04u, 0x04u, 0x0Bu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* hall */
-    0x27u, 0x04u, 0x04u, 0x0Cu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* state */
-    0x28u, 0x04u, 0x04u, 0x0Bu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* fault */
-    0x29u, 0x04u, 0x04u, 0x00u, 0x00u, 0x00u, 0x80u, 0x39u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x10u, 0x00u, 0x00u, 0x00u, 0x10u, 0x00u, 0x00u,   /* mu1 */
-    0x2Au, 0x04u, 0x04u, 0x0Au, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* position */
-    0x40u, 0x04u, 0x03u, 0x05u, 0x00u, 0x00u, 0x80u, 0x39u, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x71u, 0x24u, 0x00u, 0x00u,   /* rule1_kp */
-    0x41u, 0x04u, 0x03u, 0x06u, 0x00u, 0x00u, 0x7Au, 0x3Cu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0xDEu, 0x2Fu, 0x00u, 0x00u,   /* rule1_ki */
-    0x42u, 0x04u, 0x03u, 0x07u, 0x6Fu, 0x12u, 0x83u, 0x32u, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* rule1_kd */
-    0x43u, 0x04u, 0x03u, 0x08u, 0xCDu, 0xCCu, 0x4Cu, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x84u, 0x24u, 0x00u, 0x00u,   /* rule1_kc */
-    0x44u, 0x04u, 0x03u, 0x05u, 0x00u, 0x00u, 0x80u, 0x39u, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x69u, 0x21u, 0x00u, 0x00u,   /* rule2_kp */
-    0x45u, 0x04u, 0x03u, 0x06u, 0x00u, 0x00u, 0x7Au, 0x3Cu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x05u, 0x27u, 0x00u, 0x00u,   /* rule2_ki */
-    0x46u, 0x04u, 0x03u, 0x07u, 0x6Fu, 0x12u, 0x83u, 0x32u, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u, 0x00u,   /* rule2_kd */
-    0x47u, 0x04u, 0x03u, 0x08u, 0xCDu, 0xCCu, 0x4Cu, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0xFFu, 0xFFu, 0x7Fu, 0x00u, 0x00u, 0x27u, 0x17u, 0x00u, 0x00u,   /* rule2_kc */
+    0x00u, 0x04u, 0x01u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0xEFu, 0xBBu, 0x11u, 0x44u, 0x00u, 0x00u,   /* speed_setpoint */
+    0x01u, 0x01u, 0x03u, 0x0Cu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x00u, 0x01u, 0x00u, 0x01u, 0x00u,   /* controller */
+    0x02u, 0x04u, 0x03u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0x00u, 0x00u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* premise_low */
+    0x03u, 0x04u, 0x03u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0x00u, 0x00u, 0xFFu, 0x7Fu, 0x11u, 0x44u,   /* premise_high */
+    0x04u, 0x04u, 0x03u, 0x00u, 0x00u, 0x00u, 0x80u, 0x38u, 0x00u, 0x00u, 0xFFu, 0x7Fu, 0x2Eu, 0x42u,   /* setpoint_weight */
+    0x05u, 0x04u, 0x03u, 0x03u, 0x00u, 0x00u, 0x80u, 0x3Bu, 0xD8u, 0xD3u, 0x00u, 0x00u, 0xD8u, 0xD3u,   /* u_min */
+    0x06u, 0x04u, 0x03u, 0x03u, 0x00u, 0x00u, 0x80u, 0x3Bu, 0x00u, 0x00u, 0x28u, 0x2Cu, 0x28u, 0x2Cu,   /* u_max */
+    0x07u, 0x04u, 0x03u, 0x04u, 0x00u, 0x00u, 0xA0u, 0x3Bu, 0x00u, 0x00u, 0xFFu, 0x03u, 0x33u, 0x01u,   /* current_limit */
+    0x08u, 0x03u, 0x03u, 0x02u, 0x30u, 0x35u, 0x15u, 0x43u, 0x00u, 0x00u, 0xFFu, 0xFFu, 0x00u, 0x00u,   /* accel_limit */
+    0x09u, 0x03u, 0x03u, 0x09u, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x14u, 0x00u, 0x60u, 0xEAu, 0xF4u, 0x01u,   /* link_timeout */
+    0x0Au, 0x03u, 0x03u, 0x09u, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x0Au, 0x00u, 0x60u, 0xEAu, 0xF4u, 0x01u,   /* stall_timeout */
+    0x20u, 0x04u, 0x04u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* speed */
+    0x21u, 0x04u, 0x04u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* setpoint */
+    0x22u, 0x04u, 0x04u, 0x03u, 0x00u, 0x00u, 0x80u, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* voltage */
+    0x23u, 0x04u, 0x04u, 0x04u, 0x00u, 0x00u, 0xA0u, 0x3Bu, 0x01u, 0xFCu, 0xFFu, 0x03u, 0x00u, 0x00u,   /* current */
+    0x24u, 0x04u, 0x04u, 0x03u, 0x00u, 0x00u, 0x80u, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* integrator */
+    0x25u, 0x04u, 0x04u, 0x0Au, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x30u, 0xF8u, 0xD0u, 0x07u, 0x00u, 0x00u,   /* duty */
+    0x26u, 0x04u, 0x04u, 0x0Bu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* hall */
+    0x27u, 0x04u, 0x04u, 0x0Cu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* state */
+    0x28u, 0x04u, 0x04u, 0x0Bu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* fault */
+    0x29u, 0x04u, 0x04u, 0x00u, 0x00u, 0x00u, 0x80u, 0x39u, 0x00u, 0x00u, 0x00u, 0x10u, 0x00u, 0x10u,   /* mu1 */
+    0x2Au, 0x04u, 0x04u, 0x0Au, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* position */
+    0x40u, 0x04u, 0x03u, 0x05u, 0x00u, 0x00u, 0x80u, 0x39u, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x71u, 0x24u,   /* rule1_kp */
+    0x41u, 0x04u, 0x03u, 0x06u, 0x00u, 0x00u, 0x7Au, 0x3Cu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0xDEu, 0x2Fu,   /* rule1_ki */
+    0x42u, 0x04u, 0x03u, 0x07u, 0x6Fu, 0x12u, 0x83u, 0x32u, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* rule1_kd */
+    0x43u, 0x04u, 0x03u, 0x08u, 0xCDu, 0xCCu, 0x4Cu, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x84u, 0x24u,   /* rule1_kc */
+    0x44u, 0x04u, 0x03u, 0x05u, 0x00u, 0x00u, 0x80u, 0x39u, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x69u, 0x21u,   /* rule2_kp */
+    0x45u, 0x04u, 0x03u, 0x06u, 0x00u, 0x00u, 0x7Au, 0x3Cu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x05u, 0x27u,   /* rule2_ki */
+    0x46u, 0x04u, 0x03u, 0x07u, 0x6Fu, 0x12u, 0x83u, 0x32u, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* rule2_kd */
+    0x47u, 0x04u, 0x03u, 0x08u, 0xCDu, 0xCCu, 0x4Cu, 0x3Bu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x27u, 0x17u,   /* rule2_kc */
     /* ROM_OFF */
     (uint8_t)offsetof(link_params_t, speed_setpoint), (uint8_t)offsetof(link_params_t, controller), (uint8_t)offsetof(link_params_t, premise_low), (uint8_t)offsetof(link_params_t, premise_high),
     (uint8_t)offsetof(link_params_t, setpoint_weight), (uint8_t)offsetof(link_params_t, u_min), (uint8_t)offsetof(link_params_t, u_max), (uint8_t)offsetof(link_params_t, current_limit),
@@ -565,7 +567,7 @@ static void row_of(uint8_t idx) LINK_WPARAM __naked   /* link_hot.ro = the entry
 {
     (void)idx;
     __asm
-    MULLW   20
+    MULLW   14
     MOVFF   0xFF3, (_link_hot + 6)
     MOVFF   0xFF4, (_link_hot + 7)
     RETURN
@@ -579,6 +581,33 @@ static void row_of(uint8_t idx) LINK_WPARAM        /* link_hot.ro = the entry's 
 #endif
 #define row_at(idx, k) do { row_of(idx); link_hot.ro = (uint16_t)(link_hot.ro + (k)); } while (0)
 
+#if defined(__SDCC_pic16)
+typedef char link_entry_layout[(offsetof(struct link_fast, ro) == 6u && offsetof(struct link_fast, e_off) == 8u
+                                && offsetof(struct link_fast, e_sz) == 9u && ROM_SIZE == ROM_OFF + LINK_N_ENTRIES
+                                && ROM_OFF == 420u) ? 1 : -1];
+/* PIC18 assembly (the C below, step for step): ROM_SIZE + idx is one table further on */
+static void entry_load(uint8_t idx) LINK_WPARAM __naked   /* link_hot.e_off, link_hot.e_sz */
+{
+    (void)idx;
+    __asm
+    ADDLW   164                 ; rom_at(ROM_OFF + idx)
+    MOVWF   (_link_hot + 6), A
+    MOVLW   1
+    BTFSC   0xFD8, 0, A
+    ADDLW   1
+    MOVWF   (_link_hot + 7), A
+    CALL    _rom_next
+    MOVWF   (_link_hot + 8), A      ; e_off
+    MOVLW   29                  ; rom_at(ROM_SIZE + idx): LINK_N_ENTRIES - 1 past the byte read
+    ADDWF   (_link_hot + 6), F, A
+    MOVLW   0
+    ADDWFC  (_link_hot + 7), F, A
+    CALL    _rom_next
+    MOVWF   (_link_hot + 9), A      ; e_sz
+    RETURN
+    __endasm;
+}
+#else
 static void entry_load(uint8_t idx) LINK_WPARAM   /* link_hot.e_off, link_hot.e_sz */
 {
     rom_at((uint16_t)(ROM_OFF + idx));
@@ -586,6 +615,7 @@ static void entry_load(uint8_t idx) LINK_WPARAM   /* link_hot.e_off, link_hot.e_
     rom_at((uint16_t)(ROM_SIZE + idx));
     link_hot.e_sz = rom_next();
 }
+#endif
 
 /* V.b[0..n-1] hold a value of size code link_hot.e_sz (n bytes, bit 7: signed): extend it to 32 bits */
 #if defined(__SDCC_pic16)
@@ -640,6 +670,28 @@ static void store_put(void)            /* the parameter at link_hot.e_off = V (a
     LINK_CRITICAL_END();
 }
 
+#if defined(__SDCC_pic16)
+/* PIC18 assembly (the C below, step for step): idx in PRODL across entry_load (which keeps PROD) */
+static void value_at(uint8_t idx) LINK_WPARAM __naked      /* V = parameter or signal */
+{
+    (void)idx;
+    __asm
+    MOVWF   0xFF3, A                ; PRODL = idx
+    CALL    _entry_load
+    INCF    (_link_hot + 8), W, A   ; e_off == NONE: a signal
+    BNZ     lva_store
+    MOVLW   11
+    SUBWF   0xFF3, W, A             ; app_signal(idx - SIG_INDEX): low byte in W, high in PRODL
+    CALL    _app_signal
+    BANKSEL _V
+    MOVWF   _V, B
+    MOVFF   0xFF3, (_V + 1)
+    GOTO    _sign_extend
+lva_store:
+    GOTO    _store_get
+    __endasm;
+}
+#else
 static void value_at(uint8_t idx) LINK_WPARAM      /* V = parameter or signal */
 {
     entry_load(idx);
@@ -652,12 +704,16 @@ static void value_at(uint8_t idx) LINK_WPARAM      /* V = parameter or signal */
         store_get();
     }
 }
+#endif
 
 #if defined(__SDCC_pic16)
 /* The next 4 table bytes (an int32 limit X, little-endian) against V, signed: 1 if V < X
  * (above = 0) or if X < V (above != 0), else 0.  X is held in PRODL, PRODH, FSR0L, TABLAT, the
  * mode on the software stack; the subtraction runs low byte first through the borrow (MOVF keeps
  * the carry); signed less-than is N xor OV. */
+#if ROW16
+/* (16-bit rows: X's upper half is the fill of the entry loaded last, entry_load) */
+#endif
 static uint8_t rom_cmp(uint8_t above) LINK_WPARAM __naked
 {
     (void)above;
@@ -667,9 +723,13 @@ static uint8_t rom_cmp(uint8_t above) LINK_WPARAM __naked
     MOVWF   0xFF3, A
     CALL    _rom_next
     MOVWF   0xFF4, A
-    CALL    _rom_next
-    MOVWF   0xFE9, A
-    CALL    _rom_next               ; the top byte stays in TABLAT (FSR0H holds 4 bits only)
+    CLRF    0xFE9, A                ; the upper half: the fill of the entry size code (link_hot.e_sz)
+    BTFSS   (_link_hot + 9), 7, A
+    BRA     lrc_fill
+    BTFSC   0xFF4, 7, A
+    SETF    0xFE9, A
+lrc_fill:
+    MOVFF   0xFE9, 0xFF5            ; the top byte in TABLAT too (FSR0H holds 4 bits only)
     MOVF    0xFE4, F, A             ; PREINC1: Z = below
     BANKSEL _V
     BNZ     lrc_above
@@ -704,26 +764,45 @@ lrc_ge:
     __endasm;
 }
 
-static uint8_t in_range(uint8_t idx) LINK_WPARAM   /* V within the entry's [min, max] */
+/* (the C below, step for step: row_at(idx, 8), V < min: 0, else not max < V) */
+static uint8_t in_range(uint8_t idx) LINK_WPARAM __naked   /* V within the entry's [min, max] (entry idx loaded) */
 {
-    row_at(idx, 8u);
-    if (rom_cmp(0u) != 0u) {           /* V < min */
-        return 0u;
-    }
-    return (uint8_t)(rom_cmp(1u) == 0u);   /* not max < V */
+    (void)idx;
+    __asm
+    CALL    _row_of
+    MOVLW   8                       ; the row min
+    ADDWF   (_link_hot + 6), F, A
+    MOVLW   0
+    ADDWFC  (_link_hot + 7), F, A
+    MOVLW   0
+    CALL    _rom_cmp                ; V < min
+    IORLW   0
+    BZ      lir_max
+    RETLW   0
+lir_max:
+    MOVLW   1
+    CALL    _rom_cmp                ; max < V
+    XORLW   1
+    RETURN
+    __endasm;
 }
 #else
 static union { int32_t l; uint8_t b[4]; } X;   /* a limit read from the table */
 
-static void rom_x(void)                /* X = the next 4 table bytes (little-endian int32) */
+static void rom_x(void)                /* X = the next limit (little-endian int32; 16-bit rows: widened) */
 {
     X.b[0] = rom_next();
     X.b[1] = rom_next();
+#if ROW16
+    X.b[2] = ((link_hot.e_sz & 0x80u) != 0u && (X.b[1] & 0x80u) != 0u) ? 0xFFu : 0u;
+    X.b[3] = X.b[2];
+#else
     X.b[2] = rom_next();
     X.b[3] = rom_next();
+#endif
 }
 
-static uint8_t in_range(uint8_t idx) LINK_WPARAM   /* V within the entry's [min, max] */
+static uint8_t in_range(uint8_t idx) LINK_WPARAM   /* V within the entry's [min, max] (entry idx loaded) */
 {
     row_at(idx, 8u);
     rom_x();
@@ -804,6 +883,7 @@ static uint8_t set_v(uint8_t id) LINK_WPARAM       /* write V to entry id: 0 or 
     if (i == NONE) {
         return LINK_NACK_UNKNOWN_PARAM;
     }
+    entry_load(i);                     /* in_range widens the limits by its size code */
     row_at(i, 2u);
     if ((rom_next() & LINK_FLAG_WRITABLE) == 0u) {
         return LINK_NACK_READ_ONLY;
@@ -811,7 +891,6 @@ static uint8_t set_v(uint8_t id) LINK_WPARAM       /* write V to entry id: 0 or 
     if (!in_range(i)) {
         return LINK_NACK_OUT_OF_RANGE;
     }
-    entry_load(i);
     store_put();
 #if LINK_WITH_CAPTURE
     if (id == LINK_ID_SPEED_SETPOINT) {
@@ -866,8 +945,8 @@ uint8_t link_eeprom_save(void)
     uint8_t i, k;
     ee_off = 0u;
     CRC_INIT();
+    rom_at(ROM_EE_HEAD);               /* (ee_put reads no table: link_hot.ro runs on) */
     for (k = 0u; k < EE_HEADER; k++) {
-        rom_at((uint16_t)(ROM_EE_HEAD + k));
         ee_put(rom_next());
     }
     for (i = 0u; i < LINK_N_PERSISTED; i++) {
@@ -900,8 +979,8 @@ static uint8_t ee_load(void)           /* link_eeprom_load without the announcem
     uint8_t i, k, pass, r = LINK_EE_BLANK;
     ee_off = 0u;
     CRC_INIT();
+    rom_at(ROM_EE_HEAD);               /* (ee_next reads no table: link_hot.ro runs on) */
     for (k = 0u; k < EE_HEADER; k++) {   /* magic (BLANK), then version, hash, length (OTHER_BUILD) */
-        rom_at((uint16_t)(ROM_EE_HEAD + k));
         if (ee_next() != rom_next()) {
             return r;
         }
@@ -1033,11 +1112,13 @@ void link_init(void)
     for (i = 0u; i < LINK_N_ENTRIES; i++) {   /* the parameters' defaults */
         entry_load(i);
         if (link_hot.e_off != NONE) {
-            uint8_t k;
-            row_at(i, 16u);
-            for (k = 0u; k < 4u; k++) {
-                V.b[k] = rom_next();
-            }
+            row_at(i, ROW_DEFAULT);
+            V.b[0] = rom_next();       /* the store takes at most the low e_sz bytes */
+            V.b[1] = rom_next();
+#if !ROW16
+            V.b[2] = rom_next();
+            V.b[3] = rom_next();
+#endif
             store_put();
         }
     }
@@ -1362,6 +1443,129 @@ static uint8_t drive_busy(void)
     return (uint8_t)(st == (int16_t)LINK_STATE_RUN || st == (int16_t)LINK_STATE_BRAKE);
 }
 
+#if defined(__SDCC_pic16)
+#if LINK_MAX_PAYLOAD > 127u
+#error "rom_copy indexes the reply with PLUSW0 (a signed offset): at most 127 payload bytes"
+#endif
+/* PIC18 assembly (the C below, step for step): no frame, no register saved; PROD counts and
+ * carries (rom_next keeps it) */
+static void rom_copy(uint8_t n) LINK_WPARAM __naked /* A(link_hot.n..) = n flash bytes from link_hot.ro on */
+{
+    (void)n;
+    __asm
+    MOVWF   0xFF3, A                ; PRODL = n
+    MOVF    0xFF3, F, A
+    BZ      lrc_end
+lrc_loop:
+    CALL    _rom_next
+    MOVWF   0xFF4, A                ; PRODH = the byte
+    LFSR    0, (_tx_buf + 4)        ; A(0)
+    MOVF    (_link_hot + 5), W, A   ; link_hot.n
+    MOVFF   0xFF4, 0xFEB            ; A(link_hot.n) (PLUSW0)
+    INCF    (_link_hot + 5), F, A
+    DECFSZ  0xFF3, F, A
+    BRA     lrc_loop
+lrc_end:
+    RETURN
+    __endasm;
+}
+
+static uint8_t h_hello(void) __naked
+{
+    __asm
+    CLRF    (_link_hot + 5), A      ; link_hot.n = 0
+    MOVLW   254              ; rom_at(ROM_HELLO)
+    MOVWF   (_link_hot + 6), A
+    MOVLW   1
+    MOVWF   (_link_hot + 7), A
+    MOVLW   20
+    CALL    _rom_copy
+    RETLW   0
+    __endasm;
+}
+
+#if ROW16
+/* A(link_hot.n..) = the next two table bytes widened to 4 by the loaded entry's size code */
+static void rom_val16(void) __naked
+{
+    __asm
+    MOVLW   2
+    CALL    _rom_copy
+    CLRF    0xFF3, A                ; PRODL = the fill
+    BTFSS   (_link_hot + 9), 7, A   ; e_sz: signed
+    BRA     lrv_fill
+    LFSR    0, (_tx_buf + 3)        ; A(n - 1): the high byte (PLUSW0)
+    MOVF    (_link_hot + 5), W, A
+    BTFSC   0xFEB, 7, A
+    SETF    0xFF3, A
+lrv_fill:
+    LFSR    0, (_tx_buf + 4)
+    MOVF    (_link_hot + 5), W, A
+    MOVFF   0xFF3, 0xFEB            ; A(n) (PLUSW0)
+    INCF    (_link_hot + 5), F, A
+    MOVF    (_link_hot + 5), W, A
+    MOVFF   0xFF3, 0xFEB
+    INCF    (_link_hot + 5), F, A
+    RETURN
+    __endasm;
+}
+#endif
+
+/* the index and then the name's offset and length on the software stack across the calls (read
+ * above FSR1 or popped by one instruction: an interrupt pushes at FSR1) */
+static uint8_t h_param_info(void) __naked
+{
+    __asm
+    MOVFF   (_rx_buf + 3), 0xFE9    ; FSR0L = idx = R(0): the lengths to add
+    MOVF    0xFE9, W, A
+    SUBLW   29
+    BNC     lpi_bad                 ; idx >= LINK_N_ENTRIES
+    MOVFF   0xFE9, 0xFE5            ; push idx (POSTDEC1)
+    MOVLW   224              ; rom_at(ROM_NAME_LEN)
+    MOVWF   (_link_hot + 6), A
+    MOVLW   1
+    MOVWF   (_link_hot + 7), A
+    MOVLW   35             ; PROD = ROM_NAMES
+    MOVWF   0xFF3, A
+    MOVLW   2
+    MOVWF   0xFF4, A
+    MOVF    0xFE9, F, A
+    BZ      lpi_len
+lpi_sum:                            ; the name offset: the lengths before it
+    CALL    _rom_next
+    ADDWF   0xFF3, F, A
+    MOVLW   0
+    ADDWFC  0xFF4, F, A
+    DECFSZ  0xFE9, F, A
+    BRA     lpi_sum
+lpi_len:
+    CALL    _rom_next               ; the name length
+    MOVWF   0xFE5, A                ; push the length, the offset (idx stays below them)
+    MOVFF   0xFF4, 0xFE5
+    MOVFF   0xFF3, 0xFE5
+    CLRF    (_link_hot + 5), A      ; link_hot.n = 0
+    MOVLW   4
+    MOVF    0xFE3, W, A             ; idx (PLUSW1)
+    CALL    _entry_load             ; its size code widens min, max, default
+    MOVLW   4
+    MOVF    0xFE3, W, A             ; idx (PLUSW1)
+    CALL    _row_of
+    MOVLW   8                       ; id, ctype, flags, unit, scale
+    CALL    _rom_copy
+    CALL    _rom_val16              ; min, max, default
+    CALL    _rom_val16
+    CALL    _rom_val16
+    MOVFF   0xFE4, (_link_hot + 6)  ; rom_at(offset) (PREINC1)
+    MOVFF   0xFE4, (_link_hot + 7)
+    MOVF    0xFE4, W, A             ; the length
+    MOVF    0xFE4, F, A             ; drop idx (each pop one instruction: an interrupt pushes at FSR1)
+    CALL    _rom_copy
+    RETLW   0
+lpi_bad:
+    RETLW   8
+    __endasm;
+}
+#else
 static void rom_copy(uint8_t n) LINK_WPARAM        /* A(link_hot.n..) = n flash bytes from link_hot.ro on */
 {
     while (n != 0u) {
@@ -1392,12 +1596,30 @@ static uint8_t h_param_info(void)
     }
     i = rom_next();
     link_hot.n = 0u;
+#if ROW16
+    entry_load(idx);                   /* its size code widens min, max, default */
+    row_at(idx, 0u);
+    rom_copy(8u);
+    {
+        uint8_t k;
+        for (k = 0u; k < 3u; k++) {
+            uint8_t fill;
+            rom_copy(2u);
+            fill = ((link_hot.e_sz & 0x80u) != 0u && (A(link_hot.n - 1u) & 0x80u) != 0u) ? 0xFFu : 0u;
+            A(link_hot.n) = fill;
+            A(link_hot.n + 1u) = fill;
+            link_hot.n = (uint8_t)(link_hot.n + 2u);
+        }
+    }
+#else
     row_at(idx, 0u);
     rom_copy(ROW);
+#endif
     rom_at(a);
     rom_copy(i);
     return 0u;
 }
+#endif
 
 #if defined(__SDCC_pic16)
 /* PIC18 assembly (the C below, step for step): the index on the software stack (PLUSW1 with

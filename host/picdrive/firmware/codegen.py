@@ -455,7 +455,9 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     gen_note = f"profile {profile.name}, design {design_path.name}, build 0x{build_id:08X}"
     ctx = dict(gen_note=gen_note, profile_name=profile.name, profile_sha=profile.sha256, design_desc=design_desc,
                build_id=build_id, sections=_sections(profile, design, plan, pwm, pm, brg, baud, bus),
-               config=_config_bits(pm), eeprom_gptr_stubs=EEPROM_GPTR_STUBS)
+               config=_config_bits(pm), eeprom_gptr_stubs=EEPROM_GPTR_STUBS, n_rules=plan.n_rules,
+               link_id={e.name: e.id for e in table.entries}, link_off=_store_offsets(table),
+               signal_index={e.name: i for i, e in enumerate(table.signals)})
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(templates_dir())),
                              undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True,
                              keep_trailing_newline=True, autoescape=False)
@@ -477,6 +479,16 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     files[outputs.MARKER] = outputs.manifest_text("firmware", files, regenerable=REGENERABLE)
     return Firmware(name=name, files=files, build_id=build_id, summary=summary, plan=plan, pwm=pwm, pinmap=pm,
                     table=table)
+
+
+def _store_offsets(table) -> dict[str, int]:
+    """Byte offset of each parameter in link_fw.h's link_params_t (fields in table order, no padding on
+    an 8-bit core; drive.c's assembly checks each one it uses with offsetof at compile time)."""
+    off, out = 0, {}
+    for e in table.params:
+        out[e.name] = off
+        off += e.ct.size
+    return out
 
 
 def _board(profile, plan, pwm, pm, bus, build_id, table) -> dict:

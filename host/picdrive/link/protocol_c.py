@@ -46,6 +46,7 @@ def _u32(name: str, v: int) -> int:
 
 
 _C_ROW_BYTES = 20       # id, ctype, flags, unit, scale bits, min, max, default: the param_info reply head
+_C_ROW16_BYTES = 14     # the same with min, max and default as 16 bits (widened by the entry's size code)
 _C_HANDLERS = {"start": "h_app", "stop": "h_app", "brake": "h_app", "fault_clear": "h_app",
                "heartbeat": "h_none"}
 _C_IDLE_COMMANDS = ("eeprom_save", "eeprom_load")   # refused while the motor runs or brakes
@@ -57,7 +58,8 @@ def _c_bytes(data: bytes) -> str:
 
 def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, capture_words: int) -> dict:
     """The flash table of link_fw.c, one byte array read through one function: per entry the row
-    (the param_info reply head, little-endian), store offset, size code and name length; the
+    (the param_info reply head, little-endian; min, max and default as 16 bits when every entry's
+    store is at most 16 bits: ``row16``), store offset, size code and name length; the
     hello reply, the command specs, the names; with EEPROM the image header and the persisted
     entries.  Also the id runs (ids are contiguous within each run, so an index is a subtraction)."""
     ents = table.entries
@@ -71,8 +73,22 @@ def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, ca
     def lines(items: list[str], per: int = 12) -> list[str]:
         return [", ".join(items[i:i + per]) + "," for i in range(0, len(items), per)]
 
-    rows = [_c_bytes(struct.pack("<BBBBIiii", e.id, e.ct.code, e.flags, e.unit_index, e.scale_bits, e.min_raw,
-                                 e.max_raw, e.default_raw)) + f",   /* {e.name} */" for e in ents]
+    def fits16(e: Entry) -> bool:         # a store of at most 16 bits, its limits and default in its type
+        lo, hi = (-32768, 32767) if e.ctype.startswith("int") else (0, 65535)
+        return e.ct.size <= 2 and all(lo <= v <= hi for v in (e.min_raw, e.max_raw, e.default_raw))
+
+    # 16-bit rows when every entry allows (the firmware widens each value to the reply's 32 bits by
+    # the entry's size code: sign bit 7, as sign_extend does); else the reply head as it is
+    row16 = all(fits16(e) for e in ents)
+    fmt, row_bytes = ("<BBBBIhhh", _C_ROW16_BYTES) if row16 else ("<BBBBIiii", _C_ROW_BYTES)
+
+    def row(e: Entry) -> bytes:
+        vals = (e.min_raw, e.max_raw, e.default_raw)
+        if row16:    # unsigned 16-bit values as the int16 of the same bits
+            vals = tuple(v - 65536 if v > 32767 else v for v in vals)
+        return struct.pack(fmt, e.id, e.ct.code, e.flags, e.unit_index, e.scale_bits, *vals)
+
+    rows = [_c_bytes(row(e)) + f",   /* {e.name} */" for e in ents]
     hello = (["LINK_PROTO_MAJOR", "LINK_PROTO_MINOR"] + le("LINK_BUILD_ID", 4) + le("LINK_PROFILE_HASH", 4)
              + le("LINK_TABLE_HASH", 4) + ["LINK_N_ENTRIES", "LINK_MAX_PAYLOAD"] + le("LINK_HELLO_CAPTURE_WORDS", 2)
              + le("LINK_SAMPLE_HZ", 2))
@@ -81,7 +97,7 @@ def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, ca
                 for c in COMMANDS]
     names = [f"0x{b:02X}u" for e in ents for b in e.name.encode("ascii")]
     index = {e.name: i for i, e in enumerate(ents)}
-    segs = [("ROM_ROWS", rows, len(ents) * _C_ROW_BYTES),
+    segs = [("ROM_ROWS", rows, len(ents) * row_bytes),
             ("ROM_OFF", lines(["NONE" if e.signal else f"(uint8_t)offsetof(link_params_t, {e.name})" for e in ents],
                               4), len(ents)),
             ("ROM_SIZE", lines([f"0x{size_code(e):02X}u" for e in ents]), len(ents)),
@@ -105,7 +121,7 @@ def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, ca
     sig = [i for i, e in enumerate(ents) if e.signal]
     assert sig == list(range(sig[0], sig[0] + len(sig))), "signals must be contiguous in the table"
     assert all(r[0] >= r[2] for r in runs)
-    return dict(row_bytes=_C_ROW_BYTES, rom_segments=rom, rom_size=off, id_runs=[tuple(r) for r in runs],
+    return dict(row_bytes=row_bytes, row16=row16, rom_segments=rom, rom_size=off, id_runs=[tuple(r) for r in runs],
                 sig_index=sig[0], handler_of=lambda c: _C_HANDLERS.get(c.name, "h_" + c.name))
 
 

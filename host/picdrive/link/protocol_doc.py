@@ -248,7 +248,8 @@ def render_markdown(table: Table | None = None) -> str:
         f"The host abandons a partial frame after {HOST_GAP_MS} ms without bytes: USB-serial adapters deliver "
         "bytes in bursts (an FTDI chip holds them up to its 16 ms latency timer).  The board needs no timer.",
         "The C module is table-driven for an 8-bit core: one flash byte table read through one function (per "
-        "entry the param_info reply head, store offset, size and name; the hello reply; per command its "
+        "entry the param_info reply head, its min, max and default as 16 bits widened by the size code when "
+        "every entry's store is at most 16 bits, store offset, size and name; the hello reply; per command its "
         "argument length and whether it needs the motor stopped), store access by byte offset and size, values "
         "moved and range-checked byte by byte (no 32-bit arithmetic), frames COBS-decoded and -encoded in "
         "place, byte indices only, no run-time multiplication or division.",
