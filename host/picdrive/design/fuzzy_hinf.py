@@ -753,8 +753,9 @@ def _fall_back_to_dc(profile, failed, *, drive, progress, gamma, options):
     averaged-model failure with the DC equivalent's reason added.
 
     Seen on motors picdrive has never seen (docs/motors.md): on some windings (BLY171D, Multistar 4225)
-    the averaged model's rules make Theorem 1 numerically fragile (solver errors at most disks) and the
-    gains it returns fail the sampled-loop check; the DC-equivalent design verifies there."""
+    the averaged rules' effective resistance at speed (1.6-2.1 R) lets Theorem 1 drop the top rule's current
+    feedback, and the verification's sampled-loop check, on the DC equivalent (R), rejects those gains at every
+    disk; the DC-equivalent design verifies there (docs/scheduling.md, bench/averaged_sampled.py)."""
     why = "; ".join(x[:200] for x in failed.reasons[:2]) or failed.status
     dc = design(profile, drive=drive, progress=progress, variant="six-step", gamma=gamma,
                 **{**options, "plant_model": "six-step"})
