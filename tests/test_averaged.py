@@ -71,6 +71,21 @@ def test_ts_rules_from_the_averaged_model_differ_and_round_trip(duy, avg):
     assert model_from_dict(duy, avg.to_dict()).r_e(1.0) == pytest.approx(avg.r_e(1.0))
 
 
+def test_dc_form_is_the_linearisation_in_the_dc_equivalent_s_constants(duy, avg):
+    """AveragedModel.dc_form(w): the DC equivalent's state space (motor_ss, states [i, w]) built from it is the
+    linearisation at w (states [w, i]); near rest it is close to the DC equivalent, at the step target its
+    effective resistance is above the winding's (the L/R against the sector time)."""
+    from picdrive.models.tfmodel import motor_ss
+    load = duy.control.load_torque_n_m
+    for w in (0.0, 1200 * RPM, 2400 * RPM, 2600 * RPM):
+        A, B = avg.linearise(w, load)
+        Am, Bm = motor_ss(avg.dc_form(w, load))
+        assert Am[::-1, ::-1] == pytest.approx(A, rel=1e-9)
+        assert Bm[0, 0] == pytest.approx(B[1, 0])
+    assert avg.dc_form(0.0, load).r_line_ohm == pytest.approx(duy.motor.r_line_ohm, rel=0.1)
+    assert avg.dc_form(2400 * RPM, load).r_line_ohm > 1.2 * duy.motor.r_line_ohm
+
+
 # the fuzzy-hinf design on the averaged model (now the default): tests/test_fuzzy_hinf.py designs it
 # (verified, certificate re-assembled, reproduces the committed design) and checks the committed rules differ
 

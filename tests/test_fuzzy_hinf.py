@@ -235,3 +235,44 @@ def test_a_design_on_the_dc_equivalent_by_profile_field_or_visible_fallback():
     assert "model       six-step (plant_model 'six-step')" in lines
     assert any(ln.startswith("  note      designed on the DC equivalent") for ln in lines)
     assert f.law.rules[0].kp == pytest.approx(r1.kp, rel=1e-3)
+
+
+def test_a_feasible_sdp_point_survives_a_failed_refinement(monkeypatch):
+    """minimise_gamma's one SDP (delta free) is refined by bisection starting with a fixed-gamma re-solve at
+    the SDP's own gamma: the infimum, where the strict LMIs leave no room and Clarabel can stop with a
+    solver error.  The SDP's point, re-checked in numpy, is then kept (not the failed re-solve): before,
+    the disk search called such disks infeasible (docs/scheduling.md, the averaged model on unseen motors)."""
+    from picdrive.design import fuzzy_hinf as fh
+    p = load_profile("duy2008")
+    ts = model_for(p, "six-step", {})
+    orig = fh._Problem.solve
+
+    def refinement_fails(self, gamma=None):
+        if self.fixed_gamma:
+            return fh.Theorem1Solution(False, "solver error: injected", float(gamma), float("nan"), self.alpha,
+                                       self.rho)
+        return orig(self, gamma)
+    monkeypatch.setattr(fh._Problem, "solve", refinement_fails)
+    s = minimise_gamma(ts, delta=None, pole_disk_rad_s=804.0)
+    assert s.feasible and "injected" in s.extra["refinement"]
+    marg = lmi_margins(ts, s.P, s.Y, s.gamma, s.delta, s.alpha, s.rho)
+    assert max(marg.values()) < 0.0
+    for k, y in zip(s.K, s.Y):
+        assert np.allclose(k @ s.P, y)
+    # an SDP that is itself infeasible stays infeasible
+    assert not minimise_gamma(ts, delta=None, pole_disk_rad_s=1.0).feasible
+
+
+def test_the_unseen_motor_disks_once_lost_to_a_solver_error_are_feasible():
+    """The case that showed it: BLY171D (tests/motors) on the DC equivalent at the disk 0.8^3 pi/(2 Ts):
+    the SDP reaches gamma ~2.1e3 and the fixed-gamma re-solve there failed ('solver error'), so the disk
+    was recorded infeasible; the point is feasible (every LMI margin negative in numpy)."""
+    import math
+    from pathlib import Path
+    p = load_profile(Path(__file__).parent / "motors" / "anaheim_bly171d_24v_4000.toml")
+    m = p.motor
+    ts = model_for(p, "six-step", {"integral_weight_rad_s": (m.viscous_friction_n_m_s + m.kt_n_m_per_a
+                                                             * m.kb_v_s_per_rad / m.r_line_ohm) / m.inertia_kg_m2})
+    s = minimise_gamma(ts, delta=None, pole_disk_rad_s=math.pi / 2 * p.control.speed_loop_hz * 0.8 ** 3)
+    assert s.feasible and s.max_eig < 0.0
+    assert max(lmi_margins(ts, s.P, s.Y, s.gamma, s.delta, s.alpha, s.rho).values()) < 0.0

@@ -230,6 +230,20 @@ class AveragedModel:
         B = np.array([[0.0], [1.0 / self.l_h]])
         return A, B
 
+    def dc_form(self, w: float, load_n_m: float):
+        """The linearisation at ``w`` (rad/s) under ``load_n_m`` (:meth:`linearise`) written as a DC
+        equivalent's constants (``L i' = u - R i - Kb w``, ``J w' = Kt i - B w``): a motor-like object
+        (``l_line_h``, ``r_line_ohm`` = the local R_e, ``kb_v_s_per_rad``, ``kt_n_m_per_a``,
+        ``inertia_kg_m2``, ``viscous_friction_n_m_s``: SI) that :func:`picdrive.models.tfmodel.motor_ss`
+        reads, so the DC equivalent's analyses (e.g. the sampled loop,
+        :func:`picdrive.analysis.sampled.six_step_closed_loop`, given a profile whose ``motor`` it is)
+        run on the averaged model at that speed."""
+        from types import SimpleNamespace
+        A, _ = self.linearise(w, load_n_m)
+        L, J = self.l_h, self.j_kg_m2
+        return SimpleNamespace(l_line_h=L, r_line_ohm=-A[1, 1] * L, kb_v_s_per_rad=-A[1, 0] * L,
+                               kt_n_m_per_a=A[0, 1] * J, inertia_kg_m2=J, viscous_friction_n_m_s=-A[0, 0] * J)
+
     def to_dict(self) -> dict:
         return {"form": "picdrive.averaged_six_step/1", "l_h": self.l_h, "j_kg_m2": self.j_kg_m2,
                 "b_n_m_s": self.b_n_m_s, "kb_v_s_per_rad": self.kb_v_s_per_rad, "r_line_ohm": self.r_line_ohm,
