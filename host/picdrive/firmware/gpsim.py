@@ -228,8 +228,8 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
         steps.extend([OP_TX, n, key("uart_tx_byte")])
         counts[mode[0] + "uart_tx_byte"] += n - 1
 
-    # the timer read's own cost, the least of several reads: the first read after fw_init has been seen
-    # 256 high on gpsim (Timer1's 16-bit read latch), which would lower every figure by 256
+    # the timer read's own cost, the least of several reads (a guard: before Timer1 was stopped around
+    # its writes the first read after fw_init came out 256 high, which lowered every figure by 256)
     for _ in range(OVERHEAD_READS):
         steps.extend([OP_NOP, 0, key("overhead")])
     for what, arg in cases:
@@ -277,6 +277,12 @@ static const uint8_t steps[] = {{
 {table}
 }};
 static volatile uint8_t lo, hi;
+/* Timer1 is stopped around every write and read: gpsim's Timer1, written while running, could still
+ * carry the previous count's pending low-byte overflow into TMR1H, putting some figures exactly 256
+ * cycles high depending on the code's timing (the stopped reads agree with bench/isr_profile.py's
+ * instruction-by-instruction count to the cycle) */
+#define T1_RESTART   T1CON = 0x80u; TMR1H = 0; TMR1L = 0; T1CON = 0x81u;
+#define T1_STOP_READ T1CON = 0x80u; lo = TMR1L; hi = TMR1H;
 static uint16_t t, i;
 static const uint8_t t2_sample[] = {{{", ".join(str(v) for v in T2_SAMPLE)}}};
 static uint8_t op, a, k, n, adc_h, adc_l, gie, t2i;
@@ -306,32 +312,32 @@ void main(void)
         if (op == {OP_END}u) break;
         if (op == {OP_NOP}u) {{
             gie = INTCON; INTCON = (uint8_t)(gie & 0x3Fu);   /* no interrupt inside the overhead */
-            TMR1H = 0; TMR1L = 0;
-            lo = TMR1L; hi = TMR1H;
+            T1_RESTART
+            T1_STOP_READ
             INTCON = gie;
             t = ((uint16_t)hi << 8) | lo;
             if (t < res[k]) res[k] = t;                     /* the least: see harness_c */
         }} else if (op == {OP_RX}u) {{
             RCREG = a; PIR1 |= 0x20u;
-            TMR1H = 0; TMR1L = 0;
+            T1_RESTART
             __asm
             CALL _isr_high
             __endasm;
-            lo = TMR1L; hi = TMR1H; keep();
+            T1_STOP_READ keep();
             PIR1 &= (uint8_t)~0x20u;
         }} else if (op == {OP_POLL}u) {{
             PIR1 |= 0x10u; TXSTA |= 0x02u;
-            TMR1H = 0; TMR1L = 0;
+            T1_RESTART
             fw_poll();
-            lo = TMR1L; hi = TMR1H; keep();
+            T1_STOP_READ keep();
         }} else if (op == {OP_TX}u) {{
             for (n = a; n != 0u; n--) {{
                 PIR1 = (uint8_t)((PIR1 | 0x10u) & ~0x02u); TXSTA |= 0x02u;
-                TMR1H = 0; TMR1L = 0;
+                T1_RESTART
                 __asm
                 CALL _{tx_vector}             ; the transmit interrupt's priority (firmware_limits)
                 __endasm;
-                lo = TMR1L; hi = TMR1H; keep();
+                T1_STOP_READ keep();
             }}
         }} else if (op == {OP_ADC}u) {{
             adc_h = a; adc_l = k;
@@ -342,13 +348,13 @@ void main(void)
             TMR2 = t2_sample[t2i];
             t2i = (uint8_t)(t2i + 1u == {len(T2_SAMPLE)}u ? 0u : t2i + 1u);
             PIR1 |= 0x12u; TXSTA |= 0x02u;
-            TMR1H = 0; TMR1L = 0;
+            T1_RESTART
             __asm
             global  _harness_speed_call     ; bench/isr_profile.py breaks here (a label: no code)
 _harness_speed_call:
             CALL _isr_low
             __endasm;
-            lo = TMR1L; hi = TMR1H; keep();
+            T1_STOP_READ keep();
         }} else if (op == {OP_PORT}u) {{
             PORTC = a;
         }} else if (op == {OP_HALL}u) {{
@@ -356,11 +362,11 @@ _harness_speed_call:
             INTCON3 |= (uint8_t)((a >> 1) & 3u);
             PIR3 |= (uint8_t)((a & 7u) << 1);
             TMR5L = (uint8_t)(TMR5L + 0x37u); TMR5H = (uint8_t)(TMR5H + 0x13u);
-            TMR1H = 0; TMR1L = 0;
+            T1_RESTART
             __asm
             CALL _isr_high
             __endasm;
-            lo = TMR1L; hi = TMR1H; keep();
+            T1_STOP_READ keep();
         }}
     }}
     harness_done();
