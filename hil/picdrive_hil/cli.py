@@ -4,7 +4,7 @@
     picdrive twin --profile duy2008 --hex firmware.hex [--firmware DIR] [--enlarged-memory]
 
 prints ``socket://127.0.0.1:<port>`` (and the pty path) and runs in real time
-until Ctrl-C; ``picdrive console``, ``picdrive.link`` or any pyserial
+until Ctrl-C (or ``--duration`` simulated seconds); ``picdrive console``, ``picdrive.link`` or any pyserial
 program connect to it as to a COM port.
 """
 from __future__ import annotations
@@ -49,6 +49,9 @@ def register(sub) -> None:
     p.add_argument("--speed", type=positive_float, default=1.0,
                    help="simulated seconds per wall second (default 1: real time)")
     p.add_argument("--eeprom", help="EEPROM image file (256 bytes) to start from; saved back on exit")
+    p.add_argument("--duration", type=positive_float, default=None, metavar="SECONDS",
+                   help="stop after this many simulated seconds, as Ctrl-C would (the processor report and "
+                        "the EEPROM image follow); default: run until Ctrl-C or SIGTERM")
     p.set_defaults(func=_cmd)
 
 
@@ -98,7 +101,7 @@ def _cmd(args: argparse.Namespace) -> int:
         tw.set_load_profile(*load, relative=True)
     elif args.load_torque is not None:
         tw.set_load_torque(args.load_torque)
-    srv = tw.serve(port=args.port, host=args.host, realtime=True, pty=args.pty)
+    srv = tw.serve(port=args.port, host=args.host, realtime=True, pty=args.pty, stop_after_s=args.duration)
     srv.speed = args.speed
     srv.log = lambda msg: print(f"picdrive twin: {msg}", file=sys.stderr, flush=True)
     pert = ", ".join(f"{k} x{v:g}" for k, v in perturb.items()) or "none"
@@ -117,8 +120,12 @@ def _cmd(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, _term)
     try:
         print("picdrive twin: running in real time" + (f" x{args.speed:g}" if args.speed != 1 else "")
+              + (f" for {args.duration:g} s simulated" if args.duration is not None else "")
               + "; Ctrl-C stops", file=sys.stderr, flush=True)
         srv.wait()
+        if args.duration is not None:
+            print(f"picdrive twin: stopped at t = {tw.t:.6g} s simulated (--duration {args.duration:g})",
+                  file=sys.stderr, flush=True)
     except KeyboardInterrupt:
         pass
     except TwinError:

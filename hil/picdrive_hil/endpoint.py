@@ -14,7 +14,9 @@ timeouts needs.  If the twin falls ``MAX_LAG_S`` or more behind (a loaded
 machine, a stopped process), it does not race to catch up: the debt is given
 up, pacing resumes from the present, and the server says so (a log line,
 ``lag_events`` and ``lag_s``).  Free-running mode (``realtime=False``) runs as
-fast as the twin can, for in-process use only.
+fast as the twin can, for in-process use only.  With ``stop_after_s`` the
+server stops on its own once that much simulated time has run (``picdrive twin
+--duration``), so a scripted run ends at a simulated instant, not a wall-clock one.
 
 Input: bytes the board has not yet received belong to the client that sent
 them; when that client disconnects they are dropped (``dropped_on_disconnect``)
@@ -25,6 +27,7 @@ there is room again (TCP backpressure), so no byte is lost silently.
 from __future__ import annotations
 
 import errno
+import math
 import os
 import select
 import socket
@@ -43,10 +46,15 @@ class TwinServer:
     """Serve a Twin's UART on a socket (and a pty); see the module docstring."""
 
     def __init__(self, twin: "picdrive_hil.twin.Twin", *, port: int = 0, host: str = "127.0.0.1", realtime: bool = True,
-                 pty: bool = False, speed: float = 1.0, log=None, clock=time.perf_counter):
+                 pty: bool = False, speed: float = 1.0, log=None, clock=time.perf_counter,
+                 stop_after_s: float | None = None):
         if not (speed > 0):
             raise ValueError("speed must be > 0 (simulated seconds per wall second)")
+        if stop_after_s is not None and not (stop_after_s > 0):
+            raise ValueError("stop_after_s must be > 0 (simulated seconds) or None")
         self.twin = twin
+        # serving ends once the twin's clock reaches this simulated time, s (None: never)
+        self.stop_at_s = None if stop_after_s is None else twin.t + float(stop_after_s)
         self.realtime = realtime
         self.speed = float(speed)
         self.log = log or (lambda msg: None)
@@ -234,8 +242,13 @@ class TwinServer:
         if self._client is None:
             self._accept()
         self._pump_in()
+        end = math.inf if self.stop_at_s is None else self.stop_at_s
+        if self.twin.t >= end:
+            self._pump_out()
+            self._stop.set()
+            return
         if not self.realtime:
-            self.twin.run(CHUNK_S)
+            self.twin.run_until(min(self.twin.t + CHUNK_S, end))
             self._pump_out()
             return
         if self._t_wall0 is None:
@@ -255,7 +268,7 @@ class TwinServer:
                      f"({self.lag_events} time{'s' if self.lag_events != 1 else ''} so far, "
                      f"{self.lag_s:.3f} s in all)")
         if target > now:
-            self.twin.run_until(min(target, now + 4 * CHUNK_S))
+            self.twin.run_until(min(target, now + 4 * CHUNK_S, end))
         self._pump_out()
         # sleep until the next chunk is due or bytes arrive
         nxt = (self.twin.t + CHUNK_S - self._t_sim0) / self.speed + self._t_wall0

@@ -590,11 +590,12 @@ class Twin:
 
     # -- endpoint -------------------------------------------------------------
     def serve(self, port: int = 0, *, realtime: bool = True, pty: bool = False,
-              host: str = "127.0.0.1"):
+              host: str = "127.0.0.1", stop_after_s: float | None = None):
         """Start the serial endpoint in a background thread: socket://host:port
-        (and a pty path with pty=True).  Returns the running TwinServer."""
+        (and a pty path with pty=True); with ``stop_after_s`` it stops serving once that much
+        simulated time (s) has run.  Returns the running TwinServer."""
         from .endpoint import TwinServer
-        srv = TwinServer(self, port=port, host=host, realtime=realtime, pty=pty)
+        srv = TwinServer(self, port=port, host=host, realtime=realtime, pty=pty, stop_after_s=stop_after_s)
         srv.start()
         return srv
 
