@@ -86,6 +86,21 @@ def test_dc_form_is_the_linearisation_in_the_dc_equivalent_s_constants(duy, avg)
     assert avg.dc_form(2400 * RPM, load).r_line_ohm > 1.2 * duy.motor.r_line_ohm
 
 
+def test_back_emf_keeps_rising_above_the_identified_speeds(duy, avg):
+    """A rule centre may sit above the identified grid (duy2008's premise top, 2600 rpm, against a grid to the
+    2400 rpm step target): the counter voltage goes on rising there along the top's slope, so that rule's
+    linearisation keeps its back-EMF slope (held constant, the slope was 0: no EMF damping)."""
+    lo, hi = avg.w_range
+    load = duy.control.load_torque_n_m
+    slope = avg.e_slope_top
+    assert 0.8 < slope / duy.motor.kb_v_s_per_rad < 1.1
+    for w in (1.05 * hi, 2600 * RPM, 1.5 * hi):
+        assert avg.e(w) == pytest.approx(avg.e(hi) + slope * (w - hi), rel=1e-12)
+        assert avg.dc_form(w, load).kb_v_s_per_rad == pytest.approx(slope, rel=0.02)
+    # no step across the grid's top beyond the R_e' i term, which the constant R_e above it drops (~3 %)
+    assert avg.dc_form(0.995 * hi, load).kb_v_s_per_rad == pytest.approx(slope, rel=0.05)
+
+
 # the fuzzy-hinf design on the averaged model (now the default): tests/test_fuzzy_hinf.py designs it
 # (verified, certificate re-assembled, reproduces the committed design) and checks the committed rules differ
 

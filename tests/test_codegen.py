@@ -1,6 +1,7 @@
 """`picdrive firmware`: output, determinism, the committed example, names from
 p18f4431.inc, strict compiles (gcc and 16-bit-int avr-gcc), and refusals that
 leave no output behind."""
+import hashlib
 import json
 import re
 import shutil
@@ -10,6 +11,7 @@ import pytest
 
 from picdrive import cli
 from picdrive.firmware import codegen, p18f4431
+from picdrive.outputs import MARKER
 from picdrive.control_law import Rule, ScheduledLaw
 from picdrive.paths import firmware_build_dir, repo_root
 from picdrive.profile import load_profile
@@ -88,7 +90,14 @@ def test_committed_example_regenerates_to_the_same_bytes(tmp_path):
     on_disk = {str(p.relative_to(COMMITTED)): p.read_text() for p in COMMITTED.rglob("*")
                if p.is_file() and "build" not in p.relative_to(COMMITTED).parts and p.suffix != ".hex"}
     assert set(on_disk) == set(fw.files), set(on_disk) ^ set(fw.files)
+    # the marker on disk lists the HEX as well (written with it); the rest of it is what generate() writes
+    marker = json.loads(on_disk.pop(MARKER))
+    hex_digest = marker["files"].pop("duy2008.hex")
+    assert hex_digest == hashlib.sha256((COMMITTED / "duy2008.hex").read_bytes()).hexdigest()
+    assert marker == json.loads(fw.files[MARKER])
     for name, text in fw.files.items():
+        if name == MARKER:
+            continue
         assert on_disk[name] == text, (f"firmware_build/duy2008/{name} differs from what picdrive firmware "
                                        "generates now: regenerate it (bench/firmware.py --regenerate)")
 

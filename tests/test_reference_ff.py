@@ -107,7 +107,7 @@ def drive():
 
 def test_auto_chooses_by_the_steps_to_the_band(drive):
     """'auto' keeps the feedforward when the worse of the two steps (no load, the profile's load) reaches
-    the 1 % band sooner within 1 % overshoot: the duy2008 fuzzy-hinf law (57 -> 40 ms measured), not the
+    the 1 % band sooner within 1 % overshoot: the duy2008 fuzzy-hinf law (54 -> 40 ms measured), not the
     duy2008 mixed-pid law (its step without load overshoots 1.7 % with it)."""
     prof = load_profile("duy2008").replace(control={"reference_feedforward": "auto"})
     fz = load_design(str(repo_root() / "examples" / "duy2008.fuzzy-hinf.design.json")).law

@@ -9,11 +9,13 @@ an interrupt and the main loop.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
 import pytest
 
+from picdrive import outputs
 from picdrive.firmware import codegen, gpsim, target
 from picdrive.paths import firmware_build_dir, repo_root
 from picdrive.profile import load_profile
@@ -72,8 +74,20 @@ def test_picdrive_firmware_writes_the_hex_of_a_design_that_fits(tmp_path):
     fw = codegen.generate(profile, design)
     report: list[str] = []
     codegen.write_firmware(fw, tmp_path / "fw", hex_build=True, report=report)
-    assert (tmp_path / "fw" / f"{fw.name}.hex").is_file()
+    hex_path = tmp_path / "fw" / f"{fw.name}.hex"
+    assert hex_path.is_file()
     assert any("flash" in line for line in report), report
+    # the marker lists the HEX, so writing the same folder again (a re-design) replaces it...
+    listed = json.loads((tmp_path / "fw" / outputs.MARKER).read_text())["files"]
+    assert listed[hex_path.name] == hashlib.sha256(hex_path.read_bytes()).hexdigest()
+    codegen.write_firmware(fw, tmp_path / "fw", hex_build=True)
+    assert hex_path.is_file()
+    # ...and a HEX changed since (the user's own build put there) is not overwritten
+    hex_path.write_text(hex_path.read_text() + ":00000001FF\n")
+    before = hex_path.read_bytes()
+    with pytest.raises(outputs.OutputError, match=rf"{hex_path.name} \(changed since picdrive wrote it\)"):
+        codegen.write_firmware(fw, tmp_path / "fw", hex_build=True)
+    assert hex_path.read_bytes() == before
 
 
 def test_a_design_over_budget_is_refused_and_nothing_is_written(tmp_path, monkeypatch):

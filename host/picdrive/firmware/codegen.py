@@ -645,6 +645,14 @@ def write_firmware(fw: Firmware, out_dir, *, check: bool = True, hex_build: bool
             build_check(tmp)
         if hex_build:
             target_build(tmp, fw.name, allow_over_budget=allow_over_budget, report=report)
+            hex_rel = f"{fw.name}.hex"
+            if (tmp / hex_rel).is_file():
+                # the marker lists the HEX too: without it, the next 'picdrive firmware' into this folder
+                # took the HEX for a file of the user's and refused to replace the folder
+                files = {rel: text for rel, text in fw.files.items() if rel != outputs.MARKER}
+                files[hex_rel] = (tmp / hex_rel).read_bytes()
+                (tmp / outputs.MARKER).write_text(outputs.manifest_text("firmware", files, regenerable=REGENERABLE),
+                                                  encoding="utf-8", newline="\n")
     except OSError as e:
         shutil.rmtree(tmp, ignore_errors=True)
         raise outputs.OutputError(f"cannot write firmware folder {out}: {e.strerror or e}") from None

@@ -98,15 +98,22 @@ class AveragedModel:
             return float(f.derivative()(x))
         return float(f(x))
 
+    @property
+    def e_slope_top(self) -> float:
+        """d E / d w at the top identified speed (one-sided), V s/rad: the counter voltage's slope above the grid."""
+        return float(self.coef["e"].derivative()(self.w_range[1]))
+
     def r_e(self, w: float) -> float:
         """Effective resistance at speed ``w`` (rad/s), ohm."""
         return self._poly("r_e", w)
 
     def e(self, w: float) -> float:
         """Sector-mean counter voltage at ``w``, V (the DC equivalent's ``Kb w``)."""
-        lo = self.w_range[0]
+        lo, hi = self.w_range
         if abs(w) < lo:             # below the grid: the DC equivalent's proportional EMF, scaled to match
             return self._poly("e", lo) * abs(w) / lo
+        if abs(w) > hi:             # above it: the line through the top with the top's slope (the EMF keeps rising)
+            return self._poly("e", hi) + self.e_slope_top * (abs(w) - hi)
         return self._poly("e", w)
 
     def kt(self, w: float) -> float:
@@ -221,7 +228,8 @@ class AveragedModel:
                           [b / a / self.l_h, -1.0 / a / self.l_h]])
             return A, np.array([[0.0], [1.0 / self.l_h]])
         _, i = self.equilibrium(w, load_n_m)
-        de = self._poly("e", w, 1) if abs(w) >= self.w_range[0] else self.e(self.w_range[0]) / self.w_range[0]
+        lo, hi = self.w_range
+        de = self._poly("e", w, 1) if lo <= abs(w) < hi else self.e(lo) / lo if abs(w) < lo else self.e_slope_top
         dr = self._poly("r_e", w, 1)
         dk = self._poly("kt", w, 1)
         dt0 = self._poly("t0", w, 1) if abs(w) >= self.w_range[0] else self.t0(self.w_range[0]) / self.w_range[0]
