@@ -34,23 +34,8 @@ DEFAULT = ("anaheim_bly171d_24v_4000", "turnigy_multistar_4225_610kv")
 RPM = 2 * math.pi / 60
 
 
-def _radius(profile, law, plant_of) -> tuple[float, str]:
-    """Largest |eig| of the sampled loop over the law's check points and R x (1 -+ eps), on ``plant_of(w)``."""
-    from picdrive.analysis.sampled import law_check_points, six_step_closed_loop
-    import numpy as np
-    eps = float(profile.design.get("resistance_uncertainty", 0.1))
-    worst, where = -1.0, ""
-    for w in law_check_points(profile, law):
-        for rs in (1.0 - eps, 1.0, 1.0 + eps):
-            acl = six_step_closed_loop(plant_of(w), law.gains_at(w), law.sample_time_s, law.derivative_filter_hz,
-                                       r_factor=rs)
-            rad = float(np.max(np.abs(np.linalg.eigvals(acl))))
-            if rad > worst:
-                worst, where = rad, f"{w / RPM:.0f} rpm, R x {rs:g}"
-    return worst, where
-
-
 def run(name: str, n_disks: int) -> None:
+    from picdrive.analysis.sampled import sampled_radius
     from picdrive.analysis.steptest import run_sim, sim_plan, step_figures
     from picdrive.gate import BuiltDrive, run_design, speed_measurement, three_phase_plant
     from picdrive.models.averaged import identify_cached
@@ -88,8 +73,9 @@ def run(name: str, n_disks: int) -> None:
                 continue
             lmi = "feasible" + (" (SDP point kept: re-solve failed)" if "refinement" in cert else "")
             gains = "; ".join(f"{r.kp:.4g} / {r.kc:.4g} / {r.ki:.4g}" for r in res.law.rules)
-            rd, wd = _radius(prof, res.law, lambda w: prof)
-            ra, wa = _radius(prof, res.law, lambda w: SimpleNamespace(motor=avg.dc_form(w, load), inverter=prof.inverter))
+            rd, wd = sampled_radius(prof, res.law)
+            ra, wa = sampled_radius(prof, res.law,
+                                    lambda w: SimpleNamespace(motor=avg.dc_form(w, load), inverter=prof.inverter))
             print(f"| {label} | {disk:.0f} | {lmi} | {cert['gamma']:.4g} | {gains} | {rd:.4f} ({wd}) | {ra:.4f} ({wa}) |")
             if plant_model == "averaged" and probe is None and rd > 0.95 >= ra:
                 probe = (disk, res.law, rd, ra)

@@ -53,8 +53,8 @@ class TwinServer:
         if stop_after_s is not None and not (stop_after_s > 0):
             raise ValueError("stop_after_s must be > 0 (simulated seconds) or None")
         self.twin = twin
-        # serving ends once the twin's clock reaches this simulated time, s (None: never)
-        self.stop_at_s = None if stop_after_s is None else twin.t + float(stop_after_s)
+        # serving ends once the twin's clock reaches this simulated time, s (inf: never)
+        self.stop_at_s = math.inf if stop_after_s is None else twin.t + float(stop_after_s)
         self.realtime = realtime
         self.speed = float(speed)
         self.log = log or (lambda msg: None)
@@ -242,7 +242,7 @@ class TwinServer:
         if self._client is None:
             self._accept()
         self._pump_in()
-        end = math.inf if self.stop_at_s is None else self.stop_at_s
+        end = self.stop_at_s
         if self.twin.t >= end:
             self._pump_out()
             self._stop.set()

@@ -75,16 +75,19 @@ def law_check_points(profile, law) -> list[float]:
     return sorted(pts)
 
 
-def sampled_radius(profile, law) -> tuple[float, str]:
+def sampled_radius(profile, law, plant_at=None) -> tuple[float, str]:
     """Largest |eigenvalue| of :func:`six_step_closed_loop` over the law's gains at
     :func:`law_check_points` and R nominal and at -+``design.resistance_uncertainty``, and where
-    it occurs (a phrase).  Below 1: the sampled loop is stable there."""
+    it occurs (a phrase).  Below 1: the sampled loop is stable there.  ``plant_at(w)``: the plant
+    (a profile-like object, see :func:`six_step_closed_loop`) at check speed ``w`` rad/s; default the
+    profile's DC equivalent at every speed (the verification's check)."""
     eps = float(profile.design.get("resistance_uncertainty", 0.1))
     worst, where = -1.0, ""
     for w in law_check_points(profile, law):
         g = law.gains_at(w)
+        plant = profile if plant_at is None else plant_at(w)
         for rs in (1.0 - eps, 1.0, 1.0 + eps):
-            Acl = six_step_closed_loop(profile, g, law.sample_time_s, law.derivative_filter_hz, r_factor=rs)
+            Acl = six_step_closed_loop(plant, g, law.sample_time_s, law.derivative_filter_hz, r_factor=rs)
             rad = float(np.max(np.abs(np.linalg.eigvals(Acl))))
             if rad > worst:
                 worst, where = rad, f"gains at {w / RPM:.0f} rpm, R x {rs:g}"

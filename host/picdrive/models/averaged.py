@@ -229,7 +229,12 @@ class AveragedModel:
             return A, np.array([[0.0], [1.0 / self.l_h]])
         _, i = self.equilibrium(w, load_n_m)
         lo, hi = self.w_range
-        de = self._poly("e", w, 1) if lo <= abs(w) < hi else self.e(lo) / lo if abs(w) < lo else self.e_slope_top
+        if abs(w) < lo:                 # the proportional EMF below the grid (e)
+            de = self.e(lo) / lo
+        elif abs(w) >= hi:              # the top's slope above it (e)
+            de = self.e_slope_top
+        else:
+            de = self._poly("e", w, 1)
         dr = self._poly("r_e", w, 1)
         dk = self._poly("kt", w, 1)
         dt0 = self._poly("t0", w, 1) if abs(w) >= self.w_range[0] else self.t0(self.w_range[0]) / self.w_range[0]
