@@ -234,7 +234,7 @@ def test_hazard_lock_in_the_speed_loop_keeps_the_low_priority_on(build):
 
 
 def test_hand_written_interrupt_epilogues_restore_w_without_touching_status():
-    """Every hand-written interrupt exit (isr_high in drive.c.j2 and main_sdcc.c.j2) restores
+    """Every hand-written interrupt exit (isr_high in drive.c.j2; main_sdcc.c.j2's vector jumps there) restores
     STATUS and then only MOVFFs before RETFIE: a 'movf PREINC1, W' after the STATUS restore set
     Z and N from W, so a high-priority interrupt between a flag-setting instruction and its
     branch changed the branch (seen on the processor twin: the M/T speed encoder's ovf test
@@ -247,9 +247,9 @@ def test_hand_written_interrupt_epilogues_restore_w_without_touching_status():
                  (repo_root() / "firmware_templates" / name).read_text().splitlines()]
         for i, ln in enumerate(lines):
             if ln.startswith("retfie"):
-                j = max(k for k in range(i) if lines[k].replace(" ", "").endswith("0xfd8")
+                j = max(k for k in range(i) if lines[k].replace(" ", "").endswith((",_status", ",0xfd8"))
                         and lines[k].startswith("movff"))
                 tail = [x for x in lines[j + 1:i + 1] if x]
                 assert all(x.split()[0] in flag_free for x in tail), (name, tail)
                 n += 1
-    assert n >= 2
+    assert n >= 1

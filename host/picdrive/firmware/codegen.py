@@ -202,15 +202,14 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
            f"(Profile.max_duty() = {profile.max_duty():.4f}), in PDC counts of {per.duty_full_counts}"),
         _d("FW_OVDCONS_BRAKE", _reg("OVDCONS", "POUT0", "POUT2", "POUT4"), "brake: PWM0, PWM2, PWM4 (low sides) on"),
     ]})
-    fwd = ", ".join(_hex8(v) for v in t.ovdcond[0])
     S.append({"title": f"commutation (sensors.hall_spacing_deg = {t.hall_spacing_deg}, hall_offset_deg = "
                        f"{t.hall_offset_deg:g}); index = hall code (C << 2 | B << 1 | A)", "defines": [
         _d("FW_HALL_VALID_MASK", _hex8(t.valid_mask), "bit n set: hall code n is valid; "
            + ", ".join(f"{c:03b} {t.describe(c)}" for c in range(8))),
-        _d("FW_OVDCOND_FWD", fwd, "forward: high side of the source phase follows the duty"),
-        _d("FW_OVDCONS_FWD", ", ".join(_hex8(v) for v in t.ovdcons[0]), "forward: low side of the sink phase on"),
-        _d("FW_OVDCOND_REV", ", ".join(_hex8(v) for v in t.ovdcond[1]), "reverse torque"),
-        _d("FW_OVDCONS_REV", ", ".join(_hex8(v) for v in t.ovdcons[1]), ""),
+        _d("FW_COMM_OVD", ", ".join(f"{_hex8(t.ovdcons[d][c])}, {_hex8(t.ovdcond[d][c])}" for d in (0, 1) for c in range(8)),
+           "OVDCONS, OVDCOND at 2 k, 2 k + 1 for k = dir << 3 | code (dir 0 forward, 1 reverse torque): "
+           "OVDCOND's duty-driven pin is the high side of the source phase, OVDCONS's forced-on pin "
+           "the low side of the sink phase; one table pointer reads both"),
         _d("FW_HALL_NEXT", ", ".join(str(_next_code(t, c)) for c in range(8)),
            "next code in forward rotation (hall-speed direction)"),
     ]})
@@ -457,7 +456,8 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                build_id=build_id, sections=_sections(profile, design, plan, pwm, pm, brg, baud, bus),
                config=_config_bits(pm), eeprom_gptr_stubs=EEPROM_GPTR_STUBS, n_rules=plan.n_rules,
                link_id={e.name: e.id for e in table.entries}, link_off=_store_offsets(table),
-               signal_index={e.name: i for i, e in enumerate(table.signals)})
+               signal_index={e.name: i for i, e in enumerate(table.signals)},
+               bit=p18f4431.bits())    # bit positions by name, for the assembly: {{ bit.PIR1.RCIF }}
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(templates_dir())),
                              undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True,
                              keep_trailing_newline=True, autoescape=False)

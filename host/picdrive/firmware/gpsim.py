@@ -199,14 +199,18 @@ OP_END, OP_RX, OP_POLL, OP_TX, OP_ADC, OP_SPEED, OP_HALL, OP_NOP, OP_PORT = rang
 
 
 def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: int,
-              tx_vector: str = "isr_high") -> tuple[str, list[str], dict]:
+              tx_vector: str = "isr_high", hall_port: str = "PORTC") -> tuple[str, list[str], dict]:
     """The timing harness: a step table and the main() that runs it.
 
     Returns (C text, result slot keys in order, {key: calls measured}).  The
     steps are data (a const table walked by a small loop): SDCC takes minutes
     on one long straight-line function.  Each measured step is
     ``TMR1 = 0; CALL handler; read TMR1`` and the chip keeps each key's worst.
+    A hall edge puts the code on ``hall_port`` (bit ``hall_shift`` up: the firmware's
+    FW_HALL_PORT / FW_HALL_SHIFT) and raises the flag of each line that changed.
     """
+    if hall_port not in ("PORTA", "PORTC"):
+        raise GpsimError(f"hall port {hall_port!r}: the halls are on PORTC (INT0..INT2) or PORTA (IC1..IC3)")
     keys: list[str] = []
     counts: dict[str, int] = {}
     steps: list[int] = []
@@ -264,7 +268,7 @@ def harness_c(cases: list[tuple[str, list]], hall_codes: list[int], hall_shift: 
     if len(keys) > 255:
         raise GpsimError("timing corpus has too many keys")
     table = ",\n".join("    " + ", ".join(f"{v}" for v in steps[i:i + 24]) for i in range(0, len(steps), 24))
-    regs = ("TMR1L", "TMR1H", "T1CON", "PIR1", "PIR3", "TXSTA", "RCREG", "INTCON", "INTCON3", "PORTC", "TMR2",
+    regs = ("TMR1L", "TMR1H", "T1CON", "PIR1", "PIR3", "TXSTA", "RCREG", "INTCON", "INTCON3", hall_port, "TMR2",
             "ADRESH", "ADRESL", "TMR5L", "TMR5H", "POSCNTL", "POSCNTH")
     text = f"""/* timing harness (picdrive.gpsim): GENERATED, measurement build only */
 #include <stdint.h>
@@ -356,7 +360,7 @@ _harness_speed_call:
             __endasm;
             T1_STOP_READ keep();
         }} else if (op == {OP_PORT}u) {{
-            PORTC = a;
+            {hall_port} = a;
         }} else if (op == {OP_HALL}u) {{
             if ((a & 1u) != 0u) INTCON |= 0x02u;
             INTCON3 |= (uint8_t)((a >> 1) & 3u);
@@ -421,6 +425,7 @@ def default_corpus(modes=TELEMETRY_MODES, *, protocol_package: str = "picdrive.l
 
 def firmware_limits(folder) -> dict[str, int]:
     """FW_ADC_TRIP, FW_BUS_UV and FW_BUS_OV (ADC counts) of a generated folder's drive_params.h,
+    ``hall_port`` and ``hall_shift`` (FW_HALL_PORT, FW_HALL_SHIFT),
     and ``tx_high``: 1 when IPR1's TXIP makes the UART transmit a high-priority interrupt
     (today's firmware; c0631cc's, which bench/target.py measures beside it, had it low)."""
     text = (Path(folder) / "drive_params.h").read_text()
@@ -431,6 +436,11 @@ def firmware_limits(folder) -> dict[str, int]:
         if not m:
             raise GpsimError(f"{folder}/drive_params.h has no {name}: regenerate it with 'picdrive firmware'")
         out[name] = int(m[1])
+    # the hall lines' port and first bit (older firmware without them: PORTC, bit 3)
+    m = re.search(r"#define FW_HALL_PORT (PORT[AC])\b", text)
+    out["hall_port"] = m[1] if m else "PORTC"
+    m = re.search(r"#define FW_HALL_SHIFT (\d+)u?\b", text)
+    out["hall_shift"] = int(m[1]) if m else 3
     return out
 
 
@@ -459,7 +469,7 @@ def measure(folder, out_dir, telemetry: str = "4+capture", **kw) -> Cycles:
     return measure_modes(folder, out_dir, (telemetry,), **kw)[telemetry]
 
 
-def build_timing(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3, max_cycles: int = 20_000_000,
+def build_timing(folder, out_dir, modes=TELEMETRY_MODES, *, max_cycles: int = 20_000_000,
                  protocol_package: str = "picdrive.link", pre_run: tuple = ()):
     """The timing build of a firmware folder and its gpsim script (``measure_modes`` runs it).
 
@@ -472,7 +482,7 @@ def build_timing(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3,
     cases = default_corpus(modes, protocol_package=protocol_package, adc_trip=lim["FW_ADC_TRIP"])
     bus_v = 5.0 * (lim["FW_BUS_UV"] + lim["FW_BUS_OV"]) / 2 / 1023
     hall_codes = [1, 3, 2, 6, 4, 5, 1, 5, 4, 6, 2, 3, 1]    # forward, then reverse; HALL_INVALID apart
-    harness, keys, counts = harness_c(cases, hall_codes, hall_shift,
+    harness, keys, counts = harness_c(cases, hall_codes, lim["hall_shift"], hall_port=lim["hall_port"],
                                       tx_vector="isr_high" if lim["tx_high"] else "isr_low")
     hdr, sfr = timing_device()
     (out / "timing.lkr").write_text(timing_lkr())
@@ -490,7 +500,7 @@ def build_timing(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3,
     return b, keys, counts, script
 
 
-def measure_modes(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3,
+def measure_modes(folder, out_dir, modes=TELEMETRY_MODES, *,
                   max_cycles: int = 20_000_000, protocol_package: str = "picdrive.link") -> dict[str, Cycles]:
     """Build the timing harness around a firmware folder and run it in gpsim (one run for all modes).
 
@@ -500,7 +510,7 @@ def measure_modes(folder, out_dir, modes=TELEMETRY_MODES, *, hall_shift: int = 3
     Interrupt figures include ``ENTRY_CYCLES``.  ``protocol_package``: whose
     codec frames the link commands (the firmware's own protocol revision).
     """
-    b, keys, counts, script = build_timing(folder, out_dir, modes, hall_shift=hall_shift,
+    b, keys, counts, script = build_timing(folder, out_dir, modes,
                                            max_cycles=max_cycles, protocol_package=protocol_package)
     out = Path(out_dir)
     r = subprocess.run([_gpsim(), "-i", "-S", "disable", "-p", TIMING_PROCESSOR, "-c", str(script),
