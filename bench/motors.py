@@ -41,6 +41,10 @@ OVERSHOOT_PP = 1.0       # overshoot within 1 percentage point
 FINAL_REL = 0.001        # final speed under the load within 0.1 % of the target
 
 
+#: the chip build's figures a verified case records (picdrive.firmware.codegen.target_build's ``figures``)
+FIRMWARE_KEYS = ("flash_bytes", "ram_stack_bytes", "speed_loop_isr", "hall_isr", "uart_rx_byte")
+
+
 def profiles() -> list[Path]:
     return sorted(CORPUS.glob("*.toml"))
 
@@ -84,8 +88,9 @@ def run_case(profile_path: str, method: str) -> dict:
     with tempfile.TemporaryDirectory(prefix="picdrive-corpus-") as tmp:
         path = Path(tmp) / f"{prof.name}.{method}.design.json"
         save_design(res, path)
-        try:
-            tw = twin_run(prof, path, plan, workdir=tmp)
+        fw: dict = {}
+        try:           # the firmware as 'picdrive firmware' builds it: the HEX within every chip budget
+            tw = twin_run(prof, path, plan, workdir=tmp, figures=fw)
         except PicdriveError as e:
             return {**out, "outcome": "refused", "stage": "firmware", "reason": str(e),
                     "wall_s": time.perf_counter() - t0}
@@ -98,16 +103,24 @@ def run_case(profile_path: str, method: str) -> dict:
             "t_end_s": plan["t_end_s"], "trip_a": prof.inverter.overcurrent_trip_a,
             "ts_s": 1.0 / prof.control.speed_loop_hz,
             "twin": {k: float(twin[k]) for k in keys}, "model": {k: float(model[k]) for k in keys},
-            "wall_s": time.perf_counter() - t0}
+            "firmware": {k: fw[k] for k in FIRMWARE_KEYS}, "wall_s": time.perf_counter() - t0}
 
 
 def judge(case: dict) -> list[str]:
-    """What a case breaks (empty: fine).  A refusal must name a reason; a verified design must
-    behave in the twin within the tolerances above of its verification and pass its limits."""
+    """What a case breaks (empty: fine).  A refusal must name a reason; a verified design must be
+    flashable (its chip build within every budget) and behave in the twin within the tolerances
+    above of its verification and pass its limits."""
     if case["outcome"] == "refused":
         return [] if case.get("reason", "").strip() else ["refused without a reason"]
+    from picdrive.firmware.target import BUDGETS
     tw, mo, tgt = case["twin"], case["model"], case["target_rpm"]
     bad = []
+    fw = case.get("firmware") or {}
+    for key, limit in (("flash_bytes", BUDGETS.flash_bytes), ("ram_stack_bytes", BUDGETS.ram_stack_bytes),
+                       ("speed_loop_isr", BUDGETS.speed_loop_cycles), ("hall_isr", BUDGETS.hall_isr_cycles),
+                       ("uart_rx_byte", BUDGETS.uart_rx_cycles)):
+        if fw.get(key) is None or not fw[key] <= limit:
+            bad.append(f"firmware {key} {fw.get(key, 'not measured')} against its budget {limit}: not flashable")
     if not abs(mo["rise_s"] - tw["rise_s"]) <= RISE_REL * tw["rise_s"] + case["ts_s"]:
         bad.append(f"rise {1e3 * tw['rise_s']:.3g} ms in the twin vs {1e3 * mo['rise_s']:.3g} ms verified")
     if not abs(mo["overshoot_pct"] - tw["overshoot_pct"]) <= OVERSHOOT_PP:
@@ -153,14 +166,30 @@ def cell(case: dict) -> str:
             + ("" if not judge(case) else " -- OUT OF TOLERANCE: " + "; ".join(judge(case))))
 
 
+def firmware_cell(cases: list[dict]) -> str:
+    """The verified designs' chip figures of one profile: flash, speed loop, hall interrupt, UART receive."""
+    fw = [c["firmware"] for c in cases if c["outcome"] == "verified"]
+    if not fw:
+        return "no verified design"
+
+    def span(key, unit):
+        lo, hi = min(f[key] for f in fw), max(f[key] for f in fw)
+        return f"{lo:,}{'' if lo == hi else f' .. {hi:,}'}{unit}"
+    return (f"flash {span('flash_bytes', ' B')}, RAM + stack {span('ram_stack_bytes', ' B')}, speed loop "
+            f"{span('speed_loop_isr', '')}, hall {span('hall_isr', '')}, UART receive {span('uart_rx_byte', '')} "
+            "cycles")
+
+
 def table(cases: list[dict]) -> str:
     by = {(c["profile"], c["method"]): c for c in cases}
     names = sorted({c["profile"] for c in cases})
-    lines = ["| profile | source | " + " | ".join(METHODS) + " |", "|---" * (2 + len(METHODS)) + "|"]
+    lines = ["| profile | source | " + " | ".join(METHODS) + " | firmware (verified designs) |",
+             "|---" * (3 + len(METHODS)) + "|"]
     for n in names:
         src = next((by[(n, m)].get("source", "") for m in METHODS if (n, m) in by), "")
         lines.append(f"| `{n}` | {_short(src, 140).replace('|', '/')} | "
-                     + " | ".join(cell(by[(n, m)]) if (n, m) in by else "" for m in METHODS) + " |")
+                     + " | ".join(cell(by[(n, m)]) if (n, m) in by else "" for m in METHODS)
+                     + f" | {firmware_cell([by[(n, m)] for m in METHODS if (n, m) in by])} |")
     return "\n".join(lines)
 
 
@@ -172,7 +201,11 @@ Profiles of real motors written from datasheets (`tests/motors/*.toml`; none is 
 names its source and marks what it assumes in its comments) go through what a user does: load
 the profile, `picdrive design` with each method (design and verification), `picdrive firmware`
 and the motor twin through the verification's own step from rest to `Profile.speed_step_rpm()`
-and load step (`picdrive.gate.twin_run`).  A verified design must behave in the twin within
+and load step (`picdrive.gate.twin_run`).  The firmware is built as `picdrive firmware` builds it:
+the chip's HEX within every budget (flash, RAM + stack, the speed-loop, hall and UART-receive
+interrupts' worst cases), so a design over one is refused at the firmware stage, and the last
+column gives the verified designs' figures (budgets: {b.flash_bytes:,} B, {b.ram_stack_bytes} B, {b.speed_loop_cycles:,},
+{b.hall_isr_cycles} and {b.uart_rx_cycles} cycles).  A verified design must behave in the twin within
 25 % (+ one sample) of its verification's rise time, 1 percentage point of its overshoot and
 0.1 % of the target in final error, and pass the verification's own limits there
 (`bench/motors.py` `judge`, asserted by `tests/test_motors_corpus.py`); a refusal names its stage
@@ -192,7 +225,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     cases = run_all(args.only, args.jobs)
     wall = time.perf_counter() - t0
-    text = DOC_HEAD + "\n" + table(cases) + "\n"
+    from picdrive.firmware.target import BUDGETS
+    text = DOC_HEAD.format(b=BUDGETS) + "\n" + table(cases) + "\n"
     print(text)
     n_ver = sum(c["outcome"] == "verified" for c in cases)
     n_bad = sum(bool(judge(c)) for c in cases)

@@ -24,6 +24,10 @@ Usage:
   python3 bench/target.py --design duy2008.fuzzy-hinf --no-baseline
   python3 bench/target.py --no-baseline --reference-feedforward   # also each design with the
       # reference feedforward compiled in ("today+ff": control.reference_feedforward, the DC gain)
+
+A design whose profile takes the speed from the halls is also built with the halls on the
+input-capture pins ("today-ic", picdrive firmware --hall-input ic) beside the default INT0..INT2;
+the last table lists every build side by side against the budgets.
 """
 from __future__ import annotations
 
@@ -44,7 +48,7 @@ BASELINE_COMMIT = "c0631cc"
 HERE = Path(__file__).resolve().parent
 
 
-def generate_new(design: Path, out: Path, reference_ff: bool = False) -> tuple[Path, str]:
+def generate_new(design: Path, out: Path, reference_ff: bool = False, hall_input: str = "auto") -> tuple[Path, str]:
     profile = load_profile(json.loads(design.read_text())["profile"]["name"])
     if reference_ff:                # the design's law with the reference feedforward's gain set
         import dataclasses
@@ -54,7 +58,7 @@ def generate_new(design: Path, out: Path, reference_ff: bool = False) -> tuple[P
         res = dataclasses.replace(res, law=with_reference_ff(profile, res.law))
         out.parent.mkdir(parents=True, exist_ok=True)
         design = save_design(res, out.parent / "ff.design.json")
-    fw = codegen.generate(profile, design)
+    fw = codegen.generate(profile, design, hall_input=hall_input)
     codegen.write_firmware(fw, out)
     return out, fw.name
 
@@ -131,6 +135,7 @@ def main() -> int:
           "script for measurement\n")
     head = (f"  {'build':<9} {'flash B':>8} {'RAM+stack B':>15}  {'speed-loop ISR':>15}  {'hall':>6}  {'UART rx':>6}"
             f"  {'link_poll':>7}")
+    summary = []
     with tempfile.TemporaryDirectory(prefix="bench-target-") as t:
         work = Path(t)
         for d in designs:
@@ -138,17 +143,21 @@ def main() -> int:
             runs = {}
             folder, name = generate_new(d, work / stem / "new" / "fw")
             runs["today"] = measure(folder, name, work / stem / "new")
+            hall_speed = load_profile(json.loads(d.read_text())["profile"]["name"]).sensors.speed_source == "hall"
+            if hall_speed:       # the halls on the input-capture pins too (without an encoder they may be)
+                folder, name = generate_new(d, work / stem / "ic" / "fw", hall_input="ic")
+                runs["today-ic"] = measure(folder, name, work / stem / "ic")
             if a.reference_feedforward:
                 folder, name = generate_new(d, work / stem / "ff" / "fw", reference_ff=True)
                 runs["today+ff"] = measure(folder, name, work / stem / "ff")
-            if not a.no_baseline:
+            if not a.no_baseline and (baseline_tree(work) / "examples" / d.name).is_file():
                 folder, name = generate_baseline(d, work / stem / "base" / "fw", work)
                 runs["baseline"] = measure(folder, name, work / stem / "base",
                                            protocol_package=import_baseline(baseline_tree(work)))
             for mode in gpsim.TELEMETRY_MODES:
                 print(f"{stem}, telemetry {mode}")
                 print(head)
-                for label in ("baseline", "today", "today+ff"):
+                for label in ("baseline", "today", "today-ic", "today+ff"):
                     if label in runs:
                         b, cm = runs[label]
                         print(_row(label, b, cm[mode], period))
@@ -160,7 +169,9 @@ def main() -> int:
                           f"{(b1.ram_stack_bytes or 0) / (b0.ram_stack_bytes or 1):>15.2f}  {r[0]:>15.2f}  "
                           f"{r[1]:>6.2f}  {r[2]:>6.2f}  {r[3]:>7.2f}")
                 print()
-            for label, (b, _c) in runs.items():
+            for label, (b, c) in runs.items():
+                summary.append((stem, "hall" if hall_speed else "encoder",
+                                "IC1..IC3" if label == "today-ic" else "INT0..INT2", label, b, c))
                 haz = []
                 if target.unsaved_table_pointer(b):
                     haz.append("table pointer unsaved in " + ", ".join(target.unsaved_table_pointer(b)))
@@ -171,6 +182,16 @@ def main() -> int:
                 for n in b.notes:
                     print(f"    note: {n}")
             print()
+    # the builds side by side: worst over the telemetry modes, each interrupt against its budget
+    print("every build, worst over the telemetry modes (budgets: hall <= "
+          f"{B.hall_isr_cycles}, UART RX <= {B.uart_rx_cycles}, speed loop <= {B.speed_loop_cycles:,} cycles)")
+    print(f"  {'design':<32} {'speed':<8} {'halls on':<11} {'build':<9} {'flash B':>8} {'speed loop':>10} "
+          f"{'hall':>5} {'UART rx':>7}  fits")
+    for stem, speed, halls, label, b, c in summary:
+        w = {k: max(c[m].worst[k] for m in c) for k in ("speed_loop_isr", "hall_isr", "uart_rx_byte")}
+        fits = "yes" if not target.over_budget(b, w) else "NO: " + "; ".join(target.over_budget(b, w))
+        print(f"  {stem:<32} {speed:<8} {halls:<11} {label:<9} {b.flash_bytes:>8,} {w['speed_loop_isr']:>10,} "
+              f"{w['hall_isr']:>5} {w['uart_rx_byte']:>7}  {fits}")
     return 0
 
 

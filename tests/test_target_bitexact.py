@@ -439,6 +439,18 @@ def design(tmp_path_factory):
     return fw.plan, out, tmp
 
 
+@pytest.fixture(scope="module")
+def design_halls(tmp_path_factory):
+    """duy2008_halls mixed-pid: the speed from the halls (core_speed_hall on the chip, where the
+    duy2008 build runs core_speed_encoder) and one rule with a derivative term."""
+    tmp = tmp_path_factory.mktemp("bitexact-halls")
+    prof = load_profile("duy2008_halls")
+    fw = codegen.generate(prof, repo_root() / "examples" / "duy2008_halls.mixed-pid.design.json")
+    out = codegen.write_firmware(fw, tmp / "fw", check=False)
+    assert fw.plan.speed_source == "hall"
+    return fw.plan, out, tmp
+
+
 def ff_firmware(tmp):
     """duy2008 fuzzy-hinf with the reference feedforward on (control.reference_feedforward: the
     gain of picdrive.design.verify.with_reference_ff on the DC equivalent), generated into tmp."""
@@ -468,6 +480,12 @@ def test_generator_mirrors_are_consistent():
 
 def test_pic18_code_matches_the_model(design):
     plan, folder, tmp = design
+    verdict = compare(folder, tmp / "good", plan)
+    assert verdict == {f: None for f in CHECKED}, verdict
+
+
+def test_pic18_code_matches_the_model_with_the_speed_from_the_halls(design_halls):
+    plan, folder, tmp = design_halls
     verdict = compare(folder, tmp / "good", plan)
     assert verdict == {f: None for f in CHECKED}, verdict
 

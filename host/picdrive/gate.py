@@ -133,12 +133,15 @@ def bridge_hold_torque(profile, rpm: float, *, r_factor: float = 1.0) -> tuple[f
     return acc / tt, need
 
 
-def twin_run(profile, design_path, plan=None, *, workdir=None, perturb=None, seed: int = 0):
+def twin_run(profile, design_path, plan=None, *, workdir=None, perturb=None, seed: int = 0,
+             figures: dict | None = None):
     """The verification's step and load step on the motor twin (``picdrive_hil``), free-running.
 
     The firmware is generated from the design file (``picdrive firmware``'s
-    codegen) into ``workdir`` (a temporary folder by default) and run
-    unchanged in the twin.  Commands go in as frames over the twin's UART
+    codegen) into ``workdir`` (a temporary folder by default), built as
+    ``picdrive firmware`` builds it (the chip's HEX within every budget: a
+    firmware over one raises CodegenError and nothing runs; its figures go to
+    ``figures``, see ``codegen.target_build``) and run unchanged in the twin.  Commands go in as frames over the twin's UART
     (``link_timeout`` to its maximum, the speed setpoint, start); t = 0 is the
     firmware's first sample in RUN (one PWM period before its first duty); the
     load-torque step is applied at ``plan["t_load_s"]`` on that clock.
@@ -160,7 +163,9 @@ def twin_run(profile, design_path, plan=None, *, workdir=None, perturb=None, see
     e_sp, e_to = table["speed_setpoint"], table["link_timeout"]
     ts = 1.0 / profile.control.speed_loop_hz
     with tempfile.TemporaryDirectory(prefix="picdrive-twin-run-") as tmp:
-        out = codegen.write_firmware(fw, Path(workdir or tmp) / "fw", check=False)
+        # built as 'picdrive firmware' builds it: the host compile check and the chip's HEX within
+        # every budget (CodegenError, a PicdriveError, when it does not fit: nothing runs)
+        out = codegen.write_firmware(fw, Path(workdir or tmp) / "fw", check=True, hex_build=True, figures=figures)
         tw = Twin(profile, out, perturb=perturb, seed=seed)
         try:
             seq = iter(range(1, 200))
@@ -203,6 +208,38 @@ def run_design(profile, method: str, *, progress: bool = True, **options: Any) -
         raise PicdriveError(f"unknown design method {method!r}; choose one of {', '.join(METHOD_MODULES)}")
     check_profile_arithmetic(profile)
     return design(profile, method, drive=BuiltDrive(), progress=progress, **options)
+
+
+def check_chip(profile, result: DesignResult) -> list[str]:
+    """Judge a verified design with its firmware built for the chip (``codegen.chip_check``).
+
+    Adds the check ``firmware_fits_chip`` to ``result.verification`` and, when the firmware
+    exceeds a budget, fails the design with a reason that names each figure and its budget
+    (``picdrive firmware`` would refuse it).  Returns the build's figure lines.  Raises
+    PicdriveError naming the fix when the PIC18 toolchain is missing."""
+    import tempfile
+    from .firmware import codegen
+    from .firmware.target import BUDGETS, TargetError
+    with tempfile.TemporaryDirectory(prefix="picdrive-design-chip-") as tmp:
+        path = Path(tmp) / f"{profile.name}.{result.method}.design.json"
+        save_design(result, path)
+        try:
+            lines, bad = codegen.chip_check(profile, path)
+        except TargetError as e:
+            raise PicdriveError(f"cannot build this design's firmware for the PIC18F4431 to check it against the "
+                                f"chip's budgets: {e}; or design with --no-chip-check (the design file then records "
+                                "that the chip build was not checked)") from None
+    limit = (f"flash <= {BUDGETS.flash_bytes} B, RAM + stack <= {BUDGETS.ram_stack_bytes} B, speed loop <= "
+             f"{BUDGETS.speed_loop_cycles} cycles, hall interrupt <= {BUDGETS.hall_isr_cycles} cycles, UART "
+             f"receive <= {BUDGETS.uart_rx_cycles} cycles a byte")
+    result.verification["firmware_fits_chip"] = {"value": "; ".join(bad) if bad else "fits", "limit": limit,
+                                                 "ok": not bad}
+    if bad:
+        # the blocking reason first: no other check matters if the firmware cannot be flashed
+        result.status = "failed"
+        result.reasons.insert(0, "the firmware for this design does not fit the PIC18F4431 (" + "; ".join(bad)
+                              + "); 'picdrive firmware' would refuse it")
+    return lines
 
 
 def _is_design_file(path: Path) -> bool:
@@ -287,8 +324,15 @@ def _cmd(args) -> int:
     output_path(profile, args.method, args.output, True)
     output_path(profile, args.method, args.output, False)
     r = run_design(profile, args.method, progress=not args.no_progress, **opts)
+    chip = []
+    if r.ok and args.no_chip_check:
+        r.verification["firmware_fits_chip"] = {"value": "not checked (--no-chip-check)", "ok": True}
+    elif r.ok:
+        chip = check_chip(profile, r)
     for line in summary_lines(r):
         print(line)
+    for line in chip:
+        print(f"  chip      {line}")
     path = output_path(profile, args.method, args.output, r.ok)
     save_design(r, path)
     if r.ok:
@@ -314,4 +358,7 @@ def register(sub) -> None:
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="any other method option (repeatable), e.g. --option rules=3")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-chip-check", action="store_true",
+                   help="do not build the verified design's firmware for the PIC18F4431 to check its flash, RAM "
+                        "and interrupt budgets (needs the PIC18 toolchain; 'picdrive firmware' checks them anyway)")
     p.set_defaults(func=_cmd)

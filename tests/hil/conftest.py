@@ -144,9 +144,8 @@ def open_bench(request, target, firmware_cache):
             fw_dir = firmware_cache.get(profile_name, method)
             kind = "twin"
             if target == "pil":
-                hex_path, on_chip = firmware_cache.hex(profile_name, method)
-                tw = Twin(prof, fw_dir, perturb=perturb, hex_file=hex_path, enlarged_memory=not on_chip)
-                kind = "pil" if on_chip else "pil(enlarged memory)"
+                tw = Twin(prof, fw_dir, perturb=perturb, hex_file=firmware_cache.hex(profile_name, method))
+                kind = "pil"
                 request.config.stash[_PIL].append((f"{profile_name} {method}", tw))
             else:
                 tw = Twin(prof, fw_dir, perturb=perturb)

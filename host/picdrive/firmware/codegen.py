@@ -592,13 +592,16 @@ def build_check(folder) -> list[str]:
     return done
 
 
-def target_build(folder, name: str, *, allow_over_budget: bool = False, report: list | None = None):
+def target_build(folder, name: str, *, allow_over_budget: bool = False, report: list | None = None,
+                 figures: dict | None = None):
     """Build ``<folder>/<name>.hex`` for the PIC18F4431 and measure it against the budgets.
 
     Compiles and links with picdrive.target (SDCC + gplink), times the
     interrupts in gpsim (picdrive.gpsim: the worst over telemetry off, 4
-    signals, and 4 signals with a capture armed), appends the figures to ``report`` and raises CodegenError with
-    them when a budget is exceeded (unless ``allow_over_budget``).
+    signals, and 4 signals with a capture armed), appends the figures to ``report`` (lines) and
+    ``figures`` (``flash_bytes``, ``ram_stack_bytes``, and the worst cycles by interrupt:
+    ``speed_loop_isr``, ``hall_isr``, ``uart_rx_byte``...) and raises CodegenError with them when a
+    budget is exceeded (unless ``allow_over_budget``).
     Returns ``(Build, Cycles)``.
     """
     import tempfile
@@ -615,6 +618,9 @@ def target_build(folder, name: str, *, allow_over_budget: bool = False, report: 
     lines = target.budget_lines(b, cyc.worst)
     if report is not None:
         report += lines
+    if figures is not None:
+        figures.update(flash_bytes=b.flash_bytes, ram_stack_bytes=b.ram_stack_bytes,
+                       **{k: v for k, v in cyc.worst.items() if ":" not in k})
     bad = target.over_budget(b, cyc.worst)
     if bad and not allow_over_budget:
         raise CodegenError("the firmware does not fit the PIC18F4431's budgets (" + "; ".join(bad) + "); nothing "
@@ -623,8 +629,28 @@ def target_build(folder, name: str, *, allow_over_budget: bool = False, report: 
     return b, cyc
 
 
+def chip_check(profile, design_path, *, hall_input: str = "auto", fault_pin: str = "RC1") -> tuple[list[str], list[str]]:
+    """The design's firmware built for the PIC18F4431 as ``picdrive firmware`` builds it, measured.
+
+    Generates the firmware (``generate``), compiles it for the host (``build_check``) and for the
+    chip (SDCC, gplink, gpsim: ``target_build``) in a temporary folder, and measures flash, static
+    RAM + stack and every interrupt's worst case against ``picdrive.firmware.target.BUDGETS``.
+    Returns ``(figure lines, what exceeds its budget)``; the second is empty when the firmware
+    fits.  Raises TargetError when the PIC18 toolchain is missing (the message names the fix).
+    """
+    import tempfile
+    from . import target
+    fw = generate(profile, design_path, hall_input=hall_input, fault_pin=fault_pin)
+    lines: list[str] = []
+    with tempfile.TemporaryDirectory(prefix="picdrive-chip-check-") as t:
+        folder = Path(t) / "fw"
+        write_firmware(fw, folder, check=True)
+        b, cyc = target_build(folder, fw.name, allow_over_budget=True, report=lines)
+    return lines, target.over_budget(b, cyc.worst)
+
+
 def write_firmware(fw: Firmware, out_dir, *, check: bool = True, hex_build: bool = False,
-                   allow_over_budget: bool = False, report: list | None = None) -> Path:
+                   allow_over_budget: bool = False, report: list | None = None, figures: dict | None = None) -> Path:
     """Write the files into ``out_dir`` whole or not at all (temp folder, build check, rename).
 
     ``out_dir`` follows the output rule of :mod:`picdrive.outputs`: it is
@@ -644,7 +670,7 @@ def write_firmware(fw: Firmware, out_dir, *, check: bool = True, hex_build: bool
         if check:
             build_check(tmp)
         if hex_build:
-            target_build(tmp, fw.name, allow_over_budget=allow_over_budget, report=report)
+            target_build(tmp, fw.name, allow_over_budget=allow_over_budget, report=report, figures=figures)
             hex_rel = f"{fw.name}.hex"
             if (tmp / hex_rel).is_file():
                 # the marker lists the HEX too: without it, the next 'picdrive firmware' into this folder
