@@ -61,3 +61,45 @@ def test_a_verified_design_replaces_a_design_file(tmp_path):
     d = json.loads(good.read_text())
     assert d["status"] == "verified"
     assert not (tmp_path / "assawinchaichote2016.zn.design.failed.json").exists()
+
+
+# ---------------------------------------------------------------------------
+# Verified means flashable: the design's firmware built for the chip within every budget
+# ---------------------------------------------------------------------------
+def test_a_verified_design_carries_its_chip_build(tmp_path):
+    r = _design(tmp_path, "--profile", "duy2008_halls", "--method", "zn", "-o", str(tmp_path) + "/")
+    assert r.returncode == 0, r.stdout + r.stderr
+    d = json.loads((tmp_path / "duy2008_halls.zn.design.json").read_text())
+    assert d["status"] == "verified"
+    assert d["verification"]["firmware_fits_chip"]["value"] == "fits"
+    assert d["verification"]["firmware_fits_chip"]["ok"] is True
+    # the figures are printed: every interrupt of the halls-only build, against its budget
+    for key in ("flash ", "RAM + stack", "speed_loop_isr", "hall_isr", "uart_rx_byte"):
+        assert any(ln.startswith("  chip") and key in ln for ln in r.stdout.splitlines()), (key, r.stdout)
+
+
+def test_a_design_over_a_chip_budget_is_refused_with_the_figure_first(profiles, monkeypatch):
+    """A budget the build exceeds (the hall interrupt's, lowered below the build's figure) fails the
+    design: the blocking reason first, naming the figure and the budget."""
+    import dataclasses
+    from picdrive.firmware import target
+    from picdrive.gate import check_chip, run_design
+    prof = profiles["duy2008_halls"]
+    res = run_design(prof, "zn", progress=False)
+    assert res.ok, res.reasons
+    monkeypatch.setattr(target, "BUDGETS", dataclasses.replace(target.BUDGETS, hall_isr_cycles=100))
+    lines = check_chip(prof, res)
+    assert any(ln.startswith("hall_isr") for ln in lines)
+    assert not res.ok and res.status == "failed"
+    assert res.reasons[0].startswith("the firmware for this design does not fit the PIC18F4431 (hall_isr ")
+    assert "cycles > 100" in res.reasons[0]
+    assert res.verification["firmware_fits_chip"]["ok"] is False
+
+
+def test_no_chip_check_says_so_in_the_design_file(tmp_path):
+    r = _design(tmp_path, "--profile", "duy2008_halls", "--method", "zn", "-o", str(tmp_path) + "/",
+                "--no-chip-check")
+    assert r.returncode == 0, r.stdout + r.stderr
+    d = json.loads((tmp_path / "duy2008_halls.zn.design.json").read_text())
+    assert d["verification"]["firmware_fits_chip"]["value"] == "not checked (--no-chip-check)"
+    assert not any(ln.startswith("  chip") for ln in r.stdout.splitlines())
