@@ -170,6 +170,106 @@ def test_ctrl_c_in_a_script_does_the_same(twin, tmp_path):
     _check_partial_step(png.with_suffix(".csv"))
 
 
+def _running_with_a_recording(tw, send, csv):
+    """Drive the motor at 1500 rpm with a recording running; returns once it turns."""
+    send("speed 1500")
+    send("start")
+    send(f"record {csv}")
+    _until(lambda: _rpm(tw) > 1000, "the motor running")
+
+
+def _stopped_by_the_console(srv, t_signal):
+    """The board idle with no fault latched: stopped by the console, not by its watchdog (which
+    latches LINK_LOST after link_timeout, 5 s here) or by nothing at all."""
+    state = _board_state(srv.url)
+    assert state == (P.State.IDLE, P.Fault.NONE), state
+    assert time.monotonic() - t_signal < 4.0, "the stop came no sooner than the board's watchdog would"
+
+
+def _recording_kept(csv):
+    rec = read_recording(csv)
+    assert len(rec.column("t_s")) > 10 and np.max(rec.column("speed")) > 500
+
+
+def test_sigterm_stops_the_motor_and_saves_the_recording(twin, tmp_path):
+    tw, srv = twin
+    _idle(srv.url, tw)
+    csv = tmp_path / "rec.csv"
+    p = subprocess.Popen([sys.executable, "-m", "picdrive", "console", srv.url, "--history", str(tmp_path / "h")],
+                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env=_env())
+
+    def send(line):
+        p.stdin.write(line + "\n")
+        p.stdin.flush()
+    try:
+        _running_with_a_recording(tw, send, csv)
+        time.sleep(0.2)                              # some samples in the recording
+        p.send_signal(signal.SIGTERM)
+        t_signal = time.monotonic()
+        out, err = p.communicate(timeout=30)         # stdin stays open: not a Ctrl-D
+    finally:
+        p.kill()
+    assert p.returncode == 128 + signal.SIGTERM, err
+    assert "motor stopped (outputs off; SIGTERM received)" in out, out
+    assert "recording saved to " + str(csv) in out and "console ended by SIGTERM" in out
+    assert "Traceback" not in err, err
+    _stopped_by_the_console(srv, t_signal)
+    _recording_kept(csv)
+
+
+def test_closing_the_terminal_stops_the_motor_and_saves_the_recording(twin, tmp_path):
+    import pexpect                     # a dev dependency (pyproject): missing is a failure
+    tw, srv = twin
+    _idle(srv.url, tw)
+    csv = tmp_path / "rec.csv"
+    ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", srv.url, "--history", str(tmp_path / "h")],
+                       env=_env(), encoding="utf-8", timeout=20, dimensions=(40, 250))
+    try:
+        ch.expect("picdrive> ")
+
+        def send(line):
+            ch.send(line + "\r")
+            ch.expect("picdrive> ")
+        _running_with_a_recording(tw, send, csv)
+        time.sleep(0.2)
+        ch.ptyproc.fileobj.close()                   # the terminal closes: the kernel sends SIGHUP
+        t_signal = time.monotonic()
+        _until(lambda: not ch.ptyproc.isalive(), "the console ending", bound_s=30)
+        assert ch.ptyproc.exitstatus == 128 + signal.SIGHUP, (ch.ptyproc.exitstatus, ch.ptyproc.signalstatus)
+    finally:
+        ch.ptyproc.kill(signal.SIGKILL) if ch.ptyproc.isalive() else None
+    _stopped_by_the_console(srv, t_signal)
+    _recording_kept(csv)
+
+
+def test_ctrl_c_at_the_idle_prompt_stops_a_running_motor(twin, tmp_path):
+    import pexpect                     # a dev dependency (pyproject): missing is a failure
+    tw, srv = twin
+    _idle(srv.url, tw)
+    ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", srv.url, "--history", str(tmp_path / "h")],
+                       env=_env(), encoding="utf-8", timeout=20, dimensions=(40, 250))
+    try:
+        ch.expect("picdrive> ")
+        for line in ("speed 1500", "start"):
+            ch.send(line + "\r")
+            ch.expect("picdrive> ")
+        _until(lambda: _rpm(tw) > 1000, "the motor running")
+        ch.sendintr()
+        ch.expect(r"\^C: motor stopped \(outputs off\); 'quit' leaves")
+        ch.expect("picdrive> ")
+        ch.send("status\r")
+        ch.expect("state idle, fault none")
+        ch.expect("picdrive> ")
+        ch.sendintr()                                # nothing driven: only the hint
+        ch.expect(r"\^C \(type 'quit' to leave\)")
+        ch.expect("picdrive> ")
+        ch.send("quit\r")
+        ch.expect(pexpect.EOF)
+    finally:
+        ch.close(force=True)
+
+
 # --------------------------------------------------------------------------- scripts that assert
 
 STALL = """\

@@ -46,6 +46,7 @@ import difflib
 import math
 import os
 import shlex
+import signal
 import sys
 import threading
 from pathlib import Path
@@ -55,9 +56,21 @@ from ..errors import PicdriveError
 from .commands import (ALIASES, COMMANDS, NACK_WORDS, ConsoleError, Quit, bundled_profile_by_hash, expects_fault,
                        state_name)
 
-__all__ = ["Console", "default_history_path", "register", "main"]
+__all__ = ["Console", "Terminated", "default_history_path", "register", "main"]
 
 PROMPT = "picdrive> "
+
+STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGHUP", "SIGTERM") if hasattr(signal, n))
+"""Signals that end the console (terminal closed, killed): the motor is stopped first."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGHUP or SIGTERM arrived: handled like Ctrl-C inside a command (the motor is stopped,
+    partial data kept), then the console ends instead of returning to the prompt."""
+
+    def __init__(self, signame: str):
+        super().__init__(signame)
+        self.signame = signame
 
 
 def default_history_path() -> Path:
@@ -66,6 +79,14 @@ def default_history_path() -> Path:
         return Path(env)
     state = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
     return Path(state) / "picdrive" / "console_history"
+
+
+NOT_DRIVEN = "the motor was not driven"
+
+
+def _interruption(e: BaseException) -> str:
+    """What interrupted a command: Ctrl-C, or the signal that ends the console."""
+    return e.signame if isinstance(e, Terminated) else "Ctrl-C"
 
 
 # ---------------------------------------------------------------------------
@@ -119,13 +140,25 @@ class Console:
         # board events (faults, watchdog, reboot) not yet accounted for by an 'expect'
         self._events_lock = threading.Lock()
         self.unexpected: list[str] = []
+        self.terminating: str | None = None     # the signal (SIGHUP, SIGTERM) that ends the session
+
+    def on_stop_signal(self, signum, frame) -> None:
+        """SIGHUP / SIGTERM handler: later ones are ignored (the stop and the saving must run to
+        the end); raises :class:`Terminated` in the main thread, which unwinds to ``close``."""
+        for s in STOP_SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
+        self.terminating = signal.Signals(signum).name
+        raise Terminated(self.terminating)
 
     # -- output ---------------------------------------------------------------
 
     @staticmethod
     def _print(text: str) -> None:
-        sys.stdout.write(text + "\n")
-        sys.stdout.flush()
+        try:
+            sys.stdout.write(text + "\n")
+            sys.stdout.flush()
+        except (OSError, ValueError):       # the terminal is gone (SIGHUP): stopping must go on
+            pass
 
     def say(self, text: str) -> None:
         with self._out_lock:
@@ -514,8 +547,8 @@ class Console:
         link = self.require_link() if cmd.needs_link else self.link
         try:
             cmd.func(self, args)
-        except KeyboardInterrupt:
-            raise ConsoleError(f"{name}: interrupted (Ctrl-C); {self.stop_after_interrupt()}") from None
+        except KeyboardInterrupt as e:
+            raise ConsoleError(f"{name}: interrupted ({_interruption(e)}); {self.stop_after_interrupt()}") from None
         except NackError as e:
             raise ConsoleError(f"{name}: {self._nack_text(e)}") from None
         except ParamError as e:
@@ -544,7 +577,7 @@ class Console:
                 if link.status().state in (P.State.RUN, P.State.BRAKE):
                     link.stop()
                     return "motor stopped (outputs off)"
-                return "the motor was not driven"
+                return NOT_DRIVEN
             except KeyboardInterrupt:
                 continue
             except LinkError as e:
@@ -598,10 +631,14 @@ class Console:
                     return 0
                 except PicdriveError as e:
                     raise ConsoleError(f"{p}:{no}: {text!r}: {e}") from None
+                if self.terminating:
+                    break
                 prev = (no, text)
             self._fail_on_events(p, prev)
-        except KeyboardInterrupt:
-            raise ConsoleError(f"{p}: interrupted (Ctrl-C); {self.stop_after_interrupt()}") from None
+        except KeyboardInterrupt as e:
+            raise ConsoleError(f"{p}: interrupted ({_interruption(e)}); {self.stop_after_interrupt()}") from None
+        if self.terminating:                 # a command caught it (Ctrl-C handling) and returned
+            raise ConsoleError(f"{p}: interrupted ({self.terminating}); {self.stop_after_interrupt()}")
         return 0
 
     def _fail_on_events(self, path, prev) -> None:
@@ -613,22 +650,30 @@ class Console:
                                "fails (if it is intended, follow the line with 'expect fault == <name> within <s>')")
 
     def close(self) -> None:
-        """Stop background work, save an open recording, close the plot and the link."""
-        self._closing.set()
-        self.stop_pump()
-        if self.link is not None:
+        """Stop the motor, stop background work, save an open recording, close the plot and the link."""
+        why = f"{self.terminating} received" if self.terminating else "leaving the console"
+        if self.link is not None:            # the motor first: the rest may be slow or fail
             from ..link import protocol as P
             from ..link.client import LinkError
-            try:
-                if self.link.status().state in (P.State.RUN, P.State.BRAKE):
-                    self.link.stop()
-                    self.say("motor stopped (leaving the console)")
-            except LinkError:
-                pass
+            for _ in range(3):               # a Ctrl-C while leaving must not leave the motor running
+                try:
+                    if self.link.status().state in (P.State.RUN, P.State.BRAKE):
+                        self.link.stop()
+                        self.say(f"motor stopped (outputs off; {why})")
+                    break
+                except KeyboardInterrupt:
+                    continue
+                except LinkError:
+                    break
+        self._closing.set()
+        self.stop_pump()
         if self.recorder is not None:
             rec, self.recorder = self.recorder, None
-            p = rec.close()
-            self.say(f"recording saved to {p} ({rec.samples} samples, {rec.dropped} dropped)")
+            try:
+                p = rec.close()
+                self.say(f"recording saved to {p} ({rec.samples} samples, {rec.dropped} dropped)")
+            except PicdriveError as e:
+                self.say(f"recording lost: {e}")
         self.close_plot()
         if self.link is not None:
             self.link.close()
@@ -657,6 +702,13 @@ class Console:
         except Exception:
             return []
         return sorted(o for o in opts if o.startswith(text))
+
+    def _prompt_interrupt(self) -> str:
+        """Ctrl-C at the prompt: a driven motor is stopped (as inside a command), else a hint."""
+        what = self.stop_after_interrupt()
+        if what == NOT_DRIVEN:
+            return "^C (type 'quit' to leave)"
+        return f"^C: {what}; 'quit' leaves"
 
     def repl(self, history: Path | None = None) -> int:
         """The interactive loop (readline: completion and history)."""
@@ -703,7 +755,9 @@ class Console:
                     self.say("")
                     break
                 except KeyboardInterrupt:
-                    self.say("^C (type 'quit' to leave)")
+                    if self.terminating:
+                        break
+                    self.say(self._prompt_interrupt())
                     continue
                 finally:
                     with self._out_lock:
@@ -712,8 +766,10 @@ class Console:
                     self.run_line(line)
                 except Quit:
                     break
-                except KeyboardInterrupt:
-                    self.say(f"interrupted (Ctrl-C); {self.stop_after_interrupt()}")
+                except KeyboardInterrupt as e:
+                    self.say(f"interrupted ({_interruption(e)}); {self.stop_after_interrupt()}")
+                if self.terminating:
+                    break
         finally:
             if readline is not None and history is not None:
                 try:
@@ -775,13 +831,26 @@ def main(args) -> int:
         con.connect()
     except LinkError as e:
         raise ConsoleError(f"cannot connect to {args.url}: {_connect_hint(args.url, e)}") from None
+    # the terminal closed (SIGHUP) or the console killed (SIGTERM): stop the motor and keep the
+    # recording, as 'quit' does, instead of dying with the motor driven until the watchdog trips
+    before = {s: signal.signal(s, con.on_stop_signal) for s in STOP_SIGNALS}
     try:
         if args.run:
             return con.run_script(args.run)
         history = Path(args.history) if args.history else default_history_path()
-        return con.repl(history)
+        con.repl(history)
+    except Terminated:
+        pass
     finally:
-        con.close()
+        try:
+            con.close()
+        finally:
+            for s, h in before.items():
+                signal.signal(s, h)
+    if con.terminating:
+        con.say(f"console ended by {con.terminating}")
+        return 128 + getattr(signal, con.terminating)
+    return 0
 
 
 # -- scope ----------------------------------------------------------------------
