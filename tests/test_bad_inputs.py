@@ -67,6 +67,11 @@ def _files(**files):
     return setup
 
 
+def _fifo(name: str):
+    """setup: a FIFO (named pipe) called ``name``: reading it would wait for a writer for ever."""
+    return lambda d: os.mkfifo(d / name)
+
+
 def _kp(value):
     d = _design_dict()
     d["law"]["rules"][0]["kp"] = value
@@ -153,7 +158,7 @@ CASES = {
     "firmware-design-not-json": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
                                  _files(d_json="{kp: 1"), r"d.json is not valid JSON"),
     "firmware-design-not-utf8": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
-                                 _files(d_json=b'{"kp": "\xb5"}'), r"d.json is not UTF-8"),
+                                 _files(d_json=b'{"kp": "\xb5"}'), r"d.json: line 1: byte 0xB5 is not UTF-8"),
     "firmware-design-profile-string": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
                                        _files(d_json={**_design_dict(), "profile": "duy2008"}),
                                        r"design field 'profile' = \"duy2008\": expected a JSON object"),
@@ -191,6 +196,27 @@ CASES = {
                                r"load profile l.csv: line 3 '0.5,abc' is not a row 't_s,torque_n_m'"),
     "twin-profile-not-utf8": (["twin", "--profile", "c.toml", "--firmware", str(FIRMWARE)], _files(c_toml=CP1252),
                               r"not UTF-8"),
+    # --- inputs read with a type check and a size bound; a profile checked for plausibility first
+    "design-profile-dev-zero": (["design", "--profile", "/dev/zero", "--method", "zn"], None,
+                                r"profile /dev/zero is a character device, not a file: give the path of a profile"),
+    "design-profile-fifo": (["design", "--profile", "p.toml", "--method", "zn"], _fifo("p.toml"),
+                            r"profile p.toml is a FIFO \(named pipe\), not a file"),
+    "design-profile-huge": (["design", "--profile", "h.toml", "--method", "zn"], _files(h_toml="#" * (2 << 20)),
+                            r"profile h.toml is larger than 1024 KiB.*right file"),
+    "design-profile-inertia-unit-slip": (["design", "--profile", "j.toml", "--method", "fuzzy-hinf"],
+                                         _files(j_toml=_duy(inertia_kg_m2="0.03")),
+                                         r"'motor.inertia_kg_m2' = 0.03 kg m\^2 is implausible.*fastest step from "
+                                         r"rest to 2400 rpm takes 37.7 s \(mechanical time constant .* = 31 s\).*"
+                                         r"simulate 226 s in 4.53e\+06 PWM periods \(about 159 MiB.*kg cm\^2 .*"
+                                         r"J = 3e-06 kg m\^2\) or g cm\^2"),
+    "firmware-design-fifo": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"], _fifo("d.json"),
+                             r"design file d.json is a FIFO \(named pipe\), not a file"),
+    "console-run-binary": (["console", "loop://", "--run", "b.txt"], _files(b_txt=b"\x89PNG\r\n\x1a\n\xff\x00"),
+                           r"session file b.txt: line 1: byte 0x89 is not UTF-8.*binary file"),
+    "console-run-dev-null": (["console", "loop://", "--run", "/dev/null"], None,
+                             r"session file /dev/null is a character device, not a file"),
+    "console-run-fifo": (["console", "loop://", "--run", "s.txt"], _fifo("s.txt"),
+                         r"session file s.txt is a FIFO \(named pipe\), not a file"),
     # --- console: argument parsing only
     "console-no-url": (["console"], None, r"required: url"),
     "console-unknown-option": (["console", "loop://", "--colour"], None, r"unrecognized arguments: --colour"),
@@ -204,6 +230,9 @@ def _tree(d: Path) -> dict:
             out[os.path.relpath(os.path.join(root, n), d)] = "dir"
         for n in files:
             p = os.path.join(root, n)
+            if not os.path.isfile(p):              # a FIFO: opening it would wait for a writer
+                out[os.path.relpath(p, d)] = "special"
+                continue
             out[os.path.relpath(p, d)] = hashlib.sha256(open(p, "rb").read()).hexdigest()
     return out
 
@@ -226,10 +255,13 @@ def _run_case(base: Path, cid: str):
 
 
 @pytest.fixture(scope="module")
-def results(tmp_path_factory):
+def results(request, tmp_path_factory):
     base = tmp_path_factory.mktemp("bad")
+    # only the cases this run selected (-k), all of them concurrently
+    chosen = [it.callspec.params["cid"] for it in request.session.items
+              if it.module is request.module and "cid" in getattr(getattr(it, "callspec", None), "params", {})]
     with ThreadPoolExecutor(max_workers=4) as ex:
-        futs = {cid: ex.submit(_run_case, base, cid) for cid in CASES}
+        futs = {cid: ex.submit(_run_case, base, cid) for cid in chosen}
         return {cid: f.result() for cid, f in futs.items()}
 
 

@@ -83,6 +83,15 @@ def default_history_path() -> Path:
 
 NOT_DRIVEN = "the motor was not driven"
 
+#: a bench procedure is a few hundred lines; far more is the wrong file
+SCRIPT_MAX_BYTES = 1 << 20
+
+
+def read_script(path: str | Path) -> list[str]:
+    """The lines of a ``--run`` session file: a regular UTF-8 text file of bounded size."""
+    from ..fileio import read_input_text
+    return read_input_text(path, "session file", limit_bytes=SCRIPT_MAX_BYTES, error=ConsoleError).splitlines()
+
 
 def _interruption(e: BaseException) -> str:
     """What interrupted a command: Ctrl-C, or the signal that ends the console."""
@@ -608,13 +617,12 @@ class Console:
             self.say(f"error: {e}")
             return False
 
-    def run_script(self, path: str | Path) -> int:
-        """Run the commands of a file; stop at the first error (ConsoleError names file and line)."""
+    def run_script(self, path: str | Path, lines: list[str] | None = None) -> int:
+        """Run the commands of a file (``lines``: its lines, already read with :func:`read_script`);
+        stop at the first error (ConsoleError names file and line)."""
         p = Path(path)
-        try:
-            lines = p.read_text(encoding="utf-8").splitlines()
-        except OSError as e:
-            raise ConsoleError(f"cannot read session file {p}: {e.strerror}") from None
+        if lines is None:
+            lines = read_script(p)
         prev = None
         try:
             for no, line in enumerate(lines, 1):
@@ -821,8 +829,7 @@ def main(args) -> int:
     out = Path(args.out)
     if not out.is_dir():
         raise ConsoleError(f"--out {out}: no such folder; create it or choose another")
-    if args.run and not Path(args.run).is_file():
-        raise ConsoleError(f"--run {args.run}: no such file")
+    script = read_script(args.run) if args.run else None     # before the board is touched
     if args.strict and profile is None:
         raise ConsoleError("--strict compares the board with your profile: give --profile P too")
     interactive = args.run is None
@@ -836,7 +843,7 @@ def main(args) -> int:
     before = {s: signal.signal(s, con.on_stop_signal) for s in STOP_SIGNALS}
     try:
         if args.run:
-            return con.run_script(args.run)
+            return con.run_script(args.run, script)
         history = Path(args.history) if args.history else default_history_path()
         con.repl(history)
     except Terminated:
