@@ -405,7 +405,7 @@ class Link:
                 frames = self._dec.feed(data)
                 last_rx = now
             else:
-                frames = self._dec.gap() if self._dec.pending and now - last_rx > gap else []
+                frames = self._dec.gap() if self._dec.partial and now - last_rx > gap else []
                 if not frames:
                     self._wait(0.005)
             self.stats["crc_errors"] = self._dec.crc_errors
