@@ -78,6 +78,16 @@ def _kp(value):
     return d
 
 
+def _resigned(**gains):
+    """The ZN design with rule 1's gains edited and the signature recomputed (the file's own
+    integrity check passes: only a plausibility check can refuse it)."""
+    from picdrive.result import content_signature
+    d = _design_dict()
+    d["law"]["rules"][0].update(gains)
+    d["signature"] = content_signature(d)
+    return d
+
+
 def _unsigned():
     d = _design_dict()
     del d["signature"]
@@ -153,6 +163,17 @@ CASES = {
                                     _files(d_json=_kp("0.5")), r"rule 1 kp = \"0.5\" is not a finite number"),
     "firmware-design-hand-edited": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
                                     _files(d_json=_kp(-0.5)), r"changed after picdrive verified it.*re-run 'picdrive design'"),
+    "firmware-design-resigned-kp-negative": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
+                                             _files(d_json=_resigned(kp=-0.5)),
+                                             r"rule 1 kp = -0.5 V/\(rad/s\) is outside the plausible range \[0, 421.7\] "
+                                             r"V/\(rad/s\) on this drive \(421.7 saturates the bridge: 44.16 V from a "
+                                             r"1 rpm error\) \(a negative gain is positive feedback.*edited and re-signed"),
+    "firmware-design-resigned-kp-huge": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
+                                         _files(d_json=_resigned(kp=1e6)),
+                                         r"rule 1 kp = 1e\+06 V/\(rad/s\) is outside the plausible range \[0, 421.7\]"),
+    "firmware-design-resigned-ki-huge": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
+                                         _files(d_json=_resigned(ki=1e6)),
+                                         r"rule 1 ki = 1e\+06 V/rad .*\[0, 4.217e\+05\].*1 rpm error in one 1 ms sample"),
     "firmware-design-unsigned": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
                                  _files(d_json=_unsigned()), r"has no signature.*re-run 'picdrive design'"),
     "firmware-design-not-json": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],

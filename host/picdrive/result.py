@@ -276,4 +276,10 @@ def load_design(path: str | Path, *, require_usable: bool = False, profile=None)
             raise DesignError(f"design {p} was made from profile {r.profile_name!r} with hash "
                               f"{r.profile_sha256[:12]}, but the profile given has hash {profile.sha256[:12]}; "
                               "re-run 'picdrive design' on this profile")
+        if profile is not None:
+            from .control_law import implausible_gains
+            bad = implausible_gains(r.law, profile)
+            if bad:
+                raise DesignError(f"design {p}: {'; '.join(bad)}; a signed design with such a gain was edited "
+                                  "and re-signed, not designed: re-run 'picdrive design' on this profile")
     return r
