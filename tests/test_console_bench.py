@@ -356,7 +356,8 @@ def test_a_second_console_is_told_the_twin_is_busy(twin, tmp_path):
     with Link.open(srv.url):
         r = _cli(srv.url, "--run", str(tmp_path / "empty.txt"), timeout=60)
     assert r.returncode == 2
-    assert "a picdrive twin serves one client at a time, so another console or program is probably connected" in r.stderr
+    assert "picdrive twin: busy: another client is connected to this twin" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
 
 
 # --------------------------------------------------------------------------- scope
