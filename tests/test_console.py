@@ -308,9 +308,21 @@ def test_unknown_command_and_usage_errors(con):
     with pytest.raises(ConsoleError, match="cannot parse"):
         run(con, 'set "x')
     assert con.run_line("frobnicate") is False and con.lines[-1].startswith("error: unknown command")
-    out = run(con, "help")
-    assert len(out) == len(__import__("picdrive.console.commands", fromlist=["COMMANDS"]).COMMANDS)
     assert run(con, "help step")[0].startswith("step <from> <to>")
+
+
+def test_help_fits_80_columns_and_finds_a_parameter_by_a_part_of_its_name(con):
+    from picdrive.console.commands import COMMANDS
+    out = run(con, "help")
+    assert max(map(len, out)) <= 80, max(out, key=len)
+    flat = " ".join(" ".join(out).split())
+    for c in COMMANDS.values():                      # every explanation whole: wrapped between words
+        assert " ".join(c.help.split()) in flat, c.name
+        assert any(ln.startswith("  " + c.usage.split()[0]) for ln in out), c.name
+    out = run(con, "help kc")
+    assert out[0] == "kc: see rule1_kc, rule2_kc"
+    assert [ln.split(":")[0] for ln in out if ln.startswith("rule")] == ["rule1_kc", "rule2_kc"]
+    assert "Current-feedback gain of rule 1" in out[2]
 
 
 def test_link_lost_and_regained(board, con):

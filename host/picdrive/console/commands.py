@@ -197,15 +197,48 @@ def _help(con: Console, args):
                 con.say(f"{c.usage}\n  {c.help}")
             _help_param(con, args[0])
             return
+        word = args[0].lower()
+        related = [e.name for e in con.link.table if word in e.name.lower().split("_")] \
+            if c is None and con.link is not None else []
+        if related:                              # 'help kc': the parameters of which it is a part
+            con.say(f"{args[0]}: see {', '.join(related)}")
+            for n in related:
+                _help_param(con, n)
+            return
         if c is None:
             extra = "" if con.link is not None else " (parameters are explained when connected)"
             raise ConsoleError(f"no command or parameter {args[0]!r}{extra}; 'help' lists the commands, "
                                "'params' the parameters")
         con.say(f"{c.usage}\n  {c.help}")
         return
-    width = max(len(c.usage) for c in COMMANDS.values())
-    for c in COMMANDS.values():
-        con.say(f"  {c.usage:<{width}}  {c.help}")
+    for line in help_table(COMMANDS.values()):
+        con.say(line)
+
+
+HELP_USAGE_COLUMN = 26
+"""Width of the usage column of ``help``; a longer usage gets a line of its own."""
+
+
+def help_table(commands, width: int | None = None) -> list[str]:
+    """``help``'s list: usage, then the explanation wrapped at whole words to the terminal's width
+    (at most 80 columns)."""
+    import shutil
+    import textwrap
+    if width is None:
+        width = min(80, shutil.get_terminal_size((80, 24)).columns)
+    col = HELP_USAGE_COLUMN
+    indent = " " * (col + 4)
+    out = []
+    for c in commands:
+        text = textwrap.wrap(c.help, width=width, initial_indent=indent, subsequent_indent=indent,
+                             break_long_words=False, break_on_hyphens=False)
+        if len(c.usage) <= col:
+            text[0] = f"  {c.usage:<{col}}  " + text[0][len(indent):]
+        else:
+            text = textwrap.wrap(c.usage, width=width, initial_indent="  ", subsequent_indent="    ",
+                                 break_long_words=False, break_on_hyphens=False) + text
+        out += text
+    return out
 
 
 def _help_param(con, name: str) -> None:
