@@ -429,3 +429,27 @@ def test_plot_with_a_display_but_no_window_backend_falls_back_to_png(board, con,
     assert out[-2].startswith("no plot window (cannot open a plot: matplotlib backend 'agg' cannot open a window")
     assert out[-1].startswith("plot open (agg)") and out[-1].endswith(str(tmp_path / "live.png"))
     assert run(con, "plot off") == ["plot closed"]
+
+
+def test_params_load_uses_a_hand_edited_value_and_says_so(con, tmp_path):
+    import json
+    f = tmp_path / "p.json"
+    run(con, f"params save {f}")
+    d = json.loads(f.read_text())
+    was = d["params"]["rule1_kp"]["value"]
+    d["params"]["rule1_kp"]["value"] = round(2 * was + 0.05, 3)           # edited by hand; raw left as it was
+    f.write_text(json.dumps(d))
+    out = run(con, f"params diff {f}")
+    assert any(ln.startswith(f"  rule1_kp: the file's value {d['params']['rule1_kp']['value']:g} ") and
+               "the value was edited, so it is used" in ln for ln in out), out
+    assert out[-1].startswith("1 difference between the board and"), out
+    out = run(con, f"params load {f}")
+    assert "(1 changed)" in out[-1], out
+    assert run(con, "get rule1_kp")[0].startswith(f"rule1_kp = {con.link.get('rule1_kp'):.6g}")
+    assert abs(con.link.get("rule1_kp") - (2 * was + 0.05)) <= con.link.param("rule1_kp").scale
+    d["params"]["rule1_kp"]["value"] = 1e9                                # beyond the board: nothing written
+    f.write_text(json.dumps(d))
+    before = con.link.get_raw("rule1_kp")
+    with pytest.raises(ConsoleError, match="rule1_kp = 1e\\+09 .* outside the board's range"):
+        run(con, f"params load {f}")
+    assert con.link.get_raw("rule1_kp") == before

@@ -377,6 +377,10 @@ def _params_file(con, sub: str, args) -> None:
     d = read_params_file(path)
     idiff = identity_differences(d["identity"], link.info)
     board = link.get_raw(*[e.name for e in ents])
+    byname = {e.name: e for e in ents}
+    fileraw, edited = _file_raws(link, d["params"], byname, path)
+    for note in edited:
+        con.say(note)
     fileps = d["params"]
     if sub == "diff":
         if idiff:
@@ -386,9 +390,9 @@ def _params_file(con, sub: str, args) -> None:
             if e.name not in fileps:
                 con.say(f"  {e.name}: board {_fmt_value(e, link._eng(e, board[e.name]))}{_unit(e)}, not in the file")
                 n += 1
-            elif fileps[e.name]["raw"] != board[e.name]:
+            elif fileraw[e.name] != board[e.name]:
                 con.say(f"  {e.name}: board {_fmt_value(e, link._eng(e, board[e.name]))}{_unit(e)}, file "
-                        f"{_fmt_value(e, link._eng(e, fileps[e.name]['raw']))}{_unit(e)}")
+                        f"{_fmt_value(e, link._eng(e, fileraw[e.name]))}{_unit(e)}")
                 n += 1
         extra = [k for k in fileps if k not in {e.name for e in ents}]
         for k in extra:
@@ -401,8 +405,7 @@ def _params_file(con, sub: str, args) -> None:
         raise ConsoleError(f"params load: nothing written: {path} was saved from another firmware ("
                            + "; ".join(idiff) + "); gains and scales may not fit this board: 'params diff' "
                            "shows the values, --force loads the parameters this board has")
-    byname = {e.name: e for e in ents}
-    todo = {k: v["raw"] for k, v in fileps.items() if k in byname}
+    todo = fileraw
     skipped = [k for k in fileps if k not in byname]
     bad = [f"{k} raw {r} outside {byname[k].min_raw}..{byname[k].max_raw}" for k, r in todo.items()
            if not byname[k].min_raw <= r <= byname[k].max_raw]
@@ -419,6 +422,34 @@ def _params_file(con, sub: str, args) -> None:
             changed += 1
     con.say(f"loaded {len(todo)} parameters from {path} ({changed} changed"
             + (f"; not on this board: {', '.join(skipped)}" if skipped else "") + "); 'save' keeps them in EEPROM")
+
+
+def _file_raws(link, fileps: dict, byname: dict, path) -> tuple[dict, list[str]]:
+    """The raw count of each parameter of a parameter file that this board has, and a note for
+    each whose ``value`` no longer matches its ``raw`` count: the value was edited by hand, so
+    the value is what is meant (converted at this board's scale, range-checked)."""
+    raws, notes = {}, []
+    for k, v in fileps.items():
+        e = byname.get(k)
+        if e is None:
+            continue
+        raw, val = v["raw"], v.get("value")
+        raws[k] = raw
+        if val is None:
+            continue
+        if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val):
+            raise ConsoleError(f"{path}: parameter {k!r}: value {val!r} is not a number; write it in "
+                               f"{e.unit} or restore the file from 'params save'")
+        if e.values or e.unit in ("enum", "code"):
+            same = val == raw
+        else:
+            same = abs(val - raw * e.scale) <= 0.5 * e.scale * (1 + 1e-9)
+        if not same:
+            raws[k] = link.to_raw(k, val)
+            notes.append(f"  {k}: the file's value {val:g}{_unit(e)} is not its raw count {raw} "
+                         f"({_fmt_value(e, link._eng(e, raw))}{_unit(e)}): the value was edited, so it is used "
+                         f"(raw {raws[k]})")
+    return raws, notes
 
 
 @command("get", "get <name>", "read a parameter or signal, with its unit and limits",
