@@ -239,7 +239,6 @@ CASES = {
     "console-run-fifo": (["console", "loop://", "--run", "s.txt"], _fifo("s.txt"),
                          r"session file s.txt is a FIFO \(named pipe\), not a file"),
     # --- console: argument parsing only
-    "console-no-url": (["console"], None, r"required: url"),
     "console-unknown-option": (["console", "loop://", "--colour"], None, r"unrecognized arguments: --colour"),
 }
 

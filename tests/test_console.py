@@ -453,3 +453,24 @@ def test_params_load_uses_a_hand_edited_value_and_says_so(con, tmp_path):
     with pytest.raises(ConsoleError, match="rule1_kp = 1e\\+09 .* outside the board's range"):
         run(con, f"params load {f}")
     assert con.link.get_raw("rule1_kp") == before
+
+
+def test_console_without_a_url_lists_the_serial_ports(monkeypatch, capsys):
+    from serial.tools import list_ports, list_ports_common
+    from picdrive import cli
+    usb = list_ports_common.ListPortInfo("/dev/ttyUSB0", skip_link_detection=True)
+    usb.description, usb.manufacturer, usb.hwid = "FT232R USB UART", "FTDI", "USB VID:PID=0403:6001"
+    acm = list_ports_common.ListPortInfo("/dev/ttyACM0", skip_link_detection=True)
+    monkeypatch.setattr(list_ports, "comports", lambda: [usb, acm])
+    assert cli.main(["console"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out == ["no URL given; serial ports found:",
+                   "  /dev/ttyACM0",
+                   "  /dev/ttyUSB0  (FT232R USB UART, FTDI, USB VID:PID=0403:6001)",
+                   "connect with: picdrive console /dev/ttyACM0   (or socket://127.0.0.1:PORT of a running "
+                   "'picdrive twin')"]
+    monkeypatch.setattr(list_ports, "comports", lambda: [])
+    assert cli.main(["console"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("no URL given, and no serial port found (is the USB-serial adapter plugged in") and \
+        "connect with: picdrive console /dev/ttyUSB0" in out

@@ -798,7 +798,7 @@ def register(subparsers) -> None:
         "console", help="the bench console: speeds, gains, live plots, step tests, recording",
         description="Serial tuning console on any pyserial URL: /dev/ttyUSB0, COM5, or "
                     "socket://127.0.0.1:PORT of a running 'picdrive twin'.")
-    p.add_argument("url", help="serial URL of the board or the twin")
+    p.add_argument("url", nargs="?", help="serial URL of the board or the twin (none: list the serial ports)")
     p.add_argument("--profile", help="local drive profile (name or path) to compare with the board's")
     p.add_argument("--run", metavar="SESSION.TXT",
                    help="run the commands of a file, then exit (non-zero on the first error)")
@@ -820,8 +820,28 @@ def _connect_hint(url: str, e) -> str:
     return str(e)
 
 
+def serial_ports_text() -> str:
+    """What ``picdrive console`` without a URL prints: the serial ports pyserial finds, and how to
+    connect."""
+    from serial.tools import list_ports
+    ports = sorted(list_ports.comports(), key=lambda p: p.device)
+    lines = ["no URL given; serial ports found:" if ports else "no URL given, and no serial port found "
+             "(is the USB-serial adapter plugged in, and are you allowed to open it? on Linux: the "
+             "'dialout' group)"]
+    for p in ports:
+        what = ", ".join(x for x in (p.description if p.description != "n/a" else "", p.manufacturer or "",
+                                     p.hwid if p.hwid != "n/a" else "") if x)
+        lines.append(f"  {p.device}" + (f"  ({what})" if what else ""))
+    lines.append("connect with: picdrive console " + (ports[0].device if ports else "/dev/ttyUSB0") +
+                 "   (or socket://127.0.0.1:PORT of a running 'picdrive twin')")
+    return "\n".join(lines)
+
+
 def main(args) -> int:
     from ..link.client import LinkError
+    if args.url is None:
+        print(serial_ports_text())
+        return 0
     profile = None
     if args.profile:
         from ..profile import load_profile
