@@ -67,6 +67,14 @@ def _files(**files):
     return setup
 
 
+def _symlink(name: str, target: str):
+    """setup: a folder ``target`` and a symbolic link ``name`` to it."""
+    def setup(d: Path):
+        (d / target).mkdir()
+        os.symlink(target, d / name)
+    return setup
+
+
 def _fifo(name: str):
     """setup: a FIFO (named pipe) called ``name``: reading it would wait for a writer for ever."""
     return lambda d: os.mkfifo(d / name)
@@ -188,7 +196,11 @@ CASES = {
     "firmware-o-foreign-folder": (FW + ["-o", "foreign"], _files(**FOREIGN),
                                   r"foreign is not empty and was not written by picdrive"),
     "firmware-o-dot": (FW + ["-o", "."], None, r"\. is the current folder.*name a new subfolder"),
-    "firmware-o-proc": (FW + ["-o", "/proc/picdrive-nope"], None, r"cannot write in /proc"),
+    "firmware-o-proc": (FW + ["-o", "/proc/picdrive-nope"], None,
+                        r"cannot write in /proc \(it takes no new files: a virtual file system"),
+    "firmware-o-symlink-to-folder": (FW + ["-o", "link"], _symlink("link", "realdir"),
+                                     r"firmware folder link is a symbolic link \(to realdir\).*give the folder "
+                                     r"itself or a new path"),
     "firmware-o-parent-is-file": (FW + ["-o", "afile/fw"], _files(afile="x"), r"afile is a file, not a folder"),
     "firmware-bad-hall-input": (FW + ["--hall-input", "adc"], None, r"--hall-input: invalid choice: 'adc'"),
     # --- report
@@ -208,6 +220,9 @@ CASES = {
     "twin-speed-nan": (TWIN + ["--speed", "nan"], None, r"--speed: 'nan' is not a finite number"),
     "twin-eeprom-wrong-size": (TWIN + ["--eeprom", "ee.bin"], _files(ee_bin=b"\x00" * 10),
                                r"ee.bin: expected a 256-byte EEPROM image, found 10 bytes"),
+    "twin-firmware-is-a-file": (["twin", "--profile", "duy2008", "--firmware", "fw.txt"], _files(fw_txt="int x;"),
+                                r"firmware folder fw.txt is a file, not a folder: give the folder 'picdrive firmware' "
+                                r"wrote"),
     "twin-eeprom-proc": (TWIN + ["--eeprom", "/proc/picdrive-nope/ee.bin"], None, r"cannot write in /proc"),
     "twin-eeprom-parent-is-file": (TWIN + ["--eeprom", "afile/ee.bin"], _files(afile="x"),
                                    r"afile is a file, not a folder"),
