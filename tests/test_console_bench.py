@@ -61,6 +61,20 @@ def _env():
     return env
 
 
+def _spawn_console(url, tmp_path):
+    """An interactive console on a terminal (pexpect, a dev dependency: missing is a failure)."""
+    import pexpect
+    return pexpect.spawn(sys.executable, ["-m", "picdrive", "console", url, "--history", str(tmp_path / "h")],
+                         env=_env(), encoding="utf-8", timeout=20, dimensions=(40, 250))
+
+
+def _quit(ch):
+    """Leave the console with 'quit' and see it end."""
+    import pexpect
+    ch.send("quit\r")
+    ch.expect(pexpect.EOF)
+
+
 def _cli(url, *args, timeout=90, cwd=None):
     return subprocess.run([sys.executable, "-m", "picdrive", "console", url, *args], capture_output=True,
                           text=True, timeout=timeout, env=_env(), cwd=cwd)
@@ -124,12 +138,10 @@ def _check_partial_step(csv: Path):
 
 
 def test_ctrl_c_at_the_prompt_stops_the_motor_and_keeps_the_step_data(twin, tmp_path):
-    import pexpect                     # a dev dependency (pyproject): missing is a failure
     tw, srv = twin
     _idle(srv.url)
     png = tmp_path / "cut.png"
-    ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", srv.url, "--history", str(tmp_path / "h")],
-                       env=_env(), encoding="utf-8", timeout=20, dimensions=(40, 250))
+    ch = _spawn_console(srv.url, tmp_path)
     try:
         ch.expect("picdrive> ")
         ch.send(f"step 0 2400 --hold 30 --png {png}\r")
@@ -142,8 +154,7 @@ def test_ctrl_c_at_the_prompt_stops_the_motor_and_keeps_the_step_data(twin, tmp_
         ch.send("status\r")
         ch.expect("state idle, fault none")          # the console stopped it, not the watchdog
         ch.expect("picdrive> ")
-        ch.send("quit\r")
-        ch.expect(pexpect.EOF)
+        _quit(ch)
     finally:
         ch.close(force=True)
     _check_partial_step(png.with_suffix(".csv"))
@@ -219,12 +230,10 @@ def test_sigterm_stops_the_motor_and_saves_the_recording(twin, tmp_path):
 
 
 def test_closing_the_terminal_stops_the_motor_and_saves_the_recording(twin, tmp_path):
-    import pexpect                     # a dev dependency (pyproject): missing is a failure
     tw, srv = twin
     _idle(srv.url, tw)
     csv = tmp_path / "rec.csv"
-    ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", srv.url, "--history", str(tmp_path / "h")],
-                       env=_env(), encoding="utf-8", timeout=20, dimensions=(40, 250))
+    ch = _spawn_console(srv.url, tmp_path)
     try:
         ch.expect("picdrive> ")
 
@@ -244,11 +253,9 @@ def test_closing_the_terminal_stops_the_motor_and_saves_the_recording(twin, tmp_
 
 
 def test_ctrl_c_at_the_idle_prompt_stops_a_running_motor(twin, tmp_path):
-    import pexpect                     # a dev dependency (pyproject): missing is a failure
     tw, srv = twin
     _idle(srv.url, tw)
-    ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", srv.url, "--history", str(tmp_path / "h")],
-                       env=_env(), encoding="utf-8", timeout=20, dimensions=(40, 250))
+    ch = _spawn_console(srv.url, tmp_path)
     try:
         ch.expect("picdrive> ")
         for line in ("speed 1500", "start"):
@@ -264,8 +271,7 @@ def test_ctrl_c_at_the_idle_prompt_stops_a_running_motor(twin, tmp_path):
         ch.sendintr()                                # nothing driven: only the hint
         ch.expect(r"\^C \(type 'quit' to leave\)")
         ch.expect("picdrive> ")
-        ch.send("quit\r")
-        ch.expect(pexpect.EOF)
+        _quit(ch)
     finally:
         ch.close(force=True)
 
@@ -460,6 +466,7 @@ def test_parameters_explained_checked_and_kept(twin, tmp_path):
     d = json.loads(f.read_text())
     d["identity"]["table_hash"] = "0x12345678"
     d["params"]["rule1_kc"]["raw"] += 8
+    d["params"]["rule1_kc"]["value"] += 8 * kcs             # value and raw agree: no hand edit
     other = tmp_path / "other.params.json"
     other.write_text(json.dumps(d))
     s.write_text(f"params load {other}\n")
@@ -473,11 +480,9 @@ def test_parameters_explained_checked_and_kept(twin, tmp_path):
 
 
 def test_view_keeps_a_typed_command_and_ctrl_c_stops_the_motor(twin, tmp_path):
-    import pexpect                     # a dev dependency (pyproject): missing is a failure
     tw, srv = twin
     _idle(srv.url)
-    ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", srv.url, "--history", str(tmp_path / "h")],
-                       env=_env(), encoding="utf-8", timeout=20, dimensions=(40, 250))
+    ch = _spawn_console(srv.url, tmp_path)
     try:
         ch.expect("picdrive> ")
         ch.send("speed 1000\r")
@@ -496,8 +501,7 @@ def test_view_keeps_a_typed_command_and_ctrl_c_stops_the_motor(twin, tmp_path):
         ch.sendintr()
         ch.expect(r"error: view: interrupted \(Ctrl-C\); motor stopped \(outputs off\)")
         ch.expect("picdrive> ")
-        ch.send("quit\r")
-        ch.expect(pexpect.EOF)
+        _quit(ch)
     finally:
         ch.close(force=True)
     assert _board_state(srv.url) == (P.State.IDLE, P.Fault.NONE)

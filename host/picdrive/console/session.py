@@ -659,7 +659,7 @@ class Console:
 
     def close(self) -> None:
         """Stop the motor, stop background work, save an open recording, close the plot and the link."""
-        why = f"{self.terminating} received" if self.terminating else "leaving the console"
+        why = f"outputs off; {self.terminating} received" if self.terminating else "leaving the console"
         if self.link is not None:            # the motor first: the rest may be slow or fail
             from ..link import protocol as P
             from ..link.client import LinkError
@@ -667,7 +667,7 @@ class Console:
                 try:
                     if self.link.status().state in (P.State.RUN, P.State.BRAKE):
                         self.link.stop()
-                        self.say(f"motor stopped (outputs off; {why})")
+                        self.say(f"motor stopped ({why})")
                     break
                 except KeyboardInterrupt:
                     continue
