@@ -5,6 +5,7 @@ import json
 import signal
 import subprocess
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -305,5 +306,11 @@ def test_a_second_client_is_refused_with_a_message_and_the_first_keeps_the_board
             assert srv.status()["clients_refused"] == 2
             with Link.open(srv.url) as third:                          # the board is free again
                 assert third.status().uptime_ms > 0
+            # a client closing as the next opens: the next one waits for it instead of being refused
+            first = Link.open(srv.url)
+            threading.Timer(0.1, first.close).start()
+            with Link.open(srv.url) as fourth:
+                assert fourth.status().uptime_ms > 0
+            assert srv.status()["clients_refused"] == 2
     finally:
         tw.close()

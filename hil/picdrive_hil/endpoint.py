@@ -3,8 +3,9 @@ and optionally a pseudo-terminal, so ``picdrive.link``, ``picdrive console``
 and any pyserial program open the virtual board exactly as a COM port.
 
 One client at a time on the socket, as a COM port can only be opened once: a
-second connection is refused at once with a text line saying so
-(``picdrive twin: busy: ...``, then closed); the pty is always there.  Bytes from the client enter the board's EUSART at the host's baud
+second connection is refused with a text line saying so (``picdrive twin:
+busy: ...``, then closed), unless the first leaves within half a second; the
+pty is always there.  Bytes from the client enter the board's EUSART at the host's baud
 rate, one frame time each; bytes the board sends reach the client once they
 have left the wire.
 
@@ -58,6 +59,7 @@ KERNEL_QUEUE_BYTES = 4096     # at most this much unsent in the client socket's 
 #                               is left there for the last frame and the disconnect notice
 CLIENT_BACKLOG_BYTES = 32768  # board output held for a client that does not read, then it is dropped
 #                               (about 3 s of a 115 200-baud line, far beyond any host's hiccup)
+SECOND_CLIENT_WAIT_S = 0.5    # a second connection waits this long for the first to leave
 NEW_CLIENT_S = 0.2            # a refused connection's notice waits this long for its first bytes
 HANG_UP_S = 2.0               # how long a hung-up client's input is drained before the socket closes
 NOTICE = b"\x00picdrive twin: "   # a text line to the client: after a delimiter, ended by a newline
@@ -113,6 +115,7 @@ class TwinServer:
         self._pend_sock = b""           # read from the client, not yet accepted by the twin (queue full)
         self._out = bytearray()         # board output not yet handed to the client's socket
         self._hanging: list = []        # (socket, deadline) told why and closing: see _hang_up
+        self._waiting = None            # (socket, address, deadline) of a second connection: see _accept
         self.clients_refused = 0        # connections refused because another client was connected
         self.clients_dropped_slow = 0   # clients disconnected because they stopped reading
         self._pend_pty = b""
@@ -142,7 +145,7 @@ class TwinServer:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
-        for s in [self._client, self._lsock] + [h[0] for h in self._hanging]:
+        for s in [self._client, self._lsock] + [h[0] for h in self._hanging] + ([self._waiting[0]] if self._waiting else []):
             if s is not None:
                 try:
                     s.close()
@@ -181,31 +184,39 @@ class TwinServer:
 
     # -- the loop ------------------------------------------------------------------
     def _accept(self) -> None:
+        """Take a new connection: the client if there is none; else it waits ``SECOND_CLIENT_WAIT_S``
+        for the present one to leave (a client closing as the next opens: its last bytes may still
+        be queued ahead of its end), then is refused with a notice."""
+        w = self._waiting
+        if w is not None and (self._client is None or time.monotonic() > w[2]):
+            self._waiting = None
+            if self._client is None:
+                self._take(w[0], w[1])
+            else:
+                self._refuse(w[0], w[1])
         try:
             c, addr = self._lsock.accept()
         except (BlockingIOError, InterruptedError):
             return
-        if self._client is not None and not self._client_gone():
-            self.clients_refused += 1
-            self.log(f"refused a second client from {addr[0]}:{addr[1]}: another client is connected")
-            c.setblocking(False)
-            self._hang_up(c, b"busy: another client is connected to this twin, which serves one at a time "
-                             b"like a serial port; close that one, or start a second twin on another port", new=True)
-            return
         c.setblocking(False)
+        if self._client is None:
+            self._take(c, addr)
+        elif self._waiting is None:
+            self._waiting = (c, addr, time.monotonic() + SECOND_CLIENT_WAIT_S)
+        else:
+            self._refuse(c, addr)
+
+    def _take(self, c: socket.socket, addr) -> None:
         c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._client = c
         self._out.clear()
         self.log(f"client connected from {addr[0]}:{addr[1]}")
 
-    def _client_gone(self) -> bool:
-        """The connected client has closed its end (so a new one may take its place)."""
-        try:
-            return self._client.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
-        except (BlockingIOError, InterruptedError):
-            return False
-        except OSError:
-            return True
+    def _refuse(self, c: socket.socket, addr) -> None:
+        self.clients_refused += 1
+        self.log(f"refused a second client from {addr[0]}:{addr[1]}: another client is connected")
+        self._hang_up(c, b"busy: another client is connected to this twin, which serves one at a time "
+                         b"like a serial port; close that one, or start a second twin on another port", new=True)
 
     def _hang_up(self, c: socket.socket, notice: bytes, *, new: bool = False) -> None:
         """Send a client a notice line and close it.  What it sends meanwhile is read and discarded
@@ -402,7 +413,7 @@ class TwinServer:
 
     def _wait_io(self, timeout: float) -> None:
         fds = [self._lsock]
-        if self._client is not None and not self._pend_sock:                  # bytes waiting for room: do not wake on more
+        if self._client is not None and not self._pend_sock:    # bytes waiting for room: do not wake on more
             fds.append(self._client)
         if self._pty_master is not None and not self._pend_pty:
             fds.append(self._pty_master)
