@@ -860,7 +860,11 @@ def main(args) -> int:
         raise ConsoleError(f"cannot connect to {args.url}: {_connect_hint(args.url, e)}") from None
     # the terminal closed (SIGHUP) or the console killed (SIGTERM): stop the motor and keep the
     # recording, as 'quit' does, instead of dying with the motor driven until the watchdog trips
-    before = {s: signal.signal(s, con.on_stop_signal) for s in STOP_SIGNALS}
+    before = {}
+    try:
+        before = {s: signal.signal(s, con.on_stop_signal) for s in STOP_SIGNALS}
+    except ValueError:                      # not the main thread (embedded): the caller handles signals
+        pass
     try:
         if args.run:
             return con.run_script(args.run, script)
