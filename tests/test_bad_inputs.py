@@ -67,9 +67,32 @@ def _files(**files):
     return setup
 
 
+def _symlink(name: str, target: str):
+    """setup: a folder ``target`` and a symbolic link ``name`` to it."""
+    def setup(d: Path):
+        (d / target).mkdir()
+        os.symlink(target, d / name)
+    return setup
+
+
+def _fifo(name: str):
+    """setup: a FIFO (named pipe) called ``name``: reading it would wait for a writer for ever."""
+    return lambda d: os.mkfifo(d / name)
+
+
 def _kp(value):
     d = _design_dict()
     d["law"]["rules"][0]["kp"] = value
+    return d
+
+
+def _resigned(**gains):
+    """The ZN design with rule 1's gains edited and the signature recomputed (the file's own
+    integrity check passes: only a plausibility check can refuse it)."""
+    from picdrive.result import content_signature
+    d = _design_dict()
+    d["law"]["rules"][0].update(gains)
+    d["signature"] = content_signature(d)
     return d
 
 
@@ -148,12 +171,23 @@ CASES = {
                                     _files(d_json=_kp("0.5")), r"rule 1 kp = \"0.5\" is not a finite number"),
     "firmware-design-hand-edited": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
                                     _files(d_json=_kp(-0.5)), r"changed after picdrive verified it.*re-run 'picdrive design'"),
+    "firmware-design-resigned-kp-negative": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
+                                             _files(d_json=_resigned(kp=-0.5)),
+                                             r"rule 1 kp = -0.5 V/\(rad/s\) is outside the plausible range \[0, 421.7\] "
+                                             r"V/\(rad/s\) on this drive \(421.7 saturates the bridge: 44.16 V from a "
+                                             r"1 rpm error\) \(a negative gain is positive feedback.*edited and re-signed"),
+    "firmware-design-resigned-kp-huge": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
+                                         _files(d_json=_resigned(kp=1e6)),
+                                         r"rule 1 kp = 1e\+06 V/\(rad/s\) is outside the plausible range \[0, 421.7\]"),
+    "firmware-design-resigned-ki-huge": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
+                                         _files(d_json=_resigned(ki=1e6)),
+                                         r"rule 1 ki = 1e\+06 V/rad .*\[0, 4.217e\+05\].*1 rpm error in one 1 ms sample"),
     "firmware-design-unsigned": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
                                  _files(d_json=_unsigned()), r"has no signature.*re-run 'picdrive design'"),
     "firmware-design-not-json": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
                                  _files(d_json="{kp: 1"), r"d.json is not valid JSON"),
     "firmware-design-not-utf8": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
-                                 _files(d_json=b'{"kp": "\xb5"}'), r"d.json is not UTF-8"),
+                                 _files(d_json=b'{"kp": "\xb5"}'), r"d.json: line 1: byte 0xB5 is not UTF-8"),
     "firmware-design-profile-string": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"],
                                        _files(d_json={**_design_dict(), "profile": "duy2008"}),
                                        r"design field 'profile' = \"duy2008\": expected a JSON object"),
@@ -162,7 +196,11 @@ CASES = {
     "firmware-o-foreign-folder": (FW + ["-o", "foreign"], _files(**FOREIGN),
                                   r"foreign is not empty and was not written by picdrive"),
     "firmware-o-dot": (FW + ["-o", "."], None, r"\. is the current folder.*name a new subfolder"),
-    "firmware-o-proc": (FW + ["-o", "/proc/picdrive-nope"], None, r"cannot write in /proc"),
+    "firmware-o-proc": (FW + ["-o", "/proc/picdrive-nope"], None,
+                        r"cannot write in /proc \(it takes no new files: a virtual file system"),
+    "firmware-o-symlink-to-folder": (FW + ["-o", "link"], _symlink("link", "realdir"),
+                                     r"firmware folder link is a symbolic link \(to realdir\).*give the folder "
+                                     r"itself or a new path"),
     "firmware-o-parent-is-file": (FW + ["-o", "afile/fw"], _files(afile="x"), r"afile is a file, not a folder"),
     "firmware-bad-hall-input": (FW + ["--hall-input", "adc"], None, r"--hall-input: invalid choice: 'adc'"),
     # --- report
@@ -182,6 +220,9 @@ CASES = {
     "twin-speed-nan": (TWIN + ["--speed", "nan"], None, r"--speed: 'nan' is not a finite number"),
     "twin-eeprom-wrong-size": (TWIN + ["--eeprom", "ee.bin"], _files(ee_bin=b"\x00" * 10),
                                r"ee.bin: expected a 256-byte EEPROM image, found 10 bytes"),
+    "twin-firmware-is-a-file": (["twin", "--profile", "duy2008", "--firmware", "fw.txt"], _files(fw_txt="int x;"),
+                                r"firmware folder fw.txt is a file, not a folder: give the folder 'picdrive firmware' "
+                                r"wrote"),
     "twin-eeprom-proc": (TWIN + ["--eeprom", "/proc/picdrive-nope/ee.bin"], None, r"cannot write in /proc"),
     "twin-eeprom-parent-is-file": (TWIN + ["--eeprom", "afile/ee.bin"], _files(afile="x"),
                                    r"afile is a file, not a folder"),
@@ -191,8 +232,28 @@ CASES = {
                                r"load profile l.csv: line 3 '0.5,abc' is not a row 't_s,torque_n_m'"),
     "twin-profile-not-utf8": (["twin", "--profile", "c.toml", "--firmware", str(FIRMWARE)], _files(c_toml=CP1252),
                               r"not UTF-8"),
+    # --- inputs read with a type check and a size bound; a profile checked for plausibility first
+    "design-profile-dev-zero": (["design", "--profile", "/dev/zero", "--method", "zn"], None,
+                                r"profile /dev/zero is a character device, not a file: give the path of a profile"),
+    "design-profile-fifo": (["design", "--profile", "p.toml", "--method", "zn"], _fifo("p.toml"),
+                            r"profile p.toml is a FIFO \(named pipe\), not a file"),
+    "design-profile-huge": (["design", "--profile", "h.toml", "--method", "zn"], _files(h_toml="#" * (2 << 20)),
+                            r"profile h.toml is larger than 1024 KiB.*right file"),
+    "design-profile-inertia-unit-slip": (["design", "--profile", "j.toml", "--method", "fuzzy-hinf"],
+                                         _files(j_toml=_duy(inertia_kg_m2="0.03")),
+                                         r"'motor.inertia_kg_m2' = 0.03 kg m\^2 is implausible.*fastest step from "
+                                         r"rest to 2400 rpm takes 37.7 s \(mechanical time constant .* = 31 s\).*"
+                                         r"simulate 226 s in 4.53e\+06 PWM periods \(about 159 MiB.*kg cm\^2 .*"
+                                         r"J = 3e-06 kg m\^2\) or g cm\^2"),
+    "firmware-design-fifo": (["firmware", "--profile", "duy2008", "--design", "d.json", "-o", "fw"], _fifo("d.json"),
+                             r"design file d.json is a FIFO \(named pipe\), not a file"),
+    "console-run-binary": (["console", "loop://", "--run", "b.txt"], _files(b_txt=b"\x89PNG\r\n\x1a\n\xff\x00"),
+                           r"session file b.txt: line 1: byte 0x89 is not UTF-8.*binary file"),
+    "console-run-dev-null": (["console", "loop://", "--run", "/dev/null"], None,
+                             r"session file /dev/null is a character device, not a file"),
+    "console-run-fifo": (["console", "loop://", "--run", "s.txt"], _fifo("s.txt"),
+                         r"session file s.txt is a FIFO \(named pipe\), not a file"),
     # --- console: argument parsing only
-    "console-no-url": (["console"], None, r"required: url"),
     "console-unknown-option": (["console", "loop://", "--colour"], None, r"unrecognized arguments: --colour"),
 }
 
@@ -204,6 +265,9 @@ def _tree(d: Path) -> dict:
             out[os.path.relpath(os.path.join(root, n), d)] = "dir"
         for n in files:
             p = os.path.join(root, n)
+            if not os.path.isfile(p):              # a FIFO: opening it would wait for a writer
+                out[os.path.relpath(p, d)] = "special"
+                continue
             out[os.path.relpath(p, d)] = hashlib.sha256(open(p, "rb").read()).hexdigest()
     return out
 
@@ -226,10 +290,13 @@ def _run_case(base: Path, cid: str):
 
 
 @pytest.fixture(scope="module")
-def results(tmp_path_factory):
+def results(request, tmp_path_factory):
     base = tmp_path_factory.mktemp("bad")
+    # only the cases this run selected (-k), all of them concurrently
+    chosen = [it.callspec.params["cid"] for it in request.session.items
+              if it.module is request.module and "cid" in getattr(getattr(it, "callspec", None), "params", {})]
     with ThreadPoolExecutor(max_workers=4) as ex:
-        futs = {cid: ex.submit(_run_case, base, cid) for cid in CASES}
+        futs = {cid: ex.submit(_run_case, base, cid) for cid in chosen}
         return {cid: f.result() for cid, f in futs.items()}
 
 

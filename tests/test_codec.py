@@ -296,3 +296,24 @@ def test_param_info_decode():
 def test_codec_errors_name_the_problem(call, words):
     with pytest.raises(ProtocolError, match=words):
         call()
+
+
+@pytest.mark.parametrize("chunk", [4096, 5_000_000])
+def test_five_megabytes_without_a_delimiter_are_not_held(chunk):
+    """Bounded like the firmware's receive buffer: bytes past the longest encoded frame are
+    dropped as they arrive, the candidate counts as one error at its delimiter, and the next
+    frame decodes."""
+    d = codec.StreamDecoder()
+    noise = bytes(range(1, 256)) * (5_000_000 // 255)
+    held = 0
+    for k in range(0, len(noise), chunk):
+        assert d.feed(noise[k:k + chunk]) == []
+        held = max(held, d.pending)
+    assert held <= P.RX_BUFFER_BYTES and d.partial
+    f = codec.Frame(0x81, 7, b"\x01\x02")
+    assert d.feed(codec.encode_frame(f.type, f.seq, f.payload, lead=True)) == [f]
+    assert d.crc_errors == 1 and not d.partial and d.pending == 0
+    # an oversize candidate cut by a gap: the frame after it (no leading delimiter) decodes
+    d.feed(noise[:1000])
+    d.gap()
+    assert d.feed(f.encode()) == [f]

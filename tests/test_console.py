@@ -308,9 +308,21 @@ def test_unknown_command_and_usage_errors(con):
     with pytest.raises(ConsoleError, match="cannot parse"):
         run(con, 'set "x')
     assert con.run_line("frobnicate") is False and con.lines[-1].startswith("error: unknown command")
-    out = run(con, "help")
-    assert len(out) == len(__import__("picdrive.console.commands", fromlist=["COMMANDS"]).COMMANDS)
     assert run(con, "help step")[0].startswith("step <from> <to>")
+
+
+def test_help_fits_80_columns_and_finds_a_parameter_by_a_part_of_its_name(con):
+    from picdrive.console.commands import COMMANDS
+    out = run(con, "help")
+    assert max(map(len, out)) <= 80, max(out, key=len)
+    flat = " ".join(" ".join(out).split())
+    for c in COMMANDS.values():                      # every explanation whole: wrapped between words
+        assert " ".join(c.help.split()) in flat, c.name
+        assert any(ln.startswith("  " + c.usage.split()[0]) for ln in out), c.name
+    out = run(con, "help kc")
+    assert out[0] == "kc: see rule1_kc, rule2_kc"
+    assert [ln.split(":")[0] for ln in out if ln.startswith("rule")] == ["rule1_kc", "rule2_kc"]
+    assert "Current-feedback gain of rule 1" in out[2]
 
 
 def test_link_lost_and_regained(board, con):
@@ -417,3 +429,48 @@ def test_plot_with_a_display_but_no_window_backend_falls_back_to_png(board, con,
     assert out[-2].startswith("no plot window (cannot open a plot: matplotlib backend 'agg' cannot open a window")
     assert out[-1].startswith("plot open (agg)") and out[-1].endswith(str(tmp_path / "live.png"))
     assert run(con, "plot off") == ["plot closed"]
+
+
+def test_params_load_uses_a_hand_edited_value_and_says_so(con, tmp_path):
+    import json
+    f = tmp_path / "p.json"
+    run(con, f"params save {f}")
+    d = json.loads(f.read_text())
+    was = d["params"]["rule1_kp"]["value"]
+    d["params"]["rule1_kp"]["value"] = round(2 * was + 0.05, 3)           # edited by hand; raw left as it was
+    f.write_text(json.dumps(d))
+    out = run(con, f"params diff {f}")
+    assert any(ln.startswith(f"  rule1_kp: the file's value {d['params']['rule1_kp']['value']:g} ") and
+               "the value was edited, so it is used" in ln for ln in out), out
+    assert out[-1].startswith("1 difference between the board and"), out
+    out = run(con, f"params load {f}")
+    assert "(1 changed)" in out[-1], out
+    assert run(con, "get rule1_kp")[0].startswith(f"rule1_kp = {con.link.get('rule1_kp'):.6g}")
+    assert abs(con.link.get("rule1_kp") - (2 * was + 0.05)) <= con.link.param("rule1_kp").scale
+    d["params"]["rule1_kp"]["value"] = 1e9                                # beyond the board: nothing written
+    f.write_text(json.dumps(d))
+    before = con.link.get_raw("rule1_kp")
+    with pytest.raises(ConsoleError, match="rule1_kp = 1e\\+09 .* outside the board's range"):
+        run(con, f"params load {f}")
+    assert con.link.get_raw("rule1_kp") == before
+
+
+def test_console_without_a_url_lists_the_serial_ports(monkeypatch, capsys):
+    from serial.tools import list_ports, list_ports_common
+    from picdrive import cli
+    usb = list_ports_common.ListPortInfo("/dev/ttyUSB0", skip_link_detection=True)
+    usb.description, usb.manufacturer, usb.hwid = "FT232R USB UART", "FTDI", "USB VID:PID=0403:6001"
+    acm = list_ports_common.ListPortInfo("/dev/ttyACM0", skip_link_detection=True)
+    monkeypatch.setattr(list_ports, "comports", lambda: [usb, acm])
+    assert cli.main(["console"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out == ["no URL given; serial ports found:",
+                   "  /dev/ttyACM0",
+                   "  /dev/ttyUSB0  (FT232R USB UART, FTDI, USB VID:PID=0403:6001)",
+                   "connect with: picdrive console /dev/ttyACM0   (or socket://127.0.0.1:PORT of a running "
+                   "'picdrive twin')"]
+    monkeypatch.setattr(list_ports, "comports", lambda: [])
+    assert cli.main(["console"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("no URL given, and no serial port found (is the USB-serial adapter plugged in") and \
+        "connect with: picdrive console /dev/ttyUSB0" in out

@@ -61,6 +61,20 @@ def _env():
     return env
 
 
+def _spawn_console(url, tmp_path):
+    """An interactive console on a terminal (pexpect, a dev dependency: missing is a failure)."""
+    import pexpect
+    return pexpect.spawn(sys.executable, ["-m", "picdrive", "console", url, "--history", str(tmp_path / "h")],
+                         env=_env(), encoding="utf-8", timeout=20, dimensions=(40, 250))
+
+
+def _quit(ch):
+    """Leave the console with 'quit' and see it end."""
+    import pexpect
+    ch.send("quit\r")
+    ch.expect(pexpect.EOF)
+
+
 def _cli(url, *args, timeout=90, cwd=None):
     return subprocess.run([sys.executable, "-m", "picdrive", "console", url, *args], capture_output=True,
                           text=True, timeout=timeout, env=_env(), cwd=cwd)
@@ -124,12 +138,10 @@ def _check_partial_step(csv: Path):
 
 
 def test_ctrl_c_at_the_prompt_stops_the_motor_and_keeps_the_step_data(twin, tmp_path):
-    import pexpect                     # a dev dependency (pyproject): missing is a failure
     tw, srv = twin
     _idle(srv.url)
     png = tmp_path / "cut.png"
-    ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", srv.url, "--history", str(tmp_path / "h")],
-                       env=_env(), encoding="utf-8", timeout=20, dimensions=(40, 250))
+    ch = _spawn_console(srv.url, tmp_path)
     try:
         ch.expect("picdrive> ")
         ch.send(f"step 0 2400 --hold 30 --png {png}\r")
@@ -142,8 +154,7 @@ def test_ctrl_c_at_the_prompt_stops_the_motor_and_keeps_the_step_data(twin, tmp_
         ch.send("status\r")
         ch.expect("state idle, fault none")          # the console stopped it, not the watchdog
         ch.expect("picdrive> ")
-        ch.send("quit\r")
-        ch.expect(pexpect.EOF)
+        _quit(ch)
     finally:
         ch.close(force=True)
     _check_partial_step(png.with_suffix(".csv"))
@@ -168,6 +179,101 @@ def test_ctrl_c_in_a_script_does_the_same(twin, tmp_path):
     assert "picdrive> speed 100" not in out
     assert _board_state(srv.url) == (P.State.IDLE, P.Fault.NONE)
     _check_partial_step(png.with_suffix(".csv"))
+
+
+def _running_with_a_recording(tw, send, csv):
+    """Drive the motor at 1500 rpm with a recording running; returns once it turns."""
+    send("speed 1500")
+    send("start")
+    send(f"record {csv}")
+    _until(lambda: _rpm(tw) > 1000, "the motor running")
+
+
+def _stopped_by_the_console(srv, t_signal):
+    """The board idle with no fault latched: stopped by the console, not by its watchdog (which
+    latches LINK_LOST after link_timeout, 5 s here) or by nothing at all."""
+    state = _board_state(srv.url)
+    assert state == (P.State.IDLE, P.Fault.NONE), state
+    assert time.monotonic() - t_signal < 4.0, "the stop came no sooner than the board's watchdog would"
+
+
+def _recording_kept(csv):
+    rec = read_recording(csv)
+    assert len(rec.column("t_s")) > 10 and np.max(rec.column("speed")) > 500
+
+
+def test_sigterm_stops_the_motor_and_saves_the_recording(twin, tmp_path):
+    tw, srv = twin
+    _idle(srv.url, tw)
+    csv = tmp_path / "rec.csv"
+    p = subprocess.Popen([sys.executable, "-m", "picdrive", "console", srv.url, "--history", str(tmp_path / "h")],
+                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env=_env())
+
+    def send(line):
+        p.stdin.write(line + "\n")
+        p.stdin.flush()
+    try:
+        _running_with_a_recording(tw, send, csv)
+        time.sleep(0.2)                              # some samples in the recording
+        p.send_signal(signal.SIGTERM)
+        t_signal = time.monotonic()
+        out, err = p.communicate(timeout=30)         # stdin stays open: not a Ctrl-D
+    finally:
+        p.kill()
+    assert p.returncode == 128 + signal.SIGTERM, err
+    assert "motor stopped (outputs off; SIGTERM received)" in out, out
+    assert "recording saved to " + str(csv) in out and "console ended by SIGTERM" in out
+    assert "Traceback" not in err, err
+    _stopped_by_the_console(srv, t_signal)
+    _recording_kept(csv)
+
+
+def test_closing_the_terminal_stops_the_motor_and_saves_the_recording(twin, tmp_path):
+    tw, srv = twin
+    _idle(srv.url, tw)
+    csv = tmp_path / "rec.csv"
+    ch = _spawn_console(srv.url, tmp_path)
+    try:
+        ch.expect("picdrive> ")
+
+        def send(line):
+            ch.send(line + "\r")
+            ch.expect("picdrive> ")
+        _running_with_a_recording(tw, send, csv)
+        time.sleep(0.2)
+        ch.ptyproc.fileobj.close()                   # the terminal closes: the kernel sends SIGHUP
+        t_signal = time.monotonic()
+        _until(lambda: not ch.ptyproc.isalive(), "the console ending", bound_s=30)
+        assert ch.ptyproc.exitstatus == 128 + signal.SIGHUP, (ch.ptyproc.exitstatus, ch.ptyproc.signalstatus)
+    finally:
+        ch.ptyproc.kill(signal.SIGKILL) if ch.ptyproc.isalive() else None
+    _stopped_by_the_console(srv, t_signal)
+    _recording_kept(csv)
+
+
+def test_ctrl_c_at_the_idle_prompt_stops_a_running_motor(twin, tmp_path):
+    tw, srv = twin
+    _idle(srv.url, tw)
+    ch = _spawn_console(srv.url, tmp_path)
+    try:
+        ch.expect("picdrive> ")
+        for line in ("speed 1500", "start"):
+            ch.send(line + "\r")
+            ch.expect("picdrive> ")
+        _until(lambda: _rpm(tw) > 1000, "the motor running")
+        ch.sendintr()
+        ch.expect(r"\^C: motor stopped \(outputs off\); 'quit' leaves")
+        ch.expect("picdrive> ")
+        ch.send("status\r")
+        ch.expect("state idle, fault none")
+        ch.expect("picdrive> ")
+        ch.sendintr()                                # nothing driven: only the hint
+        ch.expect(r"\^C \(type 'quit' to leave\)")
+        ch.expect("picdrive> ")
+        _quit(ch)
+    finally:
+        ch.close(force=True)
 
 
 # --------------------------------------------------------------------------- scripts that assert
@@ -256,7 +362,8 @@ def test_a_second_console_is_told_the_twin_is_busy(twin, tmp_path):
     with Link.open(srv.url):
         r = _cli(srv.url, "--run", str(tmp_path / "empty.txt"), timeout=60)
     assert r.returncode == 2
-    assert "a picdrive twin serves one client at a time, so another console or program is probably connected" in r.stderr
+    assert "picdrive twin: busy: another client is connected to this twin" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
 
 
 # --------------------------------------------------------------------------- scope
@@ -359,6 +466,7 @@ def test_parameters_explained_checked_and_kept(twin, tmp_path):
     d = json.loads(f.read_text())
     d["identity"]["table_hash"] = "0x12345678"
     d["params"]["rule1_kc"]["raw"] += 8
+    d["params"]["rule1_kc"]["value"] += 8 * kcs             # value and raw agree: no hand edit
     other = tmp_path / "other.params.json"
     other.write_text(json.dumps(d))
     s.write_text(f"params load {other}\n")
@@ -372,11 +480,9 @@ def test_parameters_explained_checked_and_kept(twin, tmp_path):
 
 
 def test_view_keeps_a_typed_command_and_ctrl_c_stops_the_motor(twin, tmp_path):
-    import pexpect                     # a dev dependency (pyproject): missing is a failure
     tw, srv = twin
     _idle(srv.url)
-    ch = pexpect.spawn(sys.executable, ["-m", "picdrive", "console", srv.url, "--history", str(tmp_path / "h")],
-                       env=_env(), encoding="utf-8", timeout=20, dimensions=(40, 250))
+    ch = _spawn_console(srv.url, tmp_path)
     try:
         ch.expect("picdrive> ")
         ch.send("speed 1000\r")
@@ -395,8 +501,7 @@ def test_view_keeps_a_typed_command_and_ctrl_c_stops_the_motor(twin, tmp_path):
         ch.sendintr()
         ch.expect(r"error: view: interrupted \(Ctrl-C\); motor stopped \(outputs off\)")
         ch.expect("picdrive> ")
-        ch.send("quit\r")
-        ch.expect(pexpect.EOF)
+        _quit(ch)
     finally:
         ch.close(force=True)
     assert _board_state(srv.url) == (P.State.IDLE, P.Fault.NONE)

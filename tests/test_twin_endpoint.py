@@ -5,6 +5,7 @@ import json
 import signal
 import subprocess
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -225,4 +226,91 @@ def test_input_beyond_the_twins_queue_is_held_back_not_dropped():
     finally:
         s.close()
         srv.stop()
+        tw.close()
+
+
+class ChattyBoard:
+    """A board that only talks (a telemetry stream of whole frames), for the endpoint's output path."""
+
+    FRAME = codec.encode_frame(0x40, 1, bytes(range(1, 35)))
+
+    def __init__(self):
+        self.t = 0.0
+
+    def run_until(self, t):
+        self.t = t
+
+    def uart_write(self, data):
+        return len(data)
+
+    def uart_read(self):
+        return self.FRAME * 20
+
+    def uart_flush_input(self):
+        return 0
+
+
+def _read_all(s, bound_s=10.0):
+    """Everything the peer sends until it closes (the bound turns a hang into a failure)."""
+    s.settimeout(bound_s)
+    out = b""
+    while True:
+        b = s.recv(65536)
+        if not b:
+            return out
+        out += b
+
+
+def test_a_client_that_stops_reading_is_told_why_it_was_dropped_after_whole_frames():
+    import socket
+    from picdrive_hil.endpoint import CLIENT_BACKLOG_BYTES, NOTICE, TwinServer
+    srv = TwinServer(ChattyBoard(), realtime=False)
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)     # a small window: the backlog builds fast
+    s.connect((srv.host, srv.port))
+    try:
+        for _ in range(20000):                                     # the client reads nothing meanwhile
+            srv._step()
+            if srv.clients_dropped_slow:
+                break
+        assert srv.clients_dropped_slow == 1 and not srv.status()["client_connected"]
+        for _ in range(50):
+            srv._step()                                            # the hang-up drains and closes
+        data = _read_all(s)
+    finally:
+        s.close()
+        srv.stop()
+    k = data.find(NOTICE)
+    assert k > 0, data[-200:]
+    n = len(ChattyBoard.FRAME)
+    assert k % n == 0 and data[:k] == ChattyBoard.FRAME * (k // n)  # every frame before it is whole
+    line = data[k + 1:].decode()
+    assert line.startswith("picdrive twin: disconnected: this client read nothing while ") and line.endswith("\n")
+    assert int(line.split("while ")[1].split()[0]) > CLIENT_BACKLOG_BYTES and "reconnect" in line
+
+
+def test_a_second_client_is_refused_with_a_message_and_the_first_keeps_the_board():
+    import socket
+    from picdrive_hil.twin import Twin
+    tw = Twin("duy2008", FW)
+    try:
+        with tw.serve(port=0) as srv:
+            with Link.open(srv.url) as first:
+                with socket.create_connection((srv.host, srv.port)) as second:
+                    second.sendall(codec.encode_command("start", 1))
+                    said = _read_all(second)
+                assert b"picdrive twin: busy: another client is connected" in said
+                with pytest.raises(Exception, match="the other end said: picdrive twin: busy"):
+                    Link.open(srv.url)
+                assert first.status().state == P.State.IDLE           # the refused 'start' never ran
+            assert srv.status()["clients_refused"] == 2
+            with Link.open(srv.url) as third:                          # the board is free again
+                assert third.status().uptime_ms > 0
+            # a client closing as the next opens: the next one waits for it instead of being refused
+            first = Link.open(srv.url)
+            threading.Timer(0.1, first.close).start()
+            with Link.open(srv.url) as fourth:
+                assert fourth.status().uptime_ms > 0
+            assert srv.status()["clients_refused"] == 2
+    finally:
         tw.close()

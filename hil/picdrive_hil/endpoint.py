@@ -2,9 +2,10 @@
 and optionally a pseudo-terminal, so ``picdrive.link``, ``picdrive console``
 and any pyserial program open the virtual board exactly as a COM port.
 
-One client at a time on the socket (a second connection waits until the
-first closes, as a COM port can only be opened once); the pty is always
-there.  Bytes from the client enter the board's EUSART at the host's baud
+One client at a time on the socket, as a COM port can only be opened once: a
+second connection is refused with a text line saying so (``picdrive twin:
+busy: ...``, then closed), unless the first leaves within half a second; the
+pty is always there.  Bytes from the client enter the board's EUSART at the host's baud
 rate, one frame time each; bytes the board sends reach the client once they
 have left the wire.
 
@@ -23,23 +24,53 @@ them; when that client disconnects they are dropped (``dropped_on_disconnect``)
 so that a departed client's command never runs for the next one.  When the
 twin's input queue is full the server stops reading the socket / pty until
 there is room again (TCP backpressure), so no byte is lost silently.
+
+Output: the board does not wait for its host.  The server hands the client
+whole frames only, keeping the socket's own queue short (``KERNEL_QUEUE_BYTES``),
+and holds the rest; a client that stops reading is disconnected once
+``CLIENT_BACKLOG_BYTES`` wait for it, after its last whole frame and a text
+line saying why (``picdrive twin: disconnected: ...``), also logged.  The
+text lines follow a frame delimiter and end with a newline: a frame decoder
+rejects them, :class:`picdrive.link.client.Link` quotes them.
 """
 from __future__ import annotations
 
 import errno
+import fcntl
 import math
 import os
 import select
 import socket
+import struct
 import sys
+import termios
 import threading
 import time
 
+from picdrive.link.protocol import DELIMITER
+
 from .build import TwinError
 
+P_DELIM = bytes([DELIMITER])
 CHUNK_S = 1e-3          # simulated time advanced per loop iteration in real time
 MAX_LAG_S = 0.25        # if the twin falls this far behind the wall clock, it drops the debt
 READ_BYTES = 4096       # bytes read from the socket / pty at a time
+KERNEL_QUEUE_BYTES = 4096     # at most this much unsent in the client socket's own queue: room
+#                               is left there for the last frame and the disconnect notice
+CLIENT_BACKLOG_BYTES = 32768  # board output held for a client that does not read, then it is dropped
+#                               (about 3 s of a 115 200-baud line, far beyond any host's hiccup)
+SECOND_CLIENT_WAIT_S = 0.5    # a second connection waits this long for the first to leave
+NEW_CLIENT_S = 0.2            # a refused connection's notice waits this long for its first bytes
+HANG_UP_S = 2.0               # how long a hung-up client's input is drained before the socket closes
+NOTICE = b"\x00picdrive twin: "   # a text line to the client: after a delimiter, ended by a newline
+
+
+def _unsent(sock: socket.socket) -> int:
+    """Bytes in a TCP socket's send queue not yet taken by the peer (Linux SIOCOUTQ; 0 elsewhere)."""
+    try:
+        return struct.unpack("i", fcntl.ioctl(sock.fileno(), termios.TIOCOUTQ, b"\0\0\0\0"))[0]
+    except OSError:
+        return 0
 
 
 class TwinServer:
@@ -82,6 +113,11 @@ class TwinServer:
         self.dropped_on_disconnect = 0  # bytes of departed clients the board had not yet received
         self._clock = clock             # wall clock (seconds); a test may substitute its own
         self._pend_sock = b""           # read from the client, not yet accepted by the twin (queue full)
+        self._out = bytearray()         # board output not yet handed to the client's socket
+        self._hanging: list = []        # (socket, deadline) told why and closing: see _hang_up
+        self._waiting = None            # (socket, address, deadline) of a second connection: see _accept
+        self.clients_refused = 0        # connections refused because another client was connected
+        self.clients_dropped_slow = 0   # clients disconnected because they stopped reading
         self._pend_pty = b""
         self._t_wall0: float | None = None
         self._t_sim0 = 0.0
@@ -109,7 +145,7 @@ class TwinServer:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
-        for s in (self._client, self._lsock):
+        for s in [self._client, self._lsock] + [h[0] for h in self._hanging] + ([self._waiting[0]] if self._waiting else []):
             if s is not None:
                 try:
                     s.close()
@@ -148,36 +184,127 @@ class TwinServer:
 
     # -- the loop ------------------------------------------------------------------
     def _accept(self) -> None:
+        """Take a new connection: the client if there is none; else it waits ``SECOND_CLIENT_WAIT_S``
+        for the present one to leave (a client closing as the next opens: its last bytes may still
+        be queued ahead of its end), then is refused with a notice."""
+        w = self._waiting
+        if w is not None and (self._client is None or time.monotonic() > w[2]):
+            self._waiting = None
+            if self._client is None:
+                self._take(w[0], w[1])
+            else:
+                self._refuse(w[0], w[1])
         try:
             c, addr = self._lsock.accept()
         except (BlockingIOError, InterruptedError):
             return
         c.setblocking(False)
+        if self._client is None:
+            self._take(c, addr)
+        elif self._waiting is None:
+            self._waiting = (c, addr, time.monotonic() + SECOND_CLIENT_WAIT_S)
+        else:
+            self._refuse(c, addr)
+
+    def _take(self, c: socket.socket, addr) -> None:
         c.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._client = c
+        self._out.clear()
         self.log(f"client connected from {addr[0]}:{addr[1]}")
 
-    def _drop_client(self) -> None:
-        if self._client is not None:
+    def _refuse(self, c: socket.socket, addr) -> None:
+        self.clients_refused += 1
+        self.log(f"refused a second client from {addr[0]}:{addr[1]}: another client is connected")
+        self._hang_up(c, b"busy: another client is connected to this twin, which serves one at a time "
+                         b"like a serial port; close that one, or start a second twin on another port", new=True)
+
+    def _hang_up(self, c: socket.socket, notice: bytes, *, new: bool = False) -> None:
+        """Send a client a notice line and close it.  What it sends meanwhile is read and discarded
+        until it closes too (at most ``HANG_UP_S``): closing with its bytes unread would reset the
+        connection, and a reset throws away the notice before the client reads it.  A ``new``
+        connection gets the notice once it has sent something (or after ``NEW_CLIENT_S``):
+        pyserial discards what arrives while it opens the port."""
+        now = time.monotonic()
+        self._hanging.append([c, NOTICE + notice + b"\n", now + (NEW_CLIENT_S if new else 0.0), now + HANG_UP_S])
+        self._service_hang_ups()
+
+    def _service_hang_ups(self) -> None:
+        keep = []
+        now = time.monotonic()
+        for h in self._hanging:
+            c, notice, send_at, deadline = h
+            heard = gone = False
             try:
-                self._client.close()
-            except OSError:
+                while True:
+                    b = c.recv(READ_BYTES)
+                    if not b:
+                        gone = True                           # EOF: the client closed
+                        break
+                    heard = True
+            except (BlockingIOError, InterruptedError):
                 pass
+            except OSError:
+                gone = True
+            if notice is not None and not gone and (heard or now >= send_at):
+                try:
+                    c.send(notice)
+                    c.shutdown(socket.SHUT_WR)
+                except OSError:
+                    gone = True
+                h[1] = None
+            if gone or now > deadline:
+                c.close()
+            else:
+                keep.append(h)
+        self._hanging = keep
+
+    def _drop_client(self, why: str = "") -> None:
+        if self._client is not None:
+            if why:
+                self._hang_up(self._client, f"disconnected: {why}".encode())
+            else:
+                try:
+                    self._client.close()
+                except OSError:
+                    pass
             self._client = None
+            self._out.clear()
             # what the departed client sent and the board has not received is dropped: the next
             # client must not have it run for them (queued pty bytes, if any, go with it)
             n = self.twin.uart_flush_input() + len(self._pend_sock)
             self._pend_sock = b""
             self.dropped_on_disconnect += n
-            self.log("client disconnected" + (f"; {n} bytes it sent that the board had not yet received "
-                                              "were dropped" if n else ""))
+            self.log(("client dropped: " + why if why else "client disconnected")
+                     + (f"; {n} bytes it sent that the board had not yet received were dropped" if n else ""))
+
+    def _send_out(self) -> None:
+        """Hand the client whole frames while its socket's queue is short; drop it if it stops reading."""
+        if self._client is None or not self._out:
+            return
+        room = KERNEL_QUEUE_BYTES - _unsent(self._client)
+        end = self._out.rfind(P_DELIM, 0, max(room, 0)) + 1       # whole frames that fit
+        if end > 0:
+            try:
+                n = self._client.send(self._out[:end])
+            except (BlockingIOError, InterruptedError):
+                n = 0
+            except OSError:
+                self._drop_client()
+                return
+            del self._out[:n]
+        if len(self._out) > CLIENT_BACKLOG_BYTES:
+            self.clients_dropped_slow += 1
+            self._drop_client(f"this client read nothing while {len(self._out)} bytes of the board's output "
+                              "waited for it (the board does not wait for its host); the frames before this "
+                              "line are whole; reconnect, and keep reading the port")
 
     def status(self) -> dict:
         """Counters of the endpoint: bytes in/out, lag events and the simulated time they gave up,
         bytes dropped on a client's disconnect, bytes waiting for room in the twin's input queue, and
         whether a socket client is connected (once it is not, nothing it sent reaches the board)."""
         d = {"bytes_in": self.bytes_in, "bytes_out": self.bytes_out, "lag_events": self.lag_events,
-             "client_connected": self._client is not None,
+             "client_connected": self._client is not None, "clients_refused": self.clients_refused,
+             "clients_dropped_slow": self.clients_dropped_slow, "output_waiting": len(self._out),
              "lag_s": self.lag_s, "dropped_on_disconnect": self.dropped_on_disconnect,
              "input_waiting": len(self._pend_sock) + len(self._pend_pty)}
         if getattr(self.twin, "processor", False):
@@ -224,13 +351,12 @@ class TwinServer:
     def _pump_out(self) -> None:
         data = self.twin.uart_read()
         if not data:
+            self._send_out()
             return
         self.bytes_out += len(data)
         if self._client is not None:
-            try:
-                self._client.sendall(data)
-            except OSError:
-                self._drop_client()
+            self._out += data
+            self._send_out()
         if self._pty_master is not None:
             try:
                 os.write(self._pty_master, data)
@@ -239,9 +365,10 @@ class TwinServer:
 
     def _step(self) -> None:
         """One pass of the serving loop: accept, move bytes, advance the twin (paced)."""
-        if self._client is None:
-            self._accept()
         self._pump_in()
+        self._accept()
+        if self._hanging:
+            self._service_hang_ups()
         end = self.stop_at_s
         if self.twin.t >= end:
             self._pump_out()
@@ -285,10 +412,8 @@ class TwinServer:
             self._drop_client()
 
     def _wait_io(self, timeout: float) -> None:
-        fds = []
-        if self._client is None:
-            fds.append(self._lsock)
-        elif not self._pend_sock:                  # bytes waiting for room: do not wake on more
+        fds = [self._lsock]
+        if self._client is not None and not self._pend_sock:    # bytes waiting for room: do not wake on more
             fds.append(self._client)
         if self._pty_master is not None and not self._pend_pty:
             fds.append(self._pty_master)

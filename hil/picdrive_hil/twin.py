@@ -131,8 +131,9 @@ def firmware_group(firmware_dir: str | Path) -> build.Group:
     (``picdrive.firmware.codegen.host_build``), compiled unchanged."""
     fw = Path(firmware_dir)
     if not fw.is_dir():
-        raise TwinError(f"firmware folder {fw} does not exist: generate it with "
-                        "'picdrive firmware --profile P --design D -o <folder>'")
+        what = "is a file, not a folder" if fw.exists() else "does not exist"
+        raise TwinError(f"firmware folder {fw} {what}: give the folder 'picdrive firmware' wrote (generate it "
+                        "with 'picdrive firmware --profile P --design D -o <folder>')")
     from picdrive.firmware import codegen
     hb = codegen.host_build(fw)
     # their flags, optimised; warnings that only optimisation reveals must not stop the twin

@@ -151,6 +151,52 @@ class ScheduledLaw:
         return d
 
 
+#: the smallest speed error a speed drive is expected to regulate without saturating, rad/s (1 rpm)
+PLAUSIBLE_SPEED_ERROR_RAD_S = 2.0 * math.pi / 60.0
+#: the smallest current change the current feedback is expected to act on without saturating,
+#: as a fraction of the current limit
+PLAUSIBLE_CURRENT_FRACTION = 0.01
+
+
+def plausible_gain_limits(law: ScheduledLaw, profile) -> dict[str, tuple[float, str]]:
+    """The largest plausible value of each gain on this drive, with how it is derived: the gain
+    that alone drives the whole usable bridge voltage V (bus x max duty) from a 1 rpm speed error
+    (kp), a 1 rpm error held for one sample (ki), a 1 rpm change within one sample (kd), or a
+    current change of 1 % of the current limit (kc).  A larger gain turns the measurement's
+    resolution into full-bridge voltage swings: a typed or edited value, not a design."""
+    v = profile.inverter.bus_voltage_v * profile.max_duty()
+    e, ts = PLAUSIBLE_SPEED_ERROR_RAD_S, law.sample_time_s
+    di = PLAUSIBLE_CURRENT_FRACTION * profile.inverter.current_limit_a
+    return {
+        "kp": (v / e, f"{v:.4g} V from a 1 rpm error"),
+        "ki": (v / (e * ts), f"{v:.4g} V from a 1 rpm error in one {ts * 1e3:g} ms sample"),
+        "kd": (v * ts / e, f"{v:.4g} V from a 1 rpm change in one {ts * 1e3:g} ms sample"),
+        "kc": (v / di, f"{v:.4g} V from {di * 1e3:.3g} mA (1 % of the current limit)"),
+    }
+
+
+def implausible_gains(law: ScheduledLaw, profile) -> list[str]:
+    """What is implausible in the law's gains on this drive, one phrase each (empty: plausible).
+
+    Signs: kp, ki and kd act against the speed error (u rises with r - y); a negative one is
+    positive feedback.  kc's sign is the design's (state feedback), only its size is bounded.
+    Sizes: :func:`plausible_gain_limits`."""
+    units = {"kp": "V/(rad/s)", "ki": "V/rad", "kd": "V s^2/rad", "kc": "V/A"}
+    lims = plausible_gain_limits(law, profile)
+    out = []
+    for j, r in enumerate(law.rules, 1):
+        for k, unit in units.items():
+            g = getattr(r, k)
+            hi, why = lims[k]
+            lo = -hi if k == "kc" else 0.0
+            if not lo <= g <= hi:
+                sign = " (a negative gain is positive feedback: the motor runs away from the setpoint)" \
+                    if g < 0 and k != "kc" else ""
+                out.append(f"rule {j} {k} = {g:.6g} {unit} is outside the plausible range [{lo:.4g}, {hi:.4g}] "
+                           f"{unit} on this drive ({hi:.4g} saturates the bridge: {why}){sign}")
+    return out
+
+
 def law_from_dict(d: dict) -> ScheduledLaw:
     if d.get("form") != "picdrive.scheduled_pid/1":
         raise ValueError(f"unknown control-law form {d.get('form')!r}; expected 'picdrive.scheduled_pid/1'")

@@ -9,10 +9,47 @@ from __future__ import annotations
 
 import os
 import shutil
+import stat
 import tempfile
 from pathlib import Path
 
-__all__ = ["current_umask", "atomic_write_text", "new_temp_dir", "publish_dir"]
+from .errors import PicdriveError
+
+__all__ = ["current_umask", "atomic_write_text", "new_temp_dir", "publish_dir", "read_input_text"]
+
+_KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def read_input_text(path: str | Path, what: str, *, limit_bytes: int, error=PicdriveError) -> str:
+    """The text of an input file the user names (a profile, a design, a script), read with a type
+    check and a size bound: a FIFO, a device (``/dev/zero``) or a folder is refused before it is
+    opened (no hang, no unbounded read), so is a file over ``limit_bytes`` or not UTF-8 text.
+    ``what`` names the input in the message ("profile", "session file"); ``error``: the
+    :class:`PicdriveError` subclass raised."""
+    p = Path(path)
+    try:
+        st = os.stat(p)
+    except OSError as e:
+        raise error(f"cannot read {what} {p}: {e.strerror}") from None
+    if not stat.S_ISREG(st.st_mode):
+        kind = next((k for test, k in _KINDS if test(st.st_mode)), "not a regular file")
+        raise error(f"{what} {p} is {kind}, not a file: give the path of a {what} (a regular text file)")
+    try:
+        with open(p, "rb") as f:
+            data = f.read(limit_bytes + 1)
+    except OSError as e:
+        raise error(f"cannot read {what} {p}: {e.strerror}") from None
+    if len(data) > limit_bytes:
+        raise error(f"{what} {p} is larger than {limit_bytes // 1024} KiB, far more than a {what} holds: "
+                    f"check that this is the right file")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = data[:e.start].count(b"\n") + 1
+        raise error(f"{what} {p}: line {line}: byte 0x{data[e.start]:02X} is not UTF-8: a {what} is a UTF-8 "
+                    "text file (this looks like a binary file, or text saved in another encoding: save it "
+                    "as UTF-8)") from None
 
 
 def current_umask() -> int:

@@ -33,6 +33,7 @@ one line naming the path, what is there and what to do.
 from __future__ import annotations
 
 import hashlib
+import errno
 import json
 import os
 import shutil
@@ -71,6 +72,14 @@ def _nearest_existing(path: Path) -> Path:
     return p
 
 
+def _reason(e: OSError, folder: Path) -> str:
+    """Why a file cannot be made in ``folder``, in words that fit: creating a file in /proc fails
+    with ENOENT, "No such file or directory", although the folder is there."""
+    if e.errno == errno.ENOENT and folder.is_dir():
+        return "it takes no new files: a virtual file system such as /proc"
+    return e.strerror or str(e)
+
+
 def _check_writable_parent(path: Path, what: str) -> None:
     """The folder that will hold ``path`` exists or can be created, and a file can be made in it.
 
@@ -83,8 +92,8 @@ def _check_writable_parent(path: Path, what: str) -> None:
     try:
         fd, tmp = tempfile.mkstemp(prefix=".picdrive-probe.", dir=anc)
     except OSError as e:
-        raise OutputError(f"{what} {path}: cannot write in {anc} ({e.strerror}); choose a folder you can "
-                          "write to") from None
+        raise OutputError(f"{what} {path}: cannot write in {anc} ({_reason(e, anc)}); choose a folder you "
+                          "can write to") from None
     os.close(fd)
     os.unlink(tmp)
 
@@ -195,7 +204,11 @@ def dir_output(arg: str | os.PathLike, *, what: str = "output folder") -> Path:
         raise OutputError(f"{what} {str(arg) or '(empty)'!s} is the current folder or holds it; picdrive writes "
                           "its folders whole, so name a new subfolder, e.g. -o out/")
     if os.path.lexists(out):
-        if out.is_symlink() or not out.is_dir():
+        if out.is_symlink():
+            raise OutputError(f"{what} {out} is a symbolic link (to {os.readlink(out)}); picdrive replaces its "
+                              "output folders whole, which would replace the link, not write into its folder: "
+                              "give the folder itself or a new path")
+        if not out.is_dir():
             raise OutputError(f"{what} {out} exists and is not a folder; choose another path or move it away")
         try:
             entries = os.listdir(out)
@@ -221,7 +234,8 @@ def write_text(path: Path, text: str, *, what: str = "output file") -> Path:
     try:
         return fileio.atomic_write_text(path, text)
     except OSError as e:
-        raise OutputError(f"cannot write {what} {path}: {e.strerror or e}; choose a folder you can write to") from None
+        raise OutputError(f"cannot write {what} {path}: {_reason(e, path.parent)}; choose a folder you can "
+                          "write to") from None
 
 
 def write_bytes(path: Path, data: bytes, *, what: str = "output file") -> Path:
@@ -237,7 +251,8 @@ def write_bytes(path: Path, data: bytes, *, what: str = "output file") -> Path:
     except OSError as e:
         if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
-        raise OutputError(f"cannot write {what} {path}: {e.strerror or e}; choose a folder you can write to") from None
+        raise OutputError(f"cannot write {what} {path}: {_reason(e, path.parent)}; choose a folder you can "
+                          "write to") from None
     return path
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import PicdriveError
+from .fileio import read_input_text
 
 SCHEMA_ID = "picdrive.profile/1"
 
@@ -171,6 +172,64 @@ def _kt_kb_slip(ratio: float) -> str:
     if d > math.log(1.15):
         return "no common unit slip gives this ratio: check both constants against the datasheet"
     return text
+
+
+#: a profile is a few kB of TOML; anything far larger is the wrong file (read no further)
+PROFILE_MAX_BYTES = 1 << 20
+
+#: The design's verification (picdrive.analysis.steptest.sim_plan) simulates a step from rest and
+#: then a load step, each phase lasting this many times the drive's fastest step from rest
+#: (:meth:`Profile.min_step_time_s`; at least 0.6 s), one integration step per PWM period, in
+#: Python, several runs per design: its length, memory and run time grow with that time.
+VERIFY_PHASE_PER_MIN_STEP = 3.0
+#: The most PWM periods one verification run may simulate: 2e6 periods keep its arrays (4 float64
+#: per period, 12 per speed-loop sample) near 70 MiB and its run time near a minute of one core,
+#: while the bundled drives need 24 000 (1.2 s at 20 kHz).  A profile beyond it is refused before
+#: any computation, with its figures and the likely unit slip.
+VERIFY_MAX_PWM_PERIODS = 2_000_000
+_SIM_BYTES_PER_PWM_PERIOD = 4 * 8
+_SIM_BYTES_PER_SAMPLE = 12 * 8 + 1
+
+# (factor to kg m^2, the unit) of the inertia units found on datasheets, most common first
+_INERTIA_UNITS = ((1e-4, "kg cm^2"), (1e-7, "g cm^2"), (1e-6, "kg mm^2"), (1e-9, "g mm^2"),
+                  (1.8290e-5, "oz in^2"), (2.9264e-4, "lb in^2"))
+
+
+def _inertia_slip(p: "Profile", fits) -> str:
+    """The inertia units that would make the profile plausible (``fits(J)``), as advice."""
+    j = p.motor.inertia_kg_m2
+    hits = [f"{unit} (x {f:g}: J = {j * f:.3g} kg m^2)" for f, unit in _INERTIA_UNITS
+            if j * f >= SCHEMA["motor"]["inertia_kg_m2"][2] and fits(j * f)]
+    if not hits:
+        return ("no common unit slip of J makes it plausible: check motor.inertia_kg_m2, the torque constant and "
+                "inverter.current_limit_a against the datasheet")
+    return f"J looks like a value in {' or '.join(hits[:2])}; give the inertia in kg m^2"
+
+
+def _check_simulation_size(p: "Profile") -> None:
+    """Refuse a profile whose verification simulation would be absurdly long (a unit slip in J)."""
+    t_min = p.min_step_time_s()
+    if not math.isfinite(t_min):
+        return                     # the current limit cannot carry the load: the design refuses that itself
+    hz = p.inverter.pwm_frequency_hz
+
+    def periods(t):
+        return 2.0 * VERIFY_PHASE_PER_MIN_STEP * t * hz
+    n = periods(t_min)
+    if n <= VERIFY_MAX_PWM_PERIODS:
+        return
+    m = p.motor
+    window = n / hz
+    mem = n * _SIM_BYTES_PER_PWM_PERIOD + window * p.control.speed_loop_hz * _SIM_BYTES_PER_SAMPLE
+    tau_m = m.inertia_kg_m2 * m.r_line_ohm / (m.kt_n_m_per_a * m.kb_v_s_per_rad)
+    raise ProfileError(
+        f"profile field 'motor.inertia_kg_m2' = {m.inertia_kg_m2:g} kg m^2 is implausible for this motor: with "
+        f"Kt = {m.kt_n_m_per_a:.4g} N m/A at inverter.current_limit_a = {p.inverter.current_limit_a:g} A, its "
+        f"fastest step from rest to {p.speed_step_rpm():.0f} rpm takes {t_min:.3g} s (mechanical time constant "
+        f"J R / (Kt Kb) = {tau_m:.3g} s), so the design's verification would simulate {window:.3g} s in "
+        f"{n:.3g} PWM periods (about {mem / 2**20:.0f} MiB per run and a long run time), beyond its bound of "
+        f"{VERIFY_MAX_PWM_PERIODS:g} periods ({VERIFY_MAX_PWM_PERIODS / hz:g} s at {hz:g} Hz); "
+        + _inertia_slip(p, lambda j: periods(t_min * j / m.inertia_kg_m2) <= VERIFY_MAX_PWM_PERIODS))
 
 
 _NAME_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,47}$")
@@ -365,6 +424,14 @@ class Profile:
         return min(self.control.reference_rpm,
                    0.95 * self.max_reachable_rpm(self.control.load_torque_n_m))
 
+    def min_step_time_s(self, rpm: float | None = None) -> float:
+        """The fastest the drive can reach ``rpm`` (default :meth:`speed_step_rpm`) from rest at the
+        current limit, ``t_min = J w / (Kt I_lim - T_load)``, s (inf when the limit cannot carry the load)."""
+        m = self.motor
+        w = (self.speed_step_rpm() if rpm is None else rpm) * 2.0 * math.pi / 60.0
+        net = m.kt_n_m_per_a * self.inverter.current_limit_a - self.control.load_torque_n_m
+        return m.inertia_kg_m2 * w / net if net > 0 else math.inf
+
     def to_dict(self) -> dict[str, Any]:
         """The profile as plain data (all fields resolved, defaults filled in)."""
         return {
@@ -550,6 +617,7 @@ def _build(raw: dict[str, Any], path: Path | None, sha: str) -> Profile:
         control=Control(**co), uart=Uart(**vals["uart"]), design=de,
         path=path, sha256=sha, raw=raw,
     )
+    _check_simulation_size(p)
     reach = p.max_reachable_rpm()
     if co["speed_max_rpm"] > reach:
         warnings.warn(
@@ -573,17 +641,7 @@ def loads_profile(text: str, path: Path | None = None) -> Profile:
 def load_profile(path: str | Path) -> Profile:
     """Load and validate a profile file (a path, or the name of a bundled profile)."""
     p = resolve_profile_path(path)
-    try:
-        data = p.read_bytes()
-    except OSError as e:
-        raise ProfileError(f"cannot read profile {p}: {e.strerror}") from None
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError as e:
-        line = data[:e.start].count(b"\n") + 1
-        raise ProfileError(f"{p}: line {line}: byte 0x{data[e.start]:02X} is not UTF-8; a profile is a UTF-8 TOML "
-                           "text file: save it as UTF-8 (a non-ASCII character such as 'µ' in another encoding, "
-                           "or not a text file at all)") from None
+    text = read_input_text(p, "profile", limit_bytes=PROFILE_MAX_BYTES, error=ProfileError)
     try:
         return loads_profile(text, p)
     except ProfileError as e:
@@ -622,6 +680,16 @@ def schema_markdown() -> str:
         "In SI units the six-step Kt and Kb are one constant: a profile whose Kt / Kb is off 1 by more than",
         f"{100 * KT_KB_TOLERANCE:g} % is refused, naming the likely unit slip (Kt in mN m/A, Kb in V/krpm, a phase",
         "value...).  Within it, every model (design, verification, firmware, twin) uses Kb for both.",
+        "",
+        "Plausibility before computation: the design's verification simulates a step from rest and a load",
+        f"step, each {VERIFY_PHASE_PER_MIN_STEP:g} times the drive's fastest step from rest at its current limit",
+        "(t_min = J w / (Kt I_lim - T_load)), one integration step per PWM period.  A profile whose figures",
+        f"need more than {VERIFY_MAX_PWM_PERIODS:g} PWM periods for it (the bundled drives need 24 000) is refused",
+        "before any computation, naming the inertia, t_min, the mechanical time constant J R / (Kt Kb), the",
+        "simulation's length and memory, and the likely unit slip (J in kg cm^2 or g cm^2 typed as kg m^2).",
+        "",
+        f"A profile file is read only if it is a regular file of at most {PROFILE_MAX_BYTES // 1024} KiB of UTF-8 text:",
+        "a FIFO, a device (`/dev/zero`) or a folder is refused before it is opened.",
         "",
     ]
     for sec, spec in SCHEMA.items():

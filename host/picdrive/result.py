@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import PicdriveError
+from .fileio import read_input_text
 
 import numpy as np
 
@@ -232,6 +233,10 @@ def save_design(result: DesignResult, path: str | Path) -> Path:
                       what="design file")
 
 
+#: a design file is tens of kB (the certificate's matrices); far more is the wrong file
+DESIGN_MAX_BYTES = 16 << 20
+
+
 def load_design(path: str | Path, *, require_usable: bool = False, profile=None) -> DesignResult:
     """Read a design file.
 
@@ -240,13 +245,9 @@ def load_design(path: str | Path, *, require_usable: bool = False, profile=None)
     refused with a :class:`DesignError` that says why and what to do.
     """
     p = Path(path)
+    text = read_input_text(p, "design file", limit_bytes=DESIGN_MAX_BYTES, error=DesignError)
     try:
-        d = json.loads(p.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise DesignError(f"cannot read design file {p}: {e.strerror}") from None
-    except UnicodeDecodeError as e:
-        raise DesignError(f"design file {p} is not UTF-8 text (byte {e.start}); give the .design.json "
-                          "'picdrive design' wrote") from None
+        d = json.loads(text)
     except json.JSONDecodeError as e:
         raise DesignError(f"design file {p} is not valid JSON: {e}; give the .design.json 'picdrive design' "
                           "wrote") from None
@@ -275,4 +276,10 @@ def load_design(path: str | Path, *, require_usable: bool = False, profile=None)
             raise DesignError(f"design {p} was made from profile {r.profile_name!r} with hash "
                               f"{r.profile_sha256[:12]}, but the profile given has hash {profile.sha256[:12]}; "
                               "re-run 'picdrive design' on this profile")
+        if profile is not None:
+            from .control_law import implausible_gains
+            bad = implausible_gains(r.law, profile)
+            if bad:
+                raise DesignError(f"design {p}: {'; '.join(bad)}; a signed design with such a gain was edited "
+                                  "and re-signed, not designed: re-run 'picdrive design' on this profile")
     return r

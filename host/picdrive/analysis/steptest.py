@@ -14,9 +14,10 @@ import math
 
 import numpy as np
 
+from ..profile import VERIFY_PHASE_PER_MIN_STEP
 from .metrics import step_metrics
 
-__all__ = ["VerifyConfig", "min_step_time_s", "sim_plan", "run_sim", "sector_period_s", "sector_mean",
+__all__ = ["VerifyConfig", "sim_plan", "run_sim", "sector_period_s", "sector_mean",
            "step_figures"]
 
 RPM = 2.0 * math.pi / 60.0      # rad/s per rpm
@@ -31,25 +32,17 @@ class VerifyConfig:
     commutated: bool = True        # the pair's EMF per rotor angle (simulate.commutated_emf), not the DC Kb
 
 
-def min_step_time_s(profile, rpm: float | None = None) -> float:
-    """The fastest the drive can reach ``rpm`` (default the step target) from rest at the current
-    limit, ``t_min = J w / (Kt I_lim - T_load)``, s (inf when the limit cannot carry the load)."""
-    m = profile.motor
-    w = (profile.speed_step_rpm() if rpm is None else rpm) * RPM
-    net = m.kt_n_m_per_a * profile.inverter.current_limit_a - profile.control.load_torque_n_m
-    return m.inertia_kg_m2 * w / net if net > 0 else math.inf
-
-
 def sim_plan(profile) -> dict:
     """Step target (rpm), load, durations of the verification simulation.
 
     Each phase lasts ``VerifyConfig`` 's duration or three times the physical minimum step time
-    (:func:`min_step_time_s`), whichever is longer: a high-inertia drive cannot settle within a
-    fixed 0.6 s however good its law."""
-    t_min = min_step_time_s(profile)
+    (:meth:`picdrive.profile.Profile.min_step_time_s`), whichever is longer: a high-inertia drive
+    cannot settle within a fixed 0.6 s however good its law (the profile loader refuses a drive
+    whose window would be absurd, :data:`picdrive.profile.VERIFY_MAX_PWM_PERIODS`)."""
+    t_min = profile.min_step_time_s()
     scale = 1.0
     if math.isfinite(t_min):
-        scale = max(1.0, 3.0 * t_min / VerifyConfig.step_phase_s)
+        scale = max(1.0, VERIFY_PHASE_PER_MIN_STEP * t_min / VerifyConfig.step_phase_s)
     step, load = VerifyConfig.step_phase_s * scale, VerifyConfig.load_phase_s * scale
     return {"target_rpm": profile.speed_step_rpm(), "profile_target_rpm": profile.speed_step_rpm(),
             "capped": False, "load_n_m": profile.control.load_torque_n_m,

@@ -197,15 +197,48 @@ def _help(con: Console, args):
                 con.say(f"{c.usage}\n  {c.help}")
             _help_param(con, args[0])
             return
+        word = args[0].lower()
+        related = [e.name for e in con.link.table if word in e.name.lower().split("_")] \
+            if c is None and con.link is not None else []
+        if related:                              # 'help kc': the parameters of which it is a part
+            con.say(f"{args[0]}: see {', '.join(related)}")
+            for n in related:
+                _help_param(con, n)
+            return
         if c is None:
             extra = "" if con.link is not None else " (parameters are explained when connected)"
             raise ConsoleError(f"no command or parameter {args[0]!r}{extra}; 'help' lists the commands, "
                                "'params' the parameters")
         con.say(f"{c.usage}\n  {c.help}")
         return
-    width = max(len(c.usage) for c in COMMANDS.values())
-    for c in COMMANDS.values():
-        con.say(f"  {c.usage:<{width}}  {c.help}")
+    for line in help_table(COMMANDS.values()):
+        con.say(line)
+
+
+HELP_USAGE_COLUMN = 26
+"""Width of the usage column of ``help``; a longer usage gets a line of its own."""
+
+
+def help_table(commands, width: int | None = None) -> list[str]:
+    """``help``'s list: usage, then the explanation wrapped at whole words to the terminal's width
+    (at most 80 columns)."""
+    import shutil
+    import textwrap
+    if width is None:
+        width = min(80, shutil.get_terminal_size((80, 24)).columns)
+    col = HELP_USAGE_COLUMN
+    indent = " " * (col + 4)
+    out = []
+    for c in commands:
+        text = textwrap.wrap(c.help, width=width, initial_indent=indent, subsequent_indent=indent,
+                             break_long_words=False, break_on_hyphens=False)
+        if len(c.usage) <= col:
+            text[0] = f"  {c.usage:<{col}}  " + text[0][len(indent):]
+        else:
+            text = textwrap.wrap(c.usage, width=width, initial_indent="  ", subsequent_indent="    ",
+                                 break_long_words=False, break_on_hyphens=False) + text
+        out += text
+    return out
 
 
 def _help_param(con, name: str) -> None:
@@ -344,6 +377,10 @@ def _params_file(con, sub: str, args) -> None:
     d = read_params_file(path)
     idiff = identity_differences(d["identity"], link.info)
     board = link.get_raw(*[e.name for e in ents])
+    byname = {e.name: e for e in ents}
+    fileraw, edited = _file_raws(link, d["params"], byname, path)
+    for note in edited:
+        con.say(note)
     fileps = d["params"]
     if sub == "diff":
         if idiff:
@@ -353,9 +390,9 @@ def _params_file(con, sub: str, args) -> None:
             if e.name not in fileps:
                 con.say(f"  {e.name}: board {_fmt_value(e, link._eng(e, board[e.name]))}{_unit(e)}, not in the file")
                 n += 1
-            elif fileps[e.name]["raw"] != board[e.name]:
+            elif fileraw[e.name] != board[e.name]:
                 con.say(f"  {e.name}: board {_fmt_value(e, link._eng(e, board[e.name]))}{_unit(e)}, file "
-                        f"{_fmt_value(e, link._eng(e, fileps[e.name]['raw']))}{_unit(e)}")
+                        f"{_fmt_value(e, link._eng(e, fileraw[e.name]))}{_unit(e)}")
                 n += 1
         extra = [k for k in fileps if k not in {e.name for e in ents}]
         for k in extra:
@@ -368,8 +405,7 @@ def _params_file(con, sub: str, args) -> None:
         raise ConsoleError(f"params load: nothing written: {path} was saved from another firmware ("
                            + "; ".join(idiff) + "); gains and scales may not fit this board: 'params diff' "
                            "shows the values, --force loads the parameters this board has")
-    byname = {e.name: e for e in ents}
-    todo = {k: v["raw"] for k, v in fileps.items() if k in byname}
+    todo = fileraw
     skipped = [k for k in fileps if k not in byname]
     bad = [f"{k} raw {r} outside {byname[k].min_raw}..{byname[k].max_raw}" for k, r in todo.items()
            if not byname[k].min_raw <= r <= byname[k].max_raw]
@@ -386,6 +422,34 @@ def _params_file(con, sub: str, args) -> None:
             changed += 1
     con.say(f"loaded {len(todo)} parameters from {path} ({changed} changed"
             + (f"; not on this board: {', '.join(skipped)}" if skipped else "") + "); 'save' keeps them in EEPROM")
+
+
+def _file_raws(link, fileps: dict, byname: dict, path) -> tuple[dict, list[str]]:
+    """The raw count of each parameter of a parameter file that this board has, and a note for
+    each whose ``value`` no longer matches its ``raw`` count: the value was edited by hand, so
+    the value is what is meant (converted at this board's scale, range-checked)."""
+    raws, notes = {}, []
+    for k, v in fileps.items():
+        e = byname.get(k)
+        if e is None:
+            continue
+        raw, val = v["raw"], v.get("value")
+        raws[k] = raw
+        if val is None:
+            continue
+        if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val):
+            raise ConsoleError(f"{path}: parameter {k!r}: value {val!r} is not a number; write it in "
+                               f"{e.unit} or restore the file from 'params save'")
+        if e.values or e.unit in ("enum", "code"):
+            same = val == raw
+        else:
+            same = abs(val - raw * e.scale) <= 0.5 * e.scale * (1 + 1e-9)
+        if not same:
+            raws[k] = link.to_raw(k, val)
+            notes.append(f"  {k}: the file's value {val:g}{_unit(e)} is not its raw count {raw} "
+                         f"({_fmt_value(e, link._eng(e, raw))}{_unit(e)}): the value was edited, so it is used "
+                         f"(raw {raws[k]})")
+    return raws, notes
 
 
 @command("get", "get <name>", "read a parameter or signal, with its unit and limits",

@@ -107,12 +107,12 @@ def params_document(info, profile_name: str, entries, values: dict, raws: dict) 
 
 def read_params_file(path: str | Path) -> dict:
     """Read and check the shape of a ``params save`` file."""
+    from ..fileio import read_input_text
     p = Path(path)
+    text = read_input_text(p, "parameter file", limit_bytes=1 << 20, error=ParamsFileError)
     try:
-        d = json.loads(p.read_text(encoding="utf-8"))
-    except OSError as e:
-        raise ParamsFileError(f"cannot read {p}: {e.strerror}") from None
-    except (UnicodeDecodeError, ValueError) as e:
+        d = json.loads(text)
+    except ValueError as e:
         raise ParamsFileError(f"{p} is not a JSON file ({e}); give a file written by 'params save'") from None
     if not isinstance(d, dict) or d.get("format") != FORMAT_ID:
         raise ParamsFileError(f"{p} is not a picdrive parameter file (format {FORMAT_ID}); write one with "

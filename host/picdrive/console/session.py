@@ -46,6 +46,7 @@ import difflib
 import math
 import os
 import shlex
+import signal
 import sys
 import threading
 from pathlib import Path
@@ -55,9 +56,21 @@ from ..errors import PicdriveError
 from .commands import (ALIASES, COMMANDS, NACK_WORDS, ConsoleError, Quit, bundled_profile_by_hash, expects_fault,
                        state_name)
 
-__all__ = ["Console", "default_history_path", "register", "main"]
+__all__ = ["Console", "Terminated", "default_history_path", "register", "main"]
 
 PROMPT = "picdrive> "
+
+STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGHUP", "SIGTERM") if hasattr(signal, n))
+"""Signals that end the console (terminal closed, killed): the motor is stopped first."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGHUP or SIGTERM arrived: handled like Ctrl-C inside a command (the motor is stopped,
+    partial data kept), then the console ends instead of returning to the prompt."""
+
+    def __init__(self, signame: str):
+        super().__init__(signame)
+        self.signame = signame
 
 
 def default_history_path() -> Path:
@@ -66,6 +79,23 @@ def default_history_path() -> Path:
         return Path(env)
     state = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
     return Path(state) / "picdrive" / "console_history"
+
+
+NOT_DRIVEN = "the motor was not driven"
+
+#: a bench procedure is a few hundred lines; far more is the wrong file
+SCRIPT_MAX_BYTES = 1 << 20
+
+
+def read_script(path: str | Path) -> list[str]:
+    """The lines of a ``--run`` session file: a regular UTF-8 text file of bounded size."""
+    from ..fileio import read_input_text
+    return read_input_text(path, "session file", limit_bytes=SCRIPT_MAX_BYTES, error=ConsoleError).splitlines()
+
+
+def _interruption(e: BaseException) -> str:
+    """What interrupted a command: Ctrl-C, or the signal that ends the console."""
+    return e.signame if isinstance(e, Terminated) else "Ctrl-C"
 
 
 # ---------------------------------------------------------------------------
@@ -119,13 +149,25 @@ class Console:
         # board events (faults, watchdog, reboot) not yet accounted for by an 'expect'
         self._events_lock = threading.Lock()
         self.unexpected: list[str] = []
+        self.terminating: str | None = None     # the signal (SIGHUP, SIGTERM) that ends the session
+
+    def on_stop_signal(self, signum, frame) -> None:
+        """SIGHUP / SIGTERM handler: later ones are ignored (the stop and the saving must run to
+        the end); raises :class:`Terminated` in the main thread, which unwinds to ``close``."""
+        for s in STOP_SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
+        self.terminating = signal.Signals(signum).name
+        raise Terminated(self.terminating)
 
     # -- output ---------------------------------------------------------------
 
     @staticmethod
     def _print(text: str) -> None:
-        sys.stdout.write(text + "\n")
-        sys.stdout.flush()
+        try:
+            sys.stdout.write(text + "\n")
+            sys.stdout.flush()
+        except (OSError, ValueError):       # the terminal is gone (SIGHUP): stopping must go on
+            pass
 
     def say(self, text: str) -> None:
         with self._out_lock:
@@ -514,8 +556,8 @@ class Console:
         link = self.require_link() if cmd.needs_link else self.link
         try:
             cmd.func(self, args)
-        except KeyboardInterrupt:
-            raise ConsoleError(f"{name}: interrupted (Ctrl-C); {self.stop_after_interrupt()}") from None
+        except KeyboardInterrupt as e:
+            raise ConsoleError(f"{name}: interrupted ({_interruption(e)}); {self.stop_after_interrupt()}") from None
         except NackError as e:
             raise ConsoleError(f"{name}: {self._nack_text(e)}") from None
         except ParamError as e:
@@ -544,7 +586,7 @@ class Console:
                 if link.status().state in (P.State.RUN, P.State.BRAKE):
                     link.stop()
                     return "motor stopped (outputs off)"
-                return "the motor was not driven"
+                return NOT_DRIVEN
             except KeyboardInterrupt:
                 continue
             except LinkError as e:
@@ -575,13 +617,12 @@ class Console:
             self.say(f"error: {e}")
             return False
 
-    def run_script(self, path: str | Path) -> int:
-        """Run the commands of a file; stop at the first error (ConsoleError names file and line)."""
+    def run_script(self, path: str | Path, lines: list[str] | None = None) -> int:
+        """Run the commands of a file (``lines``: its lines, already read with :func:`read_script`);
+        stop at the first error (ConsoleError names file and line)."""
         p = Path(path)
-        try:
-            lines = p.read_text(encoding="utf-8").splitlines()
-        except OSError as e:
-            raise ConsoleError(f"cannot read session file {p}: {e.strerror}") from None
+        if lines is None:
+            lines = read_script(p)
         prev = None
         try:
             for no, line in enumerate(lines, 1):
@@ -598,10 +639,14 @@ class Console:
                     return 0
                 except PicdriveError as e:
                     raise ConsoleError(f"{p}:{no}: {text!r}: {e}") from None
+                if self.terminating:
+                    break
                 prev = (no, text)
             self._fail_on_events(p, prev)
-        except KeyboardInterrupt:
-            raise ConsoleError(f"{p}: interrupted (Ctrl-C); {self.stop_after_interrupt()}") from None
+        except KeyboardInterrupt as e:
+            raise ConsoleError(f"{p}: interrupted ({_interruption(e)}); {self.stop_after_interrupt()}") from None
+        if self.terminating:                 # a command caught it (Ctrl-C handling) and returned
+            raise ConsoleError(f"{p}: interrupted ({self.terminating}); {self.stop_after_interrupt()}")
         return 0
 
     def _fail_on_events(self, path, prev) -> None:
@@ -613,22 +658,30 @@ class Console:
                                "fails (if it is intended, follow the line with 'expect fault == <name> within <s>')")
 
     def close(self) -> None:
-        """Stop background work, save an open recording, close the plot and the link."""
-        self._closing.set()
-        self.stop_pump()
-        if self.link is not None:
+        """Stop the motor, stop background work, save an open recording, close the plot and the link."""
+        why = f"outputs off; {self.terminating} received" if self.terminating else "leaving the console"
+        if self.link is not None:            # the motor first: the rest may be slow or fail
             from ..link import protocol as P
             from ..link.client import LinkError
-            try:
-                if self.link.status().state in (P.State.RUN, P.State.BRAKE):
-                    self.link.stop()
-                    self.say("motor stopped (leaving the console)")
-            except LinkError:
-                pass
+            for _ in range(3):               # a Ctrl-C while leaving must not leave the motor running
+                try:
+                    if self.link.status().state in (P.State.RUN, P.State.BRAKE):
+                        self.link.stop()
+                        self.say(f"motor stopped ({why})")
+                    break
+                except KeyboardInterrupt:
+                    continue
+                except LinkError:
+                    break
+        self._closing.set()
+        self.stop_pump()
         if self.recorder is not None:
             rec, self.recorder = self.recorder, None
-            p = rec.close()
-            self.say(f"recording saved to {p} ({rec.samples} samples, {rec.dropped} dropped)")
+            try:
+                p = rec.close()
+                self.say(f"recording saved to {p} ({rec.samples} samples, {rec.dropped} dropped)")
+            except PicdriveError as e:
+                self.say(f"recording lost: {e}")
         self.close_plot()
         if self.link is not None:
             self.link.close()
@@ -657,6 +710,13 @@ class Console:
         except Exception:
             return []
         return sorted(o for o in opts if o.startswith(text))
+
+    def _prompt_interrupt(self) -> str:
+        """Ctrl-C at the prompt: a driven motor is stopped (as inside a command), else a hint."""
+        what = self.stop_after_interrupt()
+        if what == NOT_DRIVEN:
+            return "^C (type 'quit' to leave)"
+        return f"^C: {what}; 'quit' leaves"
 
     def repl(self, history: Path | None = None) -> int:
         """The interactive loop (readline: completion and history)."""
@@ -703,7 +763,9 @@ class Console:
                     self.say("")
                     break
                 except KeyboardInterrupt:
-                    self.say("^C (type 'quit' to leave)")
+                    if self.terminating:
+                        break
+                    self.say(self._prompt_interrupt())
                     continue
                 finally:
                     with self._out_lock:
@@ -712,8 +774,10 @@ class Console:
                     self.run_line(line)
                 except Quit:
                     break
-                except KeyboardInterrupt:
-                    self.say(f"interrupted (Ctrl-C); {self.stop_after_interrupt()}")
+                except KeyboardInterrupt as e:
+                    self.say(f"interrupted ({_interruption(e)}); {self.stop_after_interrupt()}")
+                if self.terminating:
+                    break
         finally:
             if readline is not None and history is not None:
                 try:
@@ -734,7 +798,7 @@ def register(subparsers) -> None:
         "console", help="the bench console: speeds, gains, live plots, step tests, recording",
         description="Serial tuning console on any pyserial URL: /dev/ttyUSB0, COM5, or "
                     "socket://127.0.0.1:PORT of a running 'picdrive twin'.")
-    p.add_argument("url", help="serial URL of the board or the twin")
+    p.add_argument("url", nargs="?", help="serial URL of the board or the twin (none: list the serial ports)")
     p.add_argument("--profile", help="local drive profile (name or path) to compare with the board's")
     p.add_argument("--run", metavar="SESSION.TXT",
                    help="run the commands of a file, then exit (non-zero on the first error)")
@@ -756,8 +820,28 @@ def _connect_hint(url: str, e) -> str:
     return str(e)
 
 
+def serial_ports_text() -> str:
+    """What ``picdrive console`` without a URL prints: the serial ports pyserial finds, and how to
+    connect."""
+    from serial.tools import list_ports
+    ports = sorted(list_ports.comports(), key=lambda p: p.device)
+    lines = ["no URL given; serial ports found:" if ports else "no URL given, and no serial port found "
+             "(is the USB-serial adapter plugged in, and are you allowed to open it? on Linux: the "
+             "'dialout' group)"]
+    for p in ports:
+        what = ", ".join(x for x in (p.description if p.description != "n/a" else "", p.manufacturer or "",
+                                     p.hwid if p.hwid != "n/a" else "") if x)
+        lines.append(f"  {p.device}" + (f"  ({what})" if what else ""))
+    lines.append("connect with: picdrive console " + (ports[0].device if ports else "/dev/ttyUSB0") +
+                 "   (or socket://127.0.0.1:PORT of a running 'picdrive twin')")
+    return "\n".join(lines)
+
+
 def main(args) -> int:
     from ..link.client import LinkError
+    if args.url is None:
+        print(serial_ports_text())
+        return 0
     profile = None
     if args.profile:
         from ..profile import load_profile
@@ -765,8 +849,7 @@ def main(args) -> int:
     out = Path(args.out)
     if not out.is_dir():
         raise ConsoleError(f"--out {out}: no such folder; create it or choose another")
-    if args.run and not Path(args.run).is_file():
-        raise ConsoleError(f"--run {args.run}: no such file")
+    script = read_script(args.run) if args.run else None     # before the board is touched
     if args.strict and profile is None:
         raise ConsoleError("--strict compares the board with your profile: give --profile P too")
     interactive = args.run is None
@@ -775,13 +858,30 @@ def main(args) -> int:
         con.connect()
     except LinkError as e:
         raise ConsoleError(f"cannot connect to {args.url}: {_connect_hint(args.url, e)}") from None
+    # the terminal closed (SIGHUP) or the console killed (SIGTERM): stop the motor and keep the
+    # recording, as 'quit' does, instead of dying with the motor driven until the watchdog trips
+    before = {}
+    try:
+        before = {s: signal.signal(s, con.on_stop_signal) for s in STOP_SIGNALS}
+    except ValueError:                      # not the main thread (embedded): the caller handles signals
+        pass
     try:
         if args.run:
-            return con.run_script(args.run)
+            return con.run_script(args.run, script)
         history = Path(args.history) if args.history else default_history_path()
-        return con.repl(history)
+        con.repl(history)
+    except Terminated:
+        pass
     finally:
-        con.close()
+        try:
+            con.close()
+        finally:
+            for s, h in before.items():
+                signal.signal(s, h)
+    if con.terminating:
+        con.say(f"console ended by {con.terminating}")
+        return 128 + getattr(signal, con.terminating)
+    return 0
 
 
 # -- scope ----------------------------------------------------------------------

@@ -330,6 +330,7 @@ class Link:
         self._port = port
         self._wait = _waiter(port)
         self._dec = codec.StreamDecoder()
+        self._rx_tail = b""
         self._req_lock = threading.RLock()
         self._cv = threading.Condition()
         self._seq = os.urandom(1)[0]            # a new session does not reuse the last SEQ
@@ -397,15 +398,16 @@ class Link:
             try:
                 data = self._port.read(4096)
             except Exception as e:                       # port gone
-                self._die(LinkError(f"serial port {self.url!r} failed: {e}"))
+                self._die(LinkError(f"serial port {self.url!r} failed: {e}{self._peer_notice()}"))
                 return
             now = time.monotonic()
             if data:
+                self._rx_tail = (self._rx_tail + data)[-self.NOTICE_MAX:]
                 self.stats["rx_bytes"] += len(data)
                 frames = self._dec.feed(data)
                 last_rx = now
             else:
-                frames = self._dec.gap() if self._dec.pending and now - last_rx > gap else []
+                frames = self._dec.gap() if self._dec.partial and now - last_rx > gap else []
                 if not frames:
                     self._wait(0.005)
             self.stats["crc_errors"] = self._dec.crc_errors
@@ -437,6 +439,18 @@ class Link:
         while self._late:
             out.append(self._late.popleft())
         return out
+
+    NOTICE_MAX = 512
+    """The last bytes received are kept (this many) for :meth:`_peer_notice`."""
+
+    def _peer_notice(self) -> str:
+        """A text line the other end sent before closing (the twin says why it refused or dropped
+        this client: ``picdrive twin: ...``), quoted for the error; "" if there is none."""
+        k = self._rx_tail.rfind(b"picdrive twin: ")
+        if k < 0:
+            return ""
+        line = self._rx_tail[k:].split(b"\n")[0].decode("ascii", "replace")
+        return f"; the other end said: {line}"
 
     def _die(self, err: LinkError) -> None:
         with self._cv:

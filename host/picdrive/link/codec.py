@@ -136,17 +136,30 @@ class StreamDecoder:
     called when no byte arrived for ``HOST_GAP_MS`` and drops a partial
     frame.  Counters: ``crc_errors`` (non-empty candidates rejected: bad
     COBS, length or CRC), ``bytes_in``.
+
+    Bounded like the firmware's receive buffer: a candidate longer than
+    :data:`~picdrive.link.protocol.RX_BUFFER_BYTES` (the longest encoded
+    frame without its delimiter) cannot be a frame, so its bytes are
+    dropped as they arrive and only the fact that one is under way is kept
+    until its delimiter (then counted as a CRC error): a noisy line without
+    a 0x00 holds at most that many bytes, however long it runs.
     """
 
     def __init__(self) -> None:
         self._buf = bytearray()
+        self._oversize = False           # the candidate under way is too long to be a frame
         self.crc_errors = 0
         self.bytes_in = 0
 
     @property
     def pending(self) -> int:
-        """Bytes held (a partial frame)."""
+        """Bytes held of a partial frame (at most ``RX_BUFFER_BYTES``)."""
         return len(self._buf)
+
+    @property
+    def partial(self) -> bool:
+        """A candidate frame is under way (bytes since the last delimiter), held or oversize."""
+        return bool(self._buf) or self._oversize
 
     def feed(self, data: bytes) -> list[Frame]:
         data = bytes(data)
@@ -154,26 +167,37 @@ class StreamDecoder:
         parts = data.split(_DELIM)
         out = []
         for k, part in enumerate(parts[:-1]):
-            cand = bytes(self._buf) + part if k == 0 else part
+            if k == 0:
+                oversize = self._oversize or len(self._buf) + len(part) > P.RX_BUFFER_BYTES
+                cand = b"" if oversize else bytes(self._buf) + part
+            else:
+                oversize, cand = len(part) > P.RX_BUFFER_BYTES, part
             self._buf.clear()
-            if not cand:
+            self._oversize = False
+            if not cand and not oversize:
                 continue
-            body = cobs_decode(cand) if len(cand) <= P.MAX_BODY + 1 else None
+            body = cobs_decode(cand) if not oversize else None
             f = parse_body(body) if body is not None else None
             if f is None:
                 self.crc_errors += 1
             else:
                 out.append(f)
-        self._buf += parts[-1]
+        tail = parts[-1]
+        if self._oversize or len(self._buf) + len(tail) > P.RX_BUFFER_BYTES:
+            self._buf.clear()
+            self._oversize = bool(tail) or self._oversize
+        else:
+            self._buf += tail
         return out
 
     def gap(self) -> list[Frame]:
         """Drop a partial frame (what follows it up to the next 0x00 then fails its checks)."""
-        self._buf.clear()
+        self.reset()
         return []
 
     def reset(self) -> None:
         self._buf.clear()
+        self._oversize = False
 
 
 # ---------------------------------------------------------------------------

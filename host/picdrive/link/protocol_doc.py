@@ -7,7 +7,7 @@ requires the committed file to equal it.  Regenerate with
 """
 from __future__ import annotations
 
-from .protocol import (ACK_BIT, BOARD_FRAMES, COMMANDS, CTYPES, CaptureState, Controller, DELIMITER,
+from .protocol import (ACK_BIT, BOARD_FRAMES, COMMANDS, CTYPES, CaptureState, Controller, DELIMITER, RX_BUFFER_BYTES,
                        EEPROM_BYTES, EEPROM_LAYOUT_VERSION, EepromResult, Event, FRAME_OVERHEAD, Fault,
                        Field, HOST_GAP_MS, MAX_BODY, MAX_FRAME, MAX_PAYLOAD, MSG_EVENT, MSG_NACK,
                        MSG_TELEMETRY, NACK_REASONS, Nack, PROTOCOL_VERSION, REPLAY_BYTES, RULE_BASE_ID,
@@ -67,7 +67,8 @@ def render_markdown(table: Table | None = None) -> str:
       "match the frame's length is rejected whatever the CRC.  What remains is the CRC's chance rate "
       "(2^-16 per corrupted frame, less with the length check): `bench/fuzz_link.py` measures it per kind of "
       "corruption.  The board has no inter-byte timer; the host drops a partial frame after "
-      f"{HOST_GAP_MS} ms without bytes.  Version 1.x framed with a start byte 0xA5 and no stuffing.")
+      f"{HOST_GAP_MS} ms without bytes.  Both receivers hold at most {RX_BUFFER_BYTES} bytes of a candidate: "
+      "longer ones cannot be a frame and are dropped as they arrive, up to their delimiter.  Version 1.x framed with a start byte 0xA5 and no stuffing.")
     a("")
     a("## Exchanges")
     a("")
