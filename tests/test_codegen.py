@@ -268,3 +268,23 @@ def test_variants_generate_and_compile(tmp_path, variant):
         assert fw.plan.loop_hz == 20000.0 and fw.plan.tcy_per_tick == 500
     sfrs, bit_uses, unknown = p18f4431.names_used([p.read_text() for p in out.glob("*.[ch]")])
     assert unknown == set() and sfrs <= set(p18f4431.registers())
+
+
+def test_the_speed_loop_budget_is_a_share_of_the_loop_period_the_firmware_runs(tmp_path):
+    """40 % of the speed loop's own period (drive_params.h: FW_LOOP_DIV Timer2 interrupts of
+    FW_TCY_PER_TICK_MS ms + FW_TCY_PER_TICK_MOD Tcy): 4,000 cycles at 1 kHz, 2,000 at 2 kHz, 8,000
+    every second 1 ms interrupt (a fixed 4,000 let a 2 kHz loop take 80 % of the chip)."""
+    from picdrive.firmware.codegen import folder_budgets
+    from picdrive.paths import firmware_build_dir
+    src = (firmware_build_dir() / "duy2008" / "drive_params.h").read_text()
+    for n in ("FW_LOOP_DIV 1u", "FW_TCY_PER_TICK_MS 1u", "FW_TCY_PER_TICK_MOD 0u"):
+        assert f"#define {n}" in src
+    cases = {4000: src,
+             2000: src.replace("FW_TCY_PER_TICK_MS 1u", "FW_TCY_PER_TICK_MS 0u")
+                      .replace("FW_TCY_PER_TICK_MOD 0u", "FW_TCY_PER_TICK_MOD 5000u"),
+             8000: src.replace("FW_LOOP_DIV 1u", "FW_LOOP_DIV 2u")}
+    for cycles, text in cases.items():
+        d = tmp_path / str(cycles)
+        d.mkdir()
+        (d / "drive_params.h").write_text(text)
+        assert folder_budgets(d).speed_loop_cycles == cycles

@@ -230,8 +230,8 @@ def check_chip(profile, result: DesignResult) -> list[str]:
                                 f"chip's budgets: {e}; or design with --no-chip-check (the design file then records "
                                 "that the chip build was not checked)") from None
     limit = (f"flash <= {BUDGETS.flash_bytes} B, RAM + stack <= {BUDGETS.ram_stack_bytes} B, speed loop <= "
-             f"{BUDGETS.speed_loop_cycles} cycles, hall interrupt <= {BUDGETS.hall_isr_cycles} cycles, UART "
-             f"receive <= {BUDGETS.uart_rx_cycles} cycles a byte")
+             f"{BUDGETS.speed_loop_fraction:.0%} of its period, hall interrupt <= {BUDGETS.hall_isr_cycles} cycles, "
+             f"UART receive <= {BUDGETS.uart_rx_cycles} cycles a byte")
     result.verification["firmware_fits_chip"] = {"value": "; ".join(bad) if bad else "fits", "limit": limit,
                                                  "ok": not bad}
     if bad:

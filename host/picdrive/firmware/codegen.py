@@ -592,6 +592,18 @@ def build_check(folder) -> list[str]:
     return done
 
 
+def folder_budgets(folder):
+    """``picdrive.firmware.target.BUDGETS`` with the speed loop's share taken of the period this
+    firmware folder runs it at (``FW_LOOP_DIV`` Timer2 interrupts): 40 % of 1 ms is 4,000 cycles,
+    of 0.5 ms (a 2 kHz loop) 2,000."""
+    import dataclasses
+    from . import gpsim, target
+    tcy = gpsim.firmware_limits(folder).get("speed_loop_tcy")
+    if not tcy:
+        return target.BUDGETS
+    return dataclasses.replace(target.BUDGETS, speed_loop_hz=target.FCY_HZ / tcy)
+
+
 def target_build(folder, name: str, *, allow_over_budget: bool = False, report: list | None = None,
                  figures: dict | None = None):
     """Build ``<folder>/<name>.hex`` for the PIC18F4431 and measure it against the budgets.
@@ -615,13 +627,14 @@ def target_build(folder, name: str, *, allow_over_budget: bool = False, report: 
                             for k in modes["4+capture"].worst}, modes["4+capture"].samples)
         if b.on_chip:          # a HEX linked beyond the chip's memory is not written
             shutil.copyfile(b.hex_path, folder / f"{name}.hex")
-    lines = target.budget_lines(b, cyc.worst)
+    budgets = folder_budgets(folder)
+    lines = target.budget_lines(b, cyc.worst, budgets)
     if report is not None:
         report += lines
     if figures is not None:
         figures.update(flash_bytes=b.flash_bytes, ram_stack_bytes=b.ram_stack_bytes,
                        **{k: v for k, v in cyc.worst.items() if ":" not in k})
-    bad = target.over_budget(b, cyc.worst)
+    bad = target.over_budget(b, cyc.worst, budgets)
     if bad and not allow_over_budget:
         raise CodegenError("the firmware does not fit the PIC18F4431's budgets (" + "; ".join(bad) + "); nothing "
                            "written.  Figures:\n  " + "\n  ".join(lines) + "\n(--allow-over-budget writes it anyway, "
@@ -646,7 +659,7 @@ def chip_check(profile, design_path, *, hall_input: str = "auto", fault_pin: str
         folder = Path(t) / "fw"
         write_firmware(fw, folder, check=True)
         b, cyc = target_build(folder, fw.name, allow_over_budget=True, report=lines)
-    return lines, target.over_budget(b, cyc.worst)
+        return lines, target.over_budget(b, cyc.worst, folder_budgets(folder))
 
 
 def write_firmware(fw: Firmware, out_dir, *, check: bool = True, hex_build: bool = False,

@@ -45,6 +45,7 @@ import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..board import FCY_HZ
 from ..errors import PicdriveError
 from . import p18f4431
 
@@ -425,7 +426,8 @@ def default_corpus(modes=TELEMETRY_MODES, *, protocol_package: str = "picdrive.l
 
 def firmware_limits(folder) -> dict[str, int]:
     """FW_ADC_TRIP, FW_BUS_UV and FW_BUS_OV (ADC counts) of a generated folder's drive_params.h,
-    ``hall_port`` and ``hall_shift`` (FW_HALL_PORT, FW_HALL_SHIFT),
+    ``hall_port`` and ``hall_shift`` (FW_HALL_PORT, FW_HALL_SHIFT), ``speed_loop_tcy`` (the speed
+    loop's period in instruction cycles, when the folder gives it),
     and ``tx_high``: 1 when IPR1's TXIP makes the UART transmit a high-priority interrupt
     (today's firmware; c0631cc's, which bench/target.py measures beside it, had it low)."""
     text = (Path(folder) / "drive_params.h").read_text()
@@ -436,6 +438,11 @@ def firmware_limits(folder) -> dict[str, int]:
         if not m:
             raise GpsimError(f"{folder}/drive_params.h has no {name}: regenerate it with 'picdrive firmware'")
         out[name] = int(m[1])
+    # the speed loop's period in Tcy: FW_LOOP_DIV Timer2 interrupts of FW_TCY_PER_TICK_MS ms + _MOD Tcy
+    ms, mod, div = (re.search(rf"#define {n} (\d+)u?\b", text) for n in
+                    ("FW_TCY_PER_TICK_MS", "FW_TCY_PER_TICK_MOD", "FW_LOOP_DIV"))
+    if ms and mod and div:
+        out["speed_loop_tcy"] = (int(ms[1]) * (FCY_HZ // 1000) + int(mod[1])) * int(div[1])
     # the hall lines' port and first bit (older firmware without them: PORTC, bit 3)
     m = re.search(r"#define FW_HALL_PORT (PORT[AC])\b", text)
     out["hall_port"] = m[1] if m else "PORTC"
