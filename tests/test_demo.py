@@ -12,8 +12,10 @@ def test_demo_runs_the_chain_and_writes_whole_report(tmp_path, capsys):
     text = (out / "report.md").read_text()
     assert "## 3. The firmware in the twin" in text and "| zn |" in text
     for f in ("twin_runs.png", "twin_zoom.png", "twin/zn.csv", "designs/duy2008.zn.design.json",
-              "firmware/zn/drive.c", "firmware/zn/link_fw.c", "summary.json"):
+              "firmware/zn/drive.c", "firmware/zn/link_fw.c", "firmware/zn/duy2008-zn.hex", "summary.json"):
         assert (out / f).is_file(), f
+    # the firmware as 'picdrive firmware' builds it: the chip's HEX, measured against every budget
+    assert "within every budget" in capsys.readouterr().out
     s = json.loads((out / "summary.json").read_text())
     m = s["twin"]["zn"]
     # the drive really moved: it rose to the target in finite time and stayed near it

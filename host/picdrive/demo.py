@@ -306,11 +306,15 @@ def run_demo(profile_ref: str = "duy2008", out_dir: str | Path = "out/demo", *, 
             if not r.ok or r.law is None:
                 failed[meth] = r.reasons or ["no firmware law"]
                 continue
-            _say(f"[firmware] {meth}: rendering and build-checking (gcc, avr-gcc) ...")
+            _say(f"[firmware] {meth}: rendering, build-checking (gcc, avr-gcc) and the chip's HEX (SDCC, gpsim) ...")
             t0 = time.perf_counter()
             fw = codegen.generate(profile, dpath, name=f"{profile.name}-{meth}")
-            fdir = codegen.write_firmware(fw, tmp / "firmware" / meth, check=True)
+            chip: dict = {}
+            fdir = codegen.write_firmware(fw, tmp / "firmware" / meth, check=True, hex_build=True, figures=chip)
             timings[meth]["firmware"] = time.perf_counter() - t0
+            _say(f"           flash {chip['flash_bytes']:,} B, RAM + stack {chip['ram_stack_bytes']} B, speed loop "
+                 f"{chip['speed_loop_isr']:,} / hall {chip['hall_isr']} / UART receive {chip['uart_rx_byte']} cycles: "
+                 "within every budget")
             firmwares[meth] = fw
             _say(f"[twin]     {meth}: step to {profile.speed_step_rpm():.0f} rpm, then "
                  f"{profile.control.load_torque_n_m:g} N m load ...")

@@ -69,7 +69,14 @@ Checks:
   overcurrent trip, the firmware's current
   walk-down backup never needed, saturation in steady state; the same step
   and load step with R at +-``design.resistance_uncertainty``
-  (``sim_resistance_uncertainty``).
+  (``sim_resistance_uncertainty``); and the step and load step at half the
+  step target (``sim_half_speed``: settling, load recovery, final error and
+  current judged alike, the overshoot a figure), where the hall-speed
+  measurement's lag is twice the target's.
+* ``firmware_fits_chip`` (added by ``picdrive design``,
+  :func:`picdrive.gate.check_chip`) -- the design's firmware built for the
+  PIC18F4431 as ``picdrive firmware`` builds it: flash, static RAM + stack and
+  every interrupt's worst case within ``picdrive.firmware.target.BUDGETS``.
 """
 from __future__ import annotations
 
