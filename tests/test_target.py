@@ -43,8 +43,14 @@ def built(tmp_path_factory):
     return out
 
 
-def test_six_bundled_designs():
-    assert len(DESIGNS) == 6, [d.name for d in DESIGNS]
+def test_every_bundled_design_is_measured_and_a_halls_only_one_among_them():
+    """Three designs for each bundled profile, all measured below; one profile takes the speed from
+    the halls, so the hall-speed interrupt path is held to the budgets too."""
+    import tomllib
+    profiles = sorted(EXAMPLES.glob("*.toml"))
+    assert {d.name for d in DESIGNS} == {f"{p.stem}.{m}.design.json" for p in profiles
+                                         for m in ("fuzzy-hinf", "mixed-pid", "zn")}
+    assert any(tomllib.loads(p.read_text())["sensors"]["speed_source"] == "hall" for p in profiles)
 
 
 def _figures(b, modes) -> dict[str, int]:
