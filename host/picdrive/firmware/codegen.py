@@ -51,6 +51,13 @@ TEMPLATES = ("drive_params.h", "drive_core.h", "drive_core.c", "drive.h", "drive
 HOST_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-Wconversion")
 #: the overspeed trip, x control.speed_max_rpm (the profile has no field for it)
 OVERSPEED_FACTOR = 1.2
+WDT_POSTSCALE = 8
+"""The hardware watchdog's postscale (CONFIG2H WDPS): 8 x the 4 ms nominal base = 32 ms.  Long
+against the main loop's worst pass (a few ms: at most 8 frames a link_poll call, each checked and
+answered in under 1 ms with the speed loop in between; an EEPROM save clears it between its
+writes), short against a safe stop: a hung program keeps the bridge as it left it for at most
+that long before the reset turns the outputs off."""
+WDT_MS = 4 * WDT_POSTSCALE
 CAPTURE_BYTES = 128
 """Capture buffer of the link module, bytes (``--capture-bytes``): 64 samples of one signal, 16 of
 four.  ``bench/link_pic18.py`` prints what the link module costs with and without capture and EEPROM."""
@@ -151,8 +158,9 @@ def _config_bits(pm) -> list[tuple[str, str, str]]:
         ("PWRTEN", "ON", "power-up timer"),
         ("BOREN", "ON", "brown-out reset"),
         ("BORV", "42", "at 4.2 V"),
-        ("WDTEN", "OFF", "no watchdog timer (the link watchdog stops the motor)"),
-        ("WINEN", "OFF", "no windowed watchdog"),
+        ("WDTEN", "ON", "watchdog timer: a hung program resets the chip (outputs off)"),
+        ("WDPS", str(WDT_POSTSCALE), f"1:{WDT_POSTSCALE}: {WDT_MS} ms nominal (4 ms x {WDT_POSTSCALE})"),
+        ("WINEN", "OFF", "no windowed watchdog (CLRWDT at any time)"),
         ("PWMPIN", "OFF", "PWM outputs off after reset until the firmware enables them"),
         ("LPOL", "HIGH", "PWM0/2/4 (low sides, IR2101 LIN) active high"),
         ("HPOL", "HIGH", "PWM1/3/5 (high sides, IR2101 HIN) active high"),
@@ -257,6 +265,8 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
            "a conversion takes 4 + 12 TAD = 12.8 us"),
         _d("FW_ADC_POLLS", "200u", "GO_DONE polls before a conversion is given up (> 12.8 us at >= 4 cycles a poll)"),
         _d("FW_EE_POLLS", "60000u", "EECON1.WR polls before an EEPROM write is given up (> 4 ms)"),
+        _d("FW_WDT_MS", f"{WDT_MS}u", f"hardware watchdog period, ms nominal (CONFIG WDPS = {WDT_POSTSCALE}: "
+           "4 ms x the postscale); cleared by the main loop after each speed-loop sample"),
         _d("FW_ADCON0_CUR", _reg("ADCON0", "ADON"), "ADON, single shot, single channel, group A (AN0)"),
         _d("FW_ADCON0_BUS", _reg("ADCON0", "ADON", ACMOD=0b01), "ADON, single shot, single channel, group B (AN1)"),
         _d("FW_ADC_TRIP", f"{plan.itrip}u", f"inverter.overcurrent_trip_a = {inv.overcurrent_trip_a:g} A x "
