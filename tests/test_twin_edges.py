@@ -15,6 +15,7 @@ from picdrive.link import protocol as P
 from picdrive.paths import firmware_build_dir
 from picdrive_hil.twin import Twin
 from support.twin_uart import command
+from test_twin_pil_firmware import link_id_scale
 
 FW = firmware_build_dir() / "duy2008"
 WDT_S = 0.032            # the firmware's watchdog: CONFIG2H WDPS 1:8 x 4 ms (codegen.WDT_MS)
@@ -31,26 +32,12 @@ def make(kind: str, build) -> Twin:
     return Twin("duy2008", FW, seed=0)
 
 
-def _link_id(name: str) -> int:
-    import re
-    h = (FW / "link_fw.h").read_text()
-    m = re.search(rf"#define\s+LINK_ID_{name.upper()}\s+0x([0-9A-Fa-f]+)u", h)
-    assert m, f"link_fw.h has no LINK_ID_{name.upper()}"
-    return int(m.group(1), 16)
-
-
-def _speed_scale() -> float:
-    import re
-    h = (FW / "link_fw.h").read_text()
-    m = re.search(r"#define\s+LINK_ID_SPEED_SETPOINT\s+0x[0-9A-Fa-f]+u\s+/\*[^*]*?scale ([-+0-9.eE]+)", h)
-    assert m
-    return float(m.group(1))
-
-
 def running(tw, rpm: float = 1500.0, link_timeout_ms: int = 60000) -> None:
     tw.run(0.01)
-    command(tw, "param_set", 1, {"id": _link_id("link_timeout"), "value": link_timeout_ms})
-    command(tw, "set_speed", 2, {"value": int(round(rpm / _speed_scale()))})
+    lt_id, _ = link_id_scale("link_timeout")
+    _, sp_scale = link_id_scale("speed_setpoint")
+    command(tw, "param_set", 1, {"id": lt_id, "value": link_timeout_ms})
+    command(tw, "set_speed", 2, {"value": int(round(rpm / sp_scale))})
     command(tw, "start", 3)
     for seq in (4, 5, 6):                                # up to speed, the link watchdog fed
         tw.run(0.1)
@@ -60,8 +47,9 @@ def running(tw, rpm: float = 1500.0, link_timeout_ms: int = 60000) -> None:
 
 # ---------------------------------------------------------------- the link watchdog
 
+@pytest.mark.parametrize("cmd", ["heartbeat", "status"])   # a stored reply; a read-only command run again
 @pytest.mark.parametrize("kind", ["sil", "pil"])
-def test_a_replayed_frame_is_answered_but_does_not_feed_the_link_watchdog(kind, build):
+def test_a_replayed_frame_is_answered_but_does_not_feed_the_link_watchdog(kind, cmd, build):
     """One identical host frame every 100 ms (a stuck host, a loop-back replaying the last
     frame) must not keep the motor running: the watchdog stops it link_timeout after the last
     new command, and each replay is still answered.  Fresh frames at the same rate do keep it
@@ -70,10 +58,10 @@ def test_a_replayed_frame_is_answered_but_does_not_feed_the_link_watchdog(kind, 
     running(tw, link_timeout_ms=300)
     dec = codec.StreamDecoder()
     for k in range(8):                                   # fresh frames: a new SEQ each
-        tw.uart_write(codec.encode_command("heartbeat", 0x40 + k))
+        tw.uart_write(codec.encode_command(cmd, 0x40 + k))
         tw.run(0.1)
     assert tw.state()["outputs_active"]
-    frame = codec.encode_command("heartbeat", 0x60)
+    frame = codec.encode_command(cmd, 0x60)
     t_first = tw.t
     answers = 0
     for _ in range(10):                                  # the same frame, 1 s
@@ -142,8 +130,9 @@ def _instr(op: str, reg: str, bit: str) -> int:
     return {"BCF": 0x9000, "BSF": 0x8000}[op] | (pos << 9) | (addr & 0xFF)
 
 
-def _bra_self() -> int:
-    return 0xD7FF                                        # BRA $ (offset -1 word)
+def _bra_back(words: int) -> int:
+    """BRA to the instruction ``words`` words before it (1: to itself)."""
+    return 0xD000 | (-words & 0x7FF)
 
 
 def _goto(k: int) -> tuple[int, int]:
@@ -187,9 +176,10 @@ def test_a_hung_program_turns_the_outputs_off_within_the_watchdog_period(build, 
     running(tw, rpm=1500.0)
     poll = build.functions["_fw_poll"].address
     if hang == "main loop spins":
-        patch = _words(_bra_self())
+        patch = _words(_bra_back(1))
     elif hang == "interrupts off":
-        patch = _words(_instr("BCF", "INTCON", "GIEH"), _instr("BCF", "INTCON", "GIEL"), _bra_self())
+        # a loop (a return into fw_poll lands in it, whichever of its words that is)
+        patch = _words(_instr("BCF", "INTCON", "GIEH"), _instr("BCF", "INTCON", "GIEL"), _bra_back(3))
     else:
         # TMR2IE off at every pass, then the pass as before: fw_poll's first two words move to a
         # trampoline past the program (checked not PC-relative)
@@ -210,8 +200,10 @@ def test_a_hung_program_turns_the_outputs_off_within_the_watchdog_period(build, 
         assert mid.speed_stopped, "\n".join(mid.lines())
     tw.run(0.1)
     s, r = tw.state(), tw.processor_report()
-    print(f"{hang}: outputs off {1e3 * (s['outputs_off_t_s'] - t0):.1f} ms after the hang\n" + "\n".join(r.lines()))
-    assert not s["outputs_active"]
+    off = s["outputs_off_t_s"]
+    print(f"{hang}: " + ("outputs still on" if s["outputs_active"] or off is None
+                         else f"outputs off {1e3 * (off - t0):.1f} ms after the hang") + "\n" + "\n".join(r.lines()))
+    assert not s["outputs_active"], "the hung program kept the outputs on"
     assert r.wdt_resets > resets0
     assert s["outputs_off_t_s"] - t0 <= WDT_S + 0.002
     assert any("time-out reset" in ln for ln in r.lines())
