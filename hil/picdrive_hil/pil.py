@@ -261,7 +261,8 @@ class Report:
                        f"min/mean/max after Timer2 set its flag ({self.entry_min * us:.1f} / {self.entry_mean * us:.1f} / "
                        f"{self.entry_max * us:.1f} us): the speed sample's instant moves by that much")
             if self.speed_stopped:
-                out.append(f"speed-loop interrupt: STOPPED ARRIVING: none for {self.speed_silent * self.tcy_s * 1e3:.1f} ms "
+                silent_ms = self.speed_silent * self.tcy_s * 1e3
+                out.append(f"speed-loop interrupt: STOPPED ARRIVING: none for {silent_ms:.1f} ms "
                            f"(its period {self.speed_period_cycles * self.tcy_s * 1e3:g} ms)")
             elif self.speed_gap_max > 2 * self.speed_period_cycles:
                 out.append(f"speed-loop interrupt: stopped arriving for {self.speed_gap_max * self.tcy_s * 1e3:.1f} ms "

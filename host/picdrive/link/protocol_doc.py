@@ -7,7 +7,8 @@ requires the committed file to equal it.  Regenerate with
 """
 from __future__ import annotations
 
-from .protocol import (ACK_BIT, BOARD_FRAMES, COMMANDS, CTYPES, CaptureState, Controller, DELIMITER, RX_BUFFER_BYTES, RX_SPILL_BYTES,
+from .protocol import (ACK_BIT, BOARD_FRAMES, COMMANDS, CTYPES, CaptureState, Controller, DELIMITER, RX_BUFFER_BYTES,
+                       RX_SPILL_BYTES,
                        EEPROM_BYTES, EEPROM_LAYOUT_VERSION, EepromResult, Event, FRAME_OVERHEAD, Fault,
                        Field, HOST_GAP_MS, MAX_BODY, MAX_FRAME, MAX_PAYLOAD, MSG_EVENT, MSG_NACK,
                        MSG_TELEMETRY, NACK_REASONS, Nack, PROTOCOL_VERSION, REPLAY_BYTES, RULE_BASE_ID,
