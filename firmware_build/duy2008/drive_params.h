@@ -101,7 +101,7 @@
 #define FW_ADC_POLLS 200u
 /* EECON1.WR polls before an EEPROM write is given up (> 4 ms) */
 #define FW_EE_POLLS 60000u
-/* hardware watchdog period, ms nominal (CONFIG WDPS = 8: 4 ms x the postscale); cleared by the main loop after each speed-loop sample */
+/* hardware watchdog period, ms nominal (CONFIG WDPS = 8: 4 ms x the postscale, >= 32 ms and 4 speed-loop periods); cleared by the main loop after each speed-loop sample */
 #define FW_WDT_MS 32u
 /* ADON, single shot, single channel, group A (AN0) */
 #define FW_ADCON0_CUR 0x01u
