@@ -266,6 +266,11 @@ def test_variants_generate_and_compile(tmp_path, variant):
         assert fw.plan.loop_hz == 100.0 and fw.plan.loop_div * fw.plan.tcy_per_tick == 100000
     else:
         assert fw.plan.loop_hz == 20000.0 and fw.plan.tcy_per_tick == 500
+    # the hardware watchdog: at least 32 ms and 4 speed-loop periods (it is cleared after a sample)
+    wdps = {"loop-100hz": 16}.get(variant, 8)
+    assert f"#pragma config WDPS = {wdps} " in (out / "config_xc8.c").read_text()
+    assert f"#pragma config WDPS={wdps} " in (out / "main_sdcc.c").read_text()
+    assert f"#define FW_WDT_MS {4 * wdps}u" in params
     sfrs, bit_uses, unknown = p18f4431.names_used([p.read_text() for p in out.glob("*.[ch]")])
     assert unknown == set() and sfrs <= set(p18f4431.registers())
 
@@ -288,3 +293,12 @@ def test_the_speed_loop_budget_is_a_share_of_the_loop_period_the_firmware_runs(t
         d.mkdir()
         (d / "drive_params.h").write_text(text)
         assert folder_budgets(d).speed_loop_cycles == cycles
+
+
+def test_watchdog_period_covers_four_speed_loop_periods_and_32_ms():
+    """The hardware watchdog is cleared after a speed-loop sample: its period must cover several
+    of them (a 10 Hz loop, the profile's slowest, would otherwise reset a healthy chip)."""
+    assert [codegen.wdt_postscale(hz) for hz in (20000.0, 1000.0, 125.0, 100.0, 10.0)] == [8, 8, 8, 16, 128]
+    for hz in (10.0, 33.0, 100.0, 1000.0, 20000.0):
+        ms = 4 * codegen.wdt_postscale(hz)
+        assert ms >= 32 and ms >= 4 * 1000.0 / hz and (ms == 32 or ms / 2 < 4 * 1000.0 / hz)

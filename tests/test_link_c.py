@@ -633,19 +633,34 @@ def test_capture_arm_out_of_range(peer, args):
     assert peer.nack("capture_arm", args) == Nack.OUT_OF_RANGE
 
 
-def test_rx_overflow_counted_and_recovered(peer):
-    """One receive buffer: bytes arriving while a complete frame waits for the main loop are
-    lost and counted; the waiting frame is still executed, the frame the lost bytes belonged to
-    is dropped whole, and the next one after a delimiter is accepted."""
-    first = codec.encode_command("heartbeat", 0x31)
-    cut = codec.encode_command("heartbeat", 0x32)
-    for x in first + cut:                      # no poll in between
+def test_rx_spill_holds_what_arrives_behind_a_waiting_frame(peer):
+    """While a complete frame waits for the main loop, the bytes behind it wait in the spill ring
+    (LINK_RX_SPILL - 1 bytes) and are framed when the main loop is done with it: every command
+    in it is answered.  Bytes that find the ring full are lost and counted; the frame they
+    belonged to is dropped whole, the one before it is not, and the next one after a delimiter
+    is accepted."""
+    def answered(n_polls=12):
+        seqs = []
+        for _ in range(n_polls):
+            seqs += [f.seq for f in peer.frames() if f.is_ack]
+        return seqs
+
+    size = len(codec.encode_command("heartbeat", 0))
+    k = (P.RX_SPILL_BYTES - 1) // size             # whole frames the ring holds
+    assert k >= 1 and (k + 1) * size - (P.RX_SPILL_BYTES - 1) == 1
+    frames = [codec.encode_command("heartbeat", 0x31 + j) for j in range(k + 1)]
+    for x in b"".join(frames):                   # no poll in between: the first waits, k behind it
         peer.b.lib.link_rx_byte(x)
-    lost = len(cut)                            # all of it, its leading delimiter too
-    assert [f.seq for f in peer.frames() if f.is_ack] == [0x31]
-    for x in cut[1:]:                          # the rest of a frame whose start was lost: dropped
+    assert answered() == [0x31 + j for j in range(k + 1)]
+    assert peer.ok("status")["rx_overflows"] == 0
+    # one frame more than the ring holds behind a waiting frame: its last byte (the delimiter) is lost
+    frames = [codec.encode_command("heartbeat", 0x41 + j) for j in range(k + 2)]
+    lost = 1
+    for x in b"".join(frames):
         peer.b.lib.link_rx_byte(x)
-    assert peer.frames() == []
+    assert answered() == [0x41 + j for j in range(k + 1)]    # the last lost its end: dropped
+    peer.b.feed(codec.encode_command("heartbeat", 0x51))
+    assert answered() == [0x51]
     assert peer.ok("status")["rx_overflows"] == lost
     # garbage longer than any frame is dropped at the next delimiter, without a NACK
     for _ in range(3 * P.MAX_FRAME):

@@ -71,27 +71,31 @@ def test_interrupt_paths_read_no_flash_table(asm):
 def test_rx_interrupt_shares_single_bytes_only():
     """Hazard g: state written by link_rx_byte (high-priority interrupt) is read by the main
     loop under a guard that may mask only the low priority: every variable it writes is one
-    byte (the frame buffer's fill count, the ready flag, the lost-byte count) or a byte of the
-    frame buffer, indexed by a byte."""
+    byte (the frame buffer's fill count, the ready flag, the lost-byte count, the spill ring's
+    write index) or a byte of the frame buffer or of the spill ring, indexed by a byte."""
     c = build.render()["link_fw.c"]
     hot = re.search(r"struct link_fast \{(.*?)\n\} link_hot;", c, re.S).group(1)
     fields = dict((name, t) for t, name in re.findall(r"^\s+(?:volatile )?(u?int\d+_t) (\w+);", hot, re.M))
+    fields.update((name, t) for t, name in re.findall(r"^static volatile (u?int\d+_t) (rx_sp_[wr]);", c, re.M))
     asm, body = re.findall(r"void link_rx_byte\(uint8_t b\)[^{]*\{(.*?)\n\}", c, re.S)
-    written = set(re.findall(r"\b(\w+)\s*(?:=[^=]|\+\+|--|\+=|-=)", body)) - {"rx_buf"}
+    local = set(re.findall(r"^\s+uint8_t (\w+) =", body, re.M))
+    written = set(re.findall(r"\b(\w+)\s*(?:=[^=]|\+\+|--|\+=|-=)", body)) - {"rx_buf", "rx_spill"} - local
     written |= set(re.findall(r"(?:\+\+|--)(\w+)", body))
-    assert written == {"rx_n", "rx_ready", "rx_ovf"}, written
-    assert {f: fields[f] for f in written} == {f: "uint8_t" for f in written}
+    assert written == {"rx_n", "rx_ready", "rx_ovf", "rx_sp_w"}, written
+    assert {f: fields[f] for f in written | {"rx_sp_r"}} == {f: "uint8_t" for f in written | {"rx_sp_r"}}
     assert "S." not in body                                  # nothing of the main loop's state
     assert re.search(r"rx_buf\[rx_n\] = b;", body) and P.RX_BUFFER_BYTES < 256
+    assert re.search(r"rx_spill\[rx_sp_w\] = b;", body) and P.RX_SPILL_BYTES < 256
     # the PIC18 assembly form (SDCC) writes the same bytes (link_hot + 0, 1, 2: rx_n, rx_ready,
-    # rx_ovf, first in the block), the buffer through FSR0 + W (PLUSW0 = 0xFEB) and PRODL (0xFF3,
-    # saved by the interrupt prologue)
+    # rx_ovf, first in the block; rx_sp_w), the buffers through FSR0 + W (PLUSW0) and PRODL/PRODH
+    # (saved by the interrupt prologue)
     assert list(fields)[:3] == ["rx_n", "rx_ready", "rx_ovf"]
     targets = set(re.findall(r"^\s*(?:MOVWF|CLRF|SETF)\s+(\(_link_hot \+ \d\)|\w+)", asm, re.M))
     targets |= set(re.findall(r"^\s*(?:INCF|DECF)\s+(\(_link_hot \+ \d\)|\w+),\s*F", asm, re.M))
     targets |= set(re.findall(r"^\s*MOVFF\s+\w+,\s*(\w+)", asm, re.M))
-    assert targets == {"(_link_hot + 0)", "(_link_hot + 1)", "(_link_hot + 2)", "0xFF3", "0xFEB"}, targets
-    assert re.search(r"LFSR\s+0,\s*_rx_buf", asm) and "__asm" in asm
+    assert targets == {"(_link_hot + 0)", "(_link_hot + 1)", "(_link_hot + 2)", "0xFF3", "0xFEB",
+                       "_rx_sp_w", "_PLUSW0", "_PRODH"}, targets
+    assert re.search(r"LFSR\s+0,\s*_rx_buf", asm) and re.search(r"LFSR\s+0,\s*_rx_spill", asm) and "__asm" in asm
 
 
 def _bench():

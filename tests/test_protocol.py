@@ -179,7 +179,7 @@ def test_stated_ram_budget_is_what_avr_gcc_allocates(tmp_path, rules, capture):
     files = render_c(t, build_id=1, profile_hash=2, capture_bytes=capture)
     sym = build.avr_ram_bytes(build.avr_object(files, tmp_path))
     budget = P.ram_budget(t, capture)
-    buffers = ("rx_buf", "tx_buf", "tm_buf", "rp_data", "link_params", "cap_buf")
+    buffers = ("rx_buf", "rx_spill", "tx_buf", "tm_buf", "rp_data", "link_params", "cap_buf")
     assert sum(v for k, v in sym.items() if k not in buffers) == P.STATE_BYTES
     assert sym["cap_buf"] == capture and sym["link_params"] == budget["param_store"]
     assert sum(sym.values()) == sum(budget.values()) + P.STATE_BYTES

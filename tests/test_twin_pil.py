@@ -100,7 +100,6 @@ def test_bad_hex_is_refused_naming_the_record(tmp_path, blocks, extra, needle):
 
 
 @pytest.mark.parametrize("config,needle", [
-    ({0x300001: 0x06}, "WDTEN"),                                   # erased CONFIG2H: watchdog on
     ({0x300001: 0x02, 0x300003: 0x1E}, "oscillator HS"),           # HS cannot give 40 MHz
     ({**CONFIG_OK, 0x300004: 0x38}, "PWMPIN"),
     ({**CONFIG_OK, 0x300004: 0x2C}, "active-low"),
@@ -243,6 +242,52 @@ def test_power_on_after_a_fault_restarts(tmp_path):
     tw.power_on()
     tw.run(2e-5)
     assert tw.state()["outputs_active"]
+
+
+# ---------------------------------------------------------------- the watchdog timer
+
+WDT_4MS = {0x300001: 0x06, 0x300003: 0x21}     # CONFIG2H: WDTEN on, WDPS 1:1 (4 ms), WINEN off
+CLRWDT, SLEEP = 0x0004, 0x0003
+
+
+def incf(f): return 0x2A00 | (f & 0xFF)        # to f, access
+
+
+def test_watchdog_time_out_resets_the_chip_with_the_outputs_off(tmp_path):
+    """A program that hangs with the outputs on (a branch to itself, no CLRWDT) is reset at the
+    watchdog's time-out: the PCPWM takes its reset state (outputs off) at that instant, the
+    program starts again at 0, and the report says so."""
+    p = write(tmp_path, hex_text({0: outputs_on_then([bra(0x12, 0x12)])}, WDT_4MS))
+    tw = twin_for(p)
+    assert any(n.startswith("watchdog on") and "4 ms" in n for n in tw.pil_notes), tw.pil_notes
+    tw.run(3.99e-3)
+    assert tw.state()["outputs_active"] and tw.pil_stats().wdt_resets == 0
+    tw.run(0.02e-3)
+    st = tw.pil_stats()
+    assert st.wdt_resets == 1 and st.wdt_period_cycles == 40_000
+    assert tw.state()["outputs_off_t_s"] == pytest.approx(4e-3, abs=1e-6)
+    tw.run(1e-4)                                      # the program ran again from 0: outputs on again
+    assert tw.state()["outputs_active"] and tw.pil_stats().wdt_resets == 1
+    lines = "\n".join(tw.processor_report().lines())
+    assert "watchdog: period 4 ms; 1 time-out reset(s) of the chip (outputs off)" in lines, lines
+
+
+def test_watchdog_cleared_by_the_program_never_resets(tmp_path):
+    p = write(tmp_path, hex_text({0: outputs_on_then([CLRWDT, bra(0x14, 0x12)])}, WDT_4MS))
+    tw = twin_for(p)
+    tw.run(20e-3)
+    assert tw.pil_stats().wdt_resets == 0 and tw.state()["outputs_active"]
+    assert "watchdog: period 4 ms; no time-out" in "\n".join(tw.processor_report().lines())
+
+
+def test_watchdog_time_out_in_sleep_wakes_the_core(tmp_path):
+    """DS39616 23.2: in Sleep a time-out wakes the core, which goes on after the SLEEP (no reset);
+    SLEEP clears the watchdog.  The program counts its wake-ups in 0x11."""
+    p = write(tmp_path, hex_text({0: outputs_on_then([SLEEP, incf(0x11), bra(0x16, 0x12)])}, WDT_4MS))
+    tw = twin_for(p)
+    tw.run(18e-3)                                     # asleep at ~60 us: wakes at ~4, 8, 12, 16 ms
+    st = tw.pil_stats()
+    assert st.wdt_resets == 0 and st.wdt_wakes == 4 and tw.peek(0x11) == 4
 
 
 def test_running_off_the_end_of_flash(tmp_path):

@@ -159,6 +159,11 @@ static const uint8_t link_rom[824] = {
 
 /* ---- buffers ---- */
 static uint8_t rx_buf[LINK_RX_BYTES];          /* raw frame (COBS code + body), decoded in place */
+/* the bytes that arrive while the main loop holds rx_buf (rx_ready != 0): a ring the interrupt
+ * fills at rx_sp_w and the main loop empties at rx_sp_r (one slot stays free), single bytes */
+static uint8_t rx_spill[LINK_RX_SPILL];
+static volatile uint8_t rx_sp_w;
+static volatile uint8_t rx_sp_r;
 static uint8_t tx_buf[1u + LINK_MAX_BODY];     /* COBS code, then the body being sent, encoded in place */
 static uint8_t tm_buf[LINK_MAX_PAYLOAD];       /* telemetry payload being filled by link_sample */
 static uint8_t rp_data[LINK_REPLAY_BYTES];     /* last short reply, for duplicate-SEQ replay */
@@ -298,6 +303,8 @@ static struct link_state {
                                         * NONE, an id, or EE_ALL (every persisted one) */
     uint8_t fc0;                       /* CRC bytes of the frame being dispatched */
     uint8_t fc1;
+    uint8_t rx_lost_at;                /* bytes were lost to a full spill ring after its byte at
+                                        * this index (NONE: no loss pending) */
 } S;
 
 typedef char link_status_layout[(offsetof(struct link_state, uptime_ms) == 8u) ? 1 : -1];
@@ -1109,6 +1116,8 @@ void link_init(void)
     uint8_t i;
     mzero((LINK_DATA uint8_t *)&S, (uint8_t)sizeof S);
     mzero((LINK_DATA uint8_t *)&link_hot, (uint8_t)sizeof link_hot);
+    rx_sp_w = 0u;
+    rx_sp_r = 0u;
     for (i = 0u; i < LINK_N_ENTRIES; i++) {   /* the parameters' defaults */
         entry_load(i);
         if (link_hot.e_off != NONE) {
@@ -1124,6 +1133,7 @@ void link_init(void)
     }
     S.rp_len = NONE;
     S.changed = NONE;
+    S.rx_lost_at = NONE;
     S.nack = NACK_ARMED;
     S.ev_boot = 1u;
 }
@@ -1142,16 +1152,19 @@ void link_event(uint8_t event, uint8_t code)
 
 /* ---- receive: the interrupt only stores the byte and marks the frame complete ---- */
 #if defined(__SDCC_pic16)
-/* the C below in PIC18 assembly: about 20 cycles a byte, no register saved (b in W, kept in PRODL
- * (0xFF3), stored through FSR0 + W (PLUSW0, 0xFEB);
- * FSR0 and PROD are saved by the interrupt's prologue) */
+/* the C below in PIC18 assembly: at most 20 cycles a byte, no register saved (b in W, kept in PRODL
+ * (0xFF3), stored through FSR0 + W (PLUSW0, 0xFEB); the spill ring's read index copied to PRODH;
+ * FSR0, PROD and BSR are saved by the interrupt's prologue) */
 void link_rx_byte(uint8_t b) LINK_WPARAM __naked
 {
     (void)b;
     __asm
+    extern  _PRODL
+    extern  _PRODH
+    extern  _PLUSW0
     MOVWF   0xFF3, A
     MOVF    (_link_hot + 1), W, A      ; rx_ready
-    BNZ     _lrx_lost           ; a frame waits: the byte is lost
+    BNZ     _lrx_spill          ; the main loop holds rx_buf: the byte waits in the spill ring
     MOVF    0xFF3, F, A
     BZ      _lrx_delim
     MOVLW   46          ; LINK_RX_BYTES
@@ -1176,16 +1189,32 @@ _lrx_done:
 _lrx_clear:
     CLRF    (_link_hot + 0), A
     RETURN
-_lrx_lost:
-    INCF    (_link_hot + 2), F, A      ; rx_ovf
+_lrx_spill:
+    BANKSEL _rx_sp_w
+    MOVF    _rx_sp_w, W, B
+    LFSR    0, _rx_spill
+    MOVFF   _PRODL, _PLUSW0     ; rx_spill[rx_sp_w] = b (the slot kept empty, even when the ring is full)
+    INCF    _rx_sp_w, W, B
+    ANDLW   15          ; LINK_RX_SPILL - 1: the next index
+    MOVFF   _rx_sp_r, _PRODH
+    CPFSEQ  _PRODH, A           ; full (next == rx_sp_r): skip the store
+    MOVWF   _rx_sp_w, B         ; the byte is in
+    CPFSEQ  _rx_sp_w, B         ; stored: skip the count
+    INCF    (_link_hot + 2), F, A      ; rx_ovf: the byte is lost
     RETURN
     __endasm;
 }
 #else
 void link_rx_byte(uint8_t b) LINK_WPARAM
 {
-    if (rx_ready != 0u) {              /* a frame waits for the main loop: this byte is lost */
-        rx_ovf++;
+    if (rx_ready != 0u) {              /* rx_buf is the main loop's: the byte waits in the spill ring */
+        uint8_t w = (uint8_t)((uint8_t)(rx_sp_w + 1u) & (LINK_RX_SPILL - 1u));
+        if (w == rx_sp_r) {
+            rx_ovf++;                  /* full: the byte is lost */
+        } else {
+            rx_spill[rx_sp_w] = b;
+            rx_sp_w = w;
+        }
     } else if (b == 0u) {              /* delimiter */
         if (rx_n == RX_SKIP) {
             rx_n = 0u;
@@ -1280,18 +1309,55 @@ static uint8_t rx_frame(void)
     return 0u;
 }
 
-static void rx_release(void)           /* rx_buf back to the interrupt */
+/* The frame in rx_buf is done with: the bytes that arrived meanwhile (the spill ring) go through
+ * the interrupt's framing here, until a frame is complete (rx_ready stays 1: link_poll takes it
+ * next) or the ring is empty (rx_buf back to the interrupt, with the frame begun in it).  Bytes
+ * lost to a full ring (rx_ovf moved) came after the ring's content (it stays full until this
+ * loop takes from it): the frame being assembled when the loop reaches that place is dropped
+ * (discarded up to the next delimiter). */
+static void rx_release(void)
 {
-    uint8_t d;
-    LINK_CRITICAL_BEGIN();
-    d = (uint8_t)(rx_ovf - S.rx_ovf_seen);
-    S.rx_ovf_seen = rx_ovf;
-    rx_n = (d != 0u) ? RX_SKIP : 0u;   /* bytes were lost: the frame they belonged to is dropped */
-    rx_ready = 0u;
-    LINK_CRITICAL_END();
-    S.rx_overflows = (uint16_t)(S.rx_overflows + d);
-    if (S.rx_overflows < d) {          /* saturate */
-        S.rx_overflows = 0xFFFFu;
+    uint8_t b, d;
+    rx_n = 0u;
+    for (;;) {
+        d = (uint8_t)(rx_ovf - S.rx_ovf_seen);   /* one byte, written by the interrupt */
+        if (d != 0u) {
+            S.rx_ovf_seen = (uint8_t)(S.rx_ovf_seen + d);
+            S.rx_lost_at = rx_sp_w;
+            S.rx_overflows = (uint16_t)(S.rx_overflows + d);
+            if (S.rx_overflows < d) {  /* saturate */
+                S.rx_overflows = 0xFFFFu;
+            }
+        }
+        if (rx_sp_r == S.rx_lost_at) {
+            S.rx_lost_at = NONE;
+            rx_n = RX_SKIP;            /* the frame the lost bytes belonged to */
+        }
+        if (rx_sp_r == rx_sp_w) {
+            LINK_CRITICAL_BEGIN();     /* the receive interrupt masked: no byte between the test and the hand-back */
+            if (rx_sp_r == rx_sp_w) {
+                rx_ready = 0u;
+            }
+            LINK_CRITICAL_END();
+            if (rx_ready == 0u) {
+                return;
+            }
+            continue;
+        }
+        b = rx_spill[rx_sp_r];
+        rx_sp_r = (uint8_t)((uint8_t)(rx_sp_r + 1u) & (LINK_RX_SPILL - 1u));
+        if (b == 0u) {                 /* delimiter */
+            if (rx_n == RX_SKIP) {
+                rx_n = 0u;
+            } else if (rx_n != 0u) {
+                return;                /* a frame complete: rx_ready stays 1 */
+            }
+        } else if (rx_n < LINK_RX_BYTES) {
+            rx_buf[rx_n] = b;
+            rx_n++;
+        } else {
+            rx_n = RX_SKIP;            /* longer than any frame: garbage */
+        }
     }
 }
 
@@ -2227,17 +2293,19 @@ static void dispatch(void)
     }
     S.tseq = rx_buf[2];
     link_hot.n = rx_buf[0];
-    if ((uint8_t)(type - 1u) < N_CMDS) {
-        S.rx_valid = 1u;               /* only a host command feeds the watchdog */
-    }
     S.nack = NACK_ARMED;
     LINK_HOOK_FRAME(type, S.tseq, &R(0), link_hot.n);
-    if (type == S.rp_type && S.tseq == S.rp_seq && S.fc0 == S.rp_crc0 && S.fc1 == S.rp_crc1
-        && S.rp_len != NONE) {
-        link_hot.n = S.rp_len;
-        mcopy(&A(0), rp_data, link_hot.n);
-        tx_seal(S.rp_rtype);
-        return;
+    if (type == S.rp_type && S.tseq == S.rp_seq && S.fc0 == S.rp_crc0 && S.fc1 == S.rp_crc1) {
+        /* the last frame again (a retry, or a replayed frame): answered, but it does not feed the
+         * watchdog; a stored reply is sent again, a read-only command runs again */
+        if (S.rp_len != NONE) {
+            link_hot.n = S.rp_len;
+            mcopy(&A(0), rp_data, link_hot.n);
+            tx_seal(S.rp_rtype);
+            return;
+        }
+    } else if ((uint8_t)(type - 1u) < N_CMDS) {
+        S.rx_valid = 1u;               /* only a new host command feeds the watchdog */
     }
     S.rp_crc0 = S.fc0;
     S.rp_crc1 = S.fc1;

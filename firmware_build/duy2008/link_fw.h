@@ -3,7 +3,7 @@
  * Rendered by picdrive.link.protocol_c.render_c() from host/picdrive/link/protocol.py.  DO NOT EDIT.
  *
  * protocol 2.0, 30 table entries (2 rules),
- * table hash 0x2732653BUL, build id 0xDA74CC65UL, profile hash 0x4B0E5FBAUL
+ * table hash 0x2732653BUL, build id 0x7EE1B0F0UL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -12,18 +12,20 @@
  *
  * RAM (bytes) of this module: buffers and scalar state (the total is what avr-gcc allocates):
  *   rx_frame           46
+ *   rx_spill           16
  *   tx_frame           46
  *   telemetry_frame    40
  *   replay              8
  *   param_store        37
  *   capture           128
- *   state             105
- *   total             410
+ *   state             108
+ *   total             429
  *
  * Contexts: link_rx_byte(), link_tick_ms() and link_sample() may be called from interrupts,
  * link_poll() from the main loop.  link_rx_byte() stores the byte in the frame buffer and marks
- * the frame complete at its delimiter; it shares only single bytes (the fill count, the ready
- * flag, an 8-bit count of bytes lost while a frame waits) with the main loop; link_tick_ms() and link_sample() share 16/32-bit
+ * the frame complete at its delimiter, or in the spill ring while the main loop holds the frame
+ * buffer; it shares only single bytes (the fill count, the ready flag, the ring's indices and
+ * bytes, an 8-bit count of bytes lost to a full ring) with the main loop; link_tick_ms() and link_sample() share 16/32-bit
  * counters read by link_poll() inside LINK_CRITICAL_BEGIN()/END(), which must therefore mask
  * the interrupt that calls them.  None of them calls a compiler helper (multiply, divide,
  * generic pointer), so none is shared with the main loop; link_sample() reads the flash table
@@ -47,7 +49,7 @@
 
 #define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0xDA74CC65UL
+#define LINK_BUILD_ID           0x7EE1B0F0UL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
 #define LINK_TABLE_HASH         0x2732653BUL
 #define LINK_SAMPLE_HZ          1000u
@@ -60,6 +62,7 @@
 #define LINK_MAX_BODY           45u   /* LEN, TYPE, SEQ, payload, CRC */
 #define LINK_MAX_FRAME          47u   /* on the wire: COBS code + body + delimiter */
 #define LINK_RX_BYTES           46u   /* receive buffer: one frame without its delimiter */
+#define LINK_RX_SPILL           16u   /* spill ring: bytes arriving while link_poll holds the frame buffer */
 #define LINK_N_PERSISTED        18u
 #define LINK_REPLAY_BYTES       8u
 #define LINK_CAPTURE_WORDS      64u
@@ -263,10 +266,12 @@ extern link_params_t link_params;
 void     link_init(void);
 
 /* link_rx_byte: b any byte (0x00 = delimiter).  Stores it in the frame buffer (index < LINK_RX_BYTES)
- * or, while a frame waits for link_poll, counts it lost in an 8-bit counter (wraps; link_poll adds
- * the difference to the saturating 16-bit rx_overflows); a frame longer than LINK_RX_BYTES is
- * discarded up to the next delimiter.  Any interrupt priority; touches single bytes only; no
- * helper, no flash read; about 20 cycles (PIC18). */
+ * or, while link_poll holds that buffer (a frame being checked and answered), in the spill ring
+ * (LINK_RX_SPILL - 1 bytes), which link_poll passes through the same framing when it is done with
+ * the frame; a byte that finds the ring full is counted lost in an 8-bit counter (wraps; link_poll
+ * adds the difference to the saturating 16-bit rx_overflows and drops the frame it belonged to);
+ * a frame longer than LINK_RX_BYTES is discarded up to the next delimiter.  Any interrupt
+ * priority; touches single bytes only; no helper, no flash read; at most 20 cycles (PIC18). */
 void     link_rx_byte(uint8_t b) LINK_WPARAM;
 
 /* link_poll: decodes and answers at most 8 frames per call (frames of 0..LINK_MAX_PAYLOAD payload

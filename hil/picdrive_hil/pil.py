@@ -36,7 +36,8 @@ class PilStats(C.Structure):
         "speed_preempted", "overrun_first_cycle", "pos_reads", "pos_delay_min", "pos_delay_max",
         "pos_read_unmasked", "pos_read_after_adc", "adc_pwm_starts", "adc_in_on_time",
         "adc_phase_min_ppm", "adc_phase_max_ppm", "missed_at_start",
-        "lat_n", "lat_min", "lat_max", "lat_sum", "steps", "stops")]
+        "lat_n", "lat_min", "lat_max", "lat_sum", "steps", "stops",
+        "wdt_period_cycles", "wdt_resets", "wdt_reset_cycle", "wdt_wakes", "speed_entry_last", "speed_gap_max")]
 
 
 def bind(lib: C.CDLL) -> C.CDLL:
@@ -50,6 +51,8 @@ def bind(lib: C.CDLL) -> C.CDLL:
     lib.pil_get_stats.restype = None
     lib.pil_peek.argtypes = [C.c_uint16]
     lib.pil_peek.restype = C.c_uint8
+    lib.pil_patch_flash.argtypes = [C.c_uint32, C.c_char_p, C.c_uint32]
+    lib.pil_patch_flash.restype = C.c_int
     lib.pil_sizeof.argtypes = []
     lib.pil_sizeof.restype = C.c_int
     return lib
@@ -83,9 +86,9 @@ def check_config(img: ihex.HexImage, board, name: str) -> list[str]:
         raise PilError(f"{name}: CONFIG1H (0x300001) = 0x{cfg[1]:02X} selects oscillator {mode}, which cannot run "
                        f"the board's Fosc {board.fosc_hz / 1e6:g} MHz (board.json fosc_hz); build with "
                        "OSC=HSPLL (10 MHz crystal x 4) or fix board.json")
-    if cfg[3] & 0x01:
-        raise PilError(f"{name}: CONFIG2H (0x300003) = 0x{cfg[3]:02X} enables the watchdog (WDTEN=ON); the twin "
-                       "does not model the watchdog timer: build with WDTEN=OFF")
+    wdt = (f"watchdog on (CONFIG2H WDTEN), {4 << ((cfg[3] >> 1) & 0x0F)} ms (4 ms x 1:{1 << ((cfg[3] >> 1) & 0x0F)}): "
+           "a time-out resets the chip, outputs off" if cfg[3] & 0x01 else
+           "watchdog off (CONFIG2H WDTEN; WDTCON.SWDTEN may turn it on)")
     if not cfg[4] & 0x04:
         raise PilError(f"{name}: CONFIG3L (0x300004) = 0x{cfg[4]:02X} sets PWMPIN=ON (PWM outputs active at reset); "
                        "the twin models PWMPIN=OFF only: build with PWMPIN=OFF")
@@ -97,7 +100,7 @@ def check_config(img: ihex.HexImage, board, name: str) -> list[str]:
         raise PilError(f"{name}: CONFIG3H (0x300005) = 0x{cfg[5]:02X} puts FLTA on {'RC1' if flta_rc1 else 'RD4'} "
                        f"but the board wires the comparator to R{board.flta_pin[0]}{board.flta_pin[1]}: "
                        "build with FLTAMX matching board.json's flta_pin")
-    return [f"oscillator {mode}", f"STVREN {'on' if img.stvren else 'off'} (stack overflow/underflow "
+    return [f"oscillator {mode}", wdt, f"STVREN {'on' if img.stvren else 'off'} (stack overflow/underflow "
             f"{'resets' if img.stvren else 'does not reset'} the core; the twin stops either way)"]
 
 
@@ -190,6 +193,21 @@ class Report:
     entry_min: int = 0           # Timer2 interrupt entry latency (cycles from TMR2IF to the vectoring)
     entry_mean: float = 0.0
     entry_max: int = 0
+    wdt_period: int = 0          # the watchdog's period, cycles (0: off)
+    wdt_resets: int = 0          # its time-outs that reset the chip
+    wdt_reset_cycle: int = 0     # the last of them
+    wdt_wakes: int = 0           # its time-outs in Sleep (a wake-up, no reset)
+    speed_gap_max: int = 0       # longest time between two speed-loop interrupt entries, cycles
+    speed_silent: int = 0        # cycles since the last speed-loop interrupt entry (0: none yet)
+
+    @property
+    def speed_stopped(self) -> bool:
+        """The speed-loop interrupt stopped arriving: none for more than two of its periods."""
+        return self.speed_n > 0 and self.speed_silent > 2 * self.speed_period_cycles
+
+    @property
+    def speed_period_cycles(self) -> float:
+        return (1.0 / self.speed_loop_hz / self.tcy_s) if self.speed_loop_hz else 0.0
 
     @property
     def tcy_s(self) -> float:
@@ -216,6 +234,13 @@ class Report:
             "software_stack_bytes": self.soft_stack_bytes,
             "ram_bytes_written": self.ram_written,
             "flash_bytes": self.flash_used, "flash_top": self.flash_top,
+            "watchdog": {"period_ms": round(self.wdt_period * self.tcy_s * 1e3, 3) if self.wdt_period else None,
+                         "resets": self.wdt_resets,
+                         "last_reset_s": round(self.wdt_reset_cycle * self.tcy_s, 6) if self.wdt_resets else None,
+                         "wakes_from_sleep": self.wdt_wakes},
+            "speed_isr_longest_gap_ms": round(self.speed_gap_max * self.tcy_s * 1e3, 3),
+            "speed_isr_stopped": self.speed_stopped,
+            "speed_isr_silent_ms": round(self.speed_silent * self.tcy_s * 1e3, 3),
             "program_memory": "enlarged (128 KB flash, 1.5 KB RAM: does NOT fit the 18F4431)" if self.enlarged
                               else "PIC18F4431 (16 KB flash, 768 B RAM)",
         }
@@ -235,8 +260,22 @@ class Report:
             out.append(f"speed-loop interrupt entry: {self.entry_min} / {self.entry_mean:.0f} / {self.entry_max} cycles "
                        f"min/mean/max after Timer2 set its flag ({self.entry_min * us:.1f} / {self.entry_mean * us:.1f} / "
                        f"{self.entry_max * us:.1f} us): the speed sample's instant moves by that much")
+            if self.speed_stopped:
+                silent_ms = self.speed_silent * self.tcy_s * 1e3
+                out.append(f"speed-loop interrupt: STOPPED ARRIVING: none for {silent_ms:.1f} ms "
+                           f"(its period {self.speed_period_cycles * self.tcy_s * 1e3:g} ms)")
+            elif self.speed_gap_max > 2 * self.speed_period_cycles:
+                out.append(f"speed-loop interrupt: stopped arriving for {self.speed_gap_max * self.tcy_s * 1e3:.1f} ms "
+                           "at worst (a reset, or the interrupts off), then came again")
         else:
             out.append("speed-loop interrupt: not run yet")
+        if self.wdt_period:
+            out.append(f"watchdog: period {self.wdt_period * self.tcy_s * 1e3:g} ms; "
+                       + (f"{self.wdt_resets} time-out reset(s) of the chip (outputs off), the last at "
+                          f"{self.wdt_reset_cycle * self.tcy_s:.4f} s" if self.wdt_resets else "no time-out")
+                       + (f"; {self.wdt_wakes} wake-up(s) from Sleep" if self.wdt_wakes else ""))
+        else:
+            out.append("watchdog: off")
         if self.high_n:
             out.append(f"high-priority interrupts: {self.high_n}, mean {self.high_mean:.0f}, max {self.high_max} cycles")
         ss = f"{self.soft_stack_bytes} B below 0x{self.soft_stack_top:03X}" if self.soft_stack_bytes is not None else "unused"
@@ -263,4 +302,7 @@ def report(st: PilStats, img: ihex.HexImage, fosc_hz: float, enlarged: bool, spe
         stack_levels=int(st.stack_high), soft_stack_bytes=soft, soft_stack_top=top,
         ram_written=int(st.ram_written), flash_used=img.flash_used, flash_top=img.flash_top,
         enlarged=enlarged, speed_loop_hz=speed_loop_hz,
-        entry_min=int(st.lat_min), entry_mean=(st.lat_sum / st.lat_n) if st.lat_n else 0.0, entry_max=int(st.lat_max))
+        entry_min=int(st.lat_min), entry_mean=(st.lat_sum / st.lat_n) if st.lat_n else 0.0, entry_max=int(st.lat_max),
+        wdt_period=int(st.wdt_period_cycles), wdt_resets=int(st.wdt_resets), wdt_reset_cycle=int(st.wdt_reset_cycle),
+        wdt_wakes=int(st.wdt_wakes), speed_gap_max=int(st.speed_gap_max),
+        speed_silent=int(st.cycles - st.speed_entry_last) if st.speed_n else 0)

@@ -357,6 +357,16 @@ class Twin:
         return pil.report(self.pil_stats(), self._pil_img, self.board.fosc_hz, self.enlarged_memory,
                           float(self.profile.control.speed_loop_hz))
 
+    def patch_flash(self, addr: int, data: bytes) -> None:
+        """Change the processor twin's program memory under the running program (fault injection:
+        a hang at a chosen instant); the next fetch of those words runs the new instructions."""
+        if not self.processor:
+            raise TwinError("patch_flash(): only the processor twin runs a program from flash")
+        data = bytes(data)
+        with self._lock:
+            if self._lib.pil_patch_flash(int(addr), data, len(data)) != 0:
+                raise TwinError(f"patch_flash(): 0x{addr:X} + {len(data)} B is outside the program memory")
+
     def peek(self, addr: int) -> int:
         """A data-memory byte of the processor twin (GPR or SFR), without side effects."""
         if not self.processor:

@@ -415,6 +415,7 @@ static void do_reset(pic18_t *c, int por)
     }
     c->sleeping = 0;
     c->in_high_isr = 0;
+    c->wdt_clr = c->cycles;                  /* every reset clears the watchdog */
     c->event |= EV_IRQ;
 }
 
@@ -425,6 +426,7 @@ void pic18_power_on(pic18_t *c)
     c->fsr1_hi = 0;
     memset(c->ram_written, 0, sizeof c->ram_written);
     c->cycles = 0;
+    c->wdt_clr = 0;
     c->insns = 0;
     c->status = PIC18_OK;
     c->stack_high = 0;
@@ -862,11 +864,13 @@ L_NOP: ADV(2); CYC(1); NEXT;
 L_SLEEP: ADV(2);
     CYC(1);
     if (!c->owned[A_RCON & 0xFF]) ram[A_RCON] = (uint8_t)((ram[A_RCON] | 0x08) & ~0x04);   /* TO=1, PD=0 */
+    c->wdt_clr = cyc;                        /* SLEEP clears the watchdog */
     c->sleeping = 1;
     c->event |= EV_IRQ;
     goto next;
 L_CLRWDT: ADV(2);
     CYC(1);
+    c->wdt_clr = cyc;
     if (!c->owned[A_RCON & 0xFF]) ram[A_RCON] |= 0x0C;
     NEXT;
 L_PUSH: ADV(2); CYC(1); push(c, pc, ipc); EVT(); NEXT;

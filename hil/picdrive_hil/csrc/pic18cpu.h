@@ -121,6 +121,8 @@ typedef struct pic18 {
     uint8_t event;             /* something outside the straight-line path needs a look */
     uint32_t pcl_target;       /* a write to PCL: where the PC goes */
     uint32_t insn_pc;          /* byte address of the instruction being executed */
+    uint64_t wdt_clr;          /* cycle of the last watchdog clear: CLRWDT, SLEEP or a reset (the
+                                  twin's watchdog model times out from here) */
     /* --- memories --- */
     uint8_t ram[0x1002];       /* data space; [0x1000] is the null target of INDF-through-INDF */
     uint8_t owned[256];        /* SFR 0xF00+i belongs to the model (1) */

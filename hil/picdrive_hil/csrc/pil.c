@@ -51,6 +51,8 @@ typedef struct {
     /* interrupts in progress (nesting: low, then high) */
     int nest_n;
     struct { uint8_t what, speed, pos_read, adc_started; uint64_t start; } nest[PIL_NEST];
+    uint8_t wdt_cfg;          /* CONFIG2H WDTEN: the watchdog always on (else WDTCON.SWDTEN decides) */
+    uint8_t wdt_ps;           /* CONFIG2H WDPS: the postscale is 2^wdt_ps */
     pil_stats_t st;
 } pil_t;
 
@@ -321,7 +323,13 @@ static void pil_irq_hook(void *ctx, int what)
                 uint64_t lat = st0 > P.t2_fired ? st0 - P.t2_fired : 0;
                 stat_add(lat, &P.st.lat_n, &P.st.lat_min, &P.st.lat_max, &P.st.lat_sum);
             }
-            if (P.nest[P.nest_n].speed) P.t2_waiting = 0;
+            if (P.nest[P.nest_n].speed) {
+                P.t2_waiting = 0;
+                uint64_t st0 = P.nest[P.nest_n].start;
+                if (P.st.speed_entry_last && st0 - P.st.speed_entry_last > P.st.speed_gap_max)
+                    P.st.speed_gap_max = st0 - P.st.speed_entry_last;
+                P.st.speed_entry_last = st0;
+            }
         }
         P.nest_n++;
         return;
@@ -381,6 +389,49 @@ static void pil_fault(int st)
     pic_compute_legs();
 }
 
+/* ------------------------------------------------------------ watchdog timer */
+
+/* DS39616 section 23.2: the WDT runs from the INTRC (4 ms nominal period, here exact) through a
+   postscaler of 1:2^WDPS; CLRWDT, SLEEP and every reset clear it.  On with CONFIG2H WDTEN, or
+   with WDTEN off by WDTCON.SWDTEN.  A time-out resets the chip, as MCLR does, with RCON.TO = 0:
+   the peripherals take their reset state (PCPWM outputs off: PWMPIN = OFF) and the program
+   starts again at 0; in Sleep it wakes the core, which goes on after the SLEEP. */
+static int pil_wdt_on(void)
+{
+    return P.wdt_cfg || sfr_bit(R_WDTCON, B_WDTCON_SWDTEN);
+}
+
+static uint64_t pil_wdt_cycles(void)
+{
+    return (uint64_t)llround(4e-3 * PS_PER_S / (double)g.tcy_ps) << P.wdt_ps;
+}
+
+static uint64_t pil_wdt_deadline(void)
+{
+    return pil_wdt_on() ? P.cpu.wdt_clr + pil_wdt_cycles() : UINT64_MAX;
+}
+
+static void pil_wdt_timeout(void)
+{
+    if (P.cpu.sleeping) {
+        P.cpu.sleeping = 0;
+        P.cpu.wdt_clr = P.cpu.cycles;
+        picsim_sfr[R_RCON] = (uint8_t)(picsim_sfr[R_RCON] & ~(1u << B_RCON_TO) & ~(1u << B_RCON_PD));
+        P.st.wdt_wakes++;
+        return;
+    }
+    P.st.wdt_resets++;
+    P.st.wdt_reset_cycle = P.cpu.cycles;
+    pic_reset();                                 /* the peripherals: PWM time base and pins off */
+    picsim_sfr[R_RCON] = g.shadow[R_RCON] = (uint8_t)(picsim_sfr[R_RCON] & ~(1u << B_RCON_TO));
+    pic18_reset(&P.cpu);                         /* the core: PC 0, return stack cleared */
+    P.nest_n = 0;
+    P.t2_waiting = 0;
+    g.irq_dirty = 1;
+    g.legs_dirty = 1;
+    pic_compute_legs();
+}
+
 /* ------------------------------------------------------------ API */
 
 int pil_load(const uint8_t *flash, uint32_t n, const uint8_t *config)
@@ -389,6 +440,8 @@ int pil_load(const uint8_t *flash, uint32_t n, const uint8_t *config)
     pic18_init(&P.cpu);
     pic18_load_flash(&P.cpu, 0, flash, n);
     pic18_set_config(&P.cpu, config);
+    P.wdt_cfg = (uint8_t)(config[3] & 1u);                  /* CONFIG2H: WDTEN bit 0, WDPS bits 4:1 */
+    P.wdt_ps = (uint8_t)((config[3] >> 1) & 0x0F);
     uint8_t owned[256];
     memset(owned, 0, sizeof owned);
     for (int i = 0x60; i < 0x100; i++) owned[i] = 1;     /* the core keeps its own registers anyway */
@@ -415,10 +468,18 @@ void pil_get_stats(pil_stats_t *o)
     P.st.fsr1_hi = P.cpu.fsr1_hi;
     P.st.ram_written = pic18_ram_written(&P.cpu);
     P.st.in_isr = (uint64_t)P.nest_n;
+    P.st.wdt_period_cycles = pil_wdt_on() ? pil_wdt_cycles() : 0;
     *o = P.st;
 }
 
 uint8_t pil_peek(uint16_t addr) { return pic18_peek(&P.cpu, addr); }
+
+int pil_patch_flash(uint32_t addr, const uint8_t *data, uint32_t n)
+{
+    if (!P.loaded || addr >= PIC18_FLASH_BYTES || n > PIC18_FLASH_BYTES - addr) return -1;
+    pic18_load_flash(&P.cpu, addr, data, n);      /* decoded again: the next fetch runs the new words */
+    return 0;
+}
 
 int twin_power_on(void)
 {
@@ -456,6 +517,9 @@ int twin_run_until(int64_t t_end)
         int64_t t_prev = g.now;
         /* the processor, up to the first cycle boundary at or after tn */
         uint64_t cyc_target = (uint64_t)((tn - P.t0 + g.tcy_ps - 1) / g.tcy_ps);
+        /* the core stops at the watchdog's time-out, if it comes first (the step ends there) */
+        uint64_t wdt_at = pil_wdt_deadline();
+        if (!P.dead && wdt_at < cyc_target) cyc_target = wdt_at > P.cpu.cycles ? wdt_at : P.cpu.cycles + 1;
         if (!P.dead && P.cpu.cycles < cyc_target) {
             P.target = tn;
             pil_update_irq();
@@ -472,6 +536,10 @@ int twin_run_until(int64_t t_end)
             } else if (st != PIC18_OK) {
                 pil_clock();
                 pil_fault(st);
+            }
+            if (!P.dead && P.cpu.cycles >= pil_wdt_deadline()) {
+                pil_clock();
+                pil_wdt_timeout();
             }
         } else if (P.dead) {
             P.cpu.cycles = cyc_target;

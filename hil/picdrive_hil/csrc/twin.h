@@ -196,6 +196,14 @@ typedef struct {
                                                     speed sample's instant moves by that much */
     uint64_t steps, stops;         /* event-loop steps (core run + plant step + events); runs an SFR access
                                       ended early (an event moved earlier or the inverter state changed) */
+    /* the watchdog timer (CONFIG2H WDTEN, or WDTCON.SWDTEN) and what it did */
+    uint64_t wdt_period_cycles;    /* 4 ms x the postscale (CONFIG2H WDPS), in cycles; 0: off */
+    uint64_t wdt_resets;           /* time-outs that reset the chip (outputs off, program from 0) */
+    uint64_t wdt_reset_cycle;      /* cycle of the last of them */
+    uint64_t wdt_wakes;            /* time-outs in Sleep: the core woke up and went on (no reset) */
+    /* the speed-loop interrupt's arrivals: a gap longer than its period means it stopped arriving */
+    uint64_t speed_entry_last;     /* cycle of the last speed-loop interrupt's entry */
+    uint64_t speed_gap_max;        /* longest time between two entries, cycles */
 } pil_stats_t;
 
 enum { INJ_HALL = 1, INJ_OVERCURRENT = 2, INJ_LOCK_ROTOR = 3, INJ_ENCODER = 4,
@@ -232,6 +240,8 @@ uint32_t pil_flash_bytes(void);
 uint32_t pil_ram_end(void);
 void pil_get_stats(pil_stats_t *out);
 uint8_t pil_peek(uint16_t addr);
+int  pil_patch_flash(uint32_t addr, const uint8_t *data, uint32_t n);   /* program memory changed under the
+                                                                         running program (fault injection) */
 int  pil_sizeof(void);
 #pragma GCC visibility pop
 

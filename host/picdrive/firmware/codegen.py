@@ -51,6 +51,25 @@ TEMPLATES = ("drive_params.h", "drive_core.h", "drive_core.c", "drive.h", "drive
 HOST_CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-Wconversion")
 #: the overspeed trip, x control.speed_max_rpm (the profile has no field for it)
 OVERSPEED_FACTOR = 1.2
+WDT_BASE_MS = 4
+"""The hardware watchdog's nominal period before its postscaler (DS39616 23.2)."""
+WDT_MIN_MS = 32
+WDT_SAMPLES = 4
+
+
+def wdt_postscale(speed_loop_hz: float) -> int:
+    """The hardware watchdog's postscale (CONFIG2H WDPS): the smallest power of two giving at least
+    WDT_MIN_MS and WDT_SAMPLES speed-loop periods (it is cleared after a speed-loop sample).  32 ms
+    at a 1 kHz speed loop (8 x 4 ms): long against the main loop's worst pass (a few ms: at most 8
+    frames a link_poll call, each checked and answered in under 1 ms with the speed loop in
+    between; an EEPROM save clears it between its writes), short against a safe stop: a hung
+    program keeps the bridge as it left it for at most that long before the reset turns the
+    outputs off.  A slower speed loop gets a longer period (512 ms at 10 Hz)."""
+    need = max(WDT_MIN_MS, WDT_SAMPLES * 1000.0 / speed_loop_hz)
+    ps = 1
+    while WDT_BASE_MS * ps < need and ps < 32768:
+        ps *= 2
+    return ps
 CAPTURE_BYTES = 128
 """Capture buffer of the link module, bytes (``--capture-bytes``): 64 samples of one signal, 16 of
 four.  ``bench/link_pic18.py`` prints what the link module costs with and without capture and EEPROM."""
@@ -142,8 +161,9 @@ def _inputs_hash(profile, design_bytes: bytes, options: dict) -> tuple[int, str]
     return int(digest[:8], 16), digest
 
 
-def _config_bits(pm) -> list[tuple[str, str, str]]:
+def _config_bits(pm, speed_loop_hz: float) -> list[tuple[str, str, str]]:
     from . import p18f4431
+    wdps = wdt_postscale(speed_loop_hz)
     cfg = [
         ("OSC", "HSPLL", "10 MHz crystal x 4 PLL: Fosc = 40 MHz"),
         ("FCMEN", "OFF", "no fail-safe clock monitor"),
@@ -151,8 +171,9 @@ def _config_bits(pm) -> list[tuple[str, str, str]]:
         ("PWRTEN", "ON", "power-up timer"),
         ("BOREN", "ON", "brown-out reset"),
         ("BORV", "42", "at 4.2 V"),
-        ("WDTEN", "OFF", "no watchdog timer (the link watchdog stops the motor)"),
-        ("WINEN", "OFF", "no windowed watchdog"),
+        ("WDTEN", "ON", "watchdog timer: a hung program resets the chip (outputs off)"),
+        ("WDPS", str(wdps), f"1:{wdps}: {WDT_BASE_MS * wdps} ms nominal ({WDT_BASE_MS} ms x {wdps})"),
+        ("WINEN", "OFF", "no windowed watchdog (CLRWDT at any time)"),
         ("PWMPIN", "OFF", "PWM outputs off after reset until the firmware enables them"),
         ("LPOL", "HIGH", "PWM0/2/4 (low sides, IR2101 LIN) active high"),
         ("HPOL", "HIGH", "PWM1/3/5 (high sides, IR2101 HIN) active high"),
@@ -257,6 +278,10 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
            "a conversion takes 4 + 12 TAD = 12.8 us"),
         _d("FW_ADC_POLLS", "200u", "GO_DONE polls before a conversion is given up (> 12.8 us at >= 4 cycles a poll)"),
         _d("FW_EE_POLLS", "60000u", "EECON1.WR polls before an EEPROM write is given up (> 4 ms)"),
+        _d("FW_WDT_MS", f"{WDT_BASE_MS * wdt_postscale(profile.control.speed_loop_hz)}u",
+           f"hardware watchdog period, ms nominal (CONFIG WDPS = {wdt_postscale(profile.control.speed_loop_hz)}: "
+           f"{WDT_BASE_MS} ms x the postscale, >= {WDT_MIN_MS} ms and {WDT_SAMPLES} speed-loop periods); cleared "
+           "by the main loop after each speed-loop sample"),
         _d("FW_ADCON0_CUR", _reg("ADCON0", "ADON"), "ADON, single shot, single channel, group A (AN0)"),
         _d("FW_ADCON0_BUS", _reg("ADCON0", "ADON", ACMOD=0b01), "ADON, single shot, single channel, group B (AN1)"),
         _d("FW_ADC_TRIP", f"{plan.itrip}u", f"inverter.overcurrent_trip_a = {inv.overcurrent_trip_a:g} A x "
@@ -454,7 +479,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     gen_note = f"profile {profile.name}, design {design_path.name}, build 0x{build_id:08X}"
     ctx = dict(gen_note=gen_note, profile_name=profile.name, profile_sha=profile.sha256, design_desc=design_desc,
                build_id=build_id, sections=_sections(profile, design, plan, pwm, pm, brg, baud, bus),
-               config=_config_bits(pm), eeprom_gptr_stubs=EEPROM_GPTR_STUBS, n_rules=plan.n_rules,
+               config=_config_bits(pm, profile.control.speed_loop_hz), eeprom_gptr_stubs=EEPROM_GPTR_STUBS, n_rules=plan.n_rules,
                link_id={e.name: e.id for e in table.entries}, link_off=_store_offsets(table),
                signal_index={e.name: i for i, e in enumerate(table.signals)},
                bit=p18f4431.bits())    # bit positions by name, for the assembly: {{ bit.PIR1.RCIF }}

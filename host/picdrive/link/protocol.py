@@ -98,9 +98,16 @@ board needs no timer: the host's delimiter before each command ends any partial 
 RX_BUFFER_BYTES = MAX_BODY + 1
 """Receive buffer of the C module: one frame as it arrives (COBS code byte + body, without the
 delimiter).  The RX interrupt only stores bytes and marks the frame complete at its delimiter;
-link_poll decodes it in place and hands the buffer back.  Bytes arriving while a complete frame
-waits for the main loop are lost and counted (status rx_overflows), and the frame they belong to
-is dropped: the host sends a command only after the reply to the previous one."""
+link_poll decodes it in place and hands the buffer back.  Bytes arriving while the main loop
+holds the buffer (checks a frame, answers it) wait in the spill ring (RX_SPILL_BYTES) and go
+through the same framing when it is handed back."""
+
+RX_SPILL_BYTES = 16
+"""Spill ring of the C module (a power of two; one slot stays free): the bytes that arrive while
+the main loop holds the receive buffer, 15 bytes or 1.3 ms at 115,200 baud, against the main
+loop's hold of a frame it rejects (a maximum frame's COBS decoding and CRC, about 1,800 cycles, with
+a speed-loop interrupt of up to 4,000 in between: 6.5 byte times).  A byte that finds it full is
+lost and counted (status rx_overflows), and the frame it belonged to is dropped."""
 
 REPLAY_BYTES = 8
 """Replies up to this size are stored for duplicate-SEQ replay; every command
@@ -124,8 +131,8 @@ EEPROM_HEADER_BYTES = 8
 then the persisted parameters in table order (little-endian, C-type width),
 then CRC-16/CCITT-FALSE of everything before it, high byte first."""
 
-STATE_BYTES = 105
-"""Scalar state of the C module (struct S, the value and limit registers V and X, the receive bytes rx_n, rx_ready, rx_ovf and the copy and sample pointers in link_fw.c), bytes, as avr-nm measures it;
+STATE_BYTES = 108
+"""Scalar state of the C module (struct S, the value and limit registers V and X, the receive bytes rx_n, rx_ready, rx_ovf, the spill ring's indices and the copy and sample pointers in link_fw.c), bytes, as avr-nm measures it;
 checked by tests/test_protocol.py."""
 
 TELEMETRY_HEADER_BYTES = 2            # u16 counter of the frame's first sample
@@ -362,7 +369,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("status", 0x10, "Drive and link status.",
             reply=(_F("state", "B", "State"), _F("fault", "B", "Fault"), _F("capture_state", "B", "CaptureState"),
                    _F("telem_generation", "B"), _F("crc_errors", "H", "received frames with a bad CRC"),
-                   _F("rx_overflows", "H", "bytes lost while a received frame waited for the main loop"),
+                   _F("rx_overflows", "H", "bytes lost to a full receive spill ring (the main loop held the frame buffer too long)"),
                    _F("telem_dropped", "H", "telemetry samples not sent (link busy)"),
                    _F("uptime_ms", "I")),
             side_effects=False),
@@ -761,13 +768,14 @@ def build_table(rules: int, overrides: Mapping[str, ParamOverride] | None = None
 # RAM budget (the C module's buffers; the state is measured from avr-nm)
 # ---------------------------------------------------------------------------
 def ram_budget(table: Table, capture_bytes: int = CAPTURE_BYTES_DEFAULT) -> dict[str, int]:
-    """Bytes of the C module's buffers for a table: RX frame buffer, TX frame buffer,
+    """Bytes of the C module's buffers for a table: RX frame buffer and spill ring, TX frame buffer,
     telemetry frame buffer, replay store, parameter store, capture buffer.
     The scalar state (indices, counters, capture and telemetry settings) is
     :data:`STATE_BYTES` more; ``bench/link.py`` measures the total from the avr-gcc
     build (``avr-nm --size-sort -S``)."""
     return {
         "rx_frame": RX_BUFFER_BYTES,
+        "rx_spill": RX_SPILL_BYTES,
         "tx_frame": MAX_BODY + 1,
         "telemetry_frame": MAX_PAYLOAD,
         "replay": REPLAY_BYTES,
@@ -789,6 +797,7 @@ def _check_definition() -> None:
     assert 4 * PARAM_GET_MAX <= MAX_PAYLOAD
     assert TELEMETRY_HEADER_BYTES + 2 * len(DEFAULT_TELEMETRY_SIGNALS) * DEFAULT_SAMPLES_PER_FRAME <= MAX_PAYLOAD
     assert RX_BUFFER_BYTES == MAX_FRAME - 1 < 255   # a frame without its delimiter; byte indices
+    assert RX_SPILL_BYTES & (RX_SPILL_BYTES - 1) == 0 and 8 <= RX_SPILL_BYTES <= 128   # an AND wraps it
     assert MAX_BODY < 254                 # one COBS block per frame
     assert [c.code for c in COMMANDS] == list(range(1, len(COMMANDS) + 1))   # the C dispatch table
     assert len(SIGNALS) <= 16

@@ -16,7 +16,7 @@ from .protocol import (ACK_BIT, BOARD_FRAMES, CAPTURE_BYTES_DEFAULT, CAPTURE_REA
                        EEPROM_HEADER_BYTES, EEPROM_LAYOUT_VERSION, EEPROM_MAGIC, EepromResult, Entry, Event,
                        FLAG_PERSISTED, FLAG_SIGNAL, FLAG_WRITABLE, Fault, MAX_BODY, MAX_FRAME, MAX_PAYLOAD,
                        MSG_EVENT, MSG_NACK, MSG_TELEMETRY, NAME_MAX, Nack, PARAM_GET_MAX, PROTOCOL_VERSION,
-                       ProtocolError, REPLAY_BYTES, RX_BUFFER_BYTES, STATE_BYTES, State,
+                       ProtocolError, REPLAY_BYTES, RX_BUFFER_BYTES, RX_SPILL_BYTES, STATE_BYTES, State,
                        TELEMETRY_HEADER_BYTES, Table, Trigger, ram_budget)
 
 __all__ = ["render_c"]
@@ -165,7 +165,8 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
         build_id=build_id, profile_hash=profile_hash, table_hash=table.hash, sample_hz=hz,
         capture_words=capture_bytes // 2, capture_bytes=capture_bytes, sig_all=(1 << len(table.signals)) - 1,
         max_payload=MAX_PAYLOAD, max_frame=MAX_FRAME, max_body=MAX_BODY,
-        rx_bytes=RX_BUFFER_BYTES, name_max=NAME_MAX, replay_bytes=REPLAY_BYTES, param_get_max=PARAM_GET_MAX,
+        rx_bytes=RX_BUFFER_BYTES, rx_spill=RX_SPILL_BYTES, name_max=NAME_MAX, replay_bytes=REPLAY_BYTES,
+        param_get_max=PARAM_GET_MAX,
         nacks=list(Nack), faults=list(Fault), states=list(State), events=list(Event),
         triggers=list(Trigger), capture_states=list(CaptureState), controllers=list(Controller),
         eeprom_results=list(EepromResult), ctypes=list(CTYPES.values()),

@@ -8,6 +8,7 @@ requires the committed file to equal it.  Regenerate with
 from __future__ import annotations
 
 from .protocol import (ACK_BIT, BOARD_FRAMES, COMMANDS, CTYPES, CaptureState, Controller, DELIMITER, RX_BUFFER_BYTES,
+                       RX_SPILL_BYTES,
                        EEPROM_BYTES, EEPROM_LAYOUT_VERSION, EepromResult, Event, FRAME_OVERHEAD, Fault,
                        Field, HOST_GAP_MS, MAX_BODY, MAX_FRAME, MAX_PAYLOAD, MSG_EVENT, MSG_NACK,
                        MSG_TELEMETRY, NACK_REASONS, Nack, PROTOCOL_VERSION, REPLAY_BYTES, RULE_BASE_ID,
@@ -86,9 +87,11 @@ def render_markdown(table: Table | None = None) -> str:
     a(f"* Board-initiated frames: telemetry (TYPE 0x{MSG_TELEMETRY:02X}, SEQ = telemetry generation, payload "
       "u16 counter of the frame's first sample then the samples), events (TYPE "
       f"0x{MSG_EVENT:02X}, SEQ = event counter, payload event, code).")
-    a("* Watchdog: while the drive state is RUN, a board that receives no valid host command for "
+    a("* Watchdog: while the drive state is RUN, a board that receives no new valid host command for "
       "`link_timeout` ms switches its outputs off, latches fault LINK_LOST and sends event WATCHDOG.  Idle "
-      "boards never time out.  The host keeps the link alive with heartbeat.")
+      "boards never time out.  The host keeps the link alive with heartbeat (a new SEQ each time).  A frame "
+      "identical to the previous one (a retry, or one frame replayed over and over) is answered but does "
+      "not feed the watchdog.")
     a("* Frames of the board's own types (ACKs, NACK, telemetry, event) arriving at the board are ignored: "
       "no reply, and they do not feed the watchdog, so a loop-back fault (the board's frames echoed back) "
       "cannot keep a motor running without a host.")
@@ -200,10 +203,12 @@ def render_markdown(table: Table | None = None) -> str:
     a("")
     a("Contexts: `link_rx_byte`, `link_tick_ms` and `link_sample` may run in interrupts; `link_poll` runs in "
       "the main loop.  `link_rx_byte` only stores the byte in the frame buffer (one frame, COBS code byte "
-      "and body, byte index) and marks the frame complete at its delimiter; while a complete frame waits for "
-      "`link_poll`, it counts each further byte as lost in an 8-bit counter the main loop accumulates (the "
-      "host sends a command only after the reply to the previous one), and the frame those bytes belonged "
-      "to is dropped.  It shares single bytes only, so any interrupt priority may call it.  `link_tick_ms` and `link_sample` share 16/32-bit counters (uptime, "
+      "and body, byte index) and marks the frame complete at its delimiter; while `link_poll` holds that "
+      f"buffer (a frame being checked and answered), it stores the byte in a {RX_SPILL_BYTES}-byte spill ring "
+      f"({RX_SPILL_BYTES - 1} bytes, 1.3 ms at 115200 baud), which `link_poll` passes through the same "
+      "framing when it is done with the frame, so a command right behind a rejected frame is not lost.  A "
+      "byte that finds the ring full is counted as lost in an 8-bit counter the main loop accumulates "
+      "(status rx_overflows), and the frame it belonged to is dropped.  It shares single bytes only, so any interrupt priority may call it.  `link_tick_ms` and `link_sample` share 16/32-bit counters (uptime, "
       "telemetry drops) that `link_poll` reads inside `LINK_CRITICAL_BEGIN()`/`LINK_CRITICAL_END()`, which "
       "must mask their interrupt.  None of the three calls a compiler helper (no multiplication, division "
       "or generic pointer), so no non-reentrant helper is shared with the main loop; `link_sample` reads "
@@ -235,8 +240,9 @@ def render_markdown(table: Table | None = None) -> str:
         "(3.5 ms at 115200 baud).",
         "Direction is the sign of the speed setpoint; there is no reverse command.",
         "The watchdog is armed while app_signal(LINK_SIG_STATE) is RUN (not in BRAKE, IDLE or FAULT): it fires "
-        "once more than link_timeout ms have passed since the last valid host command (a frame that passes its "
-        "checks and carries a command TYPE, NACKed or not; not the board's own frame types).  link_timeout has "
+        "once more than link_timeout ms have passed since the last new valid host command (a frame that passes its "
+        "checks and carries a command TYPE, NACKed or not; not the board's own frame types, and not a frame "
+        "identical to the previous one: a replay is answered but does not feed it).  link_timeout has "
         "a floor of 20 ms, so it cannot be switched off.",
         "Capture triggers: immediate (pre_trigger must be 0), setpoint change (speed_setpoint written through "
         "the link or link_param_set), speed crossing a threshold upwards or downwards.  A record holds up to "
