@@ -94,6 +94,7 @@ def test_auto_goes_on_to_the_backed_off_rows_and_names_the_row_kept(profiles, mo
     bad = zn.design(p, drive=DRIVE, progress=False)
     assert not bad.ok and [t["rule"] for t in bad.certificate["rule_tries"]] == list(zn.AUTO_ORDER)
     assert all(f"{row}: stand-in: no" in bad.reasons[-1] for row in zn.AUTO_ORDER)
+    assert bad.variant == "ultimate" and bad.reasons[0] == "stand-in: no"   # the classic row's design first
 
 
 def test_backed_off_row_verifies_where_the_classic_overshoots():

@@ -62,11 +62,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.optimize import brentq
 
 from ..errors import PicdriveError
 from ..analysis.h2hinf import pid_figures_continuous, pid_figures_sampled
-from .mixed_pid import pid_law, run_verify, term_limits
+from .mixed_pid import MixedPidError, phase_crossover_rad_s, pid_law, run_verify, term_limits
 from .verify import pid_model_checks
 from ..result import DesignResult
 from ..models.tfmodel import TF, SampledPlant, motor_tf, sampled_plant
@@ -98,21 +97,12 @@ def ultimate_point(sp: SampledPlant) -> dict[str, float]:
     sampled plant; cross-checked against the gain at which the closed-loop
     spectral radius reaches 1 (:func:`picdrive.design.mixed_pid.term_limits`).
     """
-    ptf = sp.tf_z
-    ts = sp.ts
-
-    def resp(w):
-        z = np.exp(1j * w * ts)
-        return np.polyval(ptf.num, z) / np.polyval(ptf.den, z)
-
-    w = np.linspace(1e-6, math.pi / ts, 20001)[1:]
-    ph = np.unwrap(np.angle(resp(w)))
-    k = np.nonzero(ph <= -math.pi)[0]
-    if k.size == 0:
-        raise ZnError("the sampled loop has no phase crossover below the Nyquist frequency: no ultimate gain")
-    k = int(k[0])
-    w180 = brentq(lambda x: np.imag(resp(x)), w[k - 1], w[k], xtol=1e-12)
-    ku = 1.0 / abs(resp(w180))
+    try:
+        w180 = phase_crossover_rad_s(sp)
+    except MixedPidError as e:
+        raise ZnError(str(e)) from None
+    z = np.exp(1j * w180 * sp.ts)
+    ku = 1.0 / abs(np.polyval(sp.tf_z.num, z) / np.polyval(sp.tf_z.den, z))
     ku_bisect = term_limits(sp)["kp"]
     return {"ku_v_per_rad_s": ku, "tu_s": 2 * math.pi / w180, "w180_rad_s": w180, "ku_bisection": ku_bisect}
 
@@ -219,18 +209,22 @@ def design(profile, *, drive=None, progress: bool = True, preset: str | None = N
     the backed-off rows keep the classic kp and lower ki).  The rows tried are
     recorded (``certificate.rule_tries``: each row's gains, status and
     reasons) and the row kept is the result's ``variant`` and
-    ``certificate.rule``; a refusal lists every row's first reason.
+    ``certificate.rule``; a refusal is the classic row's design with its
+    reasons first, then every row's first reason.
     ``progress`` is accepted for the common interface (ZN has no long steps).
     """
     if rule == "auto" and preset is None and not options:
-        tries, res = [], None
+        tries, res, first = [], None, None
         for row in AUTO_ORDER:
             res = design(profile, drive=drive, progress=progress, rule=row, delay_samples=delay_samples,
                          measurement=measurement)
             tries.append({"rule": row, "status": res.status, "gains": dict(res.certificate["gains"]),
                           "reasons": list(res.reasons)})
+            first = first or res
             if res.ok:
                 break
+        if not res.ok:       # refused: the classic row's design and reasons first (a physical limit shows there)
+            res = first
         res.certificate["rule_tries"] = tries
         res.options["rule"] = "auto"
         if not res.ok:

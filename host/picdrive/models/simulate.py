@@ -583,8 +583,10 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
 
 def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: float, load_n_m: float = 0.0,
                             n_sub: int = 4, r_factor: float = 1.0, commutated: bool = False,
-                            plant: SixStepPlant | None = None) -> dict:
-    """:func:`simulate_six_step` (``measurement="firmware"``, forward table) for many one-rule PID laws at once.
+                            plant: SixStepPlant | None = None, hall: HallSpeedMeter | None = None,
+                            torque_disturbance: Callable[[float], float] | None = None) -> dict:
+    """:func:`simulate_six_step` (``measurement="firmware"``, or ``"hall"`` with ``hall`` given;
+    forward table) for many one-rule PID laws at once.
 
     The law is ``control_law.law_step`` written for arrays: one rule, b = 1,
     unfiltered derivative on the measurement, the profile's current window
@@ -595,7 +597,8 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
     each sample is integrated over the delay period and then ``n_sub`` equal
     sub-steps (with ``n_sub = Ts/T_pwm - 1`` the schedule is exactly
     :func:`simulate_six_step`'s; a test keeps the two equal).  The walk-down
-    backup is not modelled.  Returns ``speed_rad_s`` and ``current_a`` at the
+    backup is not modelled.  ``torque_disturbance``: a signed torque (N m, function of time, held
+    over each sample) against the motor, as :func:`simulate_six_step`'s.  Returns ``speed_rad_s`` and ``current_a`` at the
     samples, shape (samples, batch), and per law ``peak_speed_rad_s``,
     ``peak_current_a`` over every sub-step.
     """
@@ -621,9 +624,23 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
     r = float(ref_rad_s)
     w_out = np.zeros((n, m)); i_out = np.zeros((n, m))
     w_pk = np.zeros(m); i_pk = np.zeros(m)
+    if hall is not None:          # the hall-edge period in Timer5 ticks, as simulate_six_step's "hall"
+        e_per_rad = hall.pole_pairs * 3.0 / math.pi
+        e_off = hall.offset_deg / 60.0
+        h_idx = np.full(m, math.floor(-e_off), np.int64)
+        h_last = np.zeros(m, np.int64); h_period = np.zeros(m, np.int64)
+        h_fwd = np.ones(m, bool); h_count = np.zeros(m, np.int64); h_age = np.zeros(m, np.int64)
+        w_lsb = 2.0 ** -hall.qs
     for k in range(n):
         w_out[k], i_out[k] = w, i
-        if k == 0:
+        if hall is not None:
+            now = math.floor(k * ts / hall.tick_s + 1e-9) & 0xFFFF
+            p_h = np.maximum(h_period, (now - h_last) & 0xFFFF)
+            live = (h_count >= 2) & (h_age < hall.age_max) & (p_h > 0)
+            y = np.where(live, np.minimum(hall.k_raw // np.maximum(p_h, 1), 32767) * w_lsb, 0.0)
+            y = np.where(h_fwd, y, -y)
+            h_age = np.minimum(h_age + 1, 255)
+        elif k == 0:
             y = np.zeros(m)
         else:
             wa = (th - th_prev) / ts
@@ -649,6 +666,8 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
         dir_fw = np.where(u != 0.0, newdir, dir_fw)
         n_dir = np.where(hold, 0.0, np.where(dir_fw, -1.0, 1.0))
         n_duty = np.abs(u) / vbus
+        t_sub = k * ts
+        td = float(torque_disturbance(k * ts)) if torque_disturbance is not None else 0.0
         for s, (h, g) in enumerate(zip(steps, gs)):
             if s <= 1:                          # the bridge's rails change only with the command
                 if s == 1:
@@ -674,7 +693,7 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
                 gc = np.where(cond, g, 1.0)
             i1 = np.where(cond & ~cross, i1, 0.0)
             i_mean = np.where(cond, (i_inf * hc + (i - i_inf) * tau * (1.0 - gc)) / h, 0.0)
-            te = ke * i_mean
+            te = ke * i_mean - td
             if load_n_m > 0:
                 tload = np.where(w > 0, load_n_m, np.where(w < 0, -load_n_m,
                                                            np.where(np.abs(te) <= load_n_m, te,
@@ -684,7 +703,28 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
             w1 = (w * (1.0 - 0.5 * h * B / J) + h / J * (te - tload)) / (1.0 + 0.5 * h * B / J)
             if load_n_m > 0:
                 w1 = np.where((w != 0) & ((w1 > 0) != (w > 0)) & ((tload > 0) == (w > 0)), 0.0, w1)
-            th = th + 0.5 * h * (w + w1)
+            th1 = th + 0.5 * h * (w + w1)
+            if hall is not None:
+                idx = np.floor(th1 * e_per_rad - e_off).astype(np.int64)
+                nc = idx - h_idx                            # edges crossed in this step (signed)
+                if np.any(nc):
+                    fwd = nc > 0
+                    dth = np.where(th1 != th, th1 - th, 1.0)
+
+                    def tick(b):                           # Timer5 at the edge of boundary b inside the step
+                        frac = np.clip(((b + e_off) / e_per_rad - th) / dth, 0.0, 1.0)
+                        return np.floor((t_sub + frac * h) / hall.tick_s).astype(np.int64) & 0xFFFF
+                    last = tick(np.where(fwd, idx, idx + 1))
+                    prev = np.where(np.abs(nc) >= 2, tick(np.where(fwd, idx - 1, idx + 2)), h_last)
+                    cr = nc != 0
+                    h_period = np.where(cr, (last - prev) & 0xFFFF, h_period)
+                    h_last = np.where(cr, last, h_last)
+                    h_fwd = np.where(cr, fwd, h_fwd)
+                    h_count = np.where(cr, np.minimum(h_count + np.abs(nc), 2), h_count)
+                    h_age = np.where(cr, 0, h_age)
+                    h_idx = idx
+                t_sub += h
+            th = th1
             i, w = i1, w1
             w_pk = np.maximum(w_pk, w)
             i_pk = np.maximum(i_pk, np.abs(i))
