@@ -706,23 +706,28 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
             th1 = th + 0.5 * h * (w + w1)
             if hall is not None:
                 idx = np.floor(th1 * e_per_rad - e_off).astype(np.int64)
-                nc = idx - h_idx                            # edges crossed in this step (signed)
-                if np.any(nc):
+                cr = np.flatnonzero(idx != h_idx)           # the laws whose rotor crossed an edge in this step
+                if cr.size:
+                    nc = idx[cr] - h_idx[cr]                # edges crossed (signed)
                     fwd = nc > 0
-                    dth = np.where(th1 != th, th1 - th, 1.0)
+                    t0, t1 = th[cr], th1[cr]
+                    dth = np.where(t1 != t0, t1 - t0, 1.0)
 
-                    def tick(b):                           # Timer5 at the edge of boundary b inside the step
-                        frac = np.clip(((b + e_off) / e_per_rad - th) / dth, 0.0, 1.0)
+                    def tick(b, a, d):                     # Timer5 at the edge of boundary b inside the step
+                        frac = np.minimum(np.maximum(((b + e_off) / e_per_rad - a) / d, 0.0), 1.0)
                         return np.floor((t_sub + frac * h) / hall.tick_s).astype(np.int64) & 0xFFFF
-                    last = tick(np.where(fwd, idx, idx + 1))
-                    prev = np.where(np.abs(nc) >= 2, tick(np.where(fwd, idx - 1, idx + 2)), h_last)
-                    cr = nc != 0
-                    h_period = np.where(cr, (last - prev) & 0xFFFF, h_period)
-                    h_last = np.where(cr, last, h_last)
-                    h_fwd = np.where(cr, fwd, h_fwd)
-                    h_count = np.where(cr, np.minimum(h_count + np.abs(nc), 2), h_count)
-                    h_age = np.where(cr, 0, h_age)
-                    h_idx = idx
+                    ic = idx[cr]
+                    last = tick(np.where(fwd, ic, ic + 1), t0, dth)
+                    prev = h_last[cr]
+                    two = np.flatnonzero(np.abs(nc) >= 2)   # two edges in one step: the period is between them
+                    if two.size:
+                        prev[two] = tick(np.where(fwd[two], ic[two] - 1, ic[two] + 2), t0[two], dth[two])
+                    h_period[cr] = (last - prev) & 0xFFFF
+                    h_last[cr] = last
+                    h_fwd[cr] = fwd
+                    h_count[cr] = np.minimum(h_count[cr] + np.abs(nc), 2)
+                    h_age[cr] = 0
+                    h_idx[cr] = ic
                 t_sub += h
             th = th1
             i, w = i1, w1
