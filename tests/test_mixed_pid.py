@@ -88,6 +88,131 @@ def test_search_box_is_cut_to_the_sampled_stability_limits(profiles):
     assert ev_in["stable"].tolist() == [True, False]
 
 
+def _corpus(name):
+    import warnings
+    from picdrive.paths import repo_root
+    from picdrive.profile import load_profile
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return load_profile(repo_root() / "tests" / "motors" / f"{name}.toml")
+
+
+def test_search_box_from_the_plant_where_the_profile_gives_no_range(profiles):
+    """A profile without kp/ki/kd ranges is searched in the box of its sampled plant: kp <= Ku,
+    ki <= Ku w180, kd <= its own stability limit, which holds every row of the ZN table's kp and ki
+    with room to spare (the fixed default ki <= 10 V/rad did not hold this motor's classic ZN ki,
+    11.9 V/rad).  A profile's own ranges are kept, cut to the per-term stability limits."""
+    from picdrive.design import zn
+    p = _corpus("nanotec_df45l024048a")
+    assert not set(p.raw.get("design", {})) & {"kp_range", "ki_range", "kd_range"}
+    pb = mp.make_problem(p)
+    u = zn.ultimate_point(pb.sp)
+    assert pb.box_source == {"kp": "plant", "ki": "plant", "kd": "plant"}
+    np.testing.assert_allclose(pb.hi, [u["ku_v_per_rad_s"], u["ku_v_per_rad_s"] * u["w180_rad_s"], pb.limits["kd"]],
+                               rtol=1e-9)
+    np.testing.assert_allclose(pb.lo, 0.0)
+    for row in zn.ULTIMATE_RULES:
+        kp, ki, _, _ = zn.zn_gains(row, pb.sp, pb.plant)
+        assert kp <= pb.hi[0] * (1 + 1e-12) and ki < 0.3 * pb.hi[1], row
+    # the bound scales with the motor: a second motor's box is its own plant's
+    q = _corpus("tmotor_ak80_6_flywheel")
+    pq = mp.make_problem(q)
+    uq = zn.ultimate_point(pq.sp)
+    assert pq.hi[1] == pytest.approx(uq["ku_v_per_rad_s"] * uq["w180_rad_s"], rel=1e-9) and pq.hi[1] > 100 * pb.hi[1]
+    # the bundled profiles give their ranges: kept
+    d = mp.make_problem(profiles["duy2008"])
+    assert d.box_source == {"kp": "profile", "ki": "profile", "kd": "profile"}
+    assert d.hi[1] == pytest.approx(min(100.0, d.limits["ki"]))
+
+
+def test_halls_only_profiles_are_screened_with_the_hall_measurement(profiles):
+    """duy2008_halls measures its speed from the halls: the search simulates its step with the drive's
+    hall-edge measurement (and the verification's load-torque disturbance), not the encoder's M/T."""
+    from picdrive.models.simulate import simulate_six_step_batch
+    p = profiles["duy2008_halls"]
+    pb = mp.make_problem(p, drive=DRIVE)
+    meter = DRIVE.speed_measurement(p, mp.pid_law(p, 0.4, 30.0, 1e-3))["hall"]
+    assert pb.hall == meter
+    assert mp.make_problem(profiles["duy2008"], drive=DRIVE).hall is None          # an encoder: M/T
+    g = np.array([[0.4, 34.7, 9e-4], [0.2, 60.0, 0.0]])
+    ev = mp.evaluate(pb, g, simulate_all=True)
+    kw = dict(t_end_s=pb.step_sim_s, ref_rad_s=pb.step_rad_s, n_sub=4, plant=pb.plant6,
+              torque_disturbance=pb.disturbance)
+    hall = simulate_six_step_batch(p, g[:, 0], g[:, 1], g[:, 2], hall=meter, **kw)
+    mt = simulate_six_step_batch(p, g[:, 0], g[:, 1], g[:, 2], **kw)
+    np.testing.assert_array_equal(ev["step_peak_speed_rad_s"], hall["peak_speed_rad_s"])
+    assert np.all(np.abs(hall["peak_speed_rad_s"] - mt["peak_speed_rad_s"]) > 1e-4 * pb.step_rad_s)
+
+
+def test_a_failed_verification_tightens_the_screen_and_searches_again(profiles, monkeypatch):
+    """The search's best is verified; when it fails for overshoot the next search runs with the
+    screen's overshoot allowance scaled by what the verification saw (or the ki bound backed off),
+    and the design returned is the first that verifies.  The verification is a stand-in here that
+    fails the first design at 4 % overshoot."""
+    calls = []
+
+    def stand_in(profile, res, drive):
+        calls.append(res.law.rules[0])
+        if len(calls) == 1:
+            res.verification["sim_overshoot_pct"] = {"value": 4.0, "limit": 2.0, "ok": False, "unit": "%"}
+            res.fail("stand-in: overshoot 4 %")
+        return res
+    monkeypatch.setattr(mp, "run_verify", stand_in)
+    p = profiles["duy2008"]
+    r = mp.design(p, drive=DRIVE, progress=False, population=40, generations=4)
+    tries = r.certificate["retune_tries"]
+    assert r.ok and len(tries) == 2 and len(calls) == 2 and calls[0] != calls[1]
+    assert tries[0]["status"] == "failed" and tries[0]["failed"] == ["sim_overshoot_pct"]
+    step = tries[0]["retune"]
+    assert tries[0]["screen"]["overshoot_max_pct"] == pytest.approx(0.5)
+    if "overshoot_max_pct" in step:        # the screen saw some overshoot: scaled by 2 % / 4 %, x 0.9
+        assert step["overshoot_max_pct"] == pytest.approx(0.9 * step["screened_overshoot_pct"] * 2.0 / 4.0)
+        assert tries[1]["screen"]["overshoot_max_pct"] == pytest.approx(step["overshoot_max_pct"])
+        assert r.certificate["step_peak_speed_rad_s"] <= pb_peak(p, step["overshoot_max_pct"])
+    else:                                  # it saw none: the integral bound backs off
+        assert step["ki_max"] == pytest.approx(0.7 * calls[0].ki) and calls[1].ki <= step["ki_max"]
+    # retunes=0: the first search's best is the answer, failed
+    calls.clear()
+    r0 = mp.design(p, drive=DRIVE, progress=False, population=40, generations=4, retunes=0)
+    assert not r0.ok and len(r0.certificate["retune_tries"]) == 1 and len(calls) == 1
+
+
+def test_a_gain_too_small_to_act_is_zero(monkeypatch):
+    """A search that ends on kd = 9e-11 V s^2/rad (2e-6 of its bound on the nanotec motor; a GA run
+    ended there): nothing measurable, and below what the firmware's fixed point resolves on one speed
+    LSB, which refuses the design.  It returns kd = 0; a gain above the floor (1e-3 of the bound) is
+    kept."""
+    from picdrive.errors import PicdriveError
+    p = _corpus("nanotec_df45l024048a")
+    pb = mp.make_problem(p, drive=DRIVE)
+    tiny = np.array([0.0235432, 1.87895, 9e-11])
+    assert bool(mp.evaluate(pb, tiny)["feasible"])
+    with pytest.raises(PicdriveError, match="too small to act"):          # what the firmware says of it
+        DRIVE.speed_measurement(p, mp.pid_law(p, *tiny))
+    monkeypatch.setattr(mp, "_optimise", lambda *a, **k: (tiny.copy(), True, {"optimizer": "stand-in"}))
+    r = mp.design(p, drive=DRIVE, progress=False)
+    g = r.law.rules[0]
+    assert r.ok, r.reasons
+    assert (g.kp, g.ki, g.kd) == (tiny[0], tiny[1], 0.0)
+    kept = np.array([0.0235432, 1.87895, 1e-6])
+    np.testing.assert_array_equal(mp._snap_small_gains(pb, kept), kept)
+
+
+def pb_peak(p, allow_pct):
+    return p.speed_step_rpm() * np.pi / 30 * (1 + allow_pct / 100) * (1 + 1e-12)
+
+
+def test_halls_only_corpus_motor_verifies():
+    """nanotec DF45L024048-A (halls only): the default search used to stop at ki = 10 V/rad (the fixed
+    default bound) with M/T scoring and overshoot 2.45 % in the verification; screened with the hall
+    measurement and the verification's disturbance it verifies (a small GA keeps the test fast)."""
+    p = _corpus("nanotec_df45l024048a")
+    r = mp.design(p, drive=DRIVE, progress=False, population=60, generations=8)
+    assert r.ok, r.reasons
+    assert r.verification["sim_overshoot_pct"]["value"] <= 2.0
+    assert r.certificate["search_box_source"]["ki"] == "plant"
+
+
 def test_evaluate_bound_shortcut_agrees_with_exact(profiles):
     """Where (1 + ||S||)||xi|| <= 1 certifies eq 6, the exact value is indeed <= 1 (and below the bound)."""
     from picdrive.analysis.h2hinf import robust_constraint_z
@@ -122,7 +247,8 @@ def test_de_optimiser_agrees_with_ga(profiles, drive_designs):
     assert r.certificate["feasible"]
     j_ga = drive_designs["assawinchaichote2016"].certificate["j3_s"]
     # same problem: DE (more evaluations) is at least as good; the paper's GA (200 x 20) within 10 %
-    # (measured: 8.6 % above DE since the six-step overshoot bound narrows the feasible set; 0.1 % before it)
+    # (measured, seed 1: 3.0 % above DE with the screen's load-torque disturbance, 8.6 % before it; over
+    # seeds 1-4 the GA's J3 spans 0.0054-0.0064 s on this problem)
     assert r.certificate["j3_s"] <= j_ga * 1.01
     assert j_ga <= 1.10 * r.certificate["j3_s"]
 

@@ -129,6 +129,32 @@ def test_batch_equals_scalar_simulation(duy):
     assert not np.any(s.cap_active)
 
 
+def test_batch_with_the_hall_meter_equals_scalar_simulation():
+    """The batch with ``hall=`` measures the speed as simulate_six_step's "hall" does (the hall-edge
+    period in Timer5 ticks of the firmware's plan) and takes the same signed torque disturbance:
+    the same trajectories on a halls-only drive."""
+    from picdrive.design.mixed_pid import pid_law
+    from picdrive.gate import speed_measurement
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        p = load_profile("duy2008_halls")
+    kp = np.array([0.12, 0.4, 0.2]); ki = np.array([10.0, 34.7, 80.0]); kd = np.array([0.0, 9e-4, 0.0])
+    meter = speed_measurement(p, pid_law(p, 0.4, 34.7, 9e-4))["hall"]
+    ref = p.speed_step_rpm() * math.pi / 30
+    n_sub = int(round(1e-3 * p.inverter.pwm_frequency_hz)) - 1
+    w3 = lambda t: 0.05 * math.sin(300.0 * t)            # a signed torque against the motor, N m
+    b = simulate_six_step_batch(p, kp, ki, kd, t_end_s=0.15, ref_rad_s=ref, n_sub=n_sub, hall=meter,
+                                torque_disturbance=w3)
+    mt = simulate_six_step_batch(p, kp, ki, kd, t_end_s=0.15, ref_rad_s=ref, n_sub=n_sub, torque_disturbance=w3)
+    for j in range(kp.size):
+        s = simulate_six_step(p, pid_law(p, kp[j], ki[j], kd[j]), t_end=0.15, ref_rpm=ref * 30 / math.pi,
+                              measurement="hall", hall=meter, torque_disturbance=w3)
+        np.testing.assert_allclose(b["speed_rad_s"][:, j], s.omega, rtol=1e-5, atol=1e-6)
+        assert b["peak_speed_rad_s"][j] == pytest.approx(np.max(s.omega_fine), rel=1e-5)
+        # and the hall's lag is not the encoder's: the M/T batch differs
+        assert np.max(np.abs(mt["speed_rad_s"][:, j] - s.omega)) > 1e-3 * ref
+
+
 def test_firmware_measurement_is_mt_average_plus_half_a_sample(duy):
     """y[k] = w_avg[k] + (w_avg[k] - w_avg[k-1]) / 2, w_avg[k] the mean speed over the last sample
     (from the PWM-period trajectory), no extrapolation at the first counts."""

@@ -67,6 +67,50 @@ def test_zn_auto_keeps_the_first_row_that_verifies(profiles):
     assert c.verification["sim_peak_bus_current_a"]["value"] < profiles["assawinchaichote2016"].inverter.overcurrent_trip_a
 
 
+def test_auto_goes_on_to_the_backed_off_rows_and_names_the_row_kept(profiles, monkeypatch):
+    """rule=auto does not stop at the table's first three rows: it tries the backed-off rows
+    (classic with Ti x 2, Tyreus-Luyben, classic with Ti x 4) and Pessen's before refusing, keeps the
+    first that verifies and records every row tried with its gains.  Here the verification is replaced
+    by one that passes only the Tyreus-Luyben row, to check the order without the simulations."""
+    def only_tyreus_luyben(profile, res, drive):
+        if res.variant != "tyreus-luyben":
+            res.fail(f"stand-in verification: {res.variant} fails")
+        return res
+    monkeypatch.setattr(zn, "run_verify", only_tyreus_luyben)
+    p = profiles["duy2008"]
+    r = zn.design(p, drive=DRIVE, progress=False)
+    assert r.ok and r.variant == "tyreus-luyben" and r.certificate["rule"] == "tyreus-luyben"
+    tries = r.certificate["rule_tries"]
+    assert [t["rule"] for t in tries] == ["ultimate", "some-overshoot", "no-overshoot", "backed-off", "tyreus-luyben"]
+    assert [t["status"] for t in tries] == ["failed"] * 4 + ["verified"]
+    u = zn.ultimate_point(sampled_plant(motor_tf(p), 1 / p.control.speed_loop_hz))
+    ku, tu = u["ku_v_per_rad_s"], u["tu_s"]
+    assert tries[3]["gains"]["ki_v_per_rad"] == pytest.approx(0.5 * tries[0]["gains"]["ki_v_per_rad"])
+    assert tries[3]["gains"]["kp_v_per_rad_s"] == pytest.approx(tries[0]["gains"]["kp_v_per_rad_s"])
+    g = r.law.rules[0]
+    assert (g.kp, g.ki, g.kd) == pytest.approx((ku / 2.2, ku / (2.2 * 2.2 * tu), ku * tu / (2.2 * 6.3)))
+    # nothing verifies: refused, every row named with its first reason
+    monkeypatch.setattr(zn, "run_verify", lambda profile, res, drive: (res.fail("stand-in: no"), res)[1])
+    bad = zn.design(p, drive=DRIVE, progress=False)
+    assert not bad.ok and [t["rule"] for t in bad.certificate["rule_tries"]] == list(zn.AUTO_ORDER)
+    assert all(f"{row}: stand-in: no" in bad.reasons[-1] for row in zn.AUTO_ORDER)
+    assert bad.variant == "ultimate" and bad.reasons[0] == "stand-in: no"   # the classic row's design first
+
+
+def test_backed_off_row_verifies_where_the_classic_overshoots():
+    """maxon EC 13 (305192, halls only): the classic row overshoots the 2 % band (the bridge cannot
+    brake); the same kp and kd with the integral time doubled verify."""
+    from picdrive.paths import repo_root
+    from picdrive.profile import load_profile
+    p = load_profile(repo_root() / "tests" / "motors" / "maxon_ec13_305192.toml")
+    r = zn.design(p, drive=DRIVE, progress=False, rule="backed-off")
+    assert r.ok, r.reasons
+    kp, ki, kd, _ = zn.zn_gains("ultimate", sampled_plant(motor_tf(p), 1 / p.control.speed_loop_hz), motor_tf(p))
+    g = r.law.rules[0]
+    assert (g.kp, g.ki, g.kd) == pytest.approx((kp, 0.5 * ki, kd))
+    assert r.verification["sim_overshoot_pct"]["value"] <= 2.0
+
+
 def test_paper2016_preset_units_and_verdict(profiles):
     p = profiles["assawinchaichote2016"]
     kp, ki, kd, f = zn.paper2016_gains(p)

@@ -49,6 +49,14 @@ def sim_plan(profile) -> dict:
             "t_load_s": step, "t_end_s": step + load}
 
 
+def load_disturbance(plan: dict):
+    """The verification's load-torque disturbance of a run (the 2016 paper's w3, N m against the motor,
+    10 % of the plan's load torque, on [0, 0.2] s), a function of time."""
+    from ..models.simulate import disturbances_2016
+    load = plan["load_n_m"]
+    return lambda t: float(disturbances_2016(t, amplitude=(0.0, 0.0, 0.1 * load))[0, 2])
+
+
 def run_sim(profile, law, plan=None, *, measurement: dict, disturbances: bool = True, r_factor: float = 1.0,
             commutated: bool | None = None, three_phase=None):
     """The verification run on the six-step drive: step from rest to the target (the 2016 load-torque
@@ -61,13 +69,11 @@ def run_sim(profile, law, plan=None, *, measurement: dict, disturbances: bool = 
     ``(profile, r_factor) -> plant`` of the motor's three-phase winding to simulate instead of the
     DC equivalent (:meth:`picdrive.gate.BuiltDrive.three_phase_plant`, what the verification
     uses).  Returns :class:`picdrive.models.simulate.SixStepResult`."""
-    from ..models.simulate import disturbances_2016, simulate_six_step
+    from ..models.simulate import simulate_six_step
     plan = plan or sim_plan(profile)
     load = plan["load_n_m"]
     tl = plan["t_load_s"]
-    w3 = None
-    if disturbances:
-        w3 = lambda t: float(disturbances_2016(t, amplitude=(0.0, 0.0, 0.1 * load))[0, 2])
+    w3 = load_disturbance(plan) if disturbances else None
     return simulate_six_step(profile, law, t_end=plan["t_end_s"], ref_rpm=plan["target_rpm"],
                              load=lambda t: load if t >= tl - 1e-12 else 0.0, torque_disturbance=w3,
                              r_factor=r_factor, **measurement,

@@ -22,6 +22,20 @@ Rule (``rule=``):
     profile's step (the 2016 motor: R = 1 ohm line to line), these are the
     ZN answer that respects it.
 
+``"tyreus-luyben"`` — the backed-off row of the same table (Tyreus &
+    Luyben 1992): ``kp = Ku/2.2, Ti = 2.2 Tu, Td = Tu/6.3``; about a sixth of
+    the classic integral gain.
+
+``"backed-off"``, ``"backed-off-4"`` — the classic row with its integral
+    time stretched two and four times (``Ti = Tu``, ``Ti = 2 Tu``: ki x 1/2,
+    x 1/4; kp and Td as classic).  The bridge cannot brake, so what
+    overshoots on a speed step is the integrator's charge at the end of the
+    acceleration; these keep the classic's proportional and derivative action
+    and back the integral off.
+
+``"pessen"`` — Pessen's integral rule (``kp = 0.7 Ku, Ti = 0.4 Tu,
+    Td = 0.15 Tu``), the faster row, for a loop the milder rows leave too slow.
+
 ``"reaction-curve"`` — the open-loop step-response rule on the continuous
     plant (tangent at the inflection point: apparent dead time L, time
     constant T, DC gain K; ``kp = 1.2 T/(K L)``, ``Ti = 2 L``, ``Td = L/2``).
@@ -48,11 +62,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.optimize import brentq
 
 from ..errors import PicdriveError
 from ..analysis.h2hinf import pid_figures_continuous, pid_figures_sampled
-from .mixed_pid import pid_law, run_verify, term_limits
+from .mixed_pid import MixedPidError, phase_crossover_rad_s, pid_law, run_verify, term_limits
 from .verify import pid_model_checks
 from ..result import DesignResult
 from ..models.tfmodel import TF, SampledPlant, motor_tf, sampled_plant
@@ -63,11 +76,14 @@ __all__ = ["ZnError", "PRESETS", "RULES", "ultimate_point", "reaction_curve", "z
 PRESETS = {"paper2016": {"kp": 0.43, "ki": 2.30, "kd": 0.28,
                          "source": "Assawinchaichote & Chayaopas 2016, Remark 1 / Figure 5 / Table 2",
                          "units": "error in rpm, output v_q in V"}}
-RULES = ("ultimate", "some-overshoot", "no-overshoot", "reaction-curve")
-# (kp / Ku, Ti / Tu, Td / Tu) of the ultimate-point rules: Ziegler & Nichols' classic PID and the two
-# milder variants of the same table (Seborg, Edgar & Mellichamp; "some" / "no overshoot")
+# (kp / Ku, Ti / Tu, Td / Tu) of the ultimate-point rules: Ziegler & Nichols' classic PID, the two
+# milder variants of the same table (Seborg, Edgar & Mellichamp; "some" / "no overshoot"), the
+# backed-off rows (Tyreus & Luyben; the classic with Ti x 2 and x 4) and Pessen's integral rule
 ULTIMATE_RULES = {"ultimate": (0.6, 0.5, 0.125), "some-overshoot": (1.0 / 3.0, 0.5, 1.0 / 3.0),
-                  "no-overshoot": (0.2, 0.5, 1.0 / 3.0)}
+                  "no-overshoot": (0.2, 0.5, 1.0 / 3.0), "tyreus-luyben": (1.0 / 2.2, 2.2, 1.0 / 6.3),
+                  "backed-off": (0.6, 1.0, 0.125), "backed-off-4": (0.6, 2.0, 0.125),
+                  "pessen": (0.7, 0.4, 0.15)}
+RULES = (*ULTIMATE_RULES, "reaction-curve")
 
 
 class ZnError(PicdriveError, ValueError):
@@ -81,21 +97,12 @@ def ultimate_point(sp: SampledPlant) -> dict[str, float]:
     sampled plant; cross-checked against the gain at which the closed-loop
     spectral radius reaches 1 (:func:`picdrive.design.mixed_pid.term_limits`).
     """
-    ptf = sp.tf_z
-    ts = sp.ts
-
-    def resp(w):
-        z = np.exp(1j * w * ts)
-        return np.polyval(ptf.num, z) / np.polyval(ptf.den, z)
-
-    w = np.linspace(1e-6, math.pi / ts, 20001)[1:]
-    ph = np.unwrap(np.angle(resp(w)))
-    k = np.nonzero(ph <= -math.pi)[0]
-    if k.size == 0:
-        raise ZnError("the sampled loop has no phase crossover below the Nyquist frequency: no ultimate gain")
-    k = int(k[0])
-    w180 = brentq(lambda x: np.imag(resp(x)), w[k - 1], w[k], xtol=1e-12)
-    ku = 1.0 / abs(resp(w180))
+    try:
+        w180 = phase_crossover_rad_s(sp)
+    except MixedPidError as e:
+        raise ZnError(str(e)) from None
+    z = np.exp(1j * w180 * sp.ts)
+    ku = 1.0 / abs(np.polyval(sp.tf_z.num, z) / np.polyval(sp.tf_z.den, z))
     ku_bisect = term_limits(sp)["kp"]
     return {"ku_v_per_rad_s": ku, "tu_s": 2 * math.pi / w180, "w180_rad_s": w180, "ku_bisection": ku_bisect}
 
@@ -183,7 +190,9 @@ def paper2016_unit_study(profile="assawinchaichote2016", *, t_end_s: float = 5.0
     return out
 
 
-AUTO_ORDER = ("ultimate", "some-overshoot", "no-overshoot")
+# rule="auto": the classic row, the milder rows of the table, the classic with its integral backed off,
+# then Pessen's faster row (for a loop the others leave too slow)
+AUTO_ORDER = ("ultimate", "some-overshoot", "no-overshoot", "backed-off", "tyreus-luyben", "backed-off-4", "pessen")
 
 
 def design(profile, *, drive=None, progress: bool = True, preset: str | None = None, rule: str = "auto",
@@ -191,22 +200,31 @@ def design(profile, *, drive=None, progress: bool = True, preset: str | None = N
     """Ziegler-Nichols PID (or the ``paper2016`` preset) for a profile, verified.
 
     ``rule="auto"`` (default): the rows of the ultimate-sensitivity table in
-    the order classic, some-overshoot, no-overshoot, and the first whose law
-    passes the verification on the six-step drive is kept (the bridge cannot
-    brake, so the overshoot limit of the verification is what selects; on the
-    duy2008 motor the milder rows overshoot *more*: their lower kp leaves the
-    approach to the integrator).  The rows tried are recorded
-    (``certificate.rule_tries``).  ``progress`` is accepted for the common
-    interface (ZN has no long steps).
+    the order :data:`AUTO_ORDER` (classic, some-overshoot, no-overshoot, the
+    classic with Ti x 2, Tyreus-Luyben, the classic with Ti x 4, Pessen), and
+    the first whose law passes the verification on the six-step drive is kept
+    (the bridge cannot brake, so the overshoot limit of the verification is
+    what selects most often; on the duy2008 motor the milder rows overshoot
+    *more*: their lower kp leaves the approach to the integrator, which is why
+    the backed-off rows keep the classic kp and lower ki).  The rows tried are
+    recorded (``certificate.rule_tries``: each row's gains, status and
+    reasons) and the row kept is the result's ``variant`` and
+    ``certificate.rule``; a refusal is the classic row's design with its
+    reasons first, then every row's first reason.
+    ``progress`` is accepted for the common interface (ZN has no long steps).
     """
     if rule == "auto" and preset is None and not options:
-        tries, res = [], None
+        tries, res, first = [], None, None
         for row in AUTO_ORDER:
             res = design(profile, drive=drive, progress=progress, rule=row, delay_samples=delay_samples,
                          measurement=measurement)
-            tries.append({"rule": row, "status": res.status, "reasons": list(res.reasons)})
+            tries.append({"rule": row, "status": res.status, "gains": dict(res.certificate["gains"]),
+                          "reasons": list(res.reasons)})
+            first = first or res
             if res.ok:
                 break
+        if not res.ok:       # refused: the classic row's design and reasons first (a physical limit shows there)
+            res = first
         res.certificate["rule_tries"] = tries
         res.options["rule"] = "auto"
         if not res.ok:

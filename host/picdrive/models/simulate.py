@@ -583,8 +583,10 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
 
 def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: float, load_n_m: float = 0.0,
                             n_sub: int = 4, r_factor: float = 1.0, commutated: bool = False,
-                            plant: SixStepPlant | None = None) -> dict:
-    """:func:`simulate_six_step` (``measurement="firmware"``, forward table) for many one-rule PID laws at once.
+                            plant: SixStepPlant | None = None, hall: HallSpeedMeter | None = None,
+                            torque_disturbance: Callable[[float], float] | None = None) -> dict:
+    """:func:`simulate_six_step` (``measurement="firmware"``, or ``"hall"`` with ``hall`` given;
+    forward table) for many one-rule PID laws at once.
 
     The law is ``control_law.law_step`` written for arrays: one rule, b = 1,
     unfiltered derivative on the measurement, the profile's current window
@@ -595,7 +597,8 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
     each sample is integrated over the delay period and then ``n_sub`` equal
     sub-steps (with ``n_sub = Ts/T_pwm - 1`` the schedule is exactly
     :func:`simulate_six_step`'s; a test keeps the two equal).  The walk-down
-    backup is not modelled.  Returns ``speed_rad_s`` and ``current_a`` at the
+    backup is not modelled.  ``torque_disturbance``: a signed torque (N m, function of time, held
+    over each sample) against the motor, as :func:`simulate_six_step`'s.  Returns ``speed_rad_s`` and ``current_a`` at the
     samples, shape (samples, batch), and per law ``peak_speed_rad_s``,
     ``peak_current_a`` over every sub-step.
     """
@@ -621,9 +624,23 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
     r = float(ref_rad_s)
     w_out = np.zeros((n, m)); i_out = np.zeros((n, m))
     w_pk = np.zeros(m); i_pk = np.zeros(m)
+    if hall is not None:          # the hall-edge period in Timer5 ticks, as simulate_six_step's "hall"
+        e_per_rad = hall.pole_pairs * 3.0 / math.pi
+        e_off = hall.offset_deg / 60.0
+        h_idx = np.full(m, math.floor(-e_off), np.int64)
+        h_last = np.zeros(m, np.int64); h_period = np.zeros(m, np.int64)
+        h_fwd = np.ones(m, bool); h_count = np.zeros(m, np.int64); h_age = np.zeros(m, np.int64)
+        w_lsb = 2.0 ** -hall.qs
     for k in range(n):
         w_out[k], i_out[k] = w, i
-        if k == 0:
+        if hall is not None:
+            now = math.floor(k * ts / hall.tick_s + 1e-9) & 0xFFFF
+            p_h = np.maximum(h_period, (now - h_last) & 0xFFFF)
+            live = (h_count >= 2) & (h_age < hall.age_max) & (p_h > 0)
+            y = np.where(live, np.minimum(hall.k_raw // np.maximum(p_h, 1), 32767) * w_lsb, 0.0)
+            y = np.where(h_fwd, y, -y)
+            h_age = np.minimum(h_age + 1, 255)
+        elif k == 0:
             y = np.zeros(m)
         else:
             wa = (th - th_prev) / ts
@@ -649,6 +666,8 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
         dir_fw = np.where(u != 0.0, newdir, dir_fw)
         n_dir = np.where(hold, 0.0, np.where(dir_fw, -1.0, 1.0))
         n_duty = np.abs(u) / vbus
+        t_sub = k * ts
+        td = float(torque_disturbance(k * ts)) if torque_disturbance is not None else 0.0
         for s, (h, g) in enumerate(zip(steps, gs)):
             if s <= 1:                          # the bridge's rails change only with the command
                 if s == 1:
@@ -674,7 +693,7 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
                 gc = np.where(cond, g, 1.0)
             i1 = np.where(cond & ~cross, i1, 0.0)
             i_mean = np.where(cond, (i_inf * hc + (i - i_inf) * tau * (1.0 - gc)) / h, 0.0)
-            te = ke * i_mean
+            te = ke * i_mean - td
             if load_n_m > 0:
                 tload = np.where(w > 0, load_n_m, np.where(w < 0, -load_n_m,
                                                            np.where(np.abs(te) <= load_n_m, te,
@@ -684,7 +703,33 @@ def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: f
             w1 = (w * (1.0 - 0.5 * h * B / J) + h / J * (te - tload)) / (1.0 + 0.5 * h * B / J)
             if load_n_m > 0:
                 w1 = np.where((w != 0) & ((w1 > 0) != (w > 0)) & ((tload > 0) == (w > 0)), 0.0, w1)
-            th = th + 0.5 * h * (w + w1)
+            th1 = th + 0.5 * h * (w + w1)
+            if hall is not None:
+                idx = np.floor(th1 * e_per_rad - e_off).astype(np.int64)
+                cr = np.flatnonzero(idx != h_idx)           # the laws whose rotor crossed an edge in this step
+                if cr.size:
+                    nc = idx[cr] - h_idx[cr]                # edges crossed (signed)
+                    fwd = nc > 0
+                    t0, t1 = th[cr], th1[cr]
+                    dth = np.where(t1 != t0, t1 - t0, 1.0)
+
+                    def tick(b, a, d):                     # Timer5 at the edge of boundary b inside the step
+                        frac = np.minimum(np.maximum(((b + e_off) / e_per_rad - a) / d, 0.0), 1.0)
+                        return np.floor((t_sub + frac * h) / hall.tick_s).astype(np.int64) & 0xFFFF
+                    ic = idx[cr]
+                    last = tick(np.where(fwd, ic, ic + 1), t0, dth)
+                    prev = h_last[cr]
+                    two = np.flatnonzero(np.abs(nc) >= 2)   # two edges in one step: the period is between them
+                    if two.size:
+                        prev[two] = tick(np.where(fwd[two], ic[two] - 1, ic[two] + 2), t0[two], dth[two])
+                    h_period[cr] = (last - prev) & 0xFFFF
+                    h_last[cr] = last
+                    h_fwd[cr] = fwd
+                    h_count[cr] = np.minimum(h_count[cr] + np.abs(nc), 2)
+                    h_age[cr] = 0
+                    h_idx[cr] = ic
+                t_sub += h
+            th = th1
             i, w = i1, w1
             w_pk = np.maximum(w_pk, w)
             i_pk = np.maximum(i_pk, np.abs(i))
