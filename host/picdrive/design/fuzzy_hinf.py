@@ -117,17 +117,25 @@ class _Problem:
     (``S``, ``Su`` diagonal typical magnitudes from ``ts.info``), and each LMI
     is multiplied on both sides by ``diag(S^-1, I, ...)`` -- an exact
     congruence, so the feasible set is unchanged while the solver sees O(1)
-    data.  Every returned solution is re-checked in numpy in the paper's form
+    data.  ``balanced`` (always for the centred solve, ``centre=gamma``: the
+    analytic centre of the LMIs at that gamma) goes further: ``tau`` in units
+    of a balancing scale with the uncertainty rows congruence-scaled to match,
+    the pole-disk LMIs divided by the radius, and (centred solve) the gamma
+    rows congruence-scaled by ``1/sqrt(gamma)``; without it the problem is
+    posed as before, which :func:`minimise_gamma` without a back-off keeps
+    (its infimum figures, e.g. ``picdrive report``'s, are solver-dependent
+    anyway: the infimum is not attained).  Every returned solution is re-checked in numpy in the paper's form
     (:func:`picdrive.analysis.lmi.lmi_margins`).
     """
 
     def __init__(self, ts, delta, alpha, rho, *, zero_gain_states=(), input_bound=None, pole_disk_rad_s=None,
                  margin=1e-7, solver=DEFAULT_SOLVER, state_scale=None, input_scale=None, fixed_gamma=False,
-                 centre: float | None = None, tau_scale: float | None = None):
+                 centre: float | None = None, tau_scale: float | None = None, balanced: bool = False):
         import cvxpy as cp
         self.cp, self.ts, self.solver = cp, ts, solver
         self.delta = None if delta is None else float(delta)
         self.centre = centre is not None
+        balanced = bool(balanced) or self.centre
         if self.centre and (self.delta is not None or input_bound is not None):
             raise ValueError("the centred solve is for delta=None without an input bound")
         self.fixed_gamma = bool(fixed_gamma) or self.delta is not None or self.centre
@@ -175,7 +183,7 @@ class _Problem:
             et = float(np.linalg.norm(ts.E_matrix.T @ Si))
             h1 = max(float(np.linalg.norm(ts.H1[i] @ S)) for i in range(r))
             self.tau_scale = c_tau = (float(tau_scale) if tau_scale is not None
-                                      else self.rho * h1 / et if et > 0 and h1 > 0 else 1.0)
+                                      else self.rho * h1 / et if balanced and et > 0 and h1 > 0 else 1.0)
             self.tau_t = cp.Variable(pos=True)
             self.tau = c_tau * self.tau_t
             cons.append(self.tau_t >= eps)
@@ -243,7 +251,8 @@ class _Problem:
                         pairs = [(i, j)] if i == j else [(i, j), (j, i)]
                         blk = sum(Si @ ((ts.A[a] + ts.offsets[v]) @ P + ts.B[a] @ Y[b]) @ Si for a, b in pairs)
                         k = len(pairs)
-                        M = cp.bmat([[-k * Pt, blk / q], [blk.T / q, -k * Pt]])     # divided by q: O(1) data
+                        qs = q if balanced else 1.0                       # divided by q: O(1) data
+                        M = cp.bmat([[-q / qs * k * Pt, blk / qs], [blk.T / qs, -q / qs * k * Pt]])
                         cons.append(0.5 * (M + M.T) << -eps * np.eye(2 * n))
                         self.slacks.append(-0.5 * (M + M.T))
         if self.centre:
@@ -389,7 +398,7 @@ def _centred(ts, alpha, rho, *, back_off, zero_gain_states, pole_disk_rad_s, sol
     t0 = time.perf_counter()
     zero = tuple(zero_gain_states)
     sdp = _Problem(ts, None, alpha, rho, zero_gain_states=zero, pole_disk_rad_s=pole_disk_rad_s,
-                   solver=solver).solve()
+                   solver=solver, balanced=True).solve()
     n_solves = 1
     infimum = None
     if sdp.status in ("infeasible", "infeasible_inaccurate", "unbounded"):
