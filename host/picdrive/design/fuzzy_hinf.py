@@ -53,7 +53,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..analysis.lmi import assemble, certified_gain, lmi_margins, xi_blocks
+from ..analysis.lmi import assemble, certified_gain, lmi_margins, nonzero, xi_blocks
 from ..analysis.sampled import sampled_radius, six_step_equilibrium
 from ..control_law import ScheduledLaw
 from ..errors import PicdriveError
@@ -117,16 +117,28 @@ class _Problem:
     (``S``, ``Su`` diagonal typical magnitudes from ``ts.info``), and each LMI
     is multiplied on both sides by ``diag(S^-1, I, ...)`` -- an exact
     congruence, so the feasible set is unchanged while the solver sees O(1)
-    data.  Every returned solution is re-checked in numpy in the paper's form
+    data.  ``balanced`` (always for the centred solve, ``centre=gamma``: the
+    analytic centre of the LMIs at that gamma) goes further: ``tau`` in units
+    of a balancing scale with the uncertainty rows congruence-scaled to match,
+    the pole-disk LMIs divided by the radius, and (centred solve) the gamma
+    rows congruence-scaled by ``1/sqrt(gamma)``; without it the problem is
+    posed as before, which :func:`minimise_gamma` without a back-off keeps
+    (its infimum figures, e.g. ``picdrive report``'s, are solver-dependent
+    anyway: the infimum is not attained).  Every returned solution is re-checked in numpy in the paper's form
     (:func:`picdrive.analysis.lmi.lmi_margins`).
     """
 
     def __init__(self, ts, delta, alpha, rho, *, zero_gain_states=(), input_bound=None, pole_disk_rad_s=None,
-                 margin=1e-7, solver=DEFAULT_SOLVER, state_scale=None, input_scale=None, fixed_gamma=False):
+                 margin=1e-7, solver=DEFAULT_SOLVER, state_scale=None, input_scale=None, fixed_gamma=False,
+                 centre: float | None = None, tau_scale: float | None = None, balanced: bool = False):
         import cvxpy as cp
         self.cp, self.ts, self.solver = cp, ts, solver
         self.delta = None if delta is None else float(delta)
-        self.fixed_gamma = bool(fixed_gamma) or self.delta is not None
+        self.centre = centre is not None
+        balanced = bool(balanced) or self.centre
+        if self.centre and (self.delta is not None or input_bound is not None):
+            raise ValueError("the centred solve is for delta=None without an input bound")
+        self.fixed_gamma = bool(fixed_gamma) or self.delta is not None or self.centre
         self.alpha, self.rho = float(alpha), float(ts.rho if rho is None else rho)
         n, m, r = ts.n, ts.m, ts.r
         sx = np.asarray(state_scale if state_scale is not None else ts.info.get("state_scale", np.ones(n)), float)
@@ -151,8 +163,13 @@ class _Problem:
         P = S @ Pt @ S
         Y = [Su @ y @ S for y in Yt]
         self.P, self.Y = P, Y
-        eps = margin
+        # centre: the analytic centre of the LMIs at the given gamma (the point that maximises the sum of the
+        # log-determinants of every LMI's slack, in the scaled coordinates): a point deep inside the feasible set,
+        # unique (the barrier is strictly concave), instead of one on its boundary
+        self.slacks = []
+        eps = 0.0 if self.centre else margin
         cons = [Pt >> eps * np.eye(n)]
+        self.slacks.append(Pt)
         self.bounded = input_bound is not None
         if self.delta is not None:
             self.gamma = cp.Parameter(pos=True, value=1.0)
@@ -160,9 +177,24 @@ class _Problem:
             self.tau = None
             objective = cp.Minimize(0)
         else:
-            self.tau = cp.Variable(pos=True)
-            cons.append(self.tau >= eps)
-            if self.fixed_gamma and not self.bounded:
+            # tau in units of its balancing scale (the uncertainty rows are congruence-scaled by 1/sqrt(c) in
+            # xi(), so its blocks (sqrt(c) tau_t E^T, -tau_t), (rho H1 P / sqrt(c), -tau_t) are of the order of the
+            # others): unscaled, tau is O(1e4) on the bundled motors and the solver's tolerances lose the gains
+            et = float(np.linalg.norm(ts.E_matrix.T @ Si))
+            h1 = max(float(np.linalg.norm(ts.H1[i] @ S)) for i in range(r))
+            self.tau_scale = c_tau = (float(tau_scale) if tau_scale is not None
+                                      else self.rho * h1 / et if balanced and et > 0 and h1 > 0 else 1.0)
+            self.tau_t = cp.Variable(pos=True)
+            self.tau = c_tau * self.tau_t
+            cons.append(self.tau_t >= eps)
+            self.slacks.append(cp.reshape(self.tau_t, (1, 1), order="C"))
+            if self.centre:
+                # gamma a constant (not a parameter), so that the gamma rows can be congruence-scaled by
+                # 1/sqrt(gamma) in xi() (their diagonals -gamma -> -1): on duy2008 gamma is O(1e3)
+                self.gamma = cp.Parameter(pos=True, value=float(centre))
+                g_w = g_z = float(centre)
+                objective = cp.Minimize(0)
+            elif self.fixed_gamma and not self.bounded:
                 self.gamma = cp.Parameter(pos=True, value=1.0)
                 g_w = g_z = self.gamma
                 objective = cp.Minimize(0)
@@ -181,15 +213,25 @@ class _Problem:
                                    gamma_w=g_w)
             psi1 = Si @ psi1 @ Si          # congruence diag(S^-1, I, ...)
             col = [(blk @ Si, k, dg) for blk, k, dg in col]
+            if self.tau is not None:       # congruence 1/sqrt(c) on the uncertainty rows (the -tau diagonals)
+                h = int(nonzero(ts.H1[i])) + int(nonzero(ts.H2[i]))
+                unc = set(range(h)) | set(range(h + 1, 2 * h + 1))
+                col = [(blk / math.sqrt(c_tau), k, dg / c_tau) if a in unc else (blk, k, dg)
+                       for a, (blk, k, dg) in enumerate(col)]
+                if self.centre:            # congruence 1/sqrt(gamma) on the gamma rows
+                    sg = math.sqrt(g_z)
+                    col = [(blk, k, dg) if a in unc else (blk / sg, k, dg / g_z) for a, (blk, k, dg) in enumerate(col)]
             return assemble(psi1, col, cp.bmat)
 
         for v in range(nv):
             for i in range(r):
                 X = xi(i, i, v)
                 cons.append(0.5 * (X + X.T) << -eps * np.eye(X.shape[0]))
+                self.slacks.append(-0.5 * (X + X.T))
                 for j in range(i + 1, r):
                     X = xi(i, j, v) + xi(j, i, v)
                     cons.append(0.5 * (X + X.T) << -eps * np.eye(X.shape[0]))
+                    self.slacks.append(-0.5 * (X + X.T))
         if self.bounded:
             if self.delta is not None:
                 raise ValueError("an input bound needs delta=None (free S-procedure multiplier)")
@@ -209,27 +251,34 @@ class _Problem:
                         pairs = [(i, j)] if i == j else [(i, j), (j, i)]
                         blk = sum(Si @ ((ts.A[a] + ts.offsets[v]) @ P + ts.B[a] @ Y[b]) @ Si for a, b in pairs)
                         k = len(pairs)
-                        M = cp.bmat([[-q * k * Pt, blk], [blk.T, -q * k * Pt]])
+                        qs = q if balanced else 1.0                       # divided by q: O(1) data
+                        M = cp.bmat([[-q / qs * k * Pt, blk / qs], [blk.T / qs, -q / qs * k * Pt]])
                         cons.append(0.5 * (M + M.T) << -eps * np.eye(2 * n))
+                        self.slacks.append(-0.5 * (M + M.T))
+        if self.centre:
+            objective = cp.Maximize(sum(cp.log_det(z) if z.shape[0] > 1 else cp.log(z[0, 0]) for z in self.slacks))
         self.prob = cp.Problem(objective, cons)
 
     def solve(self, gamma: float | None = None) -> Theorem1Solution:
         """Solve (``gamma`` is required in the paper's form and ignored otherwise)."""
         cp, ts = self.cp, self.ts
-        if self.fixed_gamma:
+        if self.centre:
+            gamma = self.gamma.value
+        elif self.fixed_gamma:
             self.gamma.value = float(gamma)
         t0 = time.perf_counter()
-        try:
-            self.prob.solve(solver=self.solver)
-            status = self.prob.status
-        except cp.error.SolverError as e:
-            status = f"solver error: {e}"
+        status, notes = _quiet_solve(self.prob, self.solver)
         dt = time.perf_counter() - t0
         g0 = float(gamma) if self.fixed_gamma else math.nan
         sol = Theorem1Solution(False, str(status), g0, self.delta if self.delta is not None else math.nan,
                                self.alpha, self.rho, solve_time_s=dt)
+        if notes:
+            sol.extra["solver_notes"] = notes
         if status not in ("optimal", "optimal_inaccurate"):
             return sol
+        if self.centre:
+            sol.extra["centre_margin"] = min(float(np.linalg.eigvalsh(np.atleast_2d(z.value)).min())
+                                             for z in self.slacks)
         P = np.asarray(self.P.value, float)
         Y = [np.asarray(y.value, float) for y in self.Y]
         if not np.all(np.isfinite(P)) or any(not np.all(np.isfinite(y)) for y in Y):
@@ -258,6 +307,33 @@ class _Problem:
         return sol
 
 
+def _quiet_solve(prob, solver) -> tuple[str, list[str]]:
+    """Solve a cvxpy problem without letting the solver's or cvxpy's text reach the user.
+
+    cvxpy warns ("Solution may be inaccurate. Try another solver, adjusting the solver settings, or solve
+    with verbose=True ...") when the solver stops short of its tolerances and may log through the ``cvxpy``
+    logger; neither names anything a picdrive user can act on.  The status says the same (``optimal_inaccurate``)
+    and the callers act on it; the text is returned (``notes``) for the record, never printed.  A solver
+    exception is a status (``"solver error: ..."``)."""
+    import logging
+
+    import cvxpy as cp
+    log = logging.getLogger("cvxpy")
+    level = log.level
+    log.setLevel(logging.CRITICAL + 1)
+    try:
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            try:
+                prob.solve(solver=solver)
+                status = str(prob.status)
+            except cp.error.SolverError as e:
+                status = f"solver error: {e}"
+    finally:
+        log.setLevel(level)
+    return status, [str(w.message) for w in seen]
+
+
 def solve_theorem1(ts, gamma: float, delta: float | None = 1.0, alpha: float = 2.0, rho: float | None = None, *,
                    zero_gain_states: Sequence[int] = (), pole_disk_rad_s: float | None = None,
                    solver: str = DEFAULT_SOLVER) -> Theorem1Solution:
@@ -273,19 +349,133 @@ def solve_theorem1(ts, gamma: float, delta: float | None = 1.0, alpha: float = 2
     return pr.solve(gamma)
 
 
+#: design()'s back-off from the gamma infimum: the gains are taken at (1 + GAMMA_BACK_OFF) x gamma_min, at the
+#: centre of the feasible set there (see minimise_gamma)
+GAMMA_BACK_OFF = 0.05
+
+
 def minimise_gamma(ts, delta: float | None = None, alpha: float = 2.0, rho: float | None = None, *,
                    gamma_hi: float = 1e3, gamma_lo: float = 1e-4, rel_tol: float = 0.01,
                    zero_gain_states: Sequence[int] = (), input_bound: dict | None = None,
                    pole_disk_rad_s: float | None = None, solver: str = DEFAULT_SOLVER,
-                   progress=None) -> Theorem1Solution:
-    """Smallest feasible gamma.
+                   progress=None, back_off: float = 0.0) -> Theorem1Solution:
+    """Smallest feasible gamma, or with ``back_off`` a well-conditioned point a little above it.
 
     ``delta=None`` (default): delta is optimised with gamma -- one SDP (with an
     input bound: minimises ``g_w + g_z``, see :class:`_Problem`).
     ``delta`` given (the paper's form): bisection on gamma in
     ``[gamma_lo, gamma_hi]`` to a relative tolerance; ``extra`` then holds
     ``gamma_infeasible`` (the largest gamma found infeasible) and ``n_solves``.
+
+    ``back_off`` (``delta=None`` without an input bound; :func:`design` uses
+    :data:`GAMMA_BACK_OFF`): the infimum is approached with gains that grow
+    without bound and the feasible set thins to nothing there, so a point at
+    (or within the bisection's tolerance of) the infimum is whatever the
+    solver stopped on -- it moves with the solver's tolerances, its scaling and
+    the last digits of the data.  Instead the gains are taken at ``gamma =
+    (1 + back_off) gamma_min`` at the analytic centre of the LMIs there (the
+    point that maximises the sum of the log-determinants of their slacks:
+    unique, strictly inside every LMI, :func:`_analytic_centre`; its smallest
+    slack eigenvalue in the scaled coordinates is ``extra["centre_margin"]``);
+    ``gamma_min`` is the SDP's optimal value (a well-conditioned number even
+    where the point is not), or the bisection's when the SDP does not end
+    ``optimal``.  ``extra`` records ``gamma_min``, ``gamma_back_off`` and, when
+    the centred solve does not end ``optimal`` at ``back_off``, 2 ``back_off``
+    and 4 ``back_off``, ``centring`` (why) with the infimum point kept.
     """
+    if back_off and delta is None and input_bound is None:
+        return _centred(ts, alpha, rho, back_off=back_off, gamma_hi=gamma_hi, gamma_lo=gamma_lo, rel_tol=rel_tol,
+                        zero_gain_states=zero_gain_states, pole_disk_rad_s=pole_disk_rad_s, solver=solver,
+                        progress=progress)
+    return _infimum(ts, delta, alpha, rho, gamma_hi=gamma_hi, gamma_lo=gamma_lo, rel_tol=rel_tol,
+                    zero_gain_states=zero_gain_states, input_bound=input_bound, pole_disk_rad_s=pole_disk_rad_s,
+                    solver=solver, progress=progress)
+
+
+def _centred(ts, alpha, rho, *, back_off, zero_gain_states, pole_disk_rad_s, solver, progress,
+             **bisection) -> Theorem1Solution:
+    """:func:`minimise_gamma` with a back-off: the centred point at ``(1 + back_off) gamma_min``."""
+    t0 = time.perf_counter()
+    zero = tuple(zero_gain_states)
+    sdp = _Problem(ts, None, alpha, rho, zero_gain_states=zero, pole_disk_rad_s=pole_disk_rad_s,
+                   solver=solver, balanced=True).solve()
+    n_solves = 1
+    infimum = None
+    if sdp.status in ("infeasible", "infeasible_inaccurate", "unbounded"):
+        sdp.extra.update(n_solves=n_solves, bisection_time_s=time.perf_counter() - t0)
+        return sdp
+    if sdp.status == "optimal" and math.isfinite(sdp.gamma):
+        g_min = sdp.gamma
+    else:
+        infimum = _infimum(ts, None, alpha, rho, zero_gain_states=zero, pole_disk_rad_s=pole_disk_rad_s,
+                           solver=solver, progress=progress, **bisection)
+        n_solves += int(infimum.extra.get("n_solves", 0))
+        if not infimum.feasible:
+            return infimum
+        g_min = infimum.gamma
+    why = []
+    for k in (1.0, 2.0, 4.0):
+        s, n = _analytic_centre(ts, alpha, rho, (1.0 + k * back_off) * g_min, zero, pole_disk_rad_s, solver,
+                                hint=sdp if infimum is None else infimum)
+        n_solves += n
+        if s.status == "optimal" and s.feasible:
+            s.extra.update(gamma_min=g_min, gamma_back_off=k * back_off, n_solves=n_solves,
+                           gamma_min_from="sdp" if infimum is None else "bisection",
+                           bisection_time_s=time.perf_counter() - t0)
+            return s
+        why.append(f"gamma = {1 + k * back_off:g} gamma_min: status {s.status!r}"
+                   + ("" if s.status != "optimal" else f", largest LMI eigenvalue {s.max_eig:.3g}"))
+    if infimum is None:
+        infimum = _infimum(ts, None, alpha, rho, zero_gain_states=zero, pole_disk_rad_s=pole_disk_rad_s,
+                           solver=solver, progress=progress, **bisection)
+        n_solves += int(infimum.extra.get("n_solves", 0))
+    infimum.extra.update(gamma_min=g_min, n_solves=n_solves, bisection_time_s=time.perf_counter() - t0,
+                         centring="the centred solve failed (" + "; ".join(why) + "): the infimum's point is kept")
+    return infimum
+
+
+def _analytic_centre(ts, alpha, rho, gamma, zero, pole_disk_rad_s, solver, hint=None) -> tuple[Theorem1Solution, int]:
+    """The analytic centre of Theorem 1's LMIs (delta free) at ``gamma``, and the number of solves.
+
+    The centre maximises the sum of the log-determinants of every LMI's slack.  It does not depend on the
+    variables' scaling (a congruence adds a constant to each log-determinant), but the solver's accuracy does:
+    with the model's typical magnitudes alone the Lyapunov matrix's eigenvalues spread over three decades on
+    duy2008 and Clarabel stops short ("AlmostSolved"), at gains that move by 1e-2 with the solver's settings.
+    So a solve only supplies the scaling of the next (the state scale ``sqrt(diag P)``, the multiplier's scale
+    ``tau``), and a rescaled solve that ends ``optimal`` decides.  The first solve starts from the model's
+    magnitudes, then (when that gives no point) from ``hint`` (a solution near the infimum)."""
+    def solve(scale):
+        sx, ct = scale
+        return _Problem(ts, None, alpha, rho, zero_gain_states=zero, pole_disk_rad_s=pole_disk_rad_s, solver=solver,
+                        centre=gamma, state_scale=sx, tau_scale=ct).solve()
+
+    def scale_of(sol):
+        if sol is None or sol.P is None or not np.all(np.isfinite(sol.P)) or np.min(np.diag(sol.P)) <= 0.0 \
+                or not sol.extra.get("tau", 0.0) > 0.0:
+            return None
+        return np.sqrt(np.diag(sol.P)), float(sol.extra["tau"])
+
+    n = 0
+    s = None
+    for start in [(None, None), scale_of(hint)]:
+        if start is None:
+            continue
+        s = solve(start)
+        n += 1
+        for _ in range(2):
+            scale = scale_of(s)
+            if scale is None:
+                break
+            s = solve(scale)
+            n += 1
+            if s.status == "optimal" and s.feasible:
+                return s, n
+    return s, n
+
+
+def _infimum(ts, delta, alpha, rho, *, gamma_hi=1e3, gamma_lo=1e-4, rel_tol=0.01, zero_gain_states=(),
+             input_bound=None, pole_disk_rad_s=None, solver=DEFAULT_SOLVER, progress=None) -> Theorem1Solution:
+    """:func:`minimise_gamma` without a back-off: the smallest gamma found feasible."""
     t0 = time.perf_counter()
     n_solves = 0
     sdp = None               # the one-SDP solution (delta=None), kept if its refinement cannot start
@@ -600,7 +790,7 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     def solve(disk):
         if gamma is None:
             return minimise_gamma(ts, delta=delta, alpha=alpha, rho=rho, zero_gain_states=zero,
-                                  pole_disk_rad_s=disk, solver=solver)
+                                  pole_disk_rad_s=disk, solver=solver, back_off=GAMMA_BACK_OFF)
         return solve_theorem1(ts, float(gamma), delta=delta, alpha=alpha, rho=rho, zero_gain_states=zero,
                               pole_disk_rad_s=disk, solver=solver)
 
