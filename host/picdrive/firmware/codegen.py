@@ -482,7 +482,8 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                config=_config_bits(pm, profile.control.speed_loop_hz), eeprom_gptr_stubs=EEPROM_GPTR_STUBS, n_rules=plan.n_rules,
                link_id={e.name: e.id for e in table.entries}, link_off=_store_offsets(table),
                signal_index={e.name: i for i, e in enumerate(table.signals)},
-               bit=p18f4431.bits())    # bit positions by name, for the assembly: {{ bit.PIR1.RCIF }}
+               bit=p18f4431.bits(),    # bit positions by name, for the assembly: {{ bit.PIR1.RCIF }}
+               link_state={s.name: int(s) for s in protocol.State})   # the drive states, for the assembly
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(templates_dir())),
                              undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True,
                              keep_trailing_newline=True, autoescape=False)
