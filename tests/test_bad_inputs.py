@@ -351,10 +351,12 @@ def test_kt_kb_within_the_tolerance_is_one_constant_in_design_and_twin():
 def test_committed_designs_are_signed_and_load_as_usable(profiles):
     from picdrive.result import load_design
     files = sorted(EXAMPLES.glob("*.design.json"))
-    assert len(files) == 6
+    assert len(files) == 3 * len(profiles)          # each bundled profile, each method
     for f in files:
         r = load_design(f, require_usable=True, profile=profiles[f.name.split(".")[0]])
         assert r.ok and json.loads(f.read_text())["signature"].startswith("sha256:")
+        # verified means flashable: the design's firmware was built for the chip within every budget
+        assert r.verification["firmware_fits_chip"]["value"] == "fits", f.name
 
 
 @pytest.mark.parametrize("edit", ["kp", "status", "verification", "profile", "certificate"])

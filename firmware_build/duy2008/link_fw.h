@@ -3,7 +3,7 @@
  * Rendered by picdrive.link.protocol_c.render_c() from host/picdrive/link/protocol.py.  DO NOT EDIT.
  *
  * protocol 2.0, 30 table entries (2 rules),
- * table hash 0x2732653BUL, build id 0x7EE1B0F0UL, profile hash 0x4B0E5FBAUL
+ * table hash 0x7A506044UL, build id 0xC580FCBAUL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -49,9 +49,9 @@
 
 #define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0x7EE1B0F0UL
+#define LINK_BUILD_ID           0xC580FCBAUL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
-#define LINK_TABLE_HASH         0x2732653BUL
+#define LINK_TABLE_HASH         0x7A506044UL
 #define LINK_SAMPLE_HZ          1000u
 #define LINK_N_RULES            2u
 #define LINK_N_ENTRIES          30u
@@ -237,21 +237,21 @@ typedef struct {
     uint8_t   controller;      /* enum, raw x 1, [0, 1], default 1, persisted */
     int16_t   premise_low;     /* rpm, raw x 0.149207756, [0, 32767], default 0, persisted */
     int16_t   premise_high;    /* rpm, raw x 0.149207756, [0, 32767], default 17425, persisted */
-    int16_t   setpoint_weight; /* 1, raw x 6.10351562e-05, [0, 32767], default 16979, persisted */
+    int16_t   setpoint_weight; /* 1, raw x 6.10351562e-05, [0, 32767], default 17589, persisted */
     int16_t   u_min;           /* V, raw x 0.00390625, [-11304, 0], default -11304, persisted */
     int16_t   u_max;           /* V, raw x 0.00390625, [0, 11304], default 11304, persisted */
     int16_t   current_limit;   /* A, raw x 0.0048828125, [0, 1023], default 307, persisted */
     uint16_t  accel_limit;     /* rpm/s, raw x 149.207764, [0, 65535], default 0, persisted */
     uint16_t  link_timeout;    /* ms, raw x 1, [20, 60000], default 500, persisted */
     uint16_t  stall_timeout;   /* ms, raw x 1, [10, 60000], default 500, persisted */
-    int16_t   rule1_kp;        /* V/(rad/s), raw x 0.000244140625, [-32768, 32767], default 9329, persisted */
-    int16_t   rule1_ki;        /* V/rad, raw x 0.0152587891, [-32768, 32767], default 12254, persisted */
+    int16_t   rule1_kp;        /* V/(rad/s), raw x 0.000244140625, [-32768, 32767], default 9033, persisted */
+    int16_t   rule1_ki;        /* V/rad, raw x 0.0152587891, [-32768, 32767], default 12249, persisted */
     int16_t   rule1_kd;        /* V s^2/rad, raw x 1.52587898e-08, [-32768, 32767], default 0, persisted */
-    int16_t   rule1_kc;        /* V/A, raw x 0.00312500005, [-32768, 32767], default 9348, persisted */
-    int16_t   rule2_kp;        /* V/(rad/s), raw x 0.000244140625, [-32768, 32767], default 7984, persisted */
-    int16_t   rule2_ki;        /* V/rad, raw x 0.0152587891, [-32768, 32767], default 9989, persisted */
+    int16_t   rule1_kc;        /* V/A, raw x 0.00312500005, [-32768, 32767], default 8569, persisted */
+    int16_t   rule2_kp;        /* V/(rad/s), raw x 0.000244140625, [-32768, 32767], default 7895, persisted */
+    int16_t   rule2_ki;        /* V/rad, raw x 0.0152587891, [-32768, 32767], default 10452, persisted */
     int16_t   rule2_kd;        /* V s^2/rad, raw x 1.52587898e-08, [-32768, 32767], default 0, persisted */
-    int16_t   rule2_kc;        /* V/A, raw x 0.00312500005, [-32768, 32767], default 5927, persisted */
+    int16_t   rule2_kc;        /* V/A, raw x 0.00312500005, [-32768, 32767], default 5478, persisted */
 } link_params_t;
 
 extern link_params_t link_params;
