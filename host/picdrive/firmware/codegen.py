@@ -637,9 +637,10 @@ def target_build(folder, name: str, *, allow_over_budget: bool = False, report: 
     Compiles and links with picdrive.target (SDCC + gplink), times the
     interrupts in gpsim (picdrive.gpsim: the worst over telemetry off, 4
     signals, and 4 signals with a capture armed), appends the figures to ``report`` (lines) and
-    ``figures`` (``flash_bytes``, ``ram_stack_bytes``, and the worst cycles by interrupt:
-    ``speed_loop_isr``, ``hall_isr``, ``uart_rx_byte``...) and raises CodegenError with them when a
-    budget is exceeded (unless ``allow_over_budget``).
+    ``figures`` (``flash_bytes``, ``ram_stack_bytes``, the worst cycles by interrupt:
+    ``speed_loop_isr``, ``hall_isr``, ``uart_rx_byte``..., and ``over_budget``: what exceeds its
+    budget, empty when the firmware fits) and raises CodegenError with them when a budget is
+    exceeded (unless ``allow_over_budget``).
     Returns ``(Build, Cycles)``.
     """
     import tempfile
@@ -657,10 +658,10 @@ def target_build(folder, name: str, *, allow_over_budget: bool = False, report: 
     lines = target.budget_lines(b, cyc.worst, budgets)
     if report is not None:
         report += lines
-    if figures is not None:
-        figures.update(flash_bytes=b.flash_bytes, ram_stack_bytes=b.ram_stack_bytes,
-                       **{k: v for k, v in cyc.worst.items() if ":" not in k})
     bad = target.over_budget(b, cyc.worst, budgets)
+    if figures is not None:
+        figures.update(flash_bytes=b.flash_bytes, ram_stack_bytes=b.ram_stack_bytes, over_budget=bad,
+                       **{k: v for k, v in cyc.worst.items() if ":" not in k})
     if bad and not allow_over_budget:
         raise CodegenError("the firmware does not fit the PIC18F4431's budgets (" + "; ".join(bad) + "); nothing "
                            "written.  Figures:\n  " + "\n  ".join(lines) + "\n(--allow-over-budget writes it anyway, "
@@ -678,14 +679,13 @@ def chip_check(profile, design_path, *, hall_input: str = "auto", fault_pin: str
     fits.  Raises TargetError when the PIC18 toolchain is missing (the message names the fix).
     """
     import tempfile
-    from . import target
     fw = generate(profile, design_path, hall_input=hall_input, fault_pin=fault_pin)
     lines: list[str] = []
+    figures: dict = {}
     with tempfile.TemporaryDirectory(prefix="picdrive-chip-check-") as t:
-        folder = Path(t) / "fw"
-        write_firmware(fw, folder, check=True)
-        b, cyc = target_build(folder, fw.name, allow_over_budget=True, report=lines)
-        return lines, target.over_budget(b, cyc.worst, folder_budgets(folder))
+        write_firmware(fw, Path(t) / "fw", check=True, hex_build=True, allow_over_budget=True, report=lines,
+                       figures=figures)
+    return lines, figures["over_budget"]
 
 
 def write_firmware(fw: Firmware, out_dir, *, check: bool = True, hex_build: bool = False,
