@@ -99,6 +99,21 @@ def test_bad_hex_is_refused_naming_the_record(tmp_path, blocks, extra, needle):
     assert "prog.hex:" in str(e.value)                # the line of the record
 
 
+def test_a_pic16_hex_is_named_as_one(tmp_path):
+    """A mid-range PIC's HEX (14-bit words, its configuration word at word 0x2007 = byte 0x400E, no
+    address above 64 KB) is told apart from a larger PIC18's; both are refused."""
+    pic16 = hex_text({0x0000: words(0x2805, 0x0000, 0x3000, 0x0086), 0x400E: words(0x3F3A)}, {})
+    with pytest.raises(HexError) as e:
+        twin_for(write(tmp_path, pic16))
+    assert ("address 0x00400E is where a mid-range PIC (PIC12/PIC16, 14-bit instructions) HEX puts its "
+            "configuration word (word 0x2007)") in str(e.value)
+    assert "this HEX is for a PIC16, not the PIC18F4431" in str(e.value) and "larger" not in str(e.value)
+    # a PIC18 instruction (16-bit word) in the same file: not a PIC16's; then the flash is too small
+    pic18 = hex_text({0x0000: words(0xEF02, 0xF000), 0x400E: words(0x3F3A)}, {})
+    with pytest.raises(HexError, match="a PIC18 with more flash"):
+        twin_for(write(tmp_path, pic18, "big.hex"))
+
+
 @pytest.mark.parametrize("config,needle", [
     ({0x300001: 0x02, 0x300003: 0x1E}, "oscillator HS"),           # HS cannot give 40 MHz
     ({**CONFIG_OK, 0x300004: 0x38}, "PWMPIN"),

@@ -70,6 +70,7 @@ def parse_hex(text: str, name: str = "<hex>", *, flash_bytes: int = FLASH_BYTES)
     seen: dict[int, int] = {}          # byte address -> line that defined it
     ended = False
     nrec = 0
+    beyond: list[tuple[int, str]] = []  # program addresses past the flash, judged once the file is read
     for lineno, raw in enumerate(text.splitlines(), 1):
         line = raw.strip()
         if not line:
@@ -106,6 +107,9 @@ def parse_hex(text: str, name: str = "<hex>", *, flash_bytes: int = FLASH_BYTES)
                     raise HexError(f"{at}: address 0x{a:06X} already defined on line {seen[a]} "
                                    "(overlapping records); the HEX was merged badly: rebuild it")
                 seen[a] = lineno
+                if flash_bytes == FLASH_BYTES and FLASH_BYTES <= a < IDLOC_BASE:
+                    beyond.append((a, at))
+                    continue
                 _place(img, a, b, at, flash_bytes)
         elif rtype == 0x01:
             if n:
@@ -130,6 +134,8 @@ def parse_hex(text: str, name: str = "<hex>", *, flash_bytes: int = FLASH_BYTES)
         raise HexError(f"{name}: no HEX records in the file; give the .hex your compiler wrote")
     if not ended:
         raise HexError(f"{name}: no end-of-file record (:00000001FF); the file is truncated: rebuild it")
+    if beyond:
+        _refuse_beyond_flash(beyond, seen, img)
     cfg4l = img.config[6]
     if CONFIG_BASE + 6 in img.config_given and cfg4l & CONFIG4L_XINST:
         raise HexError(f"{name}: CONFIG4L (0x300006) = 0x{cfg4l:02X} sets bit 6, XINST (extended instruction "
@@ -145,10 +151,6 @@ def _place(img: HexImage, a: int, b: int, at: str, flash_bytes: int = FLASH_BYTE
     elif a < 0x200000 and flash_bytes != FLASH_BYTES:
         raise HexError(f"{at}: program address 0x{a:06X} is beyond the enlarged program memory "
                        f"(0x0000-0x{flash_bytes - 1:05X})")
-    elif a < 0x200000:
-        raise HexError(f"{at}: program address 0x{a:06X} is beyond the 18F4431's 16 KB flash "
-                       "(0x0000-0x3FFF): this HEX is for a larger device (e.g. 18F4520/18F4550); "
-                       "link it for the 18F4431 (its linker script, 18f4431_g.lkr)")
     elif IDLOC_BASE <= a < IDLOC_BASE + IDLOC_N:
         img.idloc[a - IDLOC_BASE] = b
     elif CONFIG_BASE <= a < CONFIG_BASE + CONFIG_N:
@@ -167,6 +169,43 @@ def _place(img: HexImage, a: int, b: int, at: str, flash_bytes: int = FLASH_BYTE
     else:
         raise HexError(f"{at}: address 0x{a:06X} is outside every PIC18F4431 memory (flash 0x0000-0x3FFF, "
                        "ID 0x200000-7, config 0x300000-D, EEPROM 0xF00000-FF); is this a HEX for this chip?")
+
+
+PIC16_WORDS = {0x2000: "its user ID locations (words 0x2000-0x2003)",
+               0x2007: "its configuration word (word 0x2007)", 0x2008: "its second configuration word (0x2008)",
+               0x2100: "its data EEPROM (words 0x2100-0x21FF)"}
+"""Where a mid-range PIC (PIC12/PIC16, 14-bit words, byte address = 2 x word) HEX puts what is
+not program: byte addresses 0x4000-0x43FF, just past the 18F4431's flash."""
+
+
+def _pic16_region(a: int) -> str | None:
+    w = a // 2
+    if 0x2000 <= w <= 0x2003:
+        return PIC16_WORDS[0x2000]
+    if w in (0x2007, 0x2008):
+        return PIC16_WORDS[w]
+    if 0x2100 <= w <= 0x21FF:
+        return PIC16_WORDS[0x2100]
+    return None
+
+
+def _refuse_beyond_flash(beyond: list[tuple[int, str]], seen: dict[int, int], img: HexImage) -> None:
+    """Program addresses past the 16 KB flash: a mid-range PIC's HEX (its configuration word
+    there, everything else past the flash in its ID/EEPROM words, nothing above 64 KB, 14-bit
+    instruction words) or a larger PIC18's."""
+    a, at = beyond[0]
+    config = [(x, w) for x, w in beyond if x // 2 in (0x2007, 0x2008)]
+    pic16 = (config and all(_pic16_region(x) for x, _ in beyond) and max(seen) < 0x10000
+             and all(img.flash[i] <= 0x3F for i in seen if i < FLASH_BYTES and i % 2))
+    if pic16:
+        x, xat = config[0]
+        raise HexError(f"{xat}: address 0x{x:06X} is where a mid-range PIC (PIC12/PIC16, 14-bit instructions) "
+                       f"HEX puts {_pic16_region(x)}, and every instruction word is 14-bit: this HEX is for a "
+                       "PIC16, not the PIC18F4431; build the firmware for the 18F4431 ('picdrive firmware' "
+                       "writes its HEX)")
+    raise HexError(f"{at}: program address 0x{a:06X} is beyond the 18F4431's 16 KB flash "
+                   "(0x0000-0x3FFF): this HEX is for a PIC18 with more flash (e.g. 18F4520/18F4550); "
+                   "link it for the 18F4431 (its linker script, 18f4431_g.lkr)")
 
 
 def load_hex(path: str | Path, *, flash_bytes: int = FLASH_BYTES) -> HexImage:
