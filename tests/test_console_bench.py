@@ -554,6 +554,102 @@ def test_scope_refuses_what_the_firmware_cannot_capture(twin, tmp_path):
                          ("scope read", "nothing armed by this console"),
                          ("scope arm --count 3", "--count applies to 'scope normal'")]:
             _refused(con, cmd, msg)
-        con.execute(f"scope normal speed --count 2 --png {tmp_path / 'n.png'}")
-        assert lines[-1] == f"scope normal: 2 captures; last plot {tmp_path / 'n.png'}, data {tmp_path / 'n.csv'}"
-        assert len(read_recording(tmp_path / "n.csv").column("speed")) == 64
+        # refused before arming, so the board's capture is left as it was
+        cap = con.link.status().capture_state
+        for cmd, msg in [("scope single --trigger setpoint", "--trigger setpoint with 'scope single' would never "
+                          "fire: the prompt waits for the capture, so no setpoint can be typed; give --speed RPM"),
+                         ("scope normal --trigger setpoint --count 2", "give --speed RPM"),
+                         ("scope arm --speed 100", "--speed applies to 'scope single' and 'scope normal'"),
+                         ("scope single speed --decimation 100 --timeout 2",
+                          "--timeout 2 s is shorter than the capture itself (6.4 s: 64 samples at 10 Hz)"),
+                         ("scope stop now", "scope stop takes no arguments")]:
+            _refused(con, cmd, msg)
+        assert con.link.status().capture_state == cap
+        # 'scope normal': one file pair per capture, none overwritten
+        con.execute(f"scope normal speed --count 3 --png {tmp_path / 'n.png'}")
+        assert lines[-1] == (f"scope normal: 3 captures; plots {tmp_path / 'n_1.png'} .. {tmp_path / 'n_3.png'}, "
+                             "data beside them (.csv)")
+        for k in (1, 2, 3):
+            assert written_by_picdrive(tmp_path / f"n_{k}.png")
+            assert len(read_recording(tmp_path / f"n_{k}.csv").column("speed")) == 64
+        assert not (tmp_path / "n.png").exists()
+        # a capture longer than the old fixed 5 s wait is waited for (its length + 5 s of the board's clock)
+        con.execute(f"scope single speed --samples 11 --decimation 500 --png {tmp_path / 'long.png'}")
+        assert len(read_recording(tmp_path / "long.csv").column("speed")) == 11
+        con.execute("scope arm speed --trigger setpoint")
+        con.execute("scope stop")
+        assert lines[-1].startswith("scope stop: no longer waiting for speed: 64 samples")
+        _refused(con, "scope read", "nothing armed by this console")
+
+
+def test_scope_single_fires_its_own_setpoint_step(twin, tmp_path):
+    tw, srv = twin
+    _idle(srv.url)
+    png = tmp_path / "up.png"
+    with _console(srv.url, tmp_path) as (con, lines):
+        con.execute("speed 800")
+        con.execute("start")
+        con.execute("expect speed == 800 tol 30 within 1.5")
+        con.execute(f"scope single speed,setpoint --trigger setpoint --speed 2000 --pre 25% --decimation 2 "
+                    f"--png {png}")
+        assert any(ln.startswith("speed setpoint 1999.98") and ln.endswith(" rpm (the scope's step)") for ln in lines)
+        con.execute("stop")
+    assert not any("fewer before the trigger than asked" in ln for ln in lines)   # it waited for the history
+    rec = read_recording(png.with_suffix(".csv"))
+    t, sp = rec.column("t_s"), rec.column("setpoint")
+    assert np.sum(t < 0) == 8 and np.all(np.abs(sp[t < 0] - 800) < 1) and np.all(np.abs(sp[t >= 0] - 2000) < 1)
+
+
+def test_ctrl_c_ends_the_scope_alone(twin, tmp_path):
+    tw, srv = twin
+    _idle(srv.url, tw)
+    ch = _spawn_console(srv.url, tmp_path)
+    try:
+        ch.expect("picdrive> ")
+        for line in ("speed 1200", "start"):
+            ch.send(line + "\r")
+            ch.expect("picdrive> ")
+        ch.send(f"scope normal speed --decimation 4 --png {tmp_path / 'n.png'}\r")
+        ch.expect("scope capture 2: ")
+        ch.sendintr()
+        ch.expect(r"scope ended \(Ctrl-C\) after \d+ captures \(.*n_1.png \.\. .*\); motor state run "
+                  r"\('stop' or Ctrl-C at the prompt stops it\)")
+        ch.expect("picdrive> ")
+        ch.send("status\r")
+        ch.expect("state run, fault none")
+        ch.expect("picdrive> ")
+        ch.sendintr()                                # the second Ctrl-C, at the prompt: the motor stops
+        ch.expect(r"\^C: motor stopped \(outputs off\)")
+        ch.expect("picdrive> ")
+        _quit(ch)
+    finally:
+        ch.close(force=True)
+    assert written_by_picdrive(tmp_path / "n_2.png")
+
+
+def test_a_fault_at_start_fails_that_line_and_clear_says_the_cause_remains(twin, tmp_path):
+    tw, srv = twin
+    _idle(srv.url, tw)
+    s = tmp_path / "s.txt"
+    s.write_text("speed 500\nstart\nstatus\n")
+    tw.inject("hall", code=7)                        # the hall connector off: every sensor high
+    try:
+        r = _cli(srv.url, "--run", str(s))
+        assert r.returncode == 2
+        assert (f"{s}:2: 'start': start: fault hall_invalid latched at start, outputs off; the hall code is 7 now "
+                "(111: every sensor reads high): the hall sensors' supply or ground is missing, or the connector "
+                "is off; fix the cause, then 'clear' and 'start'") in r.stderr, r.stderr
+        assert "running, setpoint" not in r.stdout and "picdrive> status" not in r.stdout
+        with _console(srv.url, tmp_path) as (con, lines):
+            con.execute("clear")
+            assert lines[-1] == ("fault hall_invalid cleared, state idle; but the hall code is 7 now (111: every "
+                                 "sensor reads high): the hall sensors' supply or ground is missing, or the connector "
+                                 "is off: 'start' latches it again until that is fixed")
+            tw.inject("hall", code=None)
+            con.execute("speed 0")
+            con.execute("start")
+            assert lines[-1] == "running, setpoint 0 rpm"
+            con.execute("stop")
+    finally:
+        tw.inject("hall", code=None)
+        _idle(srv.url)

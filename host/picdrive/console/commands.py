@@ -294,11 +294,51 @@ def _speed(con, args):
     con.say(f"speed setpoint {got:g} rpm")
 
 
+START_CHECK_LOOPS = 5
+"""Speed-loop periods the console watches after ``start`` for a fault the first samples latch
+(an invalid hall code latches after two), before it reports the motor running."""
+
+
+def fault_cause(con, fault) -> tuple[str, bool | None]:
+    """What the board shows now of a latched fault's cause: (words, whether the cause is still
+    present); ``("", None)`` when the board shows nothing of it.  HALL_INVALID: the hall code."""
+    from ..link import protocol as P
+    link = con.link
+    if int(fault) == int(P.Fault.HALL_INVALID) and "hall" in link.table:
+        code = int(link.get("hall"))
+        if code == 7:
+            return ("the hall code is 7 now (111: every sensor reads high): the hall sensors' supply or "
+                    "ground is missing, or the connector is off", True)
+        if code == 0:
+            return ("the hall code is 0 now (000: every sensor reads low): the hall sensors' supply is "
+                    "missing or shorted, or the connector is off", True)
+        return f"the hall code is {code} now, a valid code", False
+    return "", None
+
+
 @command("start", "start", "close the speed loop (the motor runs at the setpoint)")
 def _start(con, args):
+    from ..link import protocol as P
     _nargs("start", args, 0)
-    con.link.start()
-    con.say(f"running, setpoint {con.link.get('speed_setpoint'):g} rpm")
+    link = con.link
+    link.start()
+    # a fault the first samples latch (hall code invalid, a bus out of range) must fail this line,
+    # not the next one: watch a few loop periods on the board's clock before saying "running"
+    hz = link.info.sample_hz or 1000.0
+    t_end = board_time_s(con) + max(0.005, START_CHECK_LOOPS / hz)
+    while True:
+        st = link.status()
+        if int(st.fault):
+            cause, _ = fault_cause(con, st.fault)
+            raise ConsoleError(f"start: fault {state_name(st.fault)} latched at start, outputs off"
+                               + (f"; {cause}" if cause else "") + "; fix the cause, then 'clear' and 'start'")
+        if st.state != P.State.RUN or st.uptime_ms / 1000.0 >= t_end:
+            break
+        time.sleep(BOARD_POLL_S / 5)
+    if st.state != P.State.RUN:
+        raise ConsoleError(f"start: the board is {state_name(st.state)} after 'start', not running "
+                           "('status' shows why)")
+    con.say(f"running, setpoint {link.get('speed_setpoint'):g} rpm")
 
 
 @command("stop", "stop", "outputs off (the motor coasts down)")
@@ -546,9 +586,17 @@ def _clear(con, args):
     con.link.fault_clear()
     after = con.link.status()
     if int(after.fault):
-        con.say(f"fault {state_name(after.fault)} latched again: its cause is still present")
+        cause, _ = fault_cause(con, after.fault)
+        con.say(f"fault {state_name(after.fault)} latched again: its cause is still present"
+                + (f" ({cause})" if cause else ""))
     elif int(before.fault):
-        con.say(f"fault {state_name(before.fault)} cleared, state {state_name(after.state)}")
+        cause, present = fault_cause(con, before.fault)
+        if present:
+            # the firmware checks the halls only while it drives: cleared now, latched again at 'start'
+            con.say(f"fault {state_name(before.fault)} cleared, state {state_name(after.state)}; but {cause}: "
+                    "'start' latches it again until that is fixed")
+        else:
+            con.say(f"fault {state_name(before.fault)} cleared, state {state_name(after.state)}")
     else:
         con.say("no fault was latched")
 
@@ -1252,12 +1300,17 @@ def _scope_arm(con, st) -> dict:
     pre = st.pre_samples(n)
     if pre >= n:
         raise ConsoleError(f"scope: --pre {pre} must be below the {n} samples")
+    hz = link.info.sample_hz
+    rate = (hz / st.decimation) if hz else 0.0
+    if st.timeout_s is not None and rate and st.timeout_s <= n / rate:
+        # refused before arming: a wait shorter than the capture could never see it done
+        raise ConsoleError(f"scope: --timeout {st.timeout_s:g} s is shorter than the capture itself ({n / rate:.3g} s: "
+                           f"{n} samples at {rate:g} Hz); a longer --timeout, fewer --samples or a smaller "
+                           "--decimation")
     from .scope import TRIGGERS
     link.capture_arm(ordered, n, pre_trigger=pre, trigger=TRIGGERS[st.trigger], threshold=st.level_rpm,
                      decimation=st.decimation)
-    hz = link.info.sample_hz
-    armed = dict(setup=st, signals=ordered, n=n, pre=pre, t_armed=board_time_s(con),
-                 rate=(hz / st.decimation) if hz else 0.0)
+    armed = dict(setup=st, signals=ordered, n=n, pre=pre, t_armed=board_time_s(con), rate=rate)
     con.scope_armed = armed
     return armed
 
@@ -1272,18 +1325,40 @@ def _scope_describe(armed) -> str:
             f"({armed['n'] / armed['rate'] * 1e3:.1f} ms), trigger {trig}, {armed['pre']} before it")
 
 
-def _scope_read(con, armed, png=None, csv=None, timeout_s=None, quiet=False):
-    """Wait (board clock) for the armed capture, read it, save PNG and CSV; returns (png, csv, data)."""
-    from ..link import protocol as P
+def _scope_timeout_s(armed, timeout_s=None) -> float:
+    """The board-clock wait for ``armed``: the one given, else the capture's length + the default."""
+    from .scope import DEFAULT_TIMEOUT_S
+    st = armed["setup"]
+    if timeout_s is None:
+        timeout_s = st.timeout_s
+    if timeout_s is None:
+        timeout_s = (armed["n"] / armed["rate"] if armed["rate"] else 0.0) + DEFAULT_TIMEOUT_S
+    return timeout_s
+
+
+def _scope_paths(con, st, png=None, csv=None, index: int | None = None):
+    """The capture's PNG and CSV: as given (``index`` k appends ``_k`` to the stem: one pair per
+    capture of 'scope normal'), else ``scope_<time>[_k].png`` in the output folder."""
     from .files import output_path
+    png = Path(png or st.png or con.out_dir / f"scope_{time.strftime('%Y%m%d-%H%M%S')}.png")
+    csv = Path(csv or st.csv or png.with_suffix(".csv"))
+    if index is not None:
+        png = png.with_name(f"{png.stem}_{index}{png.suffix}")
+        csv = csv.with_name(f"{csv.stem}_{index}{csv.suffix}")
+    return output_path(png, ".png", "scope --png"), output_path(csv, ".csv", "scope --csv")
+
+
+def _scope_read(con, armed, png=None, csv=None, timeout_s=None, quiet=False):
+    """Wait (board clock) for the armed capture, read it, save PNG and CSV; returns (png, csv, data).
+    ``png``/``csv``: the paths (:func:`_scope_paths`)."""
+    from ..link import protocol as P
     from .record import Recorder
     from .scope import save_scope_plot
     link = con.link
     st = armed["setup"]
-    timeout_s = st.timeout_s if timeout_s is None else timeout_s
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    png = output_path(png or st.png or con.out_dir / f"scope_{stamp}.png", ".png", "scope --png")
-    csv = output_path(csv or st.csv or png.with_suffix(".csv"), ".csv", "scope --csv")
+    timeout_s = _scope_timeout_s(armed, timeout_s)
+    if png is None or csv is None:
+        png, csv = _scope_paths(con, st, png, csv)
     t0 = board_time_s(con)
     while True:
         s = link.status()
@@ -1328,14 +1403,18 @@ def _scope_read(con, armed, png=None, csv=None, timeout_s=None, quiet=False):
     return png, csv, d
 
 
-@command("scope", "scope [single|normal|arm|read] [SIGNALS] [--trigger T] [--level RPM] [--pre N|P%] "
-         "[--samples N] [--decimation D] [--count N] [--png F] [--csv F]",
+@command("scope", "scope [single|normal|arm|read|stop] [SIGNALS] [--trigger T] [--level RPM] [--speed RPM] "
+         "[--pre N|P%] [--samples N] [--decimation D] [--count N] [--timeout S] [--png F] [--csv F]",
          "the board's triggered capture (exact timing, in its own buffer): 'single' arms and waits, 'arm' "
          "returns at once (then trigger it, e.g. 'speed 2400', and 'scope read'), 'normal' re-arms after each "
-         "capture (--count N, or until Ctrl-C); triggers immediate|setpoint|rising|falling (speed crossing "
-         "--level rpm); plot with units and the trigger marked, CSV with units; alone: the capture's state",
-         complete=lambda con, args, text: (["single", "normal", "arm", "read", "--trigger", "--level", "--pre",
-                                            "--samples", "--decimation", "--count", "--png", "--csv"]
+         "capture (--count N, or until Ctrl-C, which ends the scope alone: the motor keeps running), one "
+         "PNG/CSV pair per capture (_1, _2, ...); triggers immediate|setpoint|rising|falling (speed crossing "
+         "--level rpm); --speed RPM[,RPM...] writes the setpoint right after arming (the step that fires the "
+         "trigger while the prompt waits); 'stop' forgets an armed capture; plot with units and the trigger "
+         "marked, CSV with units; alone: the capture's state",
+         complete=lambda con, args, text: (["single", "normal", "arm", "read", "stop", "--trigger", "--level",
+                                            "--speed", "--pre", "--samples", "--decimation", "--count",
+                                            "--timeout", "--png", "--csv"]
                                            + (["immediate", "setpoint", "rising", "falling"] if args and args[-1] == "--trigger" else [])
                                            + _param_names(con, signals=True)))
 def _scope(con, args):
@@ -1348,28 +1427,63 @@ def _scope(con, args):
                 + (f"; armed: {_scope_describe(armed)}" if armed else ""))
         return
     st = parse_scope_args(args)
+    if st.mode == "stop":
+        armed, con.scope_armed = con.scope_armed, None
+        con.say("scope stop: " + (f"no longer waiting for {_scope_describe(armed)}; the board's capture stays "
+                                  "armed until the next 'scope' arms another (it only fills its own buffer)"
+                                  if armed else "nothing armed by this console"))
+        return
     if st.mode == "read":
         armed = con.scope_armed
         if armed is None:
             raise ConsoleError("scope read: nothing armed by this console; 'scope arm ...' first")
-        _scope_read(con, armed, png=st.png, csv=st.csv, timeout_s=st.timeout_s if "--timeout" in args
-                    or any(a.startswith("--timeout=") for a in args) else None)
+        _scope_read(con, armed, png=st.png, csv=st.csv, timeout_s=st.timeout_s)
         return
     if st.mode == "arm":
         armed = _scope_arm(con, st)
         con.say(f"scope armed: {_scope_describe(armed)}; 'scope read' waits for it")
         return
-    if st.mode == "single":
-        armed = _scope_arm(con, st)
-        con.say(f"scope armed: {_scope_describe(armed)}")
-        _scope_read(con, armed)
-        return
-    # normal: capture, save, re-arm
-    count = st.count if st.count is not None else (None if con.interactive else 1)
-    k = 0
-    while count is None or k < count:
-        armed = _scope_arm(con, st)
-        png, csv, d = _scope_read(con, armed, quiet=True)
-        k += 1
-        con.say(f"scope capture {k}: {len(d)} samples -> {png}")
-    con.say(f"scope normal: {k} captures; last plot {png}, data {csv}")
+    done: list = []
+    try:
+        if st.mode == "single":
+            png, csv = _scope_paths(con, st)        # refused before arming when not writable
+            armed = _scope_arm(con, st)
+            con.say(f"scope armed: {_scope_describe(armed)}")
+            _scope_step(con, st, armed, 0)
+            _scope_read(con, armed, png, csv)
+            return
+        # normal: capture, save, re-arm; one file pair per capture
+        count = st.count if st.count is not None else (None if con.interactive else 1)
+        base = (st.png or con.out_dir / f"scope_{time.strftime('%Y%m%d-%H%M%S')}.png", st.csv)
+        k = 0
+        while count is None or k < count:
+            png, csv = _scope_paths(con, st, *base, index=k + 1)
+            armed = _scope_arm(con, st)
+            _scope_step(con, st, armed, k)
+            _, _, d = _scope_read(con, armed, png, csv, quiet=True)
+            k += 1
+            done.append(png)
+            con.say(f"scope capture {k}: {len(d)} samples -> {png}")
+        con.say(f"scope normal: {k} captures; plots {done[0]}" + (f" .. {done[-1]}" if k > 1 else "")
+                + ", data beside them (.csv)")
+    except KeyboardInterrupt as e:
+        from .session import Terminated
+        if isinstance(e, Terminated) or not con.interactive:
+            raise                               # the console ends (or the script fails): motor stopped
+        # Ctrl-C at the prompt ends the scope alone: the motor keeps doing what it did
+        con.scope_armed = None
+        state = state_name(con.link.status().state)
+        con.say(f"scope ended (Ctrl-C) after {len(done)} captures"
+                + (f" ({done[0]} .. {done[-1]})" if done else "")
+                + f"; motor state {state}" + (" ('stop' or Ctrl-C at the prompt stops it)"
+                                              if state in ("run", "brake") else ""))
+
+
+def _scope_step(con, st, armed, k: int) -> None:
+    """Write the k-th ``--speed`` setpoint (cycling), the step that fires the armed trigger, once
+    the pre-trigger history has filled (board clock): the capture then holds all of it."""
+    if st.speed_rpm:
+        if armed["pre"] and armed["rate"]:
+            _wait(con, max(0.0, armed["t_armed"] + (armed["pre"] + 1) / armed["rate"] - board_time_s(con)))
+        got = con.link.set_speed(st.speed_rpm[k % len(st.speed_rpm)])
+        con.say(f"speed setpoint {got:g} rpm (the scope's step)")

@@ -29,9 +29,12 @@ TRIGGERS = {"immediate": "immediate", "setpoint": "setpoint_change", "rising": "
             "falling": "speed_falling"}
 """Console trigger word -> the link's trigger name."""
 
-SCOPE_USAGE = ("scope [single|normal|arm|read] [SIGNALS] [--trigger immediate|setpoint|rising|falling] "
-               "[--level RPM] [--pre N|P%] [--samples N] [--decimation D] [--count N] [--timeout S] "
-               "[--png FILE] [--csv FILE]")
+SCOPE_USAGE = ("scope [single|normal|arm|read|stop] [SIGNALS] [--trigger immediate|setpoint|rising|falling] "
+               "[--level RPM] [--speed RPM[,RPM...]] [--pre N|P%] [--samples N] [--decimation D] [--count N] "
+               "[--timeout S] [--png FILE] [--csv FILE]")
+
+DEFAULT_TIMEOUT_S = 5.0
+"""Board-clock wait for a capture beyond its own length, s, when ``--timeout`` is not given."""
 
 
 class ScopeError(PicdriveError):
@@ -43,7 +46,9 @@ class ScopeSetup:
     """What to capture: ``signals``, ``trigger`` (console word), ``level_rpm`` (speed triggers),
     ``pre`` (samples, or a fraction of ``samples`` when ``pre_fraction``), ``samples``
     (None = as many as the buffer holds), ``decimation``, ``count`` (normal mode), ``timeout_s``
-    (board clock), ``png`` / ``csv`` paths (None = default names)."""
+    (board clock; None = the capture's length + :data:`DEFAULT_TIMEOUT_S`), ``speed_rpm`` (setpoints
+    the console writes right after arming, the k-th capture the k-th value, cycling: the step that
+    fires the trigger while the prompt waits), ``png`` / ``csv`` paths (None = default names)."""
 
     mode: str = "single"
     signals: list[str] = field(default_factory=list)
@@ -54,7 +59,8 @@ class ScopeSetup:
     samples: int | None = None
     decimation: int = 1
     count: int | None = None
-    timeout_s: float = 5.0
+    timeout_s: float | None = None
+    speed_rpm: list[float] = field(default_factory=list)
     png: str | None = None
     csv: str | None = None
 
@@ -73,9 +79,14 @@ def parse_scope_args(args: list[str]) -> ScopeSetup:
     """Parse ``scope`` arguments (see :data:`SCOPE_USAGE`)."""
     st = ScopeSetup()
     rest = list(args)
-    if rest and rest[0].lower() in ("single", "normal", "arm", "read"):
+    if rest and rest[0].lower() in ("single", "normal", "arm", "read", "stop"):
         st.mode = rest.pop(0).lower()
-    known = ("--trigger", "--level", "--pre", "--samples", "--decimation", "--count", "--timeout", "--png", "--csv")
+    if st.mode == "stop":
+        if rest:
+            raise ScopeError(f"scope stop takes no arguments; got {' '.join(rest)}")
+        return st
+    known = ("--trigger", "--level", "--speed", "--pre", "--samples", "--decimation", "--count", "--timeout",
+             "--png", "--csv")
     pos, opts = split_options(rest, known, "scope", SCOPE_USAGE, ScopeError)
     if len(pos) > 1:
         raise ScopeError(f"scope: signals are one comma-separated word (e.g. speed,setpoint); usage: {SCOPE_USAGE}")
@@ -92,6 +103,17 @@ def parse_scope_args(args: list[str]) -> ScopeSetup:
     st.trigger = trig
     if "--level" in opts:
         st.level_rpm = parse_number(opts["--level"], "--level", ScopeError)
+    if "--speed" in opts:
+        if st.mode not in ("single", "normal"):
+            raise ScopeError(f"--speed applies to 'scope single' and 'scope normal' (after 'scope {st.mode}', "
+                             "type the 'speed' command yourself)")
+        st.speed_rpm = [parse_number(v, "--speed", ScopeError) for v in opts["--speed"].split(",") if v]
+        if not st.speed_rpm:
+            raise ScopeError("--speed needs a setpoint in rpm (or several, comma-separated)")
+    if trig == "setpoint" and st.mode in ("single", "normal") and not st.speed_rpm:
+        raise ScopeError(f"--trigger setpoint with 'scope {st.mode}' would never fire: the prompt waits for the "
+                         "capture, so no setpoint can be typed; give --speed RPM (written right after arming), "
+                         "or 'scope arm ...', then 'speed RPM', then 'scope read'")
     if trig in ("rising", "falling") and st.level_rpm is None:
         raise ScopeError(f"--trigger {trig} needs --level <rpm> (the speed the edge crosses)")
     if trig not in ("rising", "falling") and st.level_rpm is not None:
