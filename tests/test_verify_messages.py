@@ -93,3 +93,26 @@ def test_the_step_figures_are_kept_apart_from_the_disturbance_figures(duy):
     assert d["value"]["overshoot_pct"] == pytest.approx(dist["overshoot_pct"], abs=1e-4)
     assert d["value"]["overshoot_pct"] != pytest.approx(v["sim_overshoot_pct"]["value"], abs=1e-3)
     assert d["limit"]["overshoot_pct"] == v["sim_overshoot_pct"]["limit"]
+
+
+def test_a_speed_the_bridge_cannot_hold_names_the_reference_and_the_hall_advance_that_do():
+    """The maxon EC 45 flat on 24 V cannot hold 3000 rpm at R x 1.1 (hall sector 0.42 ms against L/R
+    0.47 ms): the refusal names the highest speed it holds and the hall advance that holds the target,
+    and each named fix, applied to the profile, passes the same check."""
+    import math
+    import re
+    from pathlib import Path
+    from picdrive.design.verify import _hold_check, failure_message
+    prof = load_profile(Path(__file__).parent / "motors" / "maxon_ec45flat_200142.toml")
+    drive = BuiltDrive()
+    check = _hold_check(prof, drive)
+    assert not check["ok"]
+    msg = failure_message("bridge_hold_torque_n_m", check)
+    m = re.search(r"fix: control.reference_rpm at most (\d+) rpm \(the highest speed it holds there\), or the "
+                  r"hall board turned (\d+) deg electrical ahead \(sensors.hall_offset_deg = (-?[\d.]+), from 30\)", msg)
+    assert m, msg
+    held, adv, off = int(m[1]), float(m[2]), float(m[3])
+    assert 0.8 * 3000 < held < 3000 and off == math.remainder(30 - adv, 360)
+    assert _hold_check(prof.replace(control={"reference_rpm": float(held)}), drive)["ok"]
+    assert not _hold_check(prof.replace(control={"reference_rpm": float(held) + 0.03 * 3000}), drive)["ok"]
+    assert _hold_check(prof.replace(sensors={"hall_offset_deg": off}), drive)["ok"]

@@ -156,3 +156,18 @@ def test_bad_options(profiles):
 def test_the_committed_design_reproduces(name, profiles):
     """examples/<profile>.zn.design.json is what the code designs now (rule auto)."""
     assert_reproduces(profiles[name], zn.design(profiles[name], drive=DRIVE, progress=False), rel=1e-9)
+
+
+def test_a_limit_of_the_drive_ends_the_search_at_the_first_row():
+    """No ZN row can pass a check on the drive alone (the bridge cannot hold the target): the search
+    stops at the classic row, whose refusal names the fix, instead of repeating it for every row."""
+    from pathlib import Path
+    from picdrive.gate import BuiltDrive
+    from picdrive.profile import load_profile
+    from picdrive.design import zn
+    prof = load_profile(Path(__file__).parent / "motors" / "maxon_ec45flat_200142.toml")
+    res = zn.design(prof, drive=BuiltDrive(), progress=False)
+    assert not res.ok and [t["rule"] for t in res.certificate["rule_tries"]] == ["ultimate"]
+    assert res.reasons[0].startswith("verification 'bridge_hold_torque_n_m' failed: ")
+    assert "fix: control.reference_rpm at most" in res.reasons[0]
+    assert not any(r.startswith("no row of the ZN table") for r in res.reasons)

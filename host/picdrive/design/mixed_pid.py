@@ -72,7 +72,7 @@ from ..analysis.h2hinf import (hinf_exact_z, j3_discrete, j3_jury_dewey, pid_fig
                                schur_stable, sensitivity_peak, sensitivity_peak_z, tracking_error_polys, xi_tustin)
 from ..analysis.steptest import load_disturbance, sim_plan
 from ..result import DesignResult
-from .verify import pid_model_checks, verify_design
+from .verify import drive_limit_failed, pid_model_checks, verify_design
 from ..models.tfmodel import TF, SampledPlant, motor_tf, sampled_plant, speed_quantum_rad_s
 
 __all__ = ["MixedPidError", "Problem", "make_problem", "term_limits", "plant_box", "phase_crossover_rad_s",
@@ -460,7 +460,7 @@ def design(profile, *, drive=None, progress: bool = True, optimizer: str = "ga",
         tries.append({"gains": {"kp_v_per_rad_s": g.kp, "ki_v_per_rad": g.ki, "kd_v_s2_per_rad": g.kd},
                       "screen": screen, "status": res.status,
                       "failed": [k for k, c in res.verification.items() if not c.get("ok", True)]})
-        if res.ok or not found or len(tries) > retunes:
+        if res.ok or not found or len(tries) > retunes or drive_limit_failed(res):
             break
         step = _retune(pb, res)
         if step is None:

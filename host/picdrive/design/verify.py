@@ -95,7 +95,8 @@ from ..models.dqmodel import dq_params, max_speed_rad_s
 from ..models.tfmodel import motor_tf, sampled_plant, simulate_sampled
 from ..models.tsfuzzy import model_for
 
-__all__ = ["verify_design", "pid_model_checks", "failure_message", "BLOCKING_CHECKS"]
+__all__ = ["verify_design", "pid_model_checks", "failure_message", "BLOCKING_CHECKS", "DRIVE_LIMIT_CHECKS",
+           "drive_limit_failed"]
 
 
 # ---------------------------------------------------------------------------
@@ -137,6 +138,12 @@ def _window_check(profile, law) -> dict:
                     "the profile's inverter.current_limit_a, motor.kb_v_s_per_rad, motor.r_line_ohm"}
 
 
+HALL_ADVANCES_DEG = (10.0, 20.0, 30.0)
+"""Hall advances the hold check tries when the bridge cannot hold the target, electrical deg: the
+hall board turned ahead of the back-EMF, so each commutation comes earlier and the current has
+the time L/R asks for (30 deg is the usual timing of fast hobby motors)."""
+
+
 def _hold_check(profile, drive) -> dict:
     eps = float(profile.design.get("resistance_uncertainty", 0.1))
     tgt = profile.speed_step_rpm()
@@ -146,12 +153,55 @@ def _hold_check(profile, drive) -> dict:
         if worst is None or te - need < worst[0] - worst[1]:
             worst = (te, need, rs)
     te, need, rs = worst
-    return {"value": te, "limit": need, "ok": bool(te > need), "unit": "N m",
-            "note": f"mean torque the bridge delivers at the step target ({tgt:.0f} rpm held, R x {rs:g}) through "
-                    "the firmware's hall table at its largest duty, in the twin's three-phase plant (commutation "
-                    "transfers included), vs the load and friction torque there: below it the target cannot "
-                    f"be held under the load (hall sector {1e3 * sector_period_s(profile, tgt):.3g} ms, L/R "
-                    f"{1e3 * profile.motor.l_line_h / profile.motor.r_line_ohm:.3g} ms)"}
+    check = {"value": te, "limit": need, "ok": bool(te > need), "unit": "N m",
+             "note": f"mean torque the bridge delivers at the step target ({tgt:.0f} rpm held, R x {rs:g}) through "
+                     "the firmware's hall table at its largest duty, in the twin's three-phase plant (commutation "
+                     "transfers included), vs the load and friction torque there: below it the target cannot "
+                     f"be held under the load (hall sector {1e3 * sector_period_s(profile, tgt):.3g} ms, L/R "
+                     f"{1e3 * profile.motor.l_line_h / profile.motor.r_line_ohm:.3g} ms)"}
+    if not check["ok"]:
+        check["fix"] = _hold_fix(profile, drive, tgt, rs)
+    return check
+
+
+def _hold_fix(profile, drive, tgt: float, rs: float) -> str:
+    """What holds the target when the bridge cannot: the highest speed it holds (R x ``rs``) as the
+    reference, and the smallest hall advance (:data:`HALL_ADVANCES_DEG`) that holds ``tgt``."""
+    def margin(p, rpm):
+        te, need = drive.hold_torque(p, rpm, r_factor=rs)
+        return te - need
+    lo, hi = 0.0, tgt                       # the torque margin falls with speed: bisect its zero
+    if margin(profile, 0.05 * tgt) <= 0:
+        held = "it holds no speed under the load"
+    else:
+        lo = 0.05 * tgt
+        for _ in range(12):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if margin(profile, mid) > 0 else (lo, mid)
+        held = f"control.reference_rpm at most {math.floor(lo):.0f} rpm (the highest speed it holds there)"
+    off = profile.sensors.hall_offset_deg
+    for adv in HALL_ADVANCES_DEG:
+        q = profile.replace(sensors={"hall_offset_deg": math.remainder(off - adv, 360.0)})
+        if margin(q, tgt) > 0:
+            adv_text = (f"or the hall board turned {adv:g} deg electrical ahead (sensors.hall_offset_deg = "
+                        f"{q.sensors.hall_offset_deg:g}, from {off:g}): commutation {adv:g} deg earlier holds "
+                        f"{tgt:.0f} rpm")
+            break
+    else:
+        adv_text = (f"no hall advance up to {HALL_ADVANCES_DEG[-1]:g} deg holds {tgt:.0f} rpm: a higher bus voltage "
+                    "or a winding with a higher speed constant")
+    return f"{held}, {adv_text}"
+
+
+def _peak_current_fix(profile, peak_a: float) -> str:
+    """The trip or the current limit that would pass a peak of ``peak_a``: the peak over the limit is
+    the hall-speed lag and the PWM ripple, which scale with the limit the window holds."""
+    inv = profile.inverter
+    trip_a = math.ceil(10.0 * peak_a * 1.05) / 10.0
+    limit_a = math.floor(10.0 * inv.current_limit_a * inv.overcurrent_trip_a / peak_a * 0.95) / 10.0
+    return (f"inverter.overcurrent_trip_a at least {trip_a:g} A (5 % above the peak, if the bridge and the motor "
+            f"take it), or inverter.current_limit_a about {limit_a:g} A (the peak scaled to 95 % of the "
+            f"{inv.overcurrent_trip_a:g} A trip)")
 
 
 def _dq_reachability(profile) -> dict | None:
@@ -321,6 +371,8 @@ def _sim_checks(profile, law, drive) -> dict:
                                              f"{f['peak_current_ripple_a'] - f['peak_current_a']:.3g} A at L/R = "
                                              f"{tau * 1e6:.3g} us, PWM period {t_pwm * 1e6:.3g} us) vs the overcurrent "
                                              f"trip; the current limit is {profile.inverter.current_limit_a:g} A"}
+    if not out["sim_peak_bus_current_a"]["ok"]:
+        out["sim_peak_bus_current_a"]["fix"] = _peak_current_fix(profile, f["peak_current_ripple_a"])
     n_cap = int(np.sum(sim.cap_active))
     out["sim_current_backup_samples"] = {"value": n_cap, "limit": 0, "ok": bool(n_cap == 0), "unit": "samples",
                                          "note": "samples with the firmware's walk-down backup (measured current "
@@ -442,6 +494,16 @@ def choose_reference_ff(profile, law, drive, mode: str, *, simulate: bool = True
 #: reasons come first, before the figures that fail because of them (and before a method's own earlier reasons)
 BLOCKING_CHECKS = ("bridge_hold_torque_n_m", "dq_hold_rpm", "law_current_window", "law_output_limits_v")
 
+#: blocking checks on the drive alone (the bridge, the motor and the target): no gains pass them, so a
+#: method stops searching when one fails and names its fix
+DRIVE_LIMIT_CHECKS = ("bridge_hold_torque_n_m", "dq_hold_rpm")
+
+
+def drive_limit_failed(result) -> bool:
+    """True when ``result`` failed a check no other gains can pass (:data:`DRIVE_LIMIT_CHECKS`)."""
+    v = result.verification or {}
+    return any(n in v and not v[n].get("ok", True) for n in DRIVE_LIMIT_CHECKS)
+
 
 def failure_message(name: str, check: dict) -> str:
     """The reason a failed check gives: the figure that failed and the limit the check applied, with the unit;
@@ -453,7 +515,8 @@ def failure_message(name: str, check: dict) -> str:
         lim = check.get("limit")
         head = f"{_num(check['value'])}" + (f" (limit {_num(lim)}{' ' + unit if unit else ''})"
                                              if lim not in (None, "") else (f" {unit}" if unit else ""))
-    return f"verification '{name}' failed: {head}" + (f": {check['note']}" if check.get("note") else "")
+    return (f"verification '{name}' failed: {head}" + (f"; fix: {check['fix']}" if check.get("fix") else "")
+            + (f": {check['note']}" if check.get("note") else ""))
 
 
 def verify_design(profile, result, *, drive=None, simulate: bool = True):

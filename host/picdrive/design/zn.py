@@ -66,7 +66,7 @@ import numpy as np
 from ..errors import PicdriveError
 from ..analysis.h2hinf import pid_figures_continuous, pid_figures_sampled
 from .mixed_pid import MixedPidError, phase_crossover_rad_s, pid_law, run_verify, term_limits
-from .verify import pid_model_checks
+from .verify import drive_limit_failed, pid_model_checks
 from ..result import DesignResult
 from ..models.tfmodel import TF, SampledPlant, motor_tf, sampled_plant
 
@@ -221,13 +221,13 @@ def design(profile, *, drive=None, progress: bool = True, preset: str | None = N
             tries.append({"rule": row, "status": res.status, "gains": dict(res.certificate["gains"]),
                           "reasons": list(res.reasons)})
             first = first or res
-            if res.ok:
+            if res.ok or drive_limit_failed(res):      # no other row can pass a limit of the drive
                 break
         if not res.ok:       # refused: the classic row's design and reasons first (a physical limit shows there)
             res = first
         res.certificate["rule_tries"] = tries
         res.options["rule"] = "auto"
-        if not res.ok:
+        if not res.ok and len(tries) > 1:
             res.fail("no row of the ZN table passed the verification: " +
                      "; ".join(f"{t['rule']}: {t['reasons'][0] if t['reasons'] else t['status']}" for t in tries))
         return res
