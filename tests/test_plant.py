@@ -2,6 +2,7 @@
 independent references: the scipy model of the same equations
 (tests/support/plant_reference.py, event-located continuous time), the dq model at
 steady operating points, and the profile's six-step constants."""
+from pathlib import Path
 import math
 import warnings
 
@@ -65,7 +66,7 @@ def test_plant_matches_scipy_reference_six_step(name, duty, complementary, t_end
     """Start from rest, six-step at a fixed duty, load-torque step half way:
     speed and phase currents within 1 % of the scipy model, same inputs."""
     p = _profile(name)
-    m = plant_from_profile(p, load_mode="active")
+    m = plant_from_profile(p, load_mode="active").with_(bus_capacitance_f=0.0)   # the reference's bus is stiff
     dead = p.inverter.dead_time_ns * 1e-9 * p.inverter.pwm_frequency_hz
     legs = ref.sixstep_legs(ref.ideal_commutation_table(m), duty, dead, complementary)
     tl = p.control.load_torque_n_m
@@ -84,7 +85,7 @@ def test_plant_matches_scipy_reference_diode_rectification():
     diodes rectify the back-EMF into the bus and brake the rotor (the
     floating-phase logic with no switch at all)."""
     p = _profile("duy2008")
-    m = plant_from_profile(p, load_mode="active")
+    m = plant_from_profile(p, load_mode="active").with_(bus_capacitance_f=0.0)   # the reference's bus is stiff
     w_bus = p.inverter.bus_voltage_v / m.kb_v_s_per_rad
     w0 = 1.6 * w_bus
     off = lambda code: [(0.0, 0.0)] * 3
@@ -103,7 +104,7 @@ def test_floating_phase_decays_through_the_diodes_then_stays_open():
     current reaches zero, then stays open (exactly zero, terminal floating
     between the rails) while c and b carry the current."""
     p = _profile("assawinchaichote2016")
-    m = plant_from_profile(p, load_mode="active")
+    m = plant_from_profile(p, load_mode="active").with_(bus_capacitance_f=0.0)   # the rails exactly at the bus
     cp = CPlant(m)
     for _ in range(200):
         cp.step([(0.9, 0.0), (0.0, 1.0), (0.0, 0.0)], 0.0, 50e-6)
@@ -276,3 +277,63 @@ def test_sinusoidal_emf_sin_cos_from_an_anchor_is_within_a_few_ulp_of_libm():
     # out of reach: libm itself
     lib.plant_sin_cos_probe(0.0, 0.2, out)
     assert (out[0], out[1]) == (math.sin(0.2), math.cos(0.2))
+
+
+def _spin_down_rectifying(m, w0, t_end=0.05, h=20e-6):
+    """All switches off, the rotor spun at ``w0``: the body diodes rectify the back-EMF into the
+    bus.  Returns the plant, the bus voltage trace and the energy the bridge returned, J."""
+    cp = CPlant(m)
+    cp.state.w_rad_s = w0
+    v, back, burnt = [], 0.0, 0.0
+    for _ in range(int(round(t_end / h))):
+        v0 = cp.state.v_bus_v
+        cp.step([(0.0, 0.0)] * 3, 0.0, h)
+        back += -0.5 * (v0 + cp.state.v_bus_v) * cp.state.i_bus_a * h
+        burnt += cp.state.v_bus_v * cp.state.i_brake_a * h
+        v.append(cp.state.v_bus_v)
+    return cp, np.array(v), back, burnt
+
+
+def test_the_bus_capacitor_takes_what_the_supply_cannot():
+    """A rotor spun at 1.6 x the bus speed with the bridge off charges the 470 uF capacitor through the
+    diodes (a supply that cannot sink): the bus rises towards the line EMF's peak, the energy the
+    bridge returned is the capacitor's 1/2 C (V^2 - Vs^2) to 1 %, and the rotor keeps the rest.
+    A supply that sinks the current holds the bus at its voltage; a stiff bus is the old model."""
+    p = _profile("duy2008")
+    m = plant_from_profile(p, load_mode="active")
+    vs, c = p.inverter.bus_voltage_v, p.inverter.bus_capacitance_f
+    assert c == 470e-6 and p.inverter.supply_sink_a == 0.0          # the defaults
+    w0 = 1.6 * vs / m.kb_v_s_per_rad
+    cp, v, back, _ = _spin_down_rectifying(m, w0)
+    # it rises while the line EMF is above it, then holds its charge (nothing takes it back)
+    assert 1.15 * vs < v.max() < m.kb_v_s_per_rad * w0 and v[-1] == v.max()
+    assert m.kb_v_s_per_rad * cp.state.w_rad_s < v[-1]
+    assert back == pytest.approx(0.5 * c * (v[-1] ** 2 - vs ** 2), rel=0.01)
+    _, v_sink, _, _ = _spin_down_rectifying(m.with_(supply_sink_a=1000.0), w0)
+    assert np.max(v_sink) == pytest.approx(vs, abs=1e-9)
+    _, v_stiff, _, _ = _spin_down_rectifying(m.with_(bus_capacitance_f=0.0), w0)
+    assert np.all(v_stiff == vs)
+
+
+def test_a_brake_chopper_holds_the_bus_at_its_threshold():
+    """The same rotor with a 10 ohm brake resistor switched in above 1.05 x the bus: the bus stops at
+    the chopper's threshold, and what the bridge returned is in the capacitor and the resistor."""
+    p = _profile("duy2008")
+    vs, c = p.inverter.bus_voltage_v, p.inverter.bus_capacitance_f
+    m = plant_from_profile(p, load_mode="active").with_(brake_resistor_ohm=10.0, brake_chopper_v=1.05 * vs)
+    cp, v, back, burnt = _spin_down_rectifying(m, 1.6 * vs / m.kb_v_s_per_rad)
+    assert np.max(v) == pytest.approx(1.05 * vs, rel=1e-9)
+    assert burnt > 0.1 * back
+    assert back == pytest.approx(0.5 * c * (v[-1] ** 2 - vs ** 2) + burnt, rel=0.01)
+
+
+def test_a_brake_chopper_that_cannot_protect_the_switches_is_refused():
+    from picdrive.profile import ProfileError, loads_profile
+    base = (Path(__file__).resolve().parents[1] / "examples" / "duy2008.toml").read_text()
+    for extra, msg in [("brake_resistor_ohm = 10.0\nbrake_chopper_v = 95.0\n", "must be below 90 % of the switch rating"),
+                       ("brake_resistor_ohm = 10.0\nbrake_chopper_v = 40.0\n", "must be above inverter.bus_voltage_v"),
+                       ("brake_chopper_v = 60.0\n", "has no effect without inverter.brake_resistor_ohm")]:
+        with pytest.raises(ProfileError, match=msg):
+            loads_profile(base.replace("[inverter]\n", "[inverter]\n" + extra))
+    p = loads_profile(base.replace("[inverter]\n", "[inverter]\nbrake_resistor_ohm = 10.0\n"))
+    assert p.inverter.brake_chopper_v == pytest.approx(1.1 * p.inverter.bus_voltage_v)

@@ -1,5 +1,6 @@
 """Drive profile: loading, derived quantities and every kind of validation error."""
 import math
+from pathlib import Path
 import warnings
 
 import pytest
@@ -146,3 +147,17 @@ def test_profile_doc_is_current():
     from picdrive.profile import schema_markdown
     doc = (repo_root() / "docs" / "profile.md").read_text()
     assert doc == schema_markdown(), "docs/profile.md is stale: regenerate it with picdrive.profile.schema_markdown()"
+
+
+def test_the_bus_divider_is_the_profiles_and_must_show_the_overvoltage_trip():
+    from picdrive.firmware.codegen import bus_sense
+    from picdrive.profile import ProfileError
+    base = (Path(__file__).resolve().parents[1] / "examples" / "duy2008.toml").read_text()
+    assumed = bus_sense(loads_profile(base))
+    assert assumed["source"] == "assumed" and assumed["bus_sense_v_per_v"] == pytest.approx(2.5 / 48)
+    given = bus_sense(loads_profile(base.replace("[inverter]\n", "[inverter]\nbus_sense_v_per_v = 0.05\n")))
+    assert given["source"] == "inverter.bus_sense_v_per_v"
+    assert given["ov"] == int(math.ceil(60.0 * 0.05 * 1024 / 5.0))          # 60 V trip x 0.05 V/V
+    with pytest.raises(ProfileError, match=r"puts the overvoltage trip \(60.0 V\) at 6.00 V on AN1, beyond the "
+                                           r"ADC's 5 V: the firmware could not see it; a divider of at most 0.08167"):
+        loads_profile(base.replace("[inverter]\n", "[inverter]\nbus_sense_v_per_v = 0.1\n"))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import ctypes as C
 
-ABI_VERSION = 2
+ABI_VERSION = 3
 
 EMF_TRAPEZOIDAL, EMF_SINUSOIDAL = 0, 1
 LOAD_ACTIVE, LOAD_PASSIVE = 0, 1
@@ -37,6 +37,10 @@ class PlantParams(C.Structure):
         ("hall_spacing_rad", C.c_double),
         ("encoder_lines", C.c_int32),
         ("load_mode", C.c_int32),
+        ("bus_capacitance_f", C.c_double),
+        ("supply_sink_a", C.c_double),
+        ("brake_resistor_ohm", C.c_double),
+        ("brake_chopper_v", C.c_double),
     ]
 
 
@@ -61,6 +65,8 @@ class PlantState(C.Structure):
         ("energy_j", C.c_double),
         ("locked", C.c_int32),
         ("te_valid", C.c_int32),
+        ("v_bus_v", C.c_double),
+        ("i_brake_a", C.c_double),
     ]
 
 
@@ -125,7 +131,7 @@ class TwinState(C.Structure):
 
 
 TRACE_FIELDS = ("t_s", "w_rad_s", "theta_rad", "i_a", "i_b", "i_c", "i_bus_a", "torque_e_n_m",
-                "torque_load_n_m", "v_a", "v_b", "v_c", "duty_max", "hall", "fault", "spare")
+                "torque_load_n_m", "v_a", "v_b", "v_c", "duty_max", "hall", "fault", "v_bus_v")
 
 
 class TraceRec(C.Structure):

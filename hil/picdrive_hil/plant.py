@@ -54,6 +54,10 @@ class PlantModel:
     encoder_lines: int = 0
     load_mode: str = "passive"
     diode_drop_v: float = 0.0
+    bus_capacitance_f: float = 0.0         # 0: a stiff bus
+    supply_sink_a: float = 0.0
+    brake_resistor_ohm: float = 0.0        # 0: none
+    brake_chopper_v: float = 0.0
     perturb: Mapping[str, float] = field(default_factory=dict)
 
     # -- six-step DC equivalents (for limits and checks) --------------------
@@ -83,7 +87,9 @@ class PlantModel:
             bus_voltage_v=self.bus_voltage_v, diode_drop_v=self.diode_drop_v,
             hall_offset_rad=math.radians(self.hall_offset_deg),
             hall_spacing_rad=math.radians(self.hall_spacing_deg),
-            encoder_lines=self.encoder_lines, load_mode=LOAD_MODES[self.load_mode])
+            encoder_lines=self.encoder_lines, load_mode=LOAD_MODES[self.load_mode],
+            bus_capacitance_f=self.bus_capacitance_f, supply_sink_a=self.supply_sink_a,
+            brake_resistor_ohm=self.brake_resistor_ohm, brake_chopper_v=self.brake_chopper_v)
 
     def with_(self, **kw) -> "PlantModel":
         return replace(self, **kw)
@@ -150,7 +156,9 @@ def plant_from_profile(profile, perturb=None, *, load_mode: str = "passive",
     return PlantModel(pole_pairs=m.pole_pairs, emf_shape=m.back_emf_shape,
                       hall_offset_deg=se.hall_offset_deg, hall_spacing_deg=float(se.hall_spacing_deg),
                       encoder_lines=se.encoder_lines, load_mode=load_mode,
-                      diode_drop_v=diode_drop_v, perturb=pert, **base)
+                      diode_drop_v=diode_drop_v, perturb=pert, bus_capacitance_f=inv.bus_capacitance_f,
+                      supply_sink_a=inv.supply_sink_a, brake_resistor_ohm=inv.brake_resistor_ohm,
+                      brake_chopper_v=inv.brake_chopper_v, **base)
 
 
 class CPlant:
@@ -167,6 +175,7 @@ class CPlant:
         self.params = model.to_c()
         self.state = cmodel.PlantState()
         self._lib.plant_reset(C.byref(self.state))
+        self.state.v_bus_v = self.params.bus_voltage_v      # the capacitor charged to the supply
         self._legs = (cmodel.Leg * 3)()
 
     def step(self, legs, load_n_m: float, h_s: float) -> None:

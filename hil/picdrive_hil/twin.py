@@ -422,6 +422,8 @@ class Twin:
             "torque_e_n_m": ps.torque_e_n_m,
             "torque_load_n_m": ps.torque_load_n_m,
             "energy_j": ps.energy_j,
+            "bus_voltage_v": ps.v_bus_v,
+            "i_brake_a": ps.i_brake_a,
             "hall": s.hall_code,
             "hall_true": s.hall_true,
             "encoder_count": s.enc_count,

@@ -95,6 +95,17 @@ SCHEMA: dict[str, dict[str, tuple]] = {
         "gate_driver": ("str", "IR2101", None, None, "gate driver part"),
         "switch": ("str", "IRF540", None, None, "MOSFET part"),
         "switch_vds_max_v": ("float", 100.0, 1.0, 2000.0, "MOSFET drain-source rating, V"),
+        "bus_capacitance_f": ("float", 470e-6, 1e-6, 1.0, "DC-bus bulk capacitance, F: the bus rises on it when "
+                              "the bridge returns energy the supply cannot take (default: the reference board's "
+                              "470 uF)"),
+        "supply_sink_a": ("float", 0.0, 0.0, 1000.0, "current the supply can take back, A: 0 for a bench supply "
+                          "or a rectifier, a battery's charge current"),
+        "brake_resistor_ohm": ("float", 0.0, 0.0, 1e4, "brake resistor switched across the bus by a hardware "
+                               "chopper, ohm; 0 = none"),
+        "bus_sense_v_per_v": ("float", 0.0, 0.0, 1.0, "bus-voltage divider at the AN1 pin, V per V of bus; "
+                              "0 = one that puts the nominal bus at 2.5 V (half the 5 V ADC reference)"),
+        "brake_chopper_v": ("float", 0.0, 0.0, 2000.0, "bus voltage above which the chopper connects the brake "
+                            "resistor, V; 0 = 110 % of bus_voltage_v"),
     },
     "sensors": {
         "hall_spacing_deg": ("int", 120, 60, 120, "electrical spacing of the hall sensors: 60 or 120"),
@@ -332,6 +343,11 @@ class Inverter:
     gate_driver: str
     switch: str
     switch_vds_max_v: float
+    bus_capacitance_f: float = 470e-6
+    supply_sink_a: float = 0.0
+    brake_resistor_ohm: float = 0.0
+    brake_chopper_v: float = 0.0
+    bus_sense_v_per_v: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -597,6 +613,28 @@ def _build(raw: dict[str, Any], path: Path | None, sha: str) -> Profile:
     if inv["bus_voltage_v"] > inv["switch_vds_max_v"]:
         raise _fail("inverter.bus_voltage_v", inv["bus_voltage_v"],
                     f"exceeds the switch rating inverter.switch_vds_max_v = {inv['switch_vds_max_v']:g} V")
+    if inv["brake_resistor_ohm"] > 0.0:
+        if inv["brake_chopper_v"] == 0.0:
+            inv["brake_chopper_v"] = 1.1 * inv["bus_voltage_v"]
+        if inv["brake_chopper_v"] <= inv["bus_voltage_v"]:
+            raise _fail("inverter.brake_chopper_v", inv["brake_chopper_v"],
+                        f"must be above inverter.bus_voltage_v = {inv['bus_voltage_v']:g} V (at or below it the "
+                        "resistor burns the supply's power); 0 takes 110 % of the bus")
+        if inv["brake_chopper_v"] >= 0.9 * inv["switch_vds_max_v"]:
+            raise _fail("inverter.brake_chopper_v", inv["brake_chopper_v"],
+                        f"must be below 90 % of the switch rating ({0.9 * inv['switch_vds_max_v']:g} V of "
+                        f"inverter.switch_vds_max_v = {inv['switch_vds_max_v']:g} V): the chopper must act before "
+                        "the switches are at risk")
+    elif inv["brake_chopper_v"] != 0.0:
+        raise _fail("inverter.brake_chopper_v", inv["brake_chopper_v"],
+                    "has no effect without inverter.brake_resistor_ohm: set the resistor too, or remove it")
+    if inv["bus_sense_v_per_v"] > 0.0:
+        ov_v = min(1.25 * inv["bus_voltage_v"], 0.9 * inv["switch_vds_max_v"])
+        if inv["bus_sense_v_per_v"] * ov_v >= 5.0:
+            raise _fail("inverter.bus_sense_v_per_v", inv["bus_sense_v_per_v"],
+                        f"puts the overvoltage trip ({ov_v:.1f} V) at {inv['bus_sense_v_per_v'] * ov_v:.2f} V on AN1, "
+                        "beyond the ADC's 5 V: the firmware could not see it; a divider of at most "
+                        f"{4.9 / ov_v:.4g} V/V")
     period_ns = 1e9 / inv["pwm_frequency_hz"]
     if inv["bootstrap_refresh_ns"] + 2 * inv["dead_time_ns"] >= 0.5 * period_ns:
         raise _fail("inverter.dead_time_ns", inv["dead_time_ns"],

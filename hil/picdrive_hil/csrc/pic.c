@@ -664,7 +664,8 @@ static double analog_volts(int ch)
         return g.cfg.current_sense_offset_v + g.cfg.current_sense_v_per_a * i;
     }
     case ASIG_BUS_VOLTAGE:
-        return g.cfg.bus_sense_v_per_v * g.pp.bus_voltage_v;
+        /* the bus capacitor's voltage (it rises when the bridge returns energy the supply cannot take) */
+        return g.cfg.bus_sense_v_per_v * (g.ps.v_bus_v > 0.0 ? g.ps.v_bus_v : g.pp.bus_voltage_v);
     default:
         return 0.0;
     }

@@ -293,11 +293,46 @@ static inline __attribute__((always_inline)) double next_speed(const plant_param
     return w1;
 }
 
+/* The bus voltage a step starts from: the capacitor's, or the supply's before the first step
+ * and on a stiff bus. */
+static inline double bus_now(const plant_params_t *p, const plant_state_t *s)
+{
+    return (p->bus_capacitance_f > 0.0 && s->v_bus_v > 0.0) ? s->v_bus_v : p->bus_voltage_v;
+}
+
+/* The bus capacitor over a step that drew i_bus_a from it (negative: the bridge returned
+ * current).  The supply is an ideal source behind a diode (the capacitor cannot sit below it)
+ * that takes back at most supply_sink_a; the brake resistor conducts above brake_chopper_v and
+ * is integrated implicitly (R C may be far below the step), never taking the bus under that
+ * threshold.  Backward Euler in each piece: stable for any C and h. */
+static void bus_step(const plant_params_t *p, plant_state_t *s, double i_bus_a, double h)
+{
+    double vs = p->bus_voltage_v, C = p->bus_capacitance_f;
+    s->i_brake_a = 0.0;
+    if (!(C > 0.0)) { s->v_bus_v = vs; return; }
+    double v0 = bus_now(p, s);
+    double v1 = v0 - h * i_bus_a / C;
+    if (v1 <= vs) {                      /* the supply sources: the capacitor sits at its voltage */
+        s->v_bus_v = vs;
+        return;
+    }
+    v1 = v0 - h * (i_bus_a + p->supply_sink_a) / C;
+    if (v1 < vs) v1 = vs;                /* the supply's sinking brings it back to, not under, vs */
+    if (p->brake_resistor_ohm > 0.0 && v1 > p->brake_chopper_v) {
+        double floor_v = p->brake_chopper_v > vs ? p->brake_chopper_v : vs;
+        double vr = v1 / (1.0 + h / (p->brake_resistor_ohm * C));
+        if (vr < floor_v) vr = floor_v;   /* the chopper opens at its threshold */
+        s->i_brake_a = C * (v1 - vr) / h; /* the charge the resistor took over the step */
+        v1 = vr;
+    }
+    s->v_bus_v = v1;
+}
+
 static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
                     double t_load_n_m, double h, plant_cache_t *cc)
 {
     const step_coef_t *c = coef_for(p, h, cc);
-    double P = (double)p->pole_pairs, J = p->inertia_kg_m2, vbus = p->bus_voltage_v;
+    double P = (double)p->pole_pairs, J = p->inertia_kg_m2, vbus = bus_now(p, s);
     double vp[3], vm[3], foff[3], i0[3], f[3], e[3], i1[3], vn, tl_applied;
     for (int x = 0; x < 3; x++) {
         double fh = leg[x].f_hi, fl = leg[x].f_lo;
@@ -324,6 +359,7 @@ static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3
             double w1 = next_speed(p, w0, 0.0, t_load_n_m, c, 0, &tl_applied);
             for (int x = 0; x < 3; x++) { s->v_term[x] = 0.0; s->e_v[x] = 0.0; }
             s->i_bus_a = s->i_link_on_a = s->i_peak_a = 0.0;
+            bus_step(p, s, 0.0, h);
             s->v_neutral = 0.0;
             s->theta_rad = th0 + 0.5 * h * (w0 + w1);
             s->w_rad_s = w1;
@@ -393,6 +429,7 @@ static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3
     s->i_link_on_a = ilink;
     s->i_peak_a = ipk;
     s->energy_j += vbus * ibus * h;
+    bus_step(p, s, ibus, h);
     s->w_rad_s = w1;
     s->theta_rad = th1;
     s->torque_e_n_m = te1p;          /* at th0 + h w_mid, within O(h^2) of th1 */
@@ -434,8 +471,9 @@ void plant_step_cached(const plant_params_t *p, plant_state_t *s, const leg_t le
         for (int y = 0; y < 3; y++) {
             double fh = leg[y].f_hi, fl = leg[y].f_lo, fo = 1.0 - fh - fl;
             if (fo < 0.0) fo = 0.0;
-            v[y] = save.i_a[y] > 0.0 ? p->bus_voltage_v * fh - p->diode_drop_v * fo
-                                     : p->bus_voltage_v * (1.0 - fl) + p->diode_drop_v * fo;
+            double vb = bus_now(p, &save);
+            v[y] = save.i_a[y] > 0.0 ? vb * fh - p->diode_drop_v * fo
+                                     : vb * (1.0 - fl) + p->diode_drop_v * fo;
             if (save.i_a[y] != 0.0) { vn += v[y] - s->e_v[y]; n += 1.0; }
         }
         if (n < 2.0) continue;

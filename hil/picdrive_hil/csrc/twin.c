@@ -182,7 +182,7 @@ static void trace_record(void)
     r->duty_max = dmax;
     r->hall = g.hall_pins;
     r->fault = (double)(g.flt_latched | (g.flt_cbc << 1) | (g.flta_asserted << 2));
-    r->spare = 0.0;
+    r->v_bus_v = g.ps.v_bus_v > 0.0 ? g.ps.v_bus_v : g.pp.bus_voltage_v;
 }
 
 /* ------------------------------------------------------------ API */
@@ -204,6 +204,7 @@ int twin_init(const twin_config_t *cfg)
     g.cfg = *cfg;
     g.pp = cfg->plant;
     plant_reset(&g.ps);
+    g.ps.v_bus_v = g.pp.bus_voltage_v;       /* the capacitor charged to the supply */
     plant_cache_reset(&g.pcache);
     g.tosc_ps = (int64_t)llround(PS_PER_S / cfg->fosc_hz);
     g.tcy_ps = 4 * g.tosc_ps;

@@ -14,7 +14,7 @@
 
 #include <stdint.h>
 
-#define TWIN_ABI_VERSION 2
+#define TWIN_ABI_VERSION 3
 
 /* ------------------------------------------------------------------ plant */
 
@@ -36,6 +36,13 @@ typedef struct {
     double hall_spacing_rad; /* 2pi/3 or pi/3 */
     int32_t encoder_lines;   /* 0 = none */
     int32_t load_mode;       /* LOAD_ACTIVE | LOAD_PASSIVE */
+    /* The DC bus: its capacitor behind the supply (bus_voltage_v) that sources any current and
+     * sinks at most supply_sink_a; a brake resistor switched across it above brake_chopper_v.
+     * bus_capacitance_f = 0: a stiff bus, always bus_voltage_v. */
+    double bus_capacitance_f;
+    double supply_sink_a;
+    double brake_resistor_ohm;   /* 0 = none */
+    double brake_chopper_v;
 } plant_params_t;
 
 /* One inverter leg over a step: fraction of the time its high / low switch
@@ -62,6 +69,9 @@ typedef struct {
     double energy_j;         /* energy drawn from the bus since reset */
     int32_t locked;          /* rotor locked by injection */
     int32_t te_valid;        /* torque_e_n_m is the torque of the present i and theta (to O(h^2)) */
+    double v_bus_v;          /* DC bus (capacitor) voltage at the end of the step; 0 = not yet stepped
+                                (the supply's voltage) */
+    double i_brake_a;        /* brake-resistor current over the last step */
 } plant_state_t;
 
 /* The C API (ctypes) keeps default visibility; the rest of the twin's C is built with
@@ -213,7 +223,7 @@ enum { INJ_HALL = 1, INJ_OVERCURRENT = 2, INJ_LOCK_ROTOR = 3, INJ_ENCODER = 4,
 typedef struct {
     double t_s, w_rad_s, theta_rad, i_a, i_b, i_c, i_bus_a, torque_e_n_m, torque_load_n_m;
     double v_a, v_b, v_c, duty_max;
-    double hall, fault, spare;
+    double hall, fault, v_bus_v;
 } trace_rec_t;
 
 #pragma GCC visibility push(default)

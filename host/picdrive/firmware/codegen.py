@@ -112,18 +112,21 @@ def uart_brg(baud: int) -> tuple[int, float]:
 def bus_sense(profile) -> dict:
     """Bus-voltage sense on AN1: divider, thresholds in ADC counts.
 
-    The profile has no field for the divider; the board is assumed to have
-    one that puts the nominal bus at 2.5 V (half of the 5 V ADC reference),
-    so that 2 x the nominal bus is full scale.  Undervoltage below 70 % of
-    nominal while running; overvoltage above min(125 % of nominal, 90 % of the
-    switch rating).
+    The divider is ``inverter.bus_sense_v_per_v``; when the profile leaves it
+    at 0 the board is assumed to have one that puts the nominal bus at 2.5 V
+    (half of the 5 V ADC reference), so that 2 x the nominal bus is full
+    scale (``"source"`` says which).  Undervoltage below 70 % of nominal while
+    running; overvoltage above min(125 % of nominal, 90 % of the switch
+    rating).
     """
     inv = profile.inverter
-    ratio = 2.5 / inv.bus_voltage_v
+    given = getattr(inv, "bus_sense_v_per_v", 0.0) > 0.0
+    ratio = inv.bus_sense_v_per_v if given else 2.5 / inv.bus_voltage_v
     counts_per_v = ratio * 1024 / 5.0
     uv_v = 0.70 * inv.bus_voltage_v
     ov_v = min(1.25 * inv.bus_voltage_v, 0.9 * inv.switch_vds_max_v)
-    return {"bus_sense_v_per_v": ratio, "counts_per_v": counts_per_v, "uv_v": uv_v, "ov_v": ov_v,
+    return {"bus_sense_v_per_v": ratio, "source": "inverter.bus_sense_v_per_v" if given else "assumed",
+            "counts_per_v": counts_per_v, "uv_v": uv_v, "ov_v": ov_v,
             "uv": int(math.floor(uv_v * counts_per_v)), "ov": min(1023, int(math.ceil(ov_v * counts_per_v)))}
 
 
@@ -288,7 +291,7 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
            f"{plan.counts_per_a:.2f} counts/A (current_sense_v_per_a {inv.current_sense_v_per_a:g} V/A, 5 V / 1024)"
            + (" -- beyond the ADC range: never" if plan.itrip >= 1024 else "")),
         _d("FW_BUS_UV", f"{bus['uv']}u", f"undervoltage below {bus['uv_v']:.1f} V (70 % of bus_voltage_v) x "
-           f"{bus['counts_per_v']:.2f} counts/V (divider {bus['bus_sense_v_per_v']:.5f} V/V, assumed)"),
+           f"{bus['counts_per_v']:.2f} counts/V (divider {bus['bus_sense_v_per_v']:.5f} V/V, {bus['source']})"),
         _d("FW_BUS_OV", f"{bus['ov']}u", f"overvoltage above {bus['ov_v']:.1f} V"),
         _d("FW_BUS_DEBOUNCE", "10u", "consecutive samples"),
     ]})
@@ -494,8 +497,9 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                f"build id    0x{build_id:08X} (sha256 of the inputs {digest[:16]}...), table hash "
                f"0x{table.hash:08X}"]
     summary += pwm.lines() + plan.lines() + pm.lines()
-    summary.append(f"uart        SPBRG = {brg}: {baud:.0f} baud; bus sense on AN1 assumed "
-                   f"{bus['bus_sense_v_per_v']:.5f} V/V, UV {bus['uv_v']:.1f} V, OV {bus['ov_v']:.1f} V")
+    summary.append(f"uart        SPBRG = {brg}: {baud:.0f} baud; bus sense on AN1 "
+                   + ("assumed " if bus["source"] == "assumed" else "")
+                   + f"{bus['bus_sense_v_per_v']:.5f} V/V, UV {bus['uv_v']:.1f} V, OV {bus['ov_v']:.1f} V")
     summary.append("link        " + (f"capture ({capture_bytes} B buffer)" if link_capture else "no capture (--no-capture)")
                    + ", " + ("EEPROM persistence" if link_eeprom else "no EEPROM persistence (--no-eeprom)"))
     files["board.json"] = json.dumps(_board(profile, plan, pwm, pm, bus, build_id, table), indent=1,
