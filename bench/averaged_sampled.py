@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Why the averaged-model fuzzy-hinf design fails on motors picdrive has never seen (issue 14).
+"""Why the averaged-model fuzzy-hinf design fails on motors picdrive has never seen.
 
 For each profile (default: the two corpus windings whose DC-equivalent design verifies, BLY171D and the
 Multistar 4225) and each pole disk of the design's search (``pi/(2 Ts) x 0.8^k``), the fuzzy-hinf

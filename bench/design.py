@@ -17,7 +17,7 @@ shared with other jobs):
   six-step model and, with its generated firmware, in the motor twin: the
   same step and load step, the same figures side by side.
 
-Targets (issue 2): LMI < 0.5 s, gamma-min < 2 s, GA < 1 s; GA J3 no worse
+Targets: LMI < 0.5 s, gamma-min < 2 s, GA < 1 s; GA J3 no worse
 than the paper's within the same bounds.
 
     python3 bench/design.py [--repeat N]

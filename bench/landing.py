@@ -1,5 +1,5 @@
 """A landing that knows the load: the integrator at the current window's exit set from a load estimate
-(issue 14 item 3, a float-law study; docs/scheduling.md section 3, "A landing that knows the load").
+(a float-law study; docs/scheduling.md section 3, "A landing that knows the load").
 
 The bundled designs (examples/*.design.json), loads 0 and the profile's load from t = 0, the step of
 bench/time_optimal.py (its functions: the verification's plant, ``simulate_six_step`` with the

@@ -11,7 +11,7 @@ the one pic18_run call, best of three runs):
           a 16/8 division loop, xorshift operands (calls, returns, skips, branches, MOVFF)
   random  seeded random instruction mix (ALU, literals, bit ops, skips, branches, MOVFF,
           all FSR forms)
-Goal (issue 10): >= 200 M simulated instructions per CPU second.
+Goal: >= 200 M simulated instructions per CPU second.
 """
 from __future__ import annotations
 

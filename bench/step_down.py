@@ -1,4 +1,4 @@
-"""Speed steps down (issue 14, item 4): 2400 -> 600 rpm and to rest, against the friction-only coast.
+"""Speed steps down: 2400 -> 600 rpm and to rest, against the friction-only coast.
 
 For each bundled duy2008 design (and the 2016 designs, from their step target to a quarter of it
 and to rest): the law in the verification's plant (the twin's three-phase winding, the firmware's

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
-"""The restructure's cost in time (issue 13: "the suite is as fast or faster"): this tree beside
-an older commit (default 8cee402, the last one before the subpackages), on this machine.
+"""The suite's cost in time, this tree beside an older commit (default 8cee402, the last one
+before the subpackages), on this machine; the target: as fast or faster.
 
 Prints, for each tree, the CPU seconds (user + sys, children included) and wall seconds of
 

@@ -1,4 +1,4 @@
-"""How far the bundled designs' speed steps are from the bridge's own fastest step (issue 14, item 3).
+"""How far the bundled designs' speed steps are from the bridge's own fastest step.
 
 Per bundled design (examples/*.design.json) and load (none; the profile's load from t = 0):
 

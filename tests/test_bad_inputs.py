@@ -1,5 +1,5 @@
 """Bad inputs to every command: one line naming the problem and the fix, exit status 2, no traceback,
-nothing written (issue 11, "Data safety and errors").
+nothing written (the data-safety rule: docs/outputs.md).
 
 Each case runs ``python -m picdrive ...`` in a folder of its own (so default outputs would land there),
 the folder's tree is compared before and after.  The cases run concurrently in one fixture (a

@@ -1,4 +1,4 @@
-"""Issue 9's chip-only hazards of the drive firmware, shown on the host build of
+"""The chip-only hazards of the drive firmware (docs/firmware.md), shown on the host build of
 the committed firmware (firmware_build/duy2008) with a tracing register shim.
 
 The twin's shim makes every SFR a byte of picsim_sfr[] and the model sees the

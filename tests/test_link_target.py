@@ -1,6 +1,6 @@
 """The link module as the PIC18 compiler sees it (SDCC 4.2.0 pic16, installed by
-scripts/pic_toolchain.sh), and the interrupt-safety rules it must keep there (issue 9, hazards
-a, b, g).  Cycle and flash figures are printed by bench/link_pic18.py, not asserted here."""
+scripts/pic_toolchain.sh), and the interrupt-safety rules it must keep there (hazards a, b
+and g of docs/firmware.md's chip-only hazards table).  Cycle and flash figures are printed by bench/link_pic18.py, not asserted here."""
 import re
 
 import pytest

@@ -1,4 +1,4 @@
-"""The reference feedforward (issue 14 item 3): the law's integrator preloaded by G_ff x each change of
+"""The reference feedforward (control_law.reference_ff_gain): the law's integrator preloaded by G_ff x each change of
 the applied reference, in the float law, the fixed-point model and from the profile option.
 
 The firmware's C and assembly against the model: tests/test_fixedpoint.py (kinds "pi1-ff",

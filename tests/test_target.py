@@ -1,7 +1,7 @@
 """The firmware on the PIC18F4431: every bundled design builds, links and keeps its budgets.
 
 Built with SDCC's pic16 port and gputils (picdrive.firmware.target), timed on the PIC18
-core in gpsim (picdrive.firmware.gpsim).  Budgets: picdrive.firmware.target.BUDGETS (issue 9).
+core in gpsim (picdrive.firmware.gpsim).  Budgets: picdrive.firmware.target.BUDGETS.
 Also inspects the compiled output for hazards the host twin cannot show:
 the interrupt prologue must save the table pointer when an interrupt reads
 tables, and no runtime-library helper with static operands may be shared by
@@ -60,7 +60,7 @@ def _figures(b, modes) -> dict[str, int]:
 
 @pytest.mark.parametrize("design", [d.name for d in DESIGNS])
 def test_design_keeps_the_budgets_on_the_18f4431(built, design):
-    """Issue 9's 'done when': flash, static RAM + worst-case stack, the speed-loop interrupt with 4 signals and
+    """The chip's budgets (picdrive.firmware.target.BUDGETS): flash, static RAM + worst-case stack, the speed-loop interrupt with 4 signals and
     a capture armed (the worst over the three telemetry modes), the hall interrupt and the UART receive."""
     b, modes = built[design]
     got = _figures(b, modes)

@@ -1,4 +1,4 @@
-"""The processor twin (issue 10): bad input, faults, the peripheral model at the cycle, and the
+"""The processor twin (docs/twin.md): bad input, faults, the peripheral model at the cycle, and the
 measurements only a processor gives.  Programs here are hand-assembled (the encodings of
 DS39616 Table 25-2) into Intel HEX text, so these tests need no toolchain; the bundled
 firmware's HEX is tested in tests/test_twin_pil_firmware.py and the HIL suite (--target pil)."""

@@ -1,6 +1,6 @@
-"""The bundled firmware's HEX on the processor twin (issue 10): it runs the drive, the
-processor's measurements agree with the build's static figures, and issue 9's timing hazards
-are checked on the compiled code at the cycle they happen (all in simulated time).
+"""The bundled firmware's HEX on the processor twin (docs/twin.md): it runs the drive, the
+processor's measurements agree with the build's static figures, and the chip-only timing
+hazards (docs/firmware.md) are checked on the compiled code at the cycle they happen (all in simulated time).
 
 The HEX is firmware_build/duy2008 built by picdrive.firmware.target.build_measured.  While that
 firmware does not fit the 18F4431 (Build.on_chip False: linked with the enlarged measurement
@@ -86,7 +86,7 @@ def test_bundled_hex_drives_the_motor_and_reports_the_processor(build):
 
 
 def test_hazard_d_commutation_override_never_shorts_a_leg(build):
-    """Issue 9 d): OVDCOND/OVDCONS change with the override synchronised to the PWM period; a
+    """Hazard d): OVDCOND/OVDCONS change with the override synchronised to the PWM period; a
     period boundary between the two writes applies a mixed pair.  Forced two-sector hall jumps
     at 150 phases against the PWM period: no period with both switches of a leg on."""
     tw = pil(build)
@@ -114,7 +114,7 @@ def _with_uart_traffic(tw, seconds: float) -> None:
 
 
 def test_hazard_e_speed_sample_first_and_masked(build):
-    """Issue 9 e): the speed loop reads POSCNT/Timer5 before its ADC conversions, with the high
+    """Hazard e): the speed loop reads POSCNT/Timer5 before its ADC conversions, with the high
     priority masked, in every period, under hall and UART interrupts."""
     tw = pil(build)
     run_at(tw, 2000.0, tw.profile.control.load_torque_n_m)
@@ -145,9 +145,9 @@ def test_preempted_speed_loop_keeps_its_period_and_the_drive_its_speed(build):
 
 
 def test_hazard_f_current_sampled_in_the_on_time(build):
-    """Issue 9 f): every conversion of the current signal starts inside the PWM'd switch's on-time
+    """Hazard f): every conversion of the current signal starts inside the PWM'd switch's on-time
     (a bus shunt reads zero in the off-time) -- on the running code, software and special-event
-    starts alike (with the firmware before wt-core's special-event trigger: 64 % did)."""
+    starts alike (software starts alone, without the special-event trigger, met it on 64 %)."""
     tw = pil(build)
     run_at(tw, 2000.0, tw.profile.control.load_torque_n_m)
     st = tw.pil_stats()

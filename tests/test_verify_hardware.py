@@ -1,6 +1,6 @@
-"""Issue 11, "the verifier must judge what this firmware will do on this hardware": one test per defect.
+"""The verifier judges what this firmware will do on this hardware: one test per defect it must catch.
 
-Each was reproduced on the code before this change (PYTHONPATH=/work/main/host:/work/main/hil):
+The defects, each of which an earlier verifier missed:
 
 * halls-only speed was verified with the encoder's M/T measurement: a mixed-pid design of the
   Orbray BMS10-1003 micro motor at 3000 rpm was marked verified and swings by 1,500 rpm in the twin;

@@ -35,7 +35,7 @@ the current limit when the law has one (``current_limit_a``)::
 The reference feedforward ``G_ff`` (``reference_ff_v_s_per_rad``, V per rad/s; 0 = off) moves the
 integrator by the steady-state voltage a change of the applied reference needs (r_prev starts at 0
 with the law's memory), so that the integrator does not have to climb to it at ``Ki Ts e`` per
-sample once the output leaves the current window (issue 14 item 3; :func:`reference_ff_gain`).  It
+sample once the output leaves the current window (:func:`reference_ff_gain`).  It
 acts only on reference changes: the load rejection (w -> z) is the law's own.
 
 This back-EMF-based voltage clamp limits the current without waiting for a

@@ -1,4 +1,4 @@
-/* The processor-in-the-loop twin (issue 10): the PIC18 instruction-set simulator
+/* The processor-in-the-loop twin: the PIC18 instruction-set simulator
  * (pic18cpu.c) runs the HEX against the same peripheral model (pic.c) and plant
  * (plant.c) as the software-in-the-loop twin; only the event loop differs.
  *

@@ -190,7 +190,7 @@ typedef struct {
     uint64_t retfie_outside;       /* RETFIE without an interrupt in progress */
     uint64_t in_isr;               /* interrupts in progress now */
     uint64_t resets, sleep_runs, adc_starts, rcreg_reads;
-    /* issue 9's timing hazards, measured on the running code */
+    /* the chip-only timing hazards (docs/firmware.md), measured on the running code */
     uint64_t speed_preempted;      /* high-priority interrupts taken inside the speed-loop interrupt */
     uint64_t overrun_first_cycle;  /* cycle of the first overrun (0: none) */
     uint64_t pos_reads, pos_delay_min, pos_delay_max;  /* speed ISR entry -> its first POSCNT/TMR5 read, cycles */

@@ -96,7 +96,7 @@ DEFAULTS: dict[str, tuple] = {
     "current_fraction": (0.9, float, 0.01, 10.0, "drive: peak line current of the simulated step <= this x "
                          "inverter.overcurrent_trip_a (the current window holds the steady current at the limit)"),
     "overshoot_max_pct": (0.5, float, 0.0, 100.0, "drive: raw peak of the simulated six-step step above the "
-                          "target (the bridge cannot brake) <= this, % of the step (half of issue 5's 1 %: the "
+                          "target (the bridge cannot brake) <= this, % of the step (half of the 1 % step target: the "
                           "model under-predicts the twin's overshoot by up to ~1 point near zero current)"),
     "de_popsize": (15, int, 4, 1000, "de: scipy population multiplier"),
     "de_maxiter": (300, int, 1, 100000, "de: scipy maximum generations"),

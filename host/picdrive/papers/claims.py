@@ -2,7 +2,7 @@
 
 :data:`CLAIMS` lists every printed claim of the two papers that the report reproduces (paper ``2016``:
 Assawinchaichote & Chayaopas; ``2008``: Duy et al.) and the 2016 paper's fuzzy claims set beside what
-picdrive measured on the six-step drive (issue 14, paper ``2016 vs drive``).  The report renders each one
+picdrive measured on the six-step drive (paper ``2016 vs drive``).  The report renders each one
 as one table row (:func:`table`)::
 
     | id | claim (as printed) | printed | picdrive | verdict | why |
@@ -102,7 +102,7 @@ CLAIMS: tuple[Claim, ...] = (
     _c("2008-fig4", "2008", "Fig. 4", "d does not have much influence on the output", "little influence"),
     _c("2008-pic", "2008", "sec. 5, Fig. 9", "the proposed PID on the PIC18F4431 drive tracks a step reference well",
        "tracks well"),
-    # --- 2016's fuzzy claims beside what picdrive measured on the six-step drive (issue 14)
+    # --- 2016's fuzzy claims beside what picdrive measured on the six-step drive
     _c("drive-rules", "2016 vs drive", "sec. 4, 6",
        "the motor's dynamics change with speed: two TS rules at N1 = 0, N2 = 3000 differ", "A_1 != A_2"),
     _c("drive-model", "2016 vs drive", "sec. 3, 6", "the drive's dynamics are those of the motor's equations (5), (36), "

@@ -84,7 +84,7 @@ _RPM = 2 * np.pi / 60
 
 
 def drive_section(measured: dict, *, quick: bool = False) -> str:
-    """The 2016 paper's fuzzy claims beside what picdrive measured on the six-step drive (issue 14).
+    """The 2016 paper's fuzzy claims beside what picdrive measured on the six-step drive.
 
     ``measured``: what :func:`compare_designs` recorded (``(profile, method) -> step metrics``).  The
     averaged model is identified here from the twin's three-phase plant (``quick``: at 3 speeds instead
@@ -201,13 +201,13 @@ def drive_section(measured: dict, *, quick: bool = False) -> str:
             raise LookupError("no fuzzy-hinf design compared in this report: " + "; ".join(parts))
         return ("; ".join(parts), "agree" if max(ratios) <= 1.2 else "disagree",
                 "the bound: current limit, then the bridge's voltage (analysis/timeoptimal, 2 % band, no load, "
-                "with the design's w3 disturbance in its run); issue 14 asks for 1.2 x; bench/time_optimal.py "
+                "with the design's w3 disturbance in its run); the target is 1.2 x; bench/time_optimal.py "
                 "prints the 1 % band ratios of the bundled designs with and without load (docs/scheduling.md "
                 "section 3)")
 
     rows = rows_for("2016 vs drive", {"drive-rules": rules, "drive-model": model, "drive-schedule": schedule,
                                       "drive-fuzzy-vs-pid": fuzzy_vs_pid, "drive-fast": fast})
-    return "\n".join(["## The 2016 paper's fuzzy claims beside the drive (issue 14)", "",
+    return "\n".join(["## The 2016 paper's fuzzy claims beside the drive", "",
                       "What the 2016 paper claims for its fuzzy design, beside what picdrive measured on the six-step "
                       f"drive{' (quick run: fewer speeds)' if quick else ''}.", ""] + table(rows) + [""])
 
