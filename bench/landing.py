@@ -10,7 +10,7 @@ sector-mean speed), five laws:
 * preload: the reference feedforward (``design.verify.with_reference_ff``: ``G_ff dr`` into the
   integrator on each reference change);
 * hold: the preload, then no integration until the error changes sign or the speed stops approaching
-  within half the step (the third landing of docs/scheduling.md, re-implemented here);
+  within half the step (the hold of docs/scheduling.md section 3, re-implemented here);
 * landing: the bundled law plus, after a reference change and while the output sits on the window's
   top, the integrator set (back-calculation) to ``G_ff r + (R_L + Kc) i_L``: the no-load steady state
   at the reference (with the setpoint-weight and current-feedback terms, ``reference_ff_gain``) plus

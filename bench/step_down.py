@@ -62,7 +62,7 @@ def brake_bound_s(profile, w0, w1, load):
 
 def low_side_brake_run(profile, plant, w0: float, goal: float, load: float, t_max: float, *,
                        plug_below: bool = False) -> dict:
-    """What a low-side braking table would give (docs/scheduling.md, item 4), in the twin's three-phase plant:
+    """What a low-side braking table would give (docs/scheduling.md, section 4), in the twin's three-phase plant:
     on each hall code the forward table's source leg has its LOW side on for ``d`` of the period (PWM) and
     the sink's low side on, both high sides off (independent mode, no PMOD change); in the off-time the
     braking current returns through the source's high-side body diode into the bus.  ``d`` from the law's
