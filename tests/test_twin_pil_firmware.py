@@ -55,7 +55,7 @@ def run_at(tw, rpm: float, load: float, warm_s: float = 0.6) -> None:
 def no_late_period_after_startup(st) -> bool:
     # fw_init starts Timer2 and enables the interrupts milliseconds later (after the EEPROM
     # load): periods fire before the first speed-loop interrupt can run or while it runs late
-    # (measured: 1 with the firmware of bc6feca and of 54f9c93); none may be missed after it
+    # (measured: 1); none may be missed after it
     return st.speed_overrun + st.speed_lost == st.missed_at_start <= 2
 
 

@@ -13,13 +13,12 @@ from hilbench import METHODS, PROFILES, sector_speed, step_of
 RECORD_S = 1.0
 
 # No case is marked: every design verifies on the six-step drive model (tests/test_verify_twin.py
-# checks that model against this twin) and the suite found none failing.  Earlier failures and what
-# removed them (docs/twin.md, "HIL suite"): duy2008 fuzzy-hinf held ~2041 rpm (integrator range sized
-# for a dq-model cap: now sized for the profile's step target on the six-step equilibria); the 2016
-# designs limit-cycled at 377..414 rpm (the table commutated 30 degrees early on the sinusoidal motor:
-# profile hall_offset_deg 30 since 151e9a3; the designs now keep their overshoot inside the band the
-# bridge cannot brake out of); duy2008 at 2400 rpm under 0.015 N m (2 pole pairs since 8f21b4b: the
-# twin holds ~2520 rpm).
+# checks that model against this twin).  What the passing cases rely on (docs/twin.md, "HIL suite" and
+# "Where the twin and the profile's DC equivalent disagree"): a fuzzy-hinf integrator range sized for
+# the profile's step target on the six-step equilibria (sized for the dq model's lower cap, duy2008
+# held ~2041 rpm); the 2016 profile's hall_offset_deg 30 (a table 30 degrees early on the sinusoidal
+# motor limit-cycles at 377..414 rpm); overshoot kept inside the band the bridge cannot brake out of;
+# duy2008's 2 pole pairs (the twin holds ~2520 rpm at 2400 under 0.015 N m).
 
 
 def matrix(profiles=PROFILES, methods=METHODS):
