@@ -252,15 +252,21 @@ def test_closing_the_terminal_stops_the_motor_and_saves_the_recording(twin, tmp_
     _recording_kept(csv)
 
 
-def test_ctrl_c_at_the_idle_prompt_stops_a_running_motor(twin, tmp_path):
-    tw, srv = twin
+def _console_running(srv, tw, tmp_path, rpm):
+    """An interactive console at its prompt with the motor started at ``rpm`` from rest."""
     _idle(srv.url, tw)
     ch = _spawn_console(srv.url, tmp_path)
-    try:
+    ch.expect("picdrive> ")
+    for line in (f"speed {rpm}", "start"):
+        ch.send(line + "\r")
         ch.expect("picdrive> ")
-        for line in ("speed 1500", "start"):
-            ch.send(line + "\r")
-            ch.expect("picdrive> ")
+    return ch
+
+
+def test_ctrl_c_at_the_idle_prompt_stops_a_running_motor(twin, tmp_path):
+    tw, srv = twin
+    ch = _console_running(srv, tw, tmp_path, 1500)
+    try:
         _until(lambda: _rpm(tw) > 1000, "the motor running")
         ch.sendintr()
         ch.expect(r"\^C: motor stopped \(outputs off\); 'quit' leaves")
@@ -602,13 +608,8 @@ def test_scope_single_fires_its_own_setpoint_step(twin, tmp_path):
 
 def test_ctrl_c_ends_the_scope_alone(twin, tmp_path):
     tw, srv = twin
-    _idle(srv.url, tw)
-    ch = _spawn_console(srv.url, tmp_path)
+    ch = _console_running(srv, tw, tmp_path, 1200)
     try:
-        ch.expect("picdrive> ")
-        for line in ("speed 1200", "start"):
-            ch.send(line + "\r")
-            ch.expect("picdrive> ")
         ch.send(f"scope normal speed --decimation 4 --png {tmp_path / 'n.png'}\r")
         ch.expect("scope capture 2: ")
         ch.sendintr()
