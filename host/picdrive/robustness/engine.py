@@ -29,6 +29,9 @@ from ..errors import PicdriveError
 
 __all__ = ["FirmwarePackage", "open_client", "prepare", "run_task", "SCHEDULER_TIMEOUT_S"]
 
+#: the name of the folder a package is written into, on the client and on every worker
+PACKAGE_FOLDER = "firmware"
+
 #: how long a scheduler given with --scheduler has to answer, and to show a worker, s
 SCHEDULER_TIMEOUT_S = 10.0
 
@@ -67,8 +70,10 @@ def prepare(pkg: FirmwarePackage) -> tuple[Path, Path | None]:
     got = _PREPARED.get(pkg.digest)
     if got is not None and got[0].is_dir():
         return got
-    d = Path(tempfile.mkdtemp(prefix=f"picdrive-robustness-{pkg.digest[:12]}-"))
-    atexit.register(shutil.rmtree, d, True)
+    top = Path(tempfile.mkdtemp(prefix=f"picdrive-robustness-{pkg.digest[:12]}-"))
+    atexit.register(shutil.rmtree, top, True)
+    # the same folder name as the client's: the twin's build cache keys on the include folders' names
+    d = top / PACKAGE_FOLDER
     for rel, data in pkg.files.items():
         p = d / rel
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -90,11 +95,11 @@ def _worker_env() -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
-def open_client(scheduler: str | None, workers: int | None):
+def open_client(scheduler: str | None, workers: int | None, *, timeout_s: float = SCHEDULER_TIMEOUT_S):
     """A ``distributed.Client``: on ``scheduler`` (``tcp://HOST:PORT``), or on a new ``LocalCluster`` of
     ``workers`` single-threaded processes (default: this machine's cores).  Returns ``(client,
     cluster or None)``; close both when done.  Raises PicdriveError when the scheduler does not
-    answer or shows no worker within :data:`SCHEDULER_TIMEOUT_S`."""
+    answer or shows no worker within ``timeout_s`` seconds."""
     import logging
 
     try:
@@ -108,18 +113,18 @@ def open_client(scheduler: str | None, workers: int | None):
             raise PicdriveError(f"--scheduler {scheduler!r}: expected a Dask scheduler address tcp://HOST:PORT "
                                 "(the one 'dask scheduler' prints, port 8786 by default)")
         try:
-            client = Client(scheduler, timeout=f"{SCHEDULER_TIMEOUT_S:g}s", set_as_default=False)
+            client = Client(scheduler, timeout=f"{timeout_s:g}s", set_as_default=False)
         except (OSError, TimeoutError) as e:
             raise PicdriveError(f"--scheduler {scheduler}: no Dask scheduler answers there within "
-                                f"{SCHEDULER_TIMEOUT_S:g} s ({type(e).__name__}); start one with 'dask scheduler' "
+                                f"{timeout_s:g} s ({type(e).__name__}); start one with 'dask scheduler' "
                                 "and workers with 'dask worker ADDRESS' (docs/robustness.md), or leave "
                                 "--scheduler out for a local cluster") from None
         try:
-            client.wait_for_workers(1, timeout=SCHEDULER_TIMEOUT_S)
+            client.wait_for_workers(1, timeout=timeout_s)
         except (OSError, TimeoutError):
             client.close()
             raise PicdriveError(f"--scheduler {scheduler}: the scheduler answers but has no worker after "
-                                f"{SCHEDULER_TIMEOUT_S:g} s; start one with 'dask worker {scheduler} --nthreads 1'") \
+                                f"{timeout_s:g} s; start one with 'dask worker {scheduler} --nthreads 1'") \
                 from None
         return client, None
     n = workers or os.cpu_count() or 1

@@ -93,13 +93,16 @@ def _plots(study, rows: list[dict], summary: dict, plots: Path) -> list[str]:
     lims = limits_of(study.profile, study.plan)
     ok = np.array([r["status"] == "pass" for r in rows])
     fig, axes = plt.subplots(2, 3, figsize=(12, 6.5))
+    fig.subplots_adjust(left=0.06, right=0.98, bottom=0.09, top=0.92, wspace=0.28, hspace=0.38)
     for ax, (key, (label, unit)) in zip(axes.ravel(), METRICS.items()):
         v = np.array([_float(r[key]) for r in rows])
         fin = np.isfinite(v)
         lim = lims[key]
-        bins = np.histogram_bin_edges(np.concatenate([v[fin], [lim]]) if fin.any() else [0, lim], bins=30)
-        ax.hist([v[fin & ok], v[fin & ~ok]], bins=bins, stacked=True, color=["tab:blue", "tab:red"],
-                label=["pass", "fail"])
+        edges = np.histogram_bin_edges(np.concatenate([v[fin], [lim]]) if fin.any() else [0, lim], bins=30)
+        h_ok, _ = np.histogram(v[fin & ok], edges)
+        h_bad, _ = np.histogram(v[fin & ~ok], edges)
+        ax.stairs(h_ok, edges, fill=True, color="tab:blue", label="pass")
+        ax.stairs(h_ok + h_bad, edges, baseline=h_ok, fill=True, color="tab:red", label="fail")
         ax.axvline(lim, color="k", ls="--", lw=1.2, label=f"limit {lim:.4g} {unit}")
         if key == "final_error_rpm":
             ax.axvline(-lim, color="k", ls="--", lw=1.2)
@@ -108,12 +111,12 @@ def _plots(study, rows: list[dict], summary: dict, plots: Path) -> list[str]:
                     ha="right", va="top", fontsize=7, color="tab:red")
         ax.set_xlabel(f"{label}, {unit}")
         ax.set_ylabel("samples")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper center")
     fig.suptitle(f"{study.profile.name}: {summary['n']} drives, yield {100 * summary['yield']:.1f} %")
-    fig.tight_layout()
-    fig.savefig(plots / "histograms.png", dpi=90)
+    fig.savefig(plots / "histograms.png", dpi=80)
     plt.close(fig)
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig.subplots_adjust(left=0.11, right=0.98, bottom=0.12, top=0.95, wspace=0.25)
     dr = summary["drivers"]
     names = [d["parameter"] for d in dr]
     a1.barh(names, [d["rho_fail"] if math.isfinite(d["rho_fail"]) else 0.0 for d in dr], color="tab:red",
@@ -128,16 +131,20 @@ def _plots(study, rows: list[dict], summary: dict, plots: Path) -> list[str]:
     if top is not None:
         x = np.array([_float(r[_col(top["parameter"])]) for r in rows])
         y = np.array([_float(r["worst_ratio"]) for r in rows])
-        y = np.where(np.isfinite(y), y, np.nanmax(np.where(np.isfinite(y), y, np.nan)) if np.isfinite(y).any() else 2)
+        never = ~np.isfinite(y)
+        top_y = 1.2 * max(1.25, float(np.max(y[~never])) if (~never).any() else 1.0)
+        y = np.where(never, top_y, y)
         a2.scatter(x[ok], y[ok], s=10, color="tab:blue", label="pass")
-        a2.scatter(x[~ok], y[~ok], s=14, color="tab:red", label="fail")
+        a2.scatter(x[~ok & ~never], y[~ok & ~never], s=14, color="tab:red", label="fail")
+        if never.any():
+            a2.scatter(x[never], y[never], s=22, marker="x", color="tab:red",
+                       label="never back in the band, or no run (drawn at the top)")
         a2.axhline(1.0, color="k", ls="--", lw=1.0, label="limit")
         u = "deg (electrical)" if PARAMETERS[top["parameter"]]["unit"] == "deg" else "%"
         a2.set_xlabel(f"{top['parameter']} deviation, {u}")
         a2.set_ylabel("worst figure / its limit")
         a2.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(plots / "drivers.png", dpi=90)
+    fig.savefig(plots / "drivers.png", dpi=80)
     plt.close(fig)
     return ["plots/histograms.png", "plots/drivers.png"]
 

@@ -29,7 +29,9 @@ def wilson_interval(passed: int, n: int, z: float = Z95) -> tuple[float, float]:
     den = 1 + z * z / n
     centre = (p + z * z / (2 * n)) / den
     half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return max(0.0, centre - half), min(1.0, centre + half)
+    lo, hi = max(0.0, centre - half), min(1.0, centre + half)
+    # exact at the ends: no pass cannot exclude 0, all passes cannot exclude 1
+    return (0.0 if passed == 0 else lo), (1.0 if passed == n else hi)
 
 
 def failure_drivers(deviations: dict[str, np.ndarray], failed: np.ndarray, worst_ratio: np.ndarray) -> list[dict]:

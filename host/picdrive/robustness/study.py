@@ -209,14 +209,14 @@ def _open_folder(study: Study) -> list[dict]:
 def _package(study: Study, workdir: Path):
     """The firmware package (engine.FirmwarePackage) and the folder the client built it in."""
     from ..firmware import codegen
-    from .engine import FirmwarePackage
     from .. import outputs
+    from .engine import PACKAGE_FOLDER, FirmwarePackage
     fw = study.fw
     if study.processor:
         files = {"firmware.hex": study.hex_bytes, "board.json": fw.files["board.json"].encode("utf-8")}
     else:
         files = {rel: text.encode("utf-8") for rel, text in fw.files.items() if rel != outputs.MARKER}
-    folder = workdir / "firmware"
+    folder = workdir / PACKAGE_FOLDER
     for rel, data in files.items():
         p = folder / rel
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -235,16 +235,17 @@ def _build_once(study: Study, folder: Path) -> None:
 
 
 def run_study(study: Study, *, scheduler: str | None, workers: int | None, progress: bool = True,
-              log=None) -> dict:
+              log=None, connect_timeout_s: float | None = None) -> dict:
     """Run the study's missing samples on Dask, appending each row to ``samples.csv`` as it completes;
     then write the report.  Returns the summary (:func:`picdrive.robustness.report.summarise`)."""
     import tempfile
 
-    from .engine import open_client, run_task
+    from .engine import SCHEDULER_TIMEOUT_S, open_client
     from .report import summarise, write_report
     from .sample import row_fields
     log = log or (lambda msg: print(f"picdrive robustness: {msg}", file=sys.stderr, flush=True))
-    client, cluster = open_client(scheduler, workers)        # a scheduler that does not answer: exit 2 here
+    # a scheduler that does not answer: exit 2 here, before anything is written
+    client, cluster = open_client(scheduler, workers, timeout_s=connect_timeout_s or SCHEDULER_TIMEOUT_S)
     try:
         with tempfile.TemporaryDirectory(prefix="picdrive-robustness-") as tmp:
             pkg, folder = _package(study, Path(tmp))
@@ -321,7 +322,8 @@ def _cmd(args) -> int:
                             "the study: give one of them")
     study = prepare_study(args)
     study.worst = args.worst
-    s = run_study(study, scheduler=args.scheduler, workers=args.workers, progress=not args.no_progress)
+    s = run_study(study, scheduler=args.scheduler, workers=args.workers, progress=not args.no_progress,
+                  connect_timeout_s=args.connect_timeout)
     lo, hi = s["yield_ci"]
     print(f"yield       {s['passed']}/{s['n']} = {100 * s['yield']:.1f} % (95 % interval {100 * lo:.1f} .. "
           f"{100 * hi:.1f} %, Wilson)")
@@ -376,6 +378,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=seed, default=1, help="study seed: sample k is the drive of seed (S, k) (default 1)")
     p.add_argument("--scheduler", help="address of a running Dask scheduler, tcp://HOST:PORT (default: a local "
                                        "cluster on this machine's cores)")
+    p.add_argument("--connect-timeout", type=positive_float, default=None, metavar="SECONDS",
+                   help="how long --scheduler has to answer and show a worker, s (default 10)")
     p.add_argument("--workers", type=workers, help="local cluster: number of worker processes (default: the cores)")
     p.add_argument("--phase-s", type=positive_float, default=None, metavar="SECONDS",
                    help="length of each phase of the scenario (step, then load step), s; the limits scale with it "
