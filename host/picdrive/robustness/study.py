@@ -105,8 +105,6 @@ def _check_hex(path: str, profile, fw) -> bytes:
 
 def prepare_study(args) -> Study:
     """Check every input (no file written): profile, tolerances, design, HEX, scenario, output folder."""
-    import dataclasses
-
     from .. import outputs
     from ..analysis.steptest import sim_plan
     from ..firmware import codegen
@@ -125,7 +123,6 @@ def prepare_study(args) -> Study:
     fw = codegen.generate(profile, str(design_path))
     hex_bytes = _check_hex(args.hex, profile, fw) if args.hex else None
     out = outputs.dir_output(args.output, what="study folder")
-    profile = dataclasses.replace(profile)
     return Study(profile=profile, design_path=design_path, fw=fw, plan=plan, hex_bytes=hex_bytes,
                  hex_name=Path(args.hex).name if args.hex else None, samples=args.samples, seed=args.seed, out=out)
 
@@ -208,7 +205,6 @@ def _open_folder(study: Study) -> list[dict]:
 # ---------------------------------------------------------------------------
 def _package(study: Study, workdir: Path):
     """The firmware package (engine.FirmwarePackage) and the folder the client built it in."""
-    from ..firmware import codegen
     from .. import outputs
     from .engine import PACKAGE_FOLDER, FirmwarePackage
     fw = study.fw
@@ -221,7 +217,6 @@ def _package(study: Study, workdir: Path):
         p = folder / rel
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_bytes(data)
-    _ = codegen  # the folder is codegen's own files, written as 'picdrive firmware' writes them
     return FirmwarePackage(files=files, profile=study.profile, table=fw.table, plan=study.plan,
                            processor=study.processor), folder
 
@@ -273,6 +268,17 @@ def run_study(study: Study, *, scheduler: str | None, workers: int | None, progr
     return summary
 
 
+def _lost_row(study: Study, fields: list[str], k: int, s: int, e: BaseException) -> dict:
+    """The row of a drive whose worker failed (died, lost): an error with the reason."""
+    from ..tolerances import PARAMETERS, draw
+    row = {name: "" for name in fields}
+    row.update(sample=k, seed=s, status="error", failed_limits="simulation",
+               reason=f"the worker running it failed: {type(e).__name__}: {e}", worst_ratio="inf")
+    for name, v in draw(study.profile.tolerances, s).values().items():
+        row[f"dev_{name}_{'deg' if PARAMETERS[name]['unit'] == 'deg' else 'pct'}"] = round(v, 6)
+    return row
+
+
 def _run_tasks(client, pkg, study: Study, todo: list[int], progress: bool, fields: list[str]) -> list[dict]:
     from distributed import as_completed
 
@@ -282,10 +288,14 @@ def _run_tasks(client, pkg, study: Study, todo: list[int], progress: bool, field
         from tqdm import tqdm
     except ImportError:                                       # pragma: no cover - tqdm is a dependency
         tqdm = None
+    from .engine import batch_size
     pkg_f = client.scatter(pkg, broadcast=True)
-    seeds = [sample_seed(study.seed, k) for k in todo]
-    futures = client.map(run_task, [pkg_f] * len(todo), todo, seeds, pure=False)
-    index_of = {f.key: (k, s) for f, k, s in zip(futures, todo, seeds)}
+    n_workers = max(1, len(client.scheduler_info().get("workers", {})))
+    size = batch_size(len(todo), n_workers)
+    batches = [todo[i:i + size] for i in range(0, len(todo), size)]
+    seeds = [[sample_seed(study.seed, k) for k in b] for b in batches]
+    futures = client.map(run_task, [pkg_f] * len(batches), batches, seeds, pure=False)
+    batch_of = {f.key: (b, s) for f, b, s in zip(futures, batches, seeds)}
     rows = []
     bar = tqdm(total=study.samples, initial=study.samples - len(todo), desc="samples", unit="sample",
                disable=not progress, file=sys.stderr, smoothing=0.05) if tqdm else None
@@ -293,21 +303,16 @@ def _run_tasks(client, pkg, study: Study, todo: list[int], progress: bool, field
         w = csv.DictWriter(f, fieldnames=fields, lineterminator="\n")
         for fut in as_completed(futures, loop=client.loop):
             try:
-                row = fut.result()
-            except Exception as e:      # noqa: BLE001 -- a worker that died running it: a failed sample
-                from ..tolerances import PARAMETERS, draw
-                k, s = index_of[fut.key]
-                row = {name: "" for name in fields}
-                row.update(sample=k, seed=s, status="error", failed_limits="simulation",
-                           reason=f"the worker running it failed: {type(e).__name__}: {e}", worst_ratio="inf")
-                for name, v in draw(study.profile.tolerances, s).values().items():
-                    row[f"dev_{name}_{'deg' if PARAMETERS[name]['unit'] == 'deg' else 'pct'}"] = round(v, 6)
-            w.writerow(row)
+                got = fut.result()
+            except Exception as e:      # noqa: BLE001 -- a worker that died running them: failed samples
+                got = [_lost_row(study, fields, k, s, e) for k, s in zip(*batch_of[fut.key])]
+            for row in got:
+                w.writerow(row)
+                rows.append({k: str(v) for k, v in row.items()})
             f.flush()
-            rows.append({k: str(v) for k, v in row.items()})
             fut.release()
             if bar is not None:
-                bar.update(1)
+                bar.update(len(got))
     if bar is not None:
         bar.close()
     return rows
@@ -317,6 +322,8 @@ def _run_tasks(client, pkg, study: Study, todo: list[int], progress: bool, field
 # the command
 # ---------------------------------------------------------------------------
 def _cmd(args) -> int:
+    if args.worst < 0:
+        raise PicdriveError(f"--worst {args.worst}: expected the number of worst drives to write, >= 0")
     if args.workers is not None and args.scheduler is not None:
         raise PicdriveError("--workers starts a local cluster; with --scheduler the cluster's own workers run "
                             "the study: give one of them")
