@@ -140,7 +140,17 @@ def open_client(scheduler: str | None, workers: int | None, *, timeout_s: float 
                 from None
         return client, None
     n = workers or os.cpu_count() or 1
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                           silence_logs=logging.ERROR)
+    import signal
+    import threading
+    # Ctrl-C reaches the whole process group: the workers ignore it (a process started with SIGINT
+    # ignored keeps it so), the client stops the study and closes them
+    main = threading.current_thread() is threading.main_thread()
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+    try:
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                               silence_logs=logging.ERROR)
+    finally:
+        if main:
+            signal.signal(signal.SIGINT, old)
     client = Client(cluster, set_as_default=False)
     return client, cluster

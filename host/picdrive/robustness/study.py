@@ -373,7 +373,7 @@ def register(sub) -> None:
         "robustness", help="tolerance study: the design's firmware on drives drawn from the profile's tolerances",
         description="Run the design's verification scenario (step and load step, the verification's limits) on "
                     "drives drawn from the profile's [tolerances], on the software twin or (--hex) the processor "
-                    "twin, distributed with Dask; writes the yield with its 95 %% interval, histograms, the "
+                    "twin, distributed with Dask; writes the yield with its 95 % interval, histograms, the "
                     "parameters that drive failures and the worst drives as profiles (docs/robustness.md).")
     p.add_argument("--profile", required=True, help="profile .toml (its [tolerances]), or a bundled profile name")
     p.add_argument("--design", required=True, help="a verified design file of this profile")
