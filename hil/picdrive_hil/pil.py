@@ -71,10 +71,12 @@ def load_image(path, enlarged: bool = False) -> ihex.HexImage:
     run (74 of 274 ms)."""
     import copy
     import hashlib
-    try:
-        raw = Path(path).read_bytes()
-    except OSError:
-        raw = None                                    # load_hex names the problem
+    raw = None
+    if Path(path).is_file():                          # a regular file (anything else: load_hex decides)
+        try:
+            raw = Path(path).read_bytes()
+        except OSError:
+            pass                                      # load_hex names the problem
     if raw is None:
         return ihex.load_hex(path, flash_bytes=build.ENLARGED_FLASH_BYTES if enlarged else ihex.FLASH_BYTES)
     key = (hashlib.sha256(raw).hexdigest(), str(path), bool(enlarged))
