@@ -5,8 +5,8 @@ or starts a ``LocalCluster`` of single-threaded worker processes on this
 machine.  The firmware a study runs travels as a :class:`FirmwarePackage`
 (the generated firmware folder's files, or the HEX with its ``board.json``;
 the profile; the firmware's parameter table), scattered to every worker once
-(``Client.scatter(..., broadcast=True)``); a worker writes it to a folder of
-its own the first time a task needs it (:func:`prepare`), and builds the
+(``Client.scatter(..., broadcast=True)``); a worker writes it into its own
+scratch folder the first time a task needs it (:func:`prepare`), and builds the
 twin's library there once (the build is cached by content,
 ``picdrive_hil.build``); every later task of that worker runs on it.
 
@@ -70,7 +70,13 @@ def prepare(pkg: FirmwarePackage) -> tuple[Path, Path | None]:
     got = _PREPARED.get(pkg.digest)
     if got is not None and got[0].is_dir():
         return got
-    top = Path(tempfile.mkdtemp(prefix=f"picdrive-robustness-{pkg.digest[:12]}-"))
+    # in the Dask worker's own scratch folder (removed with the worker, however it ends), else a temporary one
+    try:
+        from distributed import get_worker
+        base = get_worker().local_directory
+    except (ImportError, ValueError):
+        base = None
+    top = Path(tempfile.mkdtemp(prefix=f"picdrive-robustness-{pkg.digest[:12]}-", dir=base))
     atexit.register(shutil.rmtree, top, True)
     # the same folder name as the client's: the twin's build cache keys on the include folders' names
     d = top / PACKAGE_FOLDER
