@@ -17,7 +17,7 @@ The study folder (``-o``):
 
 * ``study.json`` -- what the study is (profile, tolerances, design, twin, HEX,
   seed, scenario): a later run with the same study resumes it;
-* ``samples.csv`` -- one row per sample, appended as each completes (an
+* ``samples.csv`` -- one row per sample, appended as the samples complete, a task's batch at a time (an
   interrupted study resumes from the rows there; a half-written last row is
   dropped);
 * ``report.md``, ``plots/``, ``worst/`` -- written when the samples are done
