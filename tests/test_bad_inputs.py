@@ -110,6 +110,8 @@ FW = ["firmware", "--profile", "duy2008", "--design", DESIGN]
 TWIN = ["twin", "--profile", "duy2008", "--firmware", str(FIRMWARE)]
 
 # id -> (argv, setup, regex the one line must match: the field or value and the fix)
+ROBUST = ["robustness", "--profile", "duy2008", "--design", str(EXAMPLES / "duy2008.fuzzy-hinf.design.json")]
+
 CASES = {
     # --- design: the profile
     "design-missing-profile": (["design", "--profile", "nope.toml", "--method", "zn"], None,
@@ -224,6 +226,12 @@ CASES = {
                                 r"firmware folder fw.txt is a file, not a folder: give the folder 'picdrive firmware' "
                                 r"wrote"),
     "twin-eeprom-proc": (TWIN + ["--eeprom", "/proc/picdrive-nope/ee.bin"], None, r"cannot write in /proc"),
+    "robustness-samples-zero": (ROBUST + ["--samples", "0", "-o", "out"], None,
+                                r"--samples: '0': expected 1 \.\. 10000000 samples"),
+    "robustness-output-foreign": (ROBUST + ["--samples", "2", "-o", "out"], _files(out__notes_txt="mine"),
+                                  r"study folder out is not empty and was not written by picdrive"),
+    "robustness-scheduler-and-workers": (ROBUST + ["--samples", "2", "-o", "out", "--workers", "2", "--scheduler",
+                                                   "tcp://127.0.0.1:8786"], None, r"--workers starts a local cluster"),
     "twin-eeprom-parent-is-file": (TWIN + ["--eeprom", "afile/ee.bin"], _files(afile="x"),
                                    r"afile is a file, not a folder"),
     "twin-load-file-binary": (TWIN + ["--load-file", "l.csv"], _files(l_csv=b"\x00\xff\xfe1,2\n"),
@@ -302,7 +310,8 @@ def results(request, tmp_path_factory):
 
 def test_the_corpus_is_large_and_covers_every_command():
     assert len(CASES) >= 40
-    assert {a[0] for a, _, _ in CASES.values()} == {"design", "firmware", "report", "demo", "twin", "console"}
+    assert {a[0] for a, _, _ in CASES.values()} == {"design", "firmware", "report", "demo", "twin", "console",
+                                                         "robustness"}
 
 
 @pytest.mark.parametrize("cid", list(CASES))

@@ -45,7 +45,8 @@ def register(sub) -> None:
                         "active: signed torque (2016 eq 5)")
     p.add_argument("--noise-rpm", type=nonneg_float, default=None,
                    help="speed-measurement noise, rpm std (default: profile sensors.speed_noise_rpm)")
-    p.add_argument("--seed", type=seed, default=0, help="noise seed")
+    p.add_argument("--seed", type=seed, default=None,
+                   help="noise seed (default 0, or the [as_built] seed of a drive from a tolerance study)")
     p.add_argument("--speed", type=positive_float, default=1.0,
                    help="simulated seconds per wall second (default 1: real time)")
     p.add_argument("--eeprom", help="EEPROM image file (256 bytes) to start from; saved back on exit")
@@ -94,7 +95,8 @@ def _cmd(args: argparse.Namespace) -> int:
     if args.load_file:
         from .twin import read_load_file
         load = read_load_file(args.load_file)      # a bad file is refused before the twin is built
-    tw = Twin(profile, args.firmware, perturb=perturb, seed=args.seed, load_mode=args.load_mode,
+    noise_seed = args.seed if args.seed is not None else (profile.as_built_seed or 0)
+    tw = Twin(profile, args.firmware, perturb=perturb, seed=noise_seed, load_mode=args.load_mode,
               speed_noise_rpm=args.noise_rpm, eeprom=eeprom, hex_file=args.hex,
               enlarged_memory=args.enlarged_memory)
     if load is not None:
@@ -109,6 +111,10 @@ def _cmd(args: argparse.Namespace) -> int:
                                                           if args.enlarged_memory else "")
             if args.hex else f"firmware {args.firmware}")
     print(f"picdrive twin: profile {tw.profile.name}, {what}, perturbation {pert}", file=sys.stderr)
+    if tw.as_built is not None:
+        load = profile.control.load_torque_n_m * tw.as_built.load_factor
+        print(f"picdrive twin: as built (seed {tw.as_built.seed}): {tw.as_built.text()}; its load step "
+              f"{load:.6g} N m (--load-torque {load:.6g})", file=sys.stderr)
     print(srv.url, flush=True)
     if srv.pty_path:
         print(srv.pty_path, flush=True)

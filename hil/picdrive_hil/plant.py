@@ -134,8 +134,13 @@ def parse_perturb(items, profile=None) -> dict[str, float]:
 
 
 def plant_from_profile(profile, perturb=None, *, load_mode: str = "passive",
-                       diode_drop_v: float = 0.0) -> PlantModel:
-    """The twin plant of a profile, with multiplicative perturbations applied."""
+                       diode_drop_v: float = 0.0, hall_error_deg: float = 0.0) -> PlantModel:
+    """The twin plant of a profile, with multiplicative perturbations applied.
+
+    ``hall_error_deg``: electrical degrees added to the hall sensors' placement in the motor only
+    (the firmware's commutation table is built from the profile's ``sensors.hall_offset_deg``)."""
+    if not (math.isfinite(hall_error_deg) and -60.0 <= hall_error_deg <= 60.0):
+        raise PlantError(f"hall placement error {hall_error_deg!r} deg: expected -60 .. 60 electrical degrees")
     if load_mode not in LOAD_MODES:
         raise PlantError(f"load mode {load_mode!r}: choose 'active' (signed torque, 2016 eq 5) "
                          "or 'passive' (opposes motion, holds a standing rotor)")
@@ -154,7 +159,7 @@ def plant_from_profile(profile, perturb=None, *, load_mode: str = "passive",
     for k, f in pert.items():
         base[PERTURB_KEYS[k]] *= f
     return PlantModel(pole_pairs=m.pole_pairs, emf_shape=m.back_emf_shape,
-                      hall_offset_deg=se.hall_offset_deg, hall_spacing_deg=float(se.hall_spacing_deg),
+                      hall_offset_deg=se.hall_offset_deg + hall_error_deg, hall_spacing_deg=float(se.hall_spacing_deg),
                       encoder_lines=se.encoder_lines, load_mode=load_mode,
                       diode_drop_v=diode_drop_v, perturb=pert, bus_capacitance_f=inv.bus_capacitance_f,
                       supply_sink_a=inv.supply_sink_a, brake_resistor_ohm=inv.brake_resistor_ohm,

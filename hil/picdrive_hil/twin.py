@@ -185,6 +185,13 @@ class Twin:
         Processor-in-the-loop: run this HEX on the PIC18 core instead of the C.
     enlarged_memory : bool
         With ``hex_file``: simulate 128 KB flash / 1.5 KB RAM (a HEX that does not fit the 18F4431).
+    hall_error_deg : float
+        Electrical degrees added to the motor's hall placement (the firmware's table stays the
+        profile's).
+
+    A profile with an ``[as_built]`` section (one drive of a tolerance study,
+    :mod:`picdrive.tolerances`) runs that drive: its deviations, drawn from its seed, multiply
+    ``perturb`` and add to ``hall_error_deg`` (:attr:`as_built`).
     """
 
     def __init__(self, profile, firmware_dir: str | Path | None = None, *,
@@ -195,9 +202,21 @@ class Twin:
                  speed_noise_rpm: float | None = None,
                  eeprom: bytes | None = None, diode_drop_v: float = 0.0,
                  power_on: bool = True,
-                 hex_file: str | Path | None = None, enlarged_memory: bool = False):
+                 hex_file: str | Path | None = None, enlarged_memory: bool = False,
+                 hall_error_deg: float = 0.0):
         from picdrive.profile import Profile, load_profile
         self.profile = profile if isinstance(profile, Profile) else load_profile(profile)
+        #: the drive off the line the profile's [as_built] section names (picdrive.tolerances.Deviation), or None
+        self.as_built = None
+        if self.profile.as_built_seed is not None:
+            from picdrive.tolerances import draw
+            from .plant import parse_perturb
+            self.as_built = draw(self.profile.tolerances, self.profile.as_built_seed)
+            merged = dict(parse_perturb(perturb, self.profile))
+            for k, f in self.as_built.plant_perturb().items():
+                merged[k] = merged.get(k, 1.0) * f
+            perturb = merged
+            hall_error_deg = hall_error_deg + self.as_built.hall_error_deg
         self.firmware_dir = Path(firmware_dir) if firmware_dir is not None else None
         self.hex_file = Path(hex_file) if hex_file is not None else None
         self.enlarged_memory = bool(enlarged_memory)
@@ -232,7 +251,7 @@ class Twin:
             self.board = board or BoardConfig()
             lib_path = build.build_library([firmware, build.twin_group(gen_dir())])
         self.model: PlantModel = plant_from_profile(self.profile, perturb, load_mode=load_mode,
-                                                    diode_drop_v=diode_drop_v)
+                                                    diode_drop_v=diode_drop_v, hall_error_deg=hall_error_deg)
         self._copy = build.private_copy(lib_path)
         self._lib = cmodel.bind_twin(C.CDLL(str(self._copy)))
         if self._pil_img is not None:

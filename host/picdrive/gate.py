@@ -36,7 +36,7 @@ from .design.dispatch import METHOD_MODULES
 from .errors import PicdriveError
 from .result import SCHEMA_ID, DesignResult, default_design_path, save_design
 
-__all__ = ["BuiltDrive", "speed_measurement", "bridge_hold_torque", "three_phase_plant", "twin_run", "run_design", "output_path",
+__all__ = ["BuiltDrive", "speed_measurement", "bridge_hold_torque", "three_phase_plant", "twin_run", "twin_scenario", "run_design", "output_path",
            "summary_lines", "register"]
 
 
@@ -141,48 +141,105 @@ def twin_run(profile, design_path, plan=None, *, workdir=None, perturb=None, see
     codegen) into ``workdir`` (a temporary folder by default), built as
     ``picdrive firmware`` builds it (the chip's HEX within every budget: a
     firmware over one raises CodegenError and nothing runs; its figures go to
-    ``figures``, see ``codegen.target_build``) and run unchanged in the twin.  Commands go in as frames over the twin's UART
-    (``link_timeout`` to its maximum, the speed setpoint, start); t = 0 is the
-    firmware's first sample in RUN (one PWM period before its first duty); the
-    load-torque step is applied at ``plan["t_load_s"]`` on that clock.
-    Returns an object with what :func:`step_figures` reads (``t``, ``rpm``,
-    ``omega``, ``omega_fine``, ``i_fine``): the true rotor speed at the law's
-    sample instants and every 100 us, the largest phase current."""
+    ``figures``, see ``codegen.target_build``) and run unchanged in the twin
+    (:func:`twin_scenario`).  Returns what :func:`twin_scenario` returns."""
     import tempfile
     from pathlib import Path
+
+    from .firmware import codegen
+    fw = codegen.generate(profile, str(design_path))
+    with tempfile.TemporaryDirectory(prefix="picdrive-twin-run-") as tmp:
+        # built as 'picdrive firmware' builds it: the host compile check and the chip's HEX within
+        # every budget (CodegenError, a PicdriveError, when it does not fit: nothing runs)
+        out = codegen.write_firmware(fw, Path(workdir or tmp) / "fw", check=True, hex_build=True, figures=figures)
+        return twin_scenario(profile, out, fw.table, plan, perturb=perturb, seed=seed)
+
+
+#: simulated time the processor twin runs before the scenario's first frame, s: the HEX's C start-up
+#: (RAM clear, initialised data, fw_init) must have enabled the EUSART, or the frames are lost
+PROCESSOR_BOOT_S = 0.02
+
+
+def twin_scenario(profile, firmware_dir, table, plan=None, *, hex_file=None, perturb=None, seed: int | None = None,
+                  load_factor: float | None = None):
+    """The verification's step and load step on a built firmware in the motor twin, free-running.
+
+    Parameters
+    ----------
+    profile : picdrive.profile.Profile
+        The drive; with an ``[as_built]`` section, that drive off the line (the twin applies its
+        deviations, :class:`picdrive_hil.twin.Twin`; its load-torque factor scales the load step
+        and its seed is the noise seed unless ``seed`` is given).
+    firmware_dir : str or pathlib.Path or None
+        The generated firmware folder (its C runs on this machine); with ``hex_file`` only its
+        ``board.json`` is read (None: the one beside the HEX).
+    table : picdrive.link.protocol.Table
+        The firmware's parameter table (``codegen.generate(...).table``): the ids and scales of the
+        frames the scenario sends.
+    plan : dict, optional
+        :func:`picdrive.analysis.steptest.sim_plan` (default: the profile's).
+    hex_file : str or pathlib.Path, optional
+        The processor twin: this HEX on the PIC18 simulator.
+    perturb : mapping, optional
+        Plant perturbations (``picdrive_hil.plant.PERTURB_KEYS``), factors.
+    seed : int, optional
+        The twin's noise seed.
+    load_factor : float, optional
+        Factor on the plan's load step (default: the as-built drive's, else 1).
+
+    Returns
+    -------
+    types.SimpleNamespace
+        What :func:`picdrive.analysis.steptest.step_figures` reads (``t``, ``rpm``, ``omega``,
+        ``omega_fine``, ``i_fine``: the true rotor speed at the law's sample instants and every
+        100 us, the largest phase current) and ``faults``, the board's faults at the end (a
+        latched overcurrent trip, the bridge switched off), each a phrase.
+
+    Commands go in as frames over the twin's UART (``link_timeout`` to its maximum, the speed
+    setpoint, start); t = 0 is the firmware's first sample in RUN (one PWM period before its
+    first duty); the load-torque step is applied at ``plan["t_load_s"]`` on that clock.
+    """
     from types import SimpleNamespace
 
     from picdrive_hil.scenario import step_and_load
     from picdrive_hil.twin import Twin
 
-    from .firmware import codegen
     from .link import codec
     plan = plan or sim_plan(profile)
-    fw = codegen.generate(profile, str(design_path))
-    table = {e.name: e for e in fw.table.entries}
+    table = {e.name: e for e in table.entries}
     e_sp, e_to = table["speed_setpoint"], table["link_timeout"]
     ts = 1.0 / profile.control.speed_loop_hz
-    with tempfile.TemporaryDirectory(prefix="picdrive-twin-run-") as tmp:
-        # built as 'picdrive firmware' builds it: the host compile check and the chip's HEX within
-        # every budget (CodegenError, a PicdriveError, when it does not fit: nothing runs)
-        out = codegen.write_firmware(fw, Path(workdir or tmp) / "fw", check=True, hex_build=True, figures=figures)
-        tw = Twin(profile, out, perturb=perturb, seed=seed)
-        try:
-            seq = iter(range(1, 200))
+    if seed is None:
+        seed = profile.as_built_seed or 0
+    tw = Twin(profile, firmware_dir, perturb=perturb, seed=seed, hex_file=hex_file)
+    try:
+        if load_factor is None:
+            load_factor = tw.as_built.load_factor if tw.as_built is not None else 1.0
+        if tw.processor:
+            # the HEX's C start-up (RAM clear, initialised data) runs before the UART listens
+            tw.run(PROCESSOR_BOOT_S)
+        seq = iter(range(1, 200))
 
-            def send(cmd, args=None):
-                tw.uart_write(codec.encode_command(cmd, next(seq), args))
-            send("param_set", {"id": e_to.id, "value": e_to.max_raw})
-            send("set_speed", {"value": int(round(plan["target_rpm"] / e_sp.scale))})
-            tw.run(0.005)
-            # t = 0: one PWM period before the first duty (the firmware's first sample in RUN)
-            run = step_and_load(tw, load_n_m=plan["load_n_m"], load_after_s=plan["t_load_s"],
-                                load_for_s=plan["t_end_s"] - plan["t_load_s"] + ts, dt_s=1e-4,
-                                start_seq=next(seq), from_switch_on=True,
-                                on_offset_s=-1.0 / profile.inverter.pwm_frequency_hz)
-            parts, t0 = run.parts, run.t_zero_s
-        finally:
-            tw.close()
+        def send(cmd, args=None):
+            tw.uart_write(codec.encode_command(cmd, next(seq), args))
+        send("param_set", {"id": e_to.id, "value": e_to.max_raw})
+        send("set_speed", {"value": int(round(plan["target_rpm"] / e_sp.scale))})
+        tw.run(0.005)
+        # t = 0: one PWM period before the first duty (the firmware's first sample in RUN)
+        run = step_and_load(tw, load_n_m=plan["load_n_m"] * load_factor, load_after_s=plan["t_load_s"],
+                            load_for_s=plan["t_end_s"] - plan["t_load_s"] + ts, dt_s=1e-4,
+                            start_seq=next(seq), from_switch_on=True,
+                            on_offset_s=-1.0 / profile.inverter.pwm_frequency_hz)
+        parts, t0 = run.parts, run.t_zero_s
+        st = tw.state()
+        faults = []
+        if st["pwm_fault_latched"]:
+            faults.append("overcurrent trip latched (FLTA)")
+        if not st["outputs_active"]:
+            faults.append(f"the firmware switched the bridge off (at t = {st['outputs_off_t_s'] - t0:.4g} s)"
+                          if st["outputs_off_t_s"] is not None else "the firmware switched the bridge off")
+    finally:
+        tw.close()
     t = np.concatenate([p["t_s"] for p in parts]) - t0
     w = np.concatenate([p["w_rad_s"] for p in parts])
     i = np.concatenate([np.max(np.abs(np.stack([p["i_a"], p["i_b"], p["i_c"]])), axis=0) for p in parts])
@@ -194,7 +251,7 @@ def twin_run(profile, design_path, plan=None, *, workdir=None, perturb=None, see
     wk = np.interp(tk, t, w)
     sel = t >= 0
     return SimpleNamespace(t=tk, omega=wk, rpm=wk * 60 / (2 * math.pi), omega_fine=w[sel], i_fine=i[sel],
-                           t_fine=t[sel])
+                           t_fine=t[sel], faults=faults, load_n_m=plan["load_n_m"] * load_factor)
 
 
 def run_design(profile, method: str, *, progress: bool = True, **options: Any) -> DesignResult:

@@ -401,6 +401,10 @@ class Profile:
     path: Path | None = None
     sha256: str = ""
     raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+    #: the production tolerances (``[tolerances]``, defaults filled in: :mod:`picdrive.tolerances`)
+    tolerances: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+    #: the seed of one drive off the line (``[as_built]``): the twin runs that drive; None for the nominal
+    as_built_seed: int | None = None
 
     # -- derived quantities used in several places ------------------------
     @property
@@ -532,10 +536,18 @@ def _check_field(sec: str, key: str, v: Any, spec: tuple) -> Any:
     raise AssertionError(kind)  # schema bug
 
 
+#: sections that describe the drives off the line, not the drive the design and the firmware are made
+#: for: they are left out of the profile's hash, so declaring tolerances (or naming one drive of a
+#: tolerance study) keeps the profile's designs and firmware valid
+UNHASHED_SECTIONS = ("tolerances", "as_built")
+
+
 def _hash_raw(raw: dict) -> str:
     # Hash of the canonical resolved content, not the file bytes, so that
     # comments and formatting do not change the profile's identity.
     import json
+    if isinstance(raw, dict):
+        raw = {k: v for k, v in raw.items() if k not in UNHASHED_SECTIONS}
     return hashlib.sha256(json.dumps(raw, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
@@ -545,10 +557,11 @@ def _build(raw: dict[str, Any], path: Path | None, sha: str) -> Profile:
     schema = raw.get("schema", SCHEMA_ID)
     if schema != SCHEMA_ID:
         raise _fail("schema", schema, f"this picdrive reads {SCHEMA_ID!r}")
-    unknown_sections = sorted(set(raw) - set(SCHEMA) - {"schema"})
+    unknown_sections = sorted(set(raw) - set(SCHEMA) - {"schema"} - set(UNHASHED_SECTIONS))
     if unknown_sections:
         raise ProfileError(
-            f"profile has unknown section(s) {unknown_sections}; known sections are {sorted(SCHEMA)}")
+            f"profile has unknown section(s) {unknown_sections}; known sections are "
+            f"{sorted(SCHEMA) + list(UNHASHED_SECTIONS)}")
     vals: dict[str, dict[str, Any]] = {}
     for sec, spec in SCHEMA.items():
         given = raw.get(sec, {})
@@ -655,6 +668,13 @@ def _build(raw: dict[str, Any], path: Path | None, sha: str) -> Profile:
         control=Control(**co), uart=Uart(**vals["uart"]), design=de,
         path=path, sha256=sha, raw=raw,
     )
+    from .tolerances import ToleranceError, parse_as_built, parse_tolerances
+    try:
+        tol = parse_tolerances(raw.get("tolerances"), p)
+        seed = parse_as_built(raw.get("as_built"))
+    except ToleranceError as e:
+        raise ProfileError(str(e)) from None
+    p = dataclasses.replace(p, tolerances=tol, as_built_seed=seed)
     _check_simulation_size(p)
     reach = p.max_reachable_rpm()
     if co["speed_max_rpm"] > reach:
@@ -728,6 +748,12 @@ def schema_markdown() -> str:
         "",
         f"A profile file is read only if it is a regular file of at most {PROFILE_MAX_BYTES // 1024} KiB of UTF-8 text:",
         "a FIFO, a device (`/dev/zero`) or a folder is refused before it is opened.",
+        "",
+        "Two optional sections describe the drives off the line rather than the drive the design and the",
+        "firmware are made for, and are left out of the profile's hash (declaring them keeps the profile's",
+        "designs and firmware valid): `[tolerances]`, the production spread of each parameter that",
+        "`picdrive robustness` draws from, and `[as_built]`, one drive of such a study named by its `seed`,",
+        "which `picdrive twin` runs.  Their fields, distributions and defaults: `docs/robustness.md`.",
         "",
     ]
     for sec, spec in SCHEMA.items():

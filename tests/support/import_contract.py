@@ -24,7 +24,7 @@ from pathlib import Path
 # "picdrive.models" matches the module and everything under it; the first matching layer wins.
 LAYERS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "core": (("picdrive.errors", "picdrive.fileio", "picdrive.paths", "picdrive.outputs", "picdrive.argtypes",
-              "picdrive.profile", "picdrive.board", "picdrive.commutation", "picdrive.control_law",
+              "picdrive.profile", "picdrive.tolerances", "picdrive.board", "picdrive.commutation", "picdrive.control_law",
               "picdrive.result", "picdrive.__init__"), ()),
     "models": (("picdrive.models",), ("core",)),
     "analysis": (("picdrive.analysis",), ("models", "core")),
@@ -33,12 +33,14 @@ LAYERS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "firmware": (("picdrive.firmware",), ("link", "core")),
     "twin": (("picdrive_hil",), ("firmware", "link", "core")),
     "gate": (("picdrive.gate",), ("design", "analysis", "models", "twin", "firmware", "link", "core")),
+    # the tolerance study: the verification's scenario (gate) on drives drawn from the tolerances
+    "robustness": (("picdrive.robustness",), ("gate", "design", "analysis", "twin", "firmware", "link", "core")),
     "papers": (("picdrive.papers",), ("gate", "design", "analysis", "models", "core")),
     # the console talks to the firmware through the link; it takes the law -> parameter mapping from
     # the firmware, its owner (fixedpoint.law_parameters), instead of rebuilding it
     "console": (("picdrive.console",), ("firmware", "link", "analysis", "core")),
     "app": (("picdrive.cli", "picdrive.__main__", "picdrive.demo"),
-            ("console", "papers", "gate", "design", "analysis", "models", "twin", "firmware", "link", "core")),
+            ("robustness", "console", "papers", "gate", "design", "analysis", "models", "twin", "firmware", "link", "core")),
 }
 ROOTS = ("picdrive", "picdrive_hil")      # the packages whose imports are checked
 

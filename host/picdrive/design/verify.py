@@ -96,7 +96,7 @@ from ..models.tfmodel import motor_tf, sampled_plant, simulate_sampled
 from ..models.tsfuzzy import model_for
 
 __all__ = ["verify_design", "pid_model_checks", "failure_message", "BLOCKING_CHECKS", "DRIVE_LIMIT_CHECKS",
-           "drive_limit_failed"]
+           "drive_limit_failed", "RUN_FIGURES", "run_limits", "failed_figures", "run_failures"]
 
 
 # ---------------------------------------------------------------------------
@@ -263,27 +263,34 @@ def _certificate_checks(profile, result) -> dict:
 # Nonlinear simulation on the six-step drive
 # ---------------------------------------------------------------------------
 #: the figures of a verification run that are checked, with their names in a message and their units
-_RUN_FIGURES = (("settling_s", "settling (2 % band)", "s"), ("overshoot_pct", "overshoot", "%"),
+RUN_FIGURES = (("settling_s", "settling (2 % band)", "s"), ("overshoot_pct", "overshoot", "%"),
                 ("load_recovery_s", "recovery after the load step", "s"), ("final_error_rpm", "final error", "rpm"),
                 ("peak_current_ripple_a", "peak line current", "A"))
 
 
-def _run_limits(profile, plan) -> dict:
-    """The limit of each figure of :data:`_RUN_FIGURES` as the checks apply it (the real one)."""
+def run_limits(profile, plan) -> dict:
+    """The limit of each figure of :data:`RUN_FIGURES` as the checks apply it (the real one)."""
     tl, t_end, band = plan["t_load_s"], plan["t_end_s"], VerifyConfig.band
     return {"settling_s": 0.8 * tl, "overshoot_pct": 100 * band, "load_recovery_s": 0.8 * (t_end - tl),
             "final_error_rpm": band * plan["target_rpm"], "peak_current_ripple_a": profile.inverter.overcurrent_trip_a}
 
 
-def _run_failures(fr: dict, limits: dict, where: str) -> list[str]:
-    """What failed in one run's figures ``fr`` against ``limits``: one phrase per figure, with both numbers."""
+def failed_figures(fr: dict, limits: dict) -> list[str]:
+    """The keys of :data:`RUN_FIGURES` whose figure in ``fr`` misses its limit in ``limits`` (the final
+    error by its magnitude; the overshoot may reach its limit, the others must stay below)."""
     out = []
-    for key, name, unit in _RUN_FIGURES:
+    for key, _name, _unit in RUN_FIGURES:
         v, lim = fr[key], limits[key]
-        bad = abs(v) > lim if key == "final_error_rpm" else (v > lim if key == "overshoot_pct" else not v < lim)
-        if bad:
-            out.append(f"{where}: {name} {_num(v)} {unit} (limit {_num(lim)} {unit})")
+        if abs(v) > lim if key == "final_error_rpm" else (v > lim if key == "overshoot_pct" else not v < lim):
+            out.append(key)
     return out
+
+
+def run_failures(fr: dict, limits: dict, where: str) -> list[str]:
+    """What failed in one run's figures ``fr`` against ``limits``: one phrase per figure, with both numbers."""
+    bad = failed_figures(fr, limits)
+    return [f"{where}: {name} {_num(fr[key])} {unit} (limit {_num(limits[key])} {unit})"
+            for key, name, unit in RUN_FIGURES if key in bad]
 
 
 def _num(v) -> str:
@@ -305,7 +312,7 @@ def _sim_checks(profile, law, drive) -> dict:
     tl = plan["t_load_s"]
     t_end = plan["t_end_s"]
     band = VerifyConfig.band
-    lims = _run_limits(profile, plan)
+    lims = run_limits(profile, plan)
     out["sim_step_target_rpm"] = {"value": target, "limit": plan["profile_target_rpm"], "ok": True, "unit": "rpm",
                                   "note": "profile.speed_step_rpm() (a figure, not a check)"}
     # the step as the drive shows it (the sim_* figures), and apart from it the same run with the verification's
@@ -381,9 +388,9 @@ def _sim_checks(profile, law, drive) -> dict:
     try:
         sd = run_sim(profile, law, plan, measurement=measurement, three_phase=drive.three_phase_plant)
         fd = step_figures(sd, plan, profile)
-        dist = {k: round(fd[k], 4) for k, _, _ in _RUN_FIGURES}
+        dist = {k: round(fd[k], 4) for k, _, _ in RUN_FIGURES}
         dist["current_backup_samples"] = int(np.sum(sd.cap_active))
-        fails = _run_failures(fd, lims, "with the disturbance")
+        fails = run_failures(fd, lims, "with the disturbance")
         if dist["current_backup_samples"]:
             fails.append(f"with the disturbance: the current walk-down backup engaged for "
                          f"{dist['current_backup_samples']} samples (limit 0)")
@@ -408,8 +415,8 @@ def _sim_checks(profile, law, drive) -> dict:
             fails.append(f"R x {rs:g}: the simulation diverged")
             worst[f"R x {rs:g}"] = "diverged"
             continue
-        fails += _run_failures(fr, lims, f"R x {rs:g}")
-        worst[f"R x {rs:g}"] = {k: round(fr[k], 4) for k, _, _ in _RUN_FIGURES}
+        fails += run_failures(fr, lims, f"R x {rs:g}")
+        worst[f"R x {rs:g}"] = {k: round(fr[k], 4) for k, _, _ in RUN_FIGURES}
     out["sim_resistance_uncertainty"] = {"value": worst, "limit": {k: round(v, 4) for k, v in lims.items()},
                                          "ok": not fails, "unit": "", "failures": fails,
                                          "note": f"step and load step with R x (1 -+ {eps:g})"}
@@ -422,10 +429,10 @@ def _half_speed_check(profile, law, drive, plan, measurement) -> dict:
 
     A law checked at the target alone can limit-cycle lower down: from the halls the speed is a
     sector's mean, updated once a sector, so the measurement's lag grows as the speed falls (at
-    half the target it is twice the target's).  Judged as the target's run is (:func:`_run_limits`
+    half the target it is twice the target's).  Judged as the target's run is (:func:`run_limits`
     of the half-speed plan), less the overshoot, which is a figure here."""
     half = dict(plan, target_rpm=0.5 * plan["target_rpm"])
-    lims = {**_run_limits(profile, half), "overshoot_pct": math.inf}
+    lims = {**run_limits(profile, half), "overshoot_pct": math.inf}
     note = (f"step from rest to {half['target_rpm']:.0f} rpm and the load step there, R nominal, "
             + ("speed from the halls (a sector's mean: its lag doubles at half speed)"
                if profile.sensors.speed_source == "hall" else "speed from the encoder")
@@ -437,8 +444,8 @@ def _half_speed_check(profile, law, drive, plan, measurement) -> dict:
     except FloatingPointError:
         fails = [f"at {half['target_rpm']:.0f} rpm: the simulation diverged"]
         return {"value": "diverged", "limit": limit, "ok": False, "unit": "", "failures": fails, "note": note}
-    fails = _run_failures(f, lims, f"at {half['target_rpm']:.0f} rpm")
-    return {"value": {k: round(float(f[k]), 4) for k, _, _ in _RUN_FIGURES}, "limit": limit, "ok": not fails,
+    fails = run_failures(f, lims, f"at {half['target_rpm']:.0f} rpm")
+    return {"value": {k: round(float(f[k]), 4) for k, _, _ in RUN_FIGURES}, "limit": limit, "ok": not fails,
             "unit": "", "failures": fails, "note": note}
 
 
