@@ -178,7 +178,13 @@ def _hold_fix(profile, drive, tgt: float, rs: float) -> str:
         for _ in range(12):
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if margin(profile, mid) > 0 else (lo, mid)
-        held = f"control.reference_rpm at most {math.floor(lo):.0f} rpm (the highest speed it holds there)"
+        # 1 % below the edge: the sector-averaged torque is not smooth to the last rpm
+        held = (f"control.reference_rpm at most {math.floor(0.99 * lo):.0f} rpm (1 % below {lo:.0f} rpm, the highest "
+                "speed it holds there)")
+    dq = _dq_reachability(profile)
+    if dq is not None and not dq["ok"]:
+        # the dq model's limit is on the voltage alone: no hall advance passes it
+        return f"{held}; a hall advance would not pass dq_hold_rpm, which limits the speed on the voltage alone"
     off = profile.sensors.hall_offset_deg
     for adv in HALL_ADVANCES_DEG:
         q = profile.replace(sensors={"hall_offset_deg": math.remainder(off - adv, 360.0)})
@@ -211,9 +217,16 @@ def _dq_reachability(profile) -> dict | None:
     u_max = profile.inverter.bus_voltage_v * profile.max_duty()
     hold = max_speed_rad_s(p, p.kv_vq_per_u * u_max, profile.control.load_torque_n_m) / RPM
     tgt = profile.speed_step_rpm()
-    return {"value": hold, "limit": tgt, "ok": bool(hold >= tgt), "unit": "rpm",
-            "note": "speed the dq model (v_d = 0, sinusoidal motor) holds under the load at the bridge voltage; "
-                    "must reach the step target"}
+    out = {"value": hold, "limit": tgt, "ok": bool(hold >= tgt), "unit": "rpm",
+           "note": "speed the dq model (v_d = 0, sinusoidal motor) holds under the load at the bridge voltage; "
+                   "must reach the step target"}
+    if not out["ok"]:
+        # the held speed grows about in proportion to the voltage (the IR drop aside): a first estimate
+        bus = profile.inverter.bus_voltage_v
+        out["fix"] = (f"control.reference_rpm at most {math.floor(hold):.0f} rpm, or a bus of about "
+                      f"{math.ceil(bus * tgt / max(hold, 1e-9)):.0f} V (inverter.bus_voltage_v, from {bus:g} V, within "
+                      f"the {profile.inverter.switch_vds_max_v:g} V switch rating)")
+    return out
 
 
 # ---------------------------------------------------------------------------
