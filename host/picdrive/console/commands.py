@@ -20,6 +20,15 @@ __all__ = ["ConsoleError", "Quit", "Command", "COMMANDS", "ALIASES", "command", 
            "expects_fault", "state_name", "bundled_profile_by_hash", "board_time_s", "run_step"]
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGHUP or SIGTERM arrived: handled like Ctrl-C inside a command (the motor is stopped,
+    partial data kept), then the console ends instead of returning to the prompt."""
+
+    def __init__(self, signame: str):
+        super().__init__(signame)
+        self.signame = signame
+
+
 class ConsoleError(PicdriveError):
     """A console command failed; the message is the one line the user sees."""
 
@@ -1467,7 +1476,6 @@ def _scope(con, args):
         con.say(f"scope normal: {k} captures; plots {done[0]}" + (f" .. {done[-1]}" if k > 1 else "")
                 + ", data beside them (.csv)")
     except KeyboardInterrupt as e:
-        from .session import Terminated
         if isinstance(e, Terminated) or not con.interactive:
             raise                               # the console ends (or the script fails): motor stopped
         # Ctrl-C at the prompt ends the scope alone: the motor keeps doing what it did

@@ -53,7 +53,7 @@ from pathlib import Path
 from typing import Callable
 
 from ..errors import PicdriveError
-from .commands import (ALIASES, COMMANDS, NACK_WORDS, ConsoleError, Quit, bundled_profile_by_hash, expects_fault,
+from .commands import (ALIASES, COMMANDS, NACK_WORDS, ConsoleError, Quit, Terminated, bundled_profile_by_hash, expects_fault,
                        state_name)
 
 __all__ = ["Console", "Terminated", "default_history_path", "register", "main"]
@@ -62,15 +62,6 @@ PROMPT = "picdrive> "
 
 STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGHUP", "SIGTERM") if hasattr(signal, n))
 """Signals that end the console (terminal closed, killed): the motor is stopped first."""
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGHUP or SIGTERM arrived: handled like Ctrl-C inside a command (the motor is stopped,
-    partial data kept), then the console ends instead of returning to the prompt."""
-
-    def __init__(self, signame: str):
-        super().__init__(signame)
-        self.signame = signame
 
 
 def default_history_path() -> Path:
