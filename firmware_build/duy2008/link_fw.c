@@ -18,6 +18,11 @@
  */
 #include <stddef.h>
 #include "link_fw.h"
+#if defined(__SDCC_pic16)
+/* the registers the assembly names (p18f4431.inc's names): SDCC declares every SFR of the device
+ * header to the assembler */
+#include <xc.h>
+#endif
 
 
 #ifndef LINK_CRITICAL_BEGIN
@@ -322,21 +327,21 @@ static void mcopy_n(uint8_t n) LINK_WPARAM __naked  /* cp_d[0..n-1] = cp_s[0..n-
 {
     (void)n;
     __asm
-    MOVWF   0xFF3, A                ; PRODL = n
-    MOVF    0xFF3, F, A
+    MOVWF   _PRODL, A               ; PRODL = n
+    MOVF    _PRODL, F, A
     BZ      lmc_end
 lmc_loop:
-    MOVFF   _cp_s, 0xFE9            ; PRODH = *cp_s++ (FSR0 only: FSR2 is the frame pointer of an
-    MOVFF   (_cp_s + 1), 0xFEA      ; interrupt function, which saves only its low byte)
-    MOVFF   0xFEE, 0xFF4
-    MOVFF   0xFE9, _cp_s
-    MOVFF   0xFEA, (_cp_s + 1)
-    MOVFF   _cp_d, 0xFE9            ; *cp_d++ = PRODH
-    MOVFF   (_cp_d + 1), 0xFEA
-    MOVFF   0xFF4, 0xFEE
-    MOVFF   0xFE9, _cp_d
-    MOVFF   0xFEA, (_cp_d + 1)
-    DECFSZ  0xFF3, F, A
+    MOVFF   _cp_s, _FSR0L           ; PRODH = *cp_s++ (FSR0 only: FSR2 is the frame pointer of an
+    MOVFF   (_cp_s + 1), _FSR0H     ; interrupt function, which saves only its low byte)
+    MOVFF   _POSTINC0, _PRODH
+    MOVFF   _FSR0L, _cp_s
+    MOVFF   _FSR0H, (_cp_s + 1)
+    MOVFF   _cp_d, _FSR0L           ; *cp_d++ = PRODH
+    MOVFF   (_cp_d + 1), _FSR0H
+    MOVFF   _PRODH, _POSTINC0
+    MOVFF   _FSR0L, _cp_d
+    MOVFF   _FSR0H, (_cp_d + 1)
+    DECFSZ  _PRODL, F, A
     BRA     lmc_loop
 lmc_end:
     RETURN
@@ -347,17 +352,17 @@ static void mzero_n(uint8_t n) LINK_WPARAM __naked  /* cp_d[0..n-1] = 0 */
 {
     (void)n;
     __asm
-    MOVWF   0xFF3, A
-    MOVF    0xFF3, F, A
+    MOVWF   _PRODL, A
+    MOVF    _PRODL, F, A
     BZ      lmz_end
-    MOVFF   _cp_d, 0xFE9
-    MOVFF   (_cp_d + 1), 0xFEA
+    MOVFF   _cp_d, _FSR0L
+    MOVFF   (_cp_d + 1), _FSR0H
 lmz_loop:
-    CLRF    0xFEE, A                ; POSTINC0
-    DECFSZ  0xFF3, F, A
+    CLRF    _POSTINC0, A            ; POSTINC0
+    DECFSZ  _PRODL, F, A
     BRA     lmz_loop
-    MOVFF   0xFE9, _cp_d
-    MOVFF   0xFEA, (_cp_d + 1)
+    MOVFF   _FSR0L, _cp_d
+    MOVFF   _FSR0H, (_cp_d + 1)
 lmz_end:
     RETURN
     __endasm;
@@ -368,17 +373,17 @@ static uint8_t rom_next(void) __naked  /* link_rom[link_hot.ro++]: the module's 
     __asm
     MOVLW   LOW(_link_rom)
     ADDWF   (_link_hot + 6), W, A   ; TBLPTR = link_rom + ro
-    MOVWF   0xFF6, A
+    MOVWF   _TBLPTRL, A
     MOVLW   HIGH(_link_rom)
     ADDWFC  (_link_hot + 7), W, A
-    MOVWF   0xFF7, A
-    CLRF    0xFF8, A                ; (CLRF and MOVLW keep the carry)
+    MOVWF   _TBLPTRH, A
+    CLRF    _TBLPTRU, A             ; (CLRF and MOVLW keep the carry)
     MOVLW   UPPER(_link_rom)
-    ADDWFC  0xFF8, F, A
+    ADDWFC  _TBLPTRU, F, A
     TBLRD*
     INFSNZ  (_link_hot + 6), F, A   ; ro++
     INCF    (_link_hot + 7), F, A
-    MOVF    0xFF5, W, A             ; TABLAT
+    MOVF    _TABLAT, W, A           ; TABLAT
     RETURN
     __endasm;
 }
@@ -420,27 +425,27 @@ static uint8_t rom_next(void)          /* link_rom[link_hot.ro++]: the module's 
 static uint8_t mask_nsig(void) __naked     /* PROD shifts, TABLAT counts */
 {
     __asm
-    MOVFF   (_rx_buf + 3), 0xFF3    ; PRODL, PRODH = R(0), R(1)
-    MOVFF   (_rx_buf + 4), 0xFF4
+    MOVFF   (_rx_buf + 3), _PRODL   ; PRODL, PRODH = R(0), R(1)
+    MOVFF   (_rx_buf + 4), _PRODH
     MOVLW   0xF8
-    ANDWF   0xFF4, W, A
+    ANDWF   _PRODH, W, A
     BNZ     lmn_bad
     MOVLW   0x00
-    ANDWF   0xFF3, W, A
+    ANDWF   _PRODL, W, A
     BNZ     lmn_bad
-    CLRF    0xFF5, A
+    CLRF    _TABLAT, A
 lmn_loop:
-    MOVF    0xFF3, W, A
-    IORWF   0xFF4, W, A
+    MOVF    _PRODL, W, A
+    IORWF   _PRODH, W, A
     BZ      lmn_end
-    BCF     0xFD8, 0, A
-    RRCF    0xFF4, F, A
-    RRCF    0xFF3, F, A
-    BTFSC   0xFD8, 0, A
-    INCF    0xFF5, F, A
+    BCF     _STATUS, 0, A
+    RRCF    _PRODH, F, A
+    RRCF    _PRODL, F, A
+    BTFSC   _STATUS, 0, A
+    INCF    _TABLAT, F, A
     BRA     lmn_loop
 lmn_end:
-    MOVF    0xFF5, W, A
+    MOVF    _TABLAT, W, A
     RETURN
 lmn_bad:
     RETLW   0
@@ -467,29 +472,29 @@ static uint8_t mask_nsig(void)
 #define CRC_INIT() do { crc_hi = 0xFFu; crc_lo = 0xFFu; } while (0)
 
 #if defined(__SDCC_pic16)
-/* the same steps in PIC18 assembly (20 cycles instead of 70; x in PRODL (0xFF3), a rotation in PRODH (0xFF4):
+/* the same steps in PIC18 assembly (20 cycles instead of 70; x in PRODL, a rotation in PRODH:
  * scratch registers the compiler does not keep values in across a call) */
 static void crc_byte(uint8_t b) LINK_WPARAM __naked
 {
     (void)b;
     __asm
     XORWF   (_link_hot + 3), W, A      ; x = hi ^ b
-    MOVWF   0xFF3, A
-    SWAPF   0xFF3, W, A
+    MOVWF   _PRODL, A
+    SWAPF   _PRODL, W, A
     ANDLW   0x0F
-    XORWF   0xFF3, F, A         ; x ^= x >> 4
-    SWAPF   0xFF3, W, A
+    XORWF   _PRODL, F, A        ; x ^= x >> 4
+    SWAPF   _PRODL, W, A
     ANDLW   0xF0                ; x << 4
     XORWF   (_link_hot + 4), W, A
     MOVWF   (_link_hot + 3), A         ; hi = lo ^ (x << 4)
-    SWAPF   0xFF3, W, A
-    RLNCF   0xFE8, W, A         ; x rotated right by 3
-    MOVWF   0xFF4, A
+    SWAPF   _PRODL, W, A
+    RLNCF   _WREG, W, A         ; x rotated right by 3
+    MOVWF   _PRODH, A
     ANDLW   0x1F                ; x >> 3
     XORWF   (_link_hot + 3), F, A      ; hi ^= x >> 3
-    MOVF    0xFF4, W, A
+    MOVF    _PRODH, W, A
     ANDLW   0xE0                ; x << 5
-    XORWF   0xFF3, W, A
+    XORWF   _PRODL, W, A
     MOVWF   (_link_hot + 4), A         ; lo = x ^ (x << 5)
     RETURN
     __endasm;
@@ -510,20 +515,20 @@ static void crc_n(uint8_t n) LINK_WPARAM __naked   /* TABLAT counts (crc_byte ke
 {
     (void)n;
     __asm
-    MOVWF   0xFF5, A
+    MOVWF   _TABLAT, A
     SETF    (_link_hot + 3), A      ; CRC_INIT
     SETF    (_link_hot + 4), A
-    MOVF    0xFF5, F, A
+    MOVF    _TABLAT, F, A
     BZ      lcrc_end
-    MOVFF   _cp_s, 0xFE9
-    MOVFF   (_cp_s + 1), 0xFEA
+    MOVFF   _cp_s, _FSR0L
+    MOVFF   (_cp_s + 1), _FSR0H
 lcrc_loop:
-    MOVF    0xFEE, W, A             ; POSTINC0
+    MOVF    _POSTINC0, W, A         ; POSTINC0
     CALL    _crc_byte
-    DECFSZ  0xFF5, F, A
+    DECFSZ  _TABLAT, F, A
     BRA     lcrc_loop
-    MOVFF   0xFE9, _cp_s
-    MOVFF   0xFEA, (_cp_s + 1)
+    MOVFF   _FSR0L, _cp_s
+    MOVFF   _FSR0H, (_cp_s + 1)
 lcrc_end:
     RETURN
     __endasm;
@@ -575,8 +580,8 @@ static void row_of(uint8_t idx) LINK_WPARAM __naked   /* link_hot.ro = the entry
     (void)idx;
     __asm
     MULLW   14
-    MOVFF   0xFF3, (_link_hot + 6)
-    MOVFF   0xFF4, (_link_hot + 7)
+    MOVFF   _PRODL, (_link_hot + 6)
+    MOVFF   _PRODH, (_link_hot + 7)
     RETURN
     __endasm;
 }
@@ -600,7 +605,7 @@ static void entry_load(uint8_t idx) LINK_WPARAM __naked   /* link_hot.e_off, lin
     ADDLW   164                 ; rom_at(ROM_OFF + idx)
     MOVWF   (_link_hot + 6), A
     MOVLW   1
-    BTFSC   0xFD8, 0, A
+    BTFSC   _STATUS, 0, A
     ADDLW   1
     MOVWF   (_link_hot + 7), A
     CALL    _rom_next
@@ -629,24 +634,24 @@ static void entry_load(uint8_t idx) LINK_WPARAM   /* link_hot.e_off, link_hot.e_
 static void sign_extend(void) __naked      /* PRODL the fill byte, PRODH the index, FSR0 at V */
 {
     __asm
-    CLRF    0xFF3, A
+    CLRF    _PRODL, A
     MOVLW   0x7F
     ANDWF   (_link_hot + 9), W, A   ; e_sz
-    MOVWF   0xFF4, A
+    MOVWF   _PRODH, A
     LFSR    0, (_V - 1)
     BTFSS   (_link_hot + 9), 7, A
     BRA     lse_fill
-    BTFSC   0xFEB, 7, A             ; V.b[n - 1] (PLUSW0) negative: fill with 0xFF
-    SETF    0xFF3, A
+    BTFSC   _PLUSW0, 7, A           ; V.b[n - 1] (PLUSW0) negative: fill with 0xFF
+    SETF    _PRODL, A
 lse_fill:
     LFSR    0, _V
 lse_loop:
     MOVLW   0x04
-    CPFSLT  0xFF4, A                ; index < 4: store the fill
+    CPFSLT  _PRODH, A               ; index < 4: store the fill
     RETURN
-    MOVF    0xFF4, W, A
-    MOVFF   0xFF3, 0xFEB            ; V.b[index] = fill (PLUSW0)
-    INCF    0xFF4, F, A
+    MOVF    _PRODH, W, A
+    MOVFF   _PRODL, _PLUSW0         ; V.b[index] = fill (PLUSW0)
+    INCF    _PRODH, F, A
     BRA     lse_loop
     __endasm;
 }
@@ -683,16 +688,16 @@ static void value_at(uint8_t idx) LINK_WPARAM __naked      /* V = parameter or s
 {
     (void)idx;
     __asm
-    MOVWF   0xFF3, A                ; PRODL = idx
+    MOVWF   _PRODL, A               ; PRODL = idx
     CALL    _entry_load
     INCF    (_link_hot + 8), W, A   ; e_off == NONE: a signal
     BNZ     lva_store
     MOVLW   11
-    SUBWF   0xFF3, W, A             ; app_signal(idx - SIG_INDEX): low byte in W, high in PRODL
+    SUBWF   _PRODL, W, A            ; app_signal(idx - SIG_INDEX): low byte in W, high in PRODL
     CALL    _app_signal
     BANKSEL _V
     MOVWF   _V, B
-    MOVFF   0xFF3, (_V + 1)
+    MOVFF   _PRODL, (_V + 1)
     GOTO    _sign_extend
 lva_store:
     GOTO    _store_get
@@ -725,39 +730,39 @@ static uint8_t rom_cmp(uint8_t above) LINK_WPARAM __naked
 {
     (void)above;
     __asm
-    MOVWF   0xFE5, A                ; POSTDEC1
+    MOVWF   _POSTDEC1, A            ; POSTDEC1
     CALL    _rom_next
-    MOVWF   0xFF3, A
+    MOVWF   _PRODL, A
     CALL    _rom_next
-    MOVWF   0xFF4, A
-    CLRF    0xFE9, A                ; the upper half: the fill of the entry size code (link_hot.e_sz)
+    MOVWF   _PRODH, A
+    CLRF    _FSR0L, A               ; the upper half: the fill of the entry size code (link_hot.e_sz)
     BTFSS   (_link_hot + 9), 7, A
     BRA     lrc_fill
-    BTFSC   0xFF4, 7, A
-    SETF    0xFE9, A
+    BTFSC   _PRODH, 7, A
+    SETF    _FSR0L, A
 lrc_fill:
-    MOVFF   0xFE9, 0xFF5            ; the top byte in TABLAT too (FSR0H holds 4 bits only)
-    MOVF    0xFE4, F, A             ; PREINC1: Z = below
+    MOVFF   _FSR0L, _TABLAT         ; the top byte in TABLAT too (FSR0H holds 4 bits only)
+    MOVF    _PREINC1, F, A          ; PREINC1: Z = below
     BANKSEL _V
     BNZ     lrc_above
-    MOVF    0xFF3, W, A             ; V - X
+    MOVF    _PRODL, W, A            ; V - X
     SUBWF   _V, W, B
-    MOVF    0xFF4, W, A
+    MOVF    _PRODH, W, A
     SUBWFB  (_V + 1), W, B
-    MOVF    0xFE9, W, A
+    MOVF    _FSR0L, W, A
     SUBWFB  (_V + 2), W, B
-    MOVF    0xFF5, W, A
+    MOVF    _TABLAT, W, A
     SUBWFB  (_V + 3), W, B
     BRA     lrc_sign
 lrc_above:
     MOVF    _V, W, B                ; X - V
-    SUBWF   0xFF3, W, A
+    SUBWF   _PRODL, W, A
     MOVF    (_V + 1), W, B
-    SUBWFB  0xFF4, W, A
+    SUBWFB  _PRODH, W, A
     MOVF    (_V + 2), W, B
-    SUBWFB  0xFE9, W, A
+    SUBWFB  _FSR0L, W, A
     MOVF    (_V + 3), W, B
-    SUBWFB  0xFF5, W, A
+    SUBWFB  _TABLAT, W, A
 lrc_sign:
     BOV     lrc_ov
     BN      lrc_lt
@@ -839,10 +844,10 @@ int16_t link_param_i16(uint8_t id) LINK_WPARAM __naked
     (void)id;
     __asm
     CALL    _entry_index
-    MOVWF   0xFF3, A
-    INCF    0xFF3, W, A             ; NONE: unknown id, 0
+    MOVWF   _PRODL, A
+    INCF    _PRODL, W, A            ; NONE: unknown id, 0
     BZ      lpi_zero
-    MOVF    0xFF3, W, A
+    MOVF    _PRODL, W, A
     CALL    _value_at
     BANKSEL _V
     MOVLW   0x00                    ; the sign extension of the low half
@@ -852,21 +857,21 @@ int16_t link_param_i16(uint8_t id) LINK_WPARAM __naked
     BRA     lpi_sat
     CPFSEQ  (_V + 3), B
     BRA     lpi_sat
-    MOVFF   (_V + 1), 0xFF3
+    MOVFF   (_V + 1), _PRODL
     MOVF    _V, W, B
     RETURN
 lpi_sat:
     BTFSC   (_V + 3), 7, B
     BRA     lpi_min
     MOVLW   0x7F                    ; INT16_MAX
-    MOVWF   0xFF3, A
+    MOVWF   _PRODL, A
     RETLW   0xFF
 lpi_min:
     MOVLW   0x80                    ; INT16_MIN
-    MOVWF   0xFF3, A
+    MOVWF   _PRODL, A
     RETLW   0x00
 lpi_zero:
-    CLRF    0xFF3, A
+    CLRF    _PRODL, A
     RETLW   0x00
     __endasm;
 }
@@ -1152,27 +1157,24 @@ void link_event(uint8_t event, uint8_t code)
 
 /* ---- receive: the interrupt only stores the byte and marks the frame complete ---- */
 #if defined(__SDCC_pic16)
-/* the C below in PIC18 assembly: at most 20 cycles a byte, no register saved (b in W, kept in PRODL
- * (0xFF3), stored through FSR0 + W (PLUSW0, 0xFEB); the spill ring's read index copied to PRODH;
+/* the C below in PIC18 assembly: at most 20 cycles a byte, no register saved (b in W, kept in PRODL,
+ * stored through FSR0 + W (PLUSW0); the spill ring's read index copied to PRODH;
  * FSR0, PROD and BSR are saved by the interrupt's prologue) */
 void link_rx_byte(uint8_t b) LINK_WPARAM __naked
 {
     (void)b;
     __asm
-    extern  _PRODL
-    extern  _PRODH
-    extern  _PLUSW0
-    MOVWF   0xFF3, A
+    MOVWF   _PRODL, A
     MOVF    (_link_hot + 1), W, A      ; rx_ready
     BNZ     _lrx_spill          ; the main loop holds rx_buf: the byte waits in the spill ring
-    MOVF    0xFF3, F, A
+    MOVF    _PRODL, F, A
     BZ      _lrx_delim
     MOVLW   46          ; LINK_RX_BYTES
     CPFSLT  (_link_hot + 0), A         ; rx_n
     BRA     _lrx_long
     MOVF    (_link_hot + 0), W, A
     LFSR    0, _rx_buf
-    MOVFF   0xFF3, 0xFEB
+    MOVFF   _PRODL, _PLUSW0
     INCF    (_link_hot + 0), F, A      ; rx_buf[rx_n++] = b
     RETURN
 _lrx_long:
@@ -1240,26 +1242,26 @@ static uint8_t cobs_decode(void) __naked   /* rx_buf decoded in place; the last 
 {
     __asm
     DECF    (_link_hot + 0), W, A   ; rx_n - 1 bytes after the code byte
-    MOVWF   0xFF4, A
-    MOVFF   _rx_buf, 0xFF5          ; run = the code byte
+    MOVWF   _PRODH, A
+    MOVFF   _rx_buf, _TABLAT        ; run = the code byte
     LFSR    0, (_rx_buf + 1)
-    MOVF    0xFF4, F, A
+    MOVF    _PRODH, F, A
     BZ      lcd3_end
 lcd3_loop:
-    MOVF    0xFEF, W, A             ; INDF0
-    DECFSZ  0xFF5, F, A             ; the run ends here: a code byte, the zero it stands for
+    MOVF    _INDF0, W, A            ; INDF0
+    DECFSZ  _TABLAT, F, A           ; the run ends here: a code byte, the zero it stands for
     BRA     lcd3_put
-    MOVWF   0xFF5, A
+    MOVWF   _TABLAT, A
     MOVLW   0
 lcd3_put:
-    MOVWF   0xFF3, A
+    MOVWF   _PRODL, A
     MOVLW   0xFF
-    MOVFF   0xFF3, 0xFEB            ; FSR0[-1] (PLUSW0)
-    MOVF    0xFEE, F, A             ; FSR0++ (POSTINC0)
-    DECFSZ  0xFF4, F, A
+    MOVFF   _PRODL, _PLUSW0         ; FSR0[-1] (PLUSW0)
+    MOVF    _POSTINC0, F, A         ; FSR0++ (POSTINC0)
+    DECFSZ  _PRODH, F, A
     BRA     lcd3_loop
 lcd3_end:
-    MOVF    0xFF5, W, A
+    MOVF    _TABLAT, W, A
     RETURN
     __endasm;
 }
@@ -1372,18 +1374,18 @@ static void tx_seal(uint8_t type) LINK_WPARAM __naked   /* payload A(0..link_hot
 {
     (void)type;
     __asm
-    MOVFF   0xFE8, (_tx_buf + 2)    ; TYPE, LEN, SEQ
+    MOVFF   _WREG, (_tx_buf + 2)    ; TYPE, LEN, SEQ
     MOVFF   (_link_hot + 5), (_tx_buf + 1)
     MOVFF   (_S + 17), (_tx_buf + 3)
     MOVLW   LOW(_tx_buf + 1)        ; CRC over LEN .. payload
-    MOVFF   0xFE8, _cp_s
+    MOVFF   _WREG, _cp_s
     MOVLW   HIGH(_tx_buf + 1)
-    MOVFF   0xFE8, (_cp_s + 1)
+    MOVFF   _WREG, (_cp_s + 1)
     MOVF    (_link_hot + 5), W, A
     ADDLW   3
     CALL    _crc_n
-    MOVFF   (_link_hot + 3), 0xFEE  ; CRC high, low (POSTINC0)
-    MOVFF   (_link_hot + 4), 0xFEE
+    MOVFF   (_link_hot + 3), _POSTINC0 ; CRC high, low (POSTINC0)
+    MOVFF   (_link_hot + 4), _POSTINC0
     MOVF    (_link_hot + 5), W, A   ; tx_len = body + COBS code + delimiter
     ADDLW   7
     MOVWF   (_link_hot + 10), A
@@ -1391,24 +1393,24 @@ static void tx_seal(uint8_t type) LINK_WPARAM __naked   /* payload A(0..link_hot
     CLRF    (_S + 19), B            ; tx_pos = 0
     MOVF    (_link_hot + 5), W, A   ; count = body bytes
     ADDLW   5
-    MOVWF   0xFF4, A
+    MOVWF   _PRODH, A
     LFSR    0, (_tx_buf + 1)
     MOVLW   1
-    MOVWF   0xFF5, A                ; run = 1: the code byte is run bytes back
+    MOVWF   _TABLAT, A              ; run = 1: the code byte is run bytes back
 lts_loop:
-    MOVF    0xFEE, W, A             ; POSTINC0: a zero becomes the distance to the next one
+    MOVF    _POSTINC0, W, A         ; POSTINC0: a zero becomes the distance to the next one
     BNZ     lts_next
-    MOVF    0xFF5, W, A             ; *(this byte - run) = run: W = -run - 1 from FSR0 (one past it)
+    MOVF    _TABLAT, W, A           ; *(this byte - run) = run: W = -run - 1 from FSR0 (one past it)
     SUBLW   0xFF
-    MOVFF   0xFF5, 0xFEB            ; PLUSW0
-    CLRF    0xFF5, A
+    MOVFF   _TABLAT, _PLUSW0        ; PLUSW0
+    CLRF    _TABLAT, A
 lts_next:
-    INCF    0xFF5, F, A
-    DECFSZ  0xFF4, F, A
+    INCF    _TABLAT, F, A
+    DECFSZ  _PRODH, F, A
     BRA     lts_loop
-    MOVF    0xFF5, W, A             ; the last code byte: run back from one past the end
+    MOVF    _TABLAT, W, A           ; the last code byte: run back from one past the end
     SUBLW   0
-    MOVFF   0xFF5, 0xFEB
+    MOVFF   _TABLAT, _PLUSW0
     RETURN
     __endasm;
 }
@@ -1455,7 +1457,7 @@ static void tx_drain(void) __naked
     CALL    _app_tx_free
     IORLW   0
     BZ      ltd_ret
-    MOVWF   0xFE5, A                ; room (POSTDEC1)
+    MOVWF   _POSTDEC1, A            ; room (POSTDEC1)
 ltd_loop:
     BANKSEL _S
     DECF    (_link_hot + 10), W, A  ; tx_pos == tx_len - 1: only the delimiter is left
@@ -1463,12 +1465,12 @@ ltd_loop:
     BZ      ltd_end
     LFSR    0, _tx_buf
     MOVF    (_S + 19), W, B
-    MOVF    0xFEB, W, A             ; tx_buf[tx_pos] (PLUSW0)
+    MOVF    _PLUSW0, W, A           ; tx_buf[tx_pos] (PLUSW0)
     CALL    _app_tx_byte
     BANKSEL _S
     INCF    (_S + 19), F, B
     MOVLW   1
-    DECFSZ  0xFE3, F, A             ; room-- (PLUSW1)
+    DECFSZ  _PLUSW1, F, A           ; room-- (PLUSW1)
     BRA     ltd_loop
     BRA     ltd_pop
 ltd_end:
@@ -1476,7 +1478,7 @@ ltd_end:
     CALL    _app_tx_byte            ; the delimiter
     CLRF    (_link_hot + 10), A
 ltd_pop:
-    MOVF    0xFE4, F, A             ; drop room (PREINC1)
+    MOVF    _PREINC1, F, A          ; drop room (PREINC1)
 ltd_ret:
     RETURN
     __endasm;
@@ -1519,17 +1521,17 @@ static void rom_copy(uint8_t n) LINK_WPARAM __naked /* A(link_hot.n..) = n flash
 {
     (void)n;
     __asm
-    MOVWF   0xFF3, A                ; PRODL = n
-    MOVF    0xFF3, F, A
+    MOVWF   _PRODL, A               ; PRODL = n
+    MOVF    _PRODL, F, A
     BZ      lrc_end
 lrc_loop:
     CALL    _rom_next
-    MOVWF   0xFF4, A                ; PRODH = the byte
+    MOVWF   _PRODH, A               ; PRODH = the byte
     LFSR    0, (_tx_buf + 4)        ; A(0)
     MOVF    (_link_hot + 5), W, A   ; link_hot.n
-    MOVFF   0xFF4, 0xFEB            ; A(link_hot.n) (PLUSW0)
+    MOVFF   _PRODH, _PLUSW0         ; A(link_hot.n) (PLUSW0)
     INCF    (_link_hot + 5), F, A
-    DECFSZ  0xFF3, F, A
+    DECFSZ  _PRODL, F, A
     BRA     lrc_loop
 lrc_end:
     RETURN
@@ -1557,20 +1559,20 @@ static void rom_val16(void) __naked
     __asm
     MOVLW   2
     CALL    _rom_copy
-    CLRF    0xFF3, A                ; PRODL = the fill
+    CLRF    _PRODL, A               ; PRODL = the fill
     BTFSS   (_link_hot + 9), 7, A   ; e_sz: signed
     BRA     lrv_fill
     LFSR    0, (_tx_buf + 3)        ; A(n - 1): the high byte (PLUSW0)
     MOVF    (_link_hot + 5), W, A
-    BTFSC   0xFEB, 7, A
-    SETF    0xFF3, A
+    BTFSC   _PLUSW0, 7, A
+    SETF    _PRODL, A
 lrv_fill:
     LFSR    0, (_tx_buf + 4)
     MOVF    (_link_hot + 5), W, A
-    MOVFF   0xFF3, 0xFEB            ; A(n) (PLUSW0)
+    MOVFF   _PRODL, _PLUSW0         ; A(n) (PLUSW0)
     INCF    (_link_hot + 5), F, A
     MOVF    (_link_hot + 5), W, A
-    MOVFF   0xFF3, 0xFEB
+    MOVFF   _PRODL, _PLUSW0
     INCF    (_link_hot + 5), F, A
     RETURN
     __endasm;
@@ -1582,49 +1584,49 @@ lrv_fill:
 static uint8_t h_param_info(void) __naked
 {
     __asm
-    MOVFF   (_rx_buf + 3), 0xFE9    ; FSR0L = idx = R(0): the lengths to add
-    MOVF    0xFE9, W, A
+    MOVFF   (_rx_buf + 3), _FSR0L   ; FSR0L = idx = R(0): the lengths to add
+    MOVF    _FSR0L, W, A
     SUBLW   29
     BNC     lpi_bad                 ; idx >= LINK_N_ENTRIES
-    MOVFF   0xFE9, 0xFE5            ; push idx (POSTDEC1)
+    MOVFF   _FSR0L, _POSTDEC1       ; push idx (POSTDEC1)
     MOVLW   224              ; rom_at(ROM_NAME_LEN)
     MOVWF   (_link_hot + 6), A
     MOVLW   1
     MOVWF   (_link_hot + 7), A
     MOVLW   35             ; PROD = ROM_NAMES
-    MOVWF   0xFF3, A
+    MOVWF   _PRODL, A
     MOVLW   2
-    MOVWF   0xFF4, A
-    MOVF    0xFE9, F, A
+    MOVWF   _PRODH, A
+    MOVF    _FSR0L, F, A
     BZ      lpi_len
 lpi_sum:                            ; the name offset: the lengths before it
     CALL    _rom_next
-    ADDWF   0xFF3, F, A
+    ADDWF   _PRODL, F, A
     MOVLW   0
-    ADDWFC  0xFF4, F, A
-    DECFSZ  0xFE9, F, A
+    ADDWFC  _PRODH, F, A
+    DECFSZ  _FSR0L, F, A
     BRA     lpi_sum
 lpi_len:
     CALL    _rom_next               ; the name length
-    MOVWF   0xFE5, A                ; push the length, the offset (idx stays below them)
-    MOVFF   0xFF4, 0xFE5
-    MOVFF   0xFF3, 0xFE5
+    MOVWF   _POSTDEC1, A            ; push the length, the offset (idx stays below them)
+    MOVFF   _PRODH, _POSTDEC1
+    MOVFF   _PRODL, _POSTDEC1
     CLRF    (_link_hot + 5), A      ; link_hot.n = 0
     MOVLW   4
-    MOVF    0xFE3, W, A             ; idx (PLUSW1)
+    MOVF    _PLUSW1, W, A           ; idx (PLUSW1)
     CALL    _entry_load             ; its size code widens min, max, default
     MOVLW   4
-    MOVF    0xFE3, W, A             ; idx (PLUSW1)
+    MOVF    _PLUSW1, W, A           ; idx (PLUSW1)
     CALL    _row_of
     MOVLW   8                       ; id, ctype, flags, unit, scale
     CALL    _rom_copy
     CALL    _rom_val16              ; min, max, default
     CALL    _rom_val16
     CALL    _rom_val16
-    MOVFF   0xFE4, (_link_hot + 6)  ; rom_at(offset) (PREINC1)
-    MOVFF   0xFE4, (_link_hot + 7)
-    MOVF    0xFE4, W, A             ; the length
-    MOVF    0xFE4, F, A             ; drop idx (each pop one instruction: an interrupt pushes at FSR1)
+    MOVFF   _PREINC1, (_link_hot + 6) ; rom_at(offset) (PREINC1)
+    MOVFF   _PREINC1, (_link_hot + 7)
+    MOVF    _PREINC1, W, A          ; the length
+    MOVF    _PREINC1, F, A          ; drop idx (each pop one instruction: an interrupt pushes at FSR1)
     CALL    _rom_copy
     RETLW   0
 lpi_bad:
@@ -1697,55 +1699,55 @@ static uint8_t h_param_get(void) __naked
     BZ      lpg_bad
     SUBLW   10
     BNC     lpg_bad
-    CLRF    0xFE5, A                ; i = 0 (POSTDEC1)
+    CLRF    _POSTDEC1, A            ; i = 0 (POSTDEC1)
 lpg_check:
     MOVLW   1
-    MOVF    0xFE3, W, A             ; i (PLUSW1)
+    MOVF    _PLUSW1, W, A           ; i (PLUSW1)
     LFSR    0, (_rx_buf + 3)
-    MOVF    0xFEB, W, A             ; R(i) (PLUSW0)
+    MOVF    _PLUSW0, W, A           ; R(i) (PLUSW0)
     CALL    _entry_index
     XORLW   0xFF
     BZ      lpg_unknown
     MOVLW   1
-    INCF    0xFE3, F, A
+    INCF    _PLUSW1, F, A
     MOVLW   1
-    MOVF    0xFE3, W, A
+    MOVF    _PLUSW1, W, A
     XORWF   (_link_hot + 5), W, A
     BNZ     lpg_check
     MOVLW   1
-    CLRF    0xFE3, A
+    CLRF    _PLUSW1, A
 lpg_value:
     MOVLW   1
-    MOVF    0xFE3, W, A
+    MOVF    _PLUSW1, W, A
     LFSR    0, (_rx_buf + 3)
-    MOVF    0xFEB, W, A
+    MOVF    _PLUSW0, W, A
     CALL    _entry_index
     CALL    _value_at
     MOVLW   1                       ; A(4 i ..) = V
-    MOVF    0xFE3, W, A
+    MOVF    _PLUSW1, W, A
     MULLW   4
     LFSR    0, (_tx_buf + 4)
-    MOVF    0xFF3, W, A
-    ADDWF   0xFE9, F, A
-    BTFSC   0xFD8, 0, A
-    INCF    0xFEA, F, A
-    MOVFF   _V, 0xFEE
-    MOVFF   (_V + 1), 0xFEE
-    MOVFF   (_V + 2), 0xFEE
-    MOVFF   (_V + 3), 0xFEE
+    MOVF    _PRODL, W, A
+    ADDWF   _FSR0L, F, A
+    BTFSC   _STATUS, 0, A
+    INCF    _FSR0H, F, A
+    MOVFF   _V, _POSTINC0
+    MOVFF   (_V + 1), _POSTINC0
+    MOVFF   (_V + 2), _POSTINC0
+    MOVFF   (_V + 3), _POSTINC0
     MOVLW   1
-    INCF    0xFE3, F, A
+    INCF    _PLUSW1, F, A
     MOVLW   1
-    MOVF    0xFE3, W, A
+    MOVF    _PLUSW1, W, A
     XORWF   (_link_hot + 5), W, A
     BNZ     lpg_value
     MOVF    (_link_hot + 5), W, A   ; 4 bytes an id
     MULLW   4
-    MOVFF   0xFF3, (_link_hot + 5)
-    MOVF    0xFE4, F, A             ; drop i (PREINC1)
+    MOVFF   _PRODL, (_link_hot + 5)
+    MOVF    _PREINC1, F, A          ; drop i (PREINC1)
     RETLW   0
 lpg_unknown:
-    MOVF    0xFE4, F, A
+    MOVF    _PREINC1, F, A
     RETLW   8
 lpg_bad:
     RETLW   3
@@ -1836,37 +1838,37 @@ static uint8_t h_telem_config(void) __naked
 {
     __asm
     CALL    _mask_nsig
-    MOVWF   0xFF4, A
-    RLNCF   0xFF4, F, A             ; PRODH = 2 signals
+    MOVWF   _PRODH, A
+    RLNCF   _PRODH, F, A            ; PRODH = 2 signals
     MOVLW   2
-    MOVWF   0xFF3, A                ; PRODL = the frame length
+    MOVWF   _PRODL, A               ; PRODL = the frame length
     BANKSEL _rx_buf
     MOVF    (_rx_buf + 5), W, B     ; decimation 0: telemetry off, nothing to check
     IORWF   (_rx_buf + 6), W, B
     BZ      ltc_set
-    MOVF    0xFF4, W, A             ; a bad mask
+    MOVF    _PRODH, W, A            ; a bad mask
     BZ      ltc_bad
     MOVF    (_rx_buf + 7), W, B     ; samples per frame >= 1
     BZ      ltc_bad
-    MOVWF   0xFF5, A
+    MOVWF   _TABLAT, A
 ltc_len:
-    MOVF    0xFF4, W, A             ; header + samples x bytes, by additions, <= LINK_MAX_PAYLOAD
-    ADDWF   0xFF3, F, A
-    MOVF    0xFF3, W, A
+    MOVF    _PRODH, W, A            ; header + samples x bytes, by additions, <= LINK_MAX_PAYLOAD
+    ADDWF   _PRODL, F, A
+    MOVF    _PRODL, W, A
     SUBLW   40
     BNC     ltc_bad
-    DECFSZ  0xFF5, F, A
+    DECFSZ  _TABLAT, F, A
     BRA     ltc_len
 ltc_set:
-    MOVFF   0xFF3, 0xFE5            ; the length, the bytes per sample (POSTDEC1)
-    MOVFF   0xFF4, 0xFE5
+    MOVFF   _PRODL, _POSTDEC1       ; the length, the bytes per sample (POSTDEC1)
+    MOVFF   _PRODH, _POSTDEC1
     CALL    _crit_begin
     CLRF    (_link_hot + 13), A     ; tm_dec = 0 while the settings change
     CLRF    (_link_hot + 14), A
     MOVFF   (_rx_buf + 3), (_S + 35)    ; tm_mask
     MOVFF   (_rx_buf + 4), (_S + 36)
     MOVFF   (_rx_buf + 7), (_S + 20)    ; tm_spf
-    MOVFF   0xFE4, (_link_hot + 12) ; tm_nb (PREINC1)
+    MOVFF   _PREINC1, (_link_hot + 12) ; tm_nb (PREINC1)
     CLRF    (_link_hot + 15), A     ; tr: div, counter, nsamp, len
     CLRF    (_link_hot + 16), A
     CLRF    (_link_hot + 17), A
@@ -1880,13 +1882,13 @@ ltc_set:
     MOVFF   (_rx_buf + 6), (_link_hot + 14)
     CALL    _crit_end
     MOVFF   (_S + 1), (_tx_buf + 4) ; A(0) = tm_gen, A(1) = the frame length (0: off)
-    MOVFF   0xFE4, 0xFF3            ; (PREINC1)
+    MOVFF   _PREINC1, _PRODL        ; (PREINC1)
     BANKSEL _rx_buf
     MOVF    (_rx_buf + 5), W, B
     IORWF   (_rx_buf + 6), W, B
-    BTFSS   0xFD8, 2, A
-    MOVF    0xFF3, W, A
-    MOVFF   0xFE8, (_tx_buf + 5)
+    BTFSS   _STATUS, 2, A
+    MOVF    _PRODL, W, A
+    MOVFF   _WREG, (_tx_buf + 5)
     MOVLW   2
     MOVWF   (_link_hot + 5), A
     RETLW   0
@@ -1938,7 +1940,7 @@ static uint8_t h_capture_arm(void) __naked
     __asm
     CLRF    (_link_hot + 5), A      ; no reply payload
     CALL    _mask_nsig
-    MOVWF   0xFF4, A                ; PRODH = signals (0: a bad mask)
+    MOVWF   _PRODH, A               ; PRODH = signals (0: a bad mask)
     BZ      lca_bad
     BANKSEL _rx_buf
     MOVF    (_rx_buf + 6), W, B     ; samples, pre-trigger: high bytes 0
@@ -1962,31 +1964,31 @@ static uint8_t h_capture_arm(void) __naked
     MOVF    (_rx_buf + 7), W, B
     BNZ     lca_bad
 lca_words:
-    RLNCF   0xFF4, W, A             ; bytes per sample = 2 signals (at most 2 x 16)
-    MOVWF   0xFE5, A                ; (POSTDEC1)
-    CLRF    0xFF3, A                ; PRODL = words
+    RLNCF   _PRODH, W, A            ; bytes per sample = 2 signals (at most 2 x 16)
+    MOVWF   _POSTDEC1, A            ; (POSTDEC1)
+    CLRF    _PRODL, A               ; PRODL = words
 lca_loop:
-    MOVF    0xFF3, W, A             ; samples > LINK_CAPTURE_WORDS - words: too many
+    MOVF    _PRODL, W, A            ; samples > LINK_CAPTURE_WORDS - words: too many
     SUBLW   64
     CPFSGT  (_rx_buf + 5), B
     BRA     lca_add
-    MOVF    0xFE4, F, A             ; drop the pushed byte (PREINC1)
+    MOVF    _PREINC1, F, A          ; drop the pushed byte (PREINC1)
     BRA     lca_bad
 lca_add:
     MOVF    (_rx_buf + 5), W, B
-    ADDWF   0xFF3, F, A
-    DECFSZ  0xFF4, F, A
+    ADDWF   _PRODL, F, A
+    DECFSZ  _PRODH, F, A
     BRA     lca_loop
-    DECF    0xFF3, W, A             ; the last byte index: 2 words - 1
-    ADDWF   0xFF3, W, A
-    MOVWF   0xFE5, A                ; (POSTDEC1)
+    DECF    _PRODL, W, A            ; the last byte index: 2 words - 1
+    ADDWF   _PRODL, W, A
+    MOVWF   _POSTDEC1, A            ; (POSTDEC1)
     CALL    _crit_begin
     BANKSEL _S
     CLRF    _S, B                   ; IDLE while the settings change
     MOVFF   (_rx_buf + 3), (_S + 41)    ; cap_mask
     MOVFF   (_rx_buf + 4), (_S + 42)
-    MOVFF   0xFE4, (_S + 39)        ; cap_bytes (PREINC1)
-    MOVFF   0xFE4, (_link_hot + 22) ; cap_nb
+    MOVFF   _PREINC1, (_S + 39)     ; cap_bytes (PREINC1)
+    MOVFF   _PREINC1, (_link_hot + 22) ; cap_nb
     MOVFF   (_rx_buf + 5), (_link_hot + 21) ; cap_n
     MOVFF   (_rx_buf + 7), (_S + 40)    ; cap_pre
     MOVFF   (_rx_buf + 9), (_link_hot + 23) ; cap_dec
@@ -2003,8 +2005,8 @@ lca_clear:
     LFSR    0, (_S + 45)            ; the record (S.cr, 10 bytes)
     MOVLW   10
 lca_zero:
-    CLRF    0xFEE, A                ; POSTINC0
-    DECFSZ  0xFE8, F, A
+    CLRF    _POSTINC0, A            ; POSTINC0
+    DECFSZ  _WREG, F, A
     BRA     lca_zero
     CLRF    (_link_hot + 25), A     ; cr_div
     CLRF    (_link_hot + 26), A
@@ -2076,85 +2078,85 @@ static uint8_t h_capture_read(void) __naked
 lcr_wrong:
     RETLW   6
 lcr_done:
-    MOVFF   (_S + 49), 0xFF3        ; PRODL = total
+    MOVFF   (_S + 49), _PRODL       ; PRODL = total
     BANKSEL _rx_buf
     MOVF    (_rx_buf + 4), W, B     ; start < 256
     BNZ     lcr_range
     MOVF    (_rx_buf + 3), W, B     ; PRODH = total - start (start <= total)
-    SUBWF   0xFF3, W, A
+    SUBWF   _PRODL, W, A
     BNC     lcr_range
-    MOVWF   0xFF4, A
+    MOVWF   _PRODH, A
     MOVLW   3          ; A(0..6): state, total, trigger index, start (u16 each but the state)
-    MOVFF   0xFE8, (_tx_buf + 4)
+    MOVFF   _WREG, (_tx_buf + 4)
     MOVFF   (_S + 49), (_tx_buf + 5)
     MOVFF   (_S + 51), (_tx_buf + 7)
     MOVFF   (_rx_buf + 3), (_tx_buf + 9)
     MOVLW   0
-    MOVFF   0xFE8, (_tx_buf + 6)
-    MOVFF   0xFE8, (_tx_buf + 8)
-    MOVFF   0xFE8, (_tx_buf + 10)
+    MOVFF   _WREG, (_tx_buf + 6)
+    MOVFF   _WREG, (_tx_buf + 8)
+    MOVFF   _WREG, (_tx_buf + 10)
     MOVF    (_rx_buf + 5), W, B     ; samples = min(count, total - start)
-    CPFSLT  0xFF4, A
-    MOVWF   0xFF4, A
+    CPFSLT  _PRODH, A
+    MOVWF   _PRODH, A
     MOVLW   33   ; and what fits after the header
-    MOVWF   0xFF3, A
-    CLRF    0xFF5, A
+    MOVWF   _PRODL, A
+    CLRF    _TABLAT, A
 lcr_fit:
     MOVF    (_link_hot + 22), W, A  ; cap_nb
-    SUBWF   0xFF3, F, A
+    SUBWF   _PRODL, F, A
     BNC     lcr_fitted
-    INCF    0xFF5, F, A
+    INCF    _TABLAT, F, A
     BRA     lcr_fit
 lcr_fitted:
-    MOVF    0xFF5, W, A
-    CPFSLT  0xFF4, A
-    MOVWF   0xFF4, A
-    MOVF    0xFF4, W, A             ; bytes = samples x cap_nb (PRODL)
+    MOVF    _TABLAT, W, A
+    CPFSLT  _PRODH, A
+    MOVWF   _PRODH, A
+    MOVF    _PRODH, W, A            ; bytes = samples x cap_nb (PRODL)
     MULWF   (_link_hot + 22), A
-    MOVF    0xFF3, W, A             ; reply length = header + bytes
+    MOVF    _PRODL, W, A            ; reply length = header + bytes
     ADDLW   7
     MOVWF   (_link_hot + 5), A
-    MOVFF   0xFF3, 0xFF5            ; TABLAT = bytes
+    MOVFF   _PRODL, _TABLAT         ; TABLAT = bytes
     BANKSEL _S
-    MOVFF   (_rx_buf + 3), 0xFE8    ; the first sample: (record start + start) mod cap_n
+    MOVFF   (_rx_buf + 3), _WREG    ; the first sample: (record start + start) mod cap_n
     ADDWF   (_S + 50), W, B
-    MOVWF   0xFF3, A
+    MOVWF   _PRODL, A
     MOVF    (_link_hot + 21), W, A
-    CPFSLT  0xFF3, A
-    SUBWF   0xFF3, F, A
-    MOVF    0xFF3, W, A             ; its byte index (< 256)
+    CPFSLT  _PRODL, A
+    SUBWF   _PRODL, F, A
+    MOVF    _PRODL, W, A            ; its byte index (< 256)
     MULWF   (_link_hot + 22), A
-    MOVFF   0xFF3, 0xFF4            ; PRODH = the byte index
+    MOVFF   _PRODL, _PRODH          ; PRODH = the byte index
     MOVLW   LOW(_tx_buf + 11)   ; cp_d: the reply after its header
-    MOVFF   0xFE8, _cp_d
+    MOVFF   _WREG, _cp_d
     MOVLW   HIGH(_tx_buf + 11)
-    MOVFF   0xFE8, (_cp_d + 1)
+    MOVFF   _WREG, (_cp_d + 1)
     LFSR    0, _cap_buf
-    MOVF    0xFF4, W, A
-    ADDWF   0xFE9, F, A
-    BTFSC   0xFD8, 0, A
-    INCF    0xFEA, F, A
-    MOVF    0xFF5, F, A
+    MOVF    _PRODH, W, A
+    ADDWF   _FSR0L, F, A
+    BTFSC   _STATUS, 0, A
+    INCF    _FSR0H, F, A
+    MOVF    _TABLAT, F, A
     BZ      lcr_end
 lcr_loop:
-    MOVFF   0xFEE, 0xFF3            ; PRODL = the ring byte (POSTINC0), then *cp_d++ = PRODL
-    MOVFF   0xFE9, _cp_s            ; (FSR0 only: the ring position waits in cp_s)
-    MOVFF   0xFEA, (_cp_s + 1)
-    MOVFF   _cp_d, 0xFE9
-    MOVFF   (_cp_d + 1), 0xFEA
-    MOVFF   0xFF3, 0xFEE
-    MOVFF   0xFE9, _cp_d
-    MOVFF   0xFEA, (_cp_d + 1)
-    MOVFF   _cp_s, 0xFE9
-    MOVFF   (_cp_s + 1), 0xFEA
-    INCF    0xFF4, F, A
-    DECF    0xFF4, W, A             ; past the last byte: back to the start
+    MOVFF   _POSTINC0, _PRODL       ; PRODL = the ring byte (POSTINC0), then *cp_d++ = PRODL
+    MOVFF   _FSR0L, _cp_s           ; (FSR0 only: the ring position waits in cp_s)
+    MOVFF   _FSR0H, (_cp_s + 1)
+    MOVFF   _cp_d, _FSR0L
+    MOVFF   (_cp_d + 1), _FSR0H
+    MOVFF   _PRODL, _POSTINC0
+    MOVFF   _FSR0L, _cp_d
+    MOVFF   _FSR0H, (_cp_d + 1)
+    MOVFF   _cp_s, _FSR0L
+    MOVFF   (_cp_s + 1), _FSR0H
+    INCF    _PRODH, F, A
+    DECF    _PRODH, W, A            ; past the last byte: back to the start
     XORWF   (_S + 39), W, B
     BNZ     lcr_next
-    CLRF    0xFF4, A
+    CLRF    _PRODH, A
     LFSR    0, _cap_buf
 lcr_next:
-    DECFSZ  0xFF5, F, A
+    DECFSZ  _TABLAT, F, A
     BRA     lcr_loop
 lcr_end:
     RETLW   0
@@ -2373,7 +2375,7 @@ void link_poll(void) __naked
 {
     __asm
     MOVLW   8                       ; at most 8 frames a call
-    MOVWF   0xFE5, A                ; POSTDEC1
+    MOVWF   _POSTDEC1, A            ; POSTDEC1
 lpl_loop:
     CALL    _wd_arm
     CALL    _tx_drain
@@ -2386,7 +2388,7 @@ lpl_loop:
     CLRF    (_S + 14), B
     MOVFF   (_S + 15), (_tx_buf + 4)   ; A(0) = the frame type, A(1) = BAD_CRC
     MOVLW   2
-    MOVFF   0xFE8, (_tx_buf + 5)
+    MOVFF   _WREG, (_tx_buf + 5)
     MOVLW   2
     MOVWF   (_link_hot + 5), A
     MOVFF   (_S + 16), (_S + 17)    ; SEQ of the bad frame
@@ -2413,13 +2415,13 @@ lpl_ev:
     MOVF    (_link_hot + 20), W, A  ; n = tr.len; A(0..) = tm_buf
     MOVWF   (_link_hot + 5), A
     MOVLW   LOW(_tx_buf + 4)
-    MOVFF   0xFE8, _cp_d
+    MOVFF   _WREG, _cp_d
     MOVLW   HIGH(_tx_buf + 4)
-    MOVFF   0xFE8, (_cp_d + 1)
+    MOVFF   _WREG, (_cp_d + 1)
     MOVLW   LOW(_tm_buf)
-    MOVFF   0xFE8, _cp_s
+    MOVFF   _WREG, _cp_s
     MOVLW   HIGH(_tm_buf)
-    MOVFF   0xFE8, (_cp_s + 1)
+    MOVFF   _WREG, (_cp_s + 1)
     MOVF    (_link_hot + 5), W, A
     CALL    _mcopy_n
     MOVFF   (_S + 1), (_S + 17)     ; SEQ = tm_gen
@@ -2429,13 +2431,13 @@ lpl_ev:
     CLRF    (_link_hot + 20), A
     CLRF    (_link_hot + 11), A
 lpl_next:
-    MOVF    0xFE4, W, A             ; the pass count (PREINC1)
-    DECF    0xFE8, F, A
+    MOVF    _PREINC1, W, A          ; the pass count (PREINC1)
+    DECF    _WREG, F, A
     BZ      lpl_last
-    MOVWF   0xFE5, A
+    MOVWF   _POSTDEC1, A
     BRA     lpl_loop
 lpl_end:
-    MOVF    0xFE4, F, A             ; drop the pass count
+    MOVF    _PREINC1, F, A          ; drop the pass count
 lpl_last:
     CALL    _wd_arm                 ; again: a start just executed arms the watchdog at once
     RETURN
@@ -2501,69 +2503,69 @@ void link_poll(void)
 static void put_signals(void) __naked
 {
     __asm
-    MOVFF   0xFF8, 0xFE5            ; save TBLPTRU, TBLPTRH, TBLPTRL, TABLAT (POSTDEC1)
-    MOVFF   0xFF7, 0xFE5
-    MOVFF   0xFF6, 0xFE5
-    MOVFF   0xFF5, 0xFE5
+    MOVFF   _TBLPTRU, _POSTDEC1     ; save TBLPTRU, TBLPTRH, TBLPTRL, TABLAT (POSTDEC1)
+    MOVFF   _TBLPTRH, _POSTDEC1
+    MOVFF   _TBLPTRL, _POSTDEC1
+    MOVFF   _TABLAT, _POSTDEC1
     MOVLW   UPPER(_app_signal_src)
-    MOVWF   0xFF8, A
+    MOVWF   _TBLPTRU, A
     MOVLW   HIGH(_app_signal_src)
-    MOVWF   0xFF7, A
+    MOVWF   _TBLPTRH, A
     MOVLW   LOW(_app_signal_src)
-    MOVWF   0xFF6, A
+    MOVWF   _TBLPTRL, A
     BANKSEL _sg
 lps_loop:
     TBLRD*+
-    MOVFF   0xFF5, 0xFE9            ; FSR0 = app_signal_src[j]
+    MOVFF   _TABLAT, _FSR0L         ; FSR0 = app_signal_src[j]
     TBLRD*+
-    MOVFF   0xFF5, 0xFEA
+    MOVFF   _TABLAT, _FSR0H
     MOVF    (_sg + 4), W, B
     IORWF   (_sg + 6), W, B
-    BTFSS   0xFE8, 0, A             ; signal j in neither mask: next
+    BTFSS   _WREG, 0, A             ; signal j in neither mask: next
     BRA     lps_next
-    MOVF    0xFE9, W, A
-    IORWF   0xFEA, W, A
+    MOVF    _FSR0L, W, A
+    IORWF   _FSR0H, W, A
     BZ      lps_call
-    MOVFF   0xFEE, 0xFF3            ; PRODL, PRODH = *src (POSTINC0)
-    MOVFF   0xFEE, 0xFF4
+    MOVFF   _POSTINC0, _PRODL       ; PRODL, PRODH = *src (POSTINC0)
+    MOVFF   _POSTINC0, _PRODH
     BRA     lps_have
 lps_call:                          ; NULL: app_signal(j), the table pointer kept across the call
-    MOVFF   0xFF8, 0xFE5
-    MOVFF   0xFF7, 0xFE5
-    MOVFF   0xFF6, 0xFE5
+    MOVFF   _TBLPTRU, _POSTDEC1
+    MOVFF   _TBLPTRH, _POSTDEC1
+    MOVFF   _TBLPTRL, _POSTDEC1
     MOVLW   LOW(_app_signal_src + 2)    ; j = (TBLPTR - (app_signal_src + 2)) / 2, the low bytes suffice
-    SUBWF   0xFF6, W, A
-    RRNCF   0xFE8, W, A
+    SUBWF   _TBLPTRL, W, A
+    RRNCF   _WREG, W, A
     CALL    _app_signal             ; low byte in W, high byte in PRODL
-    MOVFF   0xFF3, 0xFF4
-    MOVWF   0xFF3, A
-    MOVFF   0xFE4, 0xFF6            ; PREINC1
-    MOVFF   0xFE4, 0xFF7
-    MOVFF   0xFE4, 0xFF8
+    MOVFF   _PRODL, _PRODH
+    MOVWF   _PRODL, A
+    MOVFF   _PREINC1, _TBLPTRL      ; PREINC1
+    MOVFF   _PREINC1, _TBLPTRH
+    MOVFF   _PREINC1, _TBLPTRU
     BANKSEL _sg
 lps_have:
     BTFSS   (_sg + 4), 0, B
     BRA     lps_cap
-    MOVFF   _sg, 0xFE9              ; *sg.p++ = value
-    MOVFF   (_sg + 1), 0xFEA
-    MOVFF   0xFF3, 0xFEE
-    MOVFF   0xFF4, 0xFEE
-    MOVFF   0xFE9, _sg
-    MOVFF   0xFEA, (_sg + 1)
+    MOVFF   _sg, _FSR0L             ; *sg.p++ = value
+    MOVFF   (_sg + 1), _FSR0H
+    MOVFF   _PRODL, _POSTINC0
+    MOVFF   _PRODH, _POSTINC0
+    MOVFF   _FSR0L, _sg
+    MOVFF   _FSR0H, (_sg + 1)
 lps_cap:
     BTFSS   (_sg + 6), 0, B
     BRA     lps_next
-    MOVFF   (_sg + 2), 0xFE9        ; *sg.q++ = value
-    MOVFF   (_sg + 3), 0xFEA
-    MOVFF   0xFF3, 0xFEE
-    MOVFF   0xFF4, 0xFEE
-    MOVFF   0xFE9, (_sg + 2)
-    MOVFF   0xFEA, (_sg + 3)
+    MOVFF   (_sg + 2), _FSR0L       ; *sg.q++ = value
+    MOVFF   (_sg + 3), _FSR0H
+    MOVFF   _PRODL, _POSTINC0
+    MOVFF   _PRODH, _POSTINC0
+    MOVFF   _FSR0L, (_sg + 2)
+    MOVFF   _FSR0H, (_sg + 3)
 lps_next:
-    BCF     0xFD8, 0, A             ; tm >>= 1, cm >>= 1
+    BCF     _STATUS, 0, A ; tm >>= 1, cm >>= 1
     RRCF    (_sg + 5), F, B
     RRCF    (_sg + 4), F, B
-    BCF     0xFD8, 0, A
+    BCF     _STATUS, 0, A
     RRCF    (_sg + 7), F, B
     RRCF    (_sg + 6), F, B
     MOVF    (_sg + 4), W, B
@@ -2571,10 +2573,10 @@ lps_next:
     IORWF   (_sg + 6), W, B
     IORWF   (_sg + 7), W, B
     BNZ     lps_loop
-    MOVFF   0xFE4, 0xFF5            ; restore TABLAT, TBLPTRL, TBLPTRH, TBLPTRU (PREINC1)
-    MOVFF   0xFE4, 0xFF6
-    MOVFF   0xFE4, 0xFF7
-    MOVFF   0xFE4, 0xFF8
+    MOVFF   _PREINC1, _TABLAT       ; restore TABLAT, TBLPTRL, TBLPTRH, TBLPTRU (PREINC1)
+    MOVFF   _PREINC1, _TBLPTRL
+    MOVFF   _PREINC1, _TBLPTRH
+    MOVFF   _PREINC1, _TBLPTRU
     RETURN
     __endasm;
 }
@@ -2657,14 +2659,14 @@ lcd_due:
 lcd_speed:                          ; a crossing: sp in PRODH:PRODL
     MOVLW   0
     CALL    _app_signal             ; low byte in W, high byte in PRODL
-    MOVFF   0xFF3, 0xFF4
-    MOVWF   0xFF3, A
+    MOVFF   _PRODL, _PRODH
+    MOVWF   _PRODL, A
     BANKSEL _S
     MOVF    (_S + 38), W, B
     XORLW   3
     BNZ     lcd_cmp
-    COMF    0xFF3, F, A             ; falling through thr = ~speed rising through ~thr (stored so)
-    COMF    0xFF4, F, A
+    COMF    _PRODL, F, A            ; falling through thr = ~speed rising through ~thr (stored so)
+    COMF    _PRODH, F, A
 lcd_cmp:
     MOVF    (_S + 52), W, B         ; no previous sample: no crossing
     BZ      lcd_keep
@@ -2679,21 +2681,21 @@ lcd_ov1:
     BN      lcd_keep
 lcd_now:
     MOVF    (_S + 43), W, B         ; sp - thr: greater or equal is N == OV
-    SUBWF   0xFF3, W, A
+    SUBWF   _PRODL, W, A
     MOVF    (_S + 44), W, B
-    SUBWFB  0xFF4, W, A
+    SUBWFB  _PRODH, W, A
     BOV     lcd_ov2
     BN      lcd_keep
     BRA     lcd_yes
 lcd_ov2:
     BNN     lcd_keep
 lcd_yes:
-    MOVFF   0xFF3, (_S + 53)        ; prev = sp
-    MOVFF   0xFF4, (_S + 54)
+    MOVFF   _PRODL, (_S + 53)       ; prev = sp
+    MOVFF   _PRODH, (_S + 54)
     BRA     lcd_fire
 lcd_keep:
-    MOVFF   0xFF3, (_S + 53)        ; prev = sp, prev_valid = 1
-    MOVFF   0xFF4, (_S + 54)
+    MOVFF   _PRODL, (_S + 53)       ; prev = sp, prev_valid = 1
+    MOVFF   _PRODH, (_S + 54)
     MOVLW   1
     MOVWF   (_S + 52), B
     BRA     lcd_slot
@@ -2708,11 +2710,11 @@ lcd_fire:
 lcd_slot:
     MOVF    (_S + 46), W, B         ; sg.q = &cap_buf[wi], sg.cm = cap_mask
     ADDLW   LOW(_cap_buf)
-    MOVFF   0xFE8, (_sg + 2)
+    MOVFF   _WREG, (_sg + 2)
     MOVLW   HIGH(_cap_buf)
-    BTFSC   0xFD8, 0, A
+    BTFSC   _STATUS, 0, A
     ADDLW   1
-    MOVFF   0xFE8, (_sg + 3)
+    MOVFF   _WREG, (_sg + 3)
     MOVFF   (_S + 41), (_sg + 6)
     MOVFF   (_S + 42), (_sg + 7)
     RETURN
@@ -2783,7 +2785,7 @@ void link_sample(void) __naked
     BZ      lsm_fill
     MOVF    (_S + 6), W, B          ; tm_dropped++, saturating: not at 0xFFFF
     ANDWF   (_S + 7), W, B
-    INCF    0xFE8, W, A
+    INCF    _WREG, W, A
     BZ      lsm_count
     INFSNZ  (_S + 6), F, B
     INCF    (_S + 7), F, B
@@ -2798,11 +2800,11 @@ lsm_fill:
 lsm_ptr:
     MOVF    (_link_hot + 20), W, A  ; sg.p = &tm_buf[tr.len], sg.tm = tm_mask
     ADDLW   LOW(_tm_buf)
-    MOVFF   0xFE8, _sg
+    MOVFF   _WREG, _sg
     MOVLW   HIGH(_tm_buf)
-    BTFSC   0xFD8, 0, A
+    BTFSC   _STATUS, 0, A
     ADDLW   1
-    MOVFF   0xFE8, (_sg + 1)
+    MOVFF   _WREG, (_sg + 1)
     MOVFF   (_S + 35), (_sg + 4)
     MOVFF   (_S + 36), (_sg + 5)
     MOVF    (_link_hot + 12), W, A  ; tr.len += tm_nb, tr.nsamp++
@@ -2819,7 +2821,7 @@ lsm_cap:
     BANKSEL _S
     DECF    _S, W, B                ; cap_state ARMED or TRIGGERED: a capture sample may be due
     SUBLW   1
-    BTFSC   0xFD8, 0, A
+    BTFSC   _STATUS, 0, A
     CALL    _capture_due
 #endif
     BANKSEL _sg
@@ -2827,7 +2829,7 @@ lsm_cap:
     IORWF   (_sg + 5), W, B
     IORWF   (_sg + 6), W, B
     IORWF   (_sg + 7), W, B
-    BTFSS   0xFD8, 2, A             ; a signal to write (Z clear)
+    BTFSS   _STATUS, 2, A ; a signal to write (Z clear)
     CALL    _put_signals
 #if LINK_WITH_CAPTURE
     BANKSEL _sg
@@ -2869,16 +2871,16 @@ ltk_clear:
 ltk_count:
     MOVF    (_S + 28), W, B         ; wd_ms++, saturating: not at 0xFFFF
     ANDWF   (_S + 29), W, B
-    INCF    0xFE8, W, A
+    INCF    _WREG, W, A
     BZ      ltk_cmp
     INFSNZ  (_S + 28), F, B
     INCF    (_S + 29), F, B
 ltk_cmp:
-    MOVFF   (_link_params + 17), 0xFF3   ; wd_ms - link_timeout: no borrow = expired
-    MOVFF   (_link_params + 18), 0xFF4
-    MOVF    0xFF3, W, A
+    MOVFF   (_link_params + 17), _PRODL  ; wd_ms - link_timeout: no borrow = expired
+    MOVFF   (_link_params + 18), _PRODH
+    MOVF    _PRODL, W, A
     SUBWF   (_S + 28), W, B
-    MOVF    0xFF4, W, A
+    MOVF    _PRODH, W, A
     SUBWFB  (_S + 29), W, B
     BNC     ltk_end
     CLRF    (_S + 27), B            ; disarm, outputs off (the application), the event

@@ -470,7 +470,8 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                                    capture_bytes=capture_bytes, capture=bool(link_capture),
                                    eeprom=bool(link_eeprom),
                                    critical_begin="extern void fw_lock(void); fw_lock();",
-                                   critical_end="extern void fw_unlock(void); fw_unlock();")
+                                   critical_end="extern void fw_unlock(void); fw_unlock();",
+                                   sfr_bits=p18f4431.bits())
     except protocol.ProtocolError as e:
         raise CodegenError(f"the protocol table cannot hold this design's numbers: {e}") from None
 
