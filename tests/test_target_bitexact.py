@@ -506,8 +506,8 @@ def test_a_changed_feedforward_constant_is_caught(design_ff):
     plan, folder, tmp = design_ff
     text = (folder / "drive_core.c").read_text()
     start = text.index("    ; reference feedforward: ff = ")
-    m = re.compile(r"    MOVLW   (\d+)\n    MOVWF   _core_acc \+ 8, A\n").search(text, start)
-    assert m and m.start() - start < 600, "the feedforward's literal was not found"
+    m = re.compile(r"    MOVLW   (\d+)\n    MOVWF   _core_acc \+ CORE_ACC_A, A\n").search(text, start)
+    assert m and m.start() - start < 900, "the feedforward's literal was not found"
     v = int(m[1])
     lit = m[0].replace(f"MOVLW   {v}", f"MOVLW   {v + 1 if v < 255 else v - 1}")
     bad = _mutated(folder, tmp, "kff", "drive_core.c", text[start:m.end()], text[start:m.start()] + lit)
@@ -520,7 +520,8 @@ def test_a_changed_law_instruction_is_caught(design):
     one changed literal in it (mu1 = 4097 - frac instead of 4096 - frac) must make the chip
     disagree with the model, so the comparison runs the assembly the HEX holds."""
     plan, folder, tmp = design
-    old = "    MOVLW   0x10\n    ADDWFC  _core_acc + 1, F, A\n    MOVFF   _core_acc + 0, _core_s + 11\n"
+    old = ("    MOVLW   0x10\n    ADDWFC  _core_acc + CORE_ACC_X + 1, F, A\n"
+           "    MOVFF   _core_acc + CORE_ACC_X, _core_s + CORE_S_LAW_MU1\n")
     bad = _mutated(folder, tmp, "asm", "drive_core.c", old, old.replace("0x10", "0x11"))
     verdict = compare(bad, tmp / "asm-run", plan, n=200, funcs=("law", "control"))
     assert verdict["law"] is not None and verdict["law"].startswith("first failing vector"), verdict
@@ -558,12 +559,12 @@ def test_a_lost_upper_partial_product_is_caught(design):
     product's upper half removed) must make the chip disagree with the model."""
     plan, folder, tmp = design
     old = ("    ; x += (mag K_hi) 2^16: the upper partial product\n"
-           "    MOVFF   _core_lw + 4, _core_acc + 13\n"
-           "    MOVF    _core_acc + 13, W, A\n"
-           "    ADDWF   _core_acc + 2, F, A\n"
-           "    MOVFF   _core_lw + 5, _core_acc + 13\n"
-           "    MOVF    _core_acc + 13, W, A\n"
-           "    ADDWFC  _core_acc + 3, F, A\n")
+           "    MOVFF   _core_lw + CORE_LW_INC, _core_acc + CORE_ACC_T\n"
+           "    MOVF    _core_acc + CORE_ACC_T, W, A\n"
+           "    ADDWF   _core_acc + CORE_ACC_X + 2, F, A\n"
+           "    MOVFF   _core_lw + CORE_LW_INC + 1, _core_acc + CORE_ACC_T\n"
+           "    MOVF    _core_acc + CORE_ACC_T, W, A\n"
+           "    ADDWFC  _core_acc + CORE_ACC_X + 3, F, A\n")
     bad = _mutated(folder, tmp, "upper", "drive_core.c", old, "")
     verdict = compare(bad, tmp / "upper-run", plan, n=2000)
     assert verdict["speed"] is not None, verdict
