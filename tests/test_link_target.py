@@ -86,14 +86,14 @@ def test_rx_interrupt_shares_single_bytes_only():
     assert "S." not in body                                  # nothing of the main loop's state
     assert re.search(r"rx_buf\[rx_n\] = b;", body) and P.RX_BUFFER_BYTES < 256
     assert re.search(r"rx_spill\[rx_sp_w\] = b;", body) and P.RX_SPILL_BYTES < 256
-    # the PIC18 assembly form (SDCC) writes the same bytes (link_hot + 0, 1, 2: rx_n, rx_ready,
-    # rx_ovf, first in the block; rx_sp_w), the buffers through FSR0 + W (PLUSW0) and PRODL/PRODH
+    # the PIC18 assembly form (SDCC) writes the same bytes (link_hot's rx_n, rx_ready, rx_ovf,
+    # first in the block; rx_sp_w), the buffers through FSR0 + W (PLUSW0) and PRODL/PRODH
     # (saved by the interrupt prologue)
     assert list(fields)[:3] == ["rx_n", "rx_ready", "rx_ovf"]
-    targets = set(re.findall(r"^\s*(?:MOVWF|CLRF|SETF)\s+(\(_link_hot \+ \d\)|\w+)", asm, re.M))
-    targets |= set(re.findall(r"^\s*(?:INCF|DECF)\s+(\(_link_hot \+ \d\)|\w+),\s*F", asm, re.M))
+    targets = set(re.findall(r"^\s*(?:MOVWF|CLRF|SETF)\s+(\(_link_hot \+ LH_\w+\)|\w+)", asm, re.M))
+    targets |= set(re.findall(r"^\s*(?:INCF|DECF)\s+(\(_link_hot \+ LH_\w+\)|\w+),\s*F", asm, re.M))
     targets |= set(re.findall(r"^\s*MOVFF\s+\w+,\s*(\w+)", asm, re.M))
-    assert targets == {"(_link_hot + 0)", "(_link_hot + 1)", "(_link_hot + 2)", "_PRODL",
+    assert targets == {"(_link_hot + LH_RX_N)", "(_link_hot + LH_RX_READY)", "(_link_hot + LH_RX_OVF)", "_PRODL",
                        "_rx_sp_w", "_PLUSW0", "_PRODH"}, targets
     assert re.search(r"LFSR\s+0,\s*_rx_buf", asm) and re.search(r"LFSR\s+0,\s*_rx_spill", asm) and "__asm" in asm
 

@@ -217,6 +217,54 @@ LINK_FAST_RAM struct link_fast {
     uint16_t cr_div;                   /* capture decimation counter, restarted by capture_arm */
 #endif
 } link_hot;
+#if defined(__SDCC_pic16)
+/* struct link_fast's fields the assembly addresses, by byte offset (SDCC packs the struct: no
+ * padding), each checked against offsetof */
+#define LH_RX_N 0
+#define LH_RX_READY 1
+#define LH_RX_OVF 2
+#define LH_CRC_HI 3
+#define LH_CRC_LO 4
+#define LH_N 5
+#define LH_RO 6
+#define LH_E_OFF 8
+#define LH_E_SZ 9
+#define LH_TX_LEN 10
+#define LH_TM_READY 11
+#define LH_TM_NB 12
+#define LH_TM_DEC 13
+#define LH_TR_DIV 15
+#define LH_TR_COUNTER 17
+#define LH_TR_NSAMP 19
+#define LH_TR_LEN 20
+typedef char link_fast_offsets[(offsetof(struct link_fast, rx_n) == LH_RX_N
+    && offsetof(struct link_fast, rx_ready) == LH_RX_READY
+    && offsetof(struct link_fast, rx_ovf) == LH_RX_OVF
+    && offsetof(struct link_fast, crc_hi) == LH_CRC_HI
+    && offsetof(struct link_fast, crc_lo) == LH_CRC_LO
+    && offsetof(struct link_fast, n) == LH_N
+    && offsetof(struct link_fast, ro) == LH_RO
+    && offsetof(struct link_fast, e_off) == LH_E_OFF
+    && offsetof(struct link_fast, e_sz) == LH_E_SZ
+    && offsetof(struct link_fast, tx_len) == LH_TX_LEN
+    && offsetof(struct link_fast, tm_ready) == LH_TM_READY
+    && offsetof(struct link_fast, tm_nb) == LH_TM_NB
+    && offsetof(struct link_fast, tm_dec) == LH_TM_DEC
+    && offsetof(struct link_fast, tr.div) == LH_TR_DIV
+    && offsetof(struct link_fast, tr.counter) == LH_TR_COUNTER
+    && offsetof(struct link_fast, tr.nsamp) == LH_TR_NSAMP
+    && offsetof(struct link_fast, tr.len) == LH_TR_LEN) ? 1 : -1];
+#if LINK_WITH_CAPTURE
+#define LH_CAP_N 21
+#define LH_CAP_NB 22
+#define LH_CAP_DEC 23
+#define LH_CR_DIV 25
+typedef char link_fast_capture_offsets[(offsetof(struct link_fast, cap_n) == LH_CAP_N
+    && offsetof(struct link_fast, cap_nb) == LH_CAP_NB
+    && offsetof(struct link_fast, cap_dec) == LH_CAP_DEC
+    && offsetof(struct link_fast, cr_div) == LH_CR_DIV) ? 1 : -1];
+#endif
+#endif
 
 #if defined(__SDCC_pic16)
 typedef char link_ro_layout[(offsetof(struct link_fast, ro) == 6u) ? 1 : -1];
@@ -239,6 +287,18 @@ static struct link_sg {
     uint16_t tm;
     uint16_t cm;
 } sg;
+#if defined(__SDCC_pic16)
+/* struct link_sg's fields the assembly addresses, by byte offset (SDCC packs the struct: no
+ * padding), each checked against offsetof */
+#define SG_P 0
+#define SG_Q 2
+#define SG_TM 4
+#define SG_CM 6
+typedef char link_sg_offsets[(offsetof(struct link_sg, p) == SG_P
+    && offsetof(struct link_sg, q) == SG_Q
+    && offsetof(struct link_sg, tm) == SG_TM
+    && offsetof(struct link_sg, cm) == SG_CM) ? 1 : -1];
+#endif
 #if defined(__SDCC_pic16)
 typedef char link_sg_layout[(offsetof(struct link_sg, tm) == 4u && offsetof(struct link_sg, cm) == 6u) ? 1 : -1];
 #endif
@@ -311,6 +371,76 @@ static struct link_state {
     uint8_t rx_lost_at;                /* bytes were lost to a full spill ring after its byte at
                                         * this index (NONE: no loss pending) */
 } S;
+#if defined(__SDCC_pic16)
+/* struct link_state's fields the assembly addresses, by byte offset (SDCC packs the struct: no
+ * padding), each checked against offsetof */
+#define LS_TM_GEN 1
+#define LS_TM_DROPPED 6
+#define LS_UPTIME_MS 8
+#define LS_RX_VALID 13
+#define LS_NACK 14
+#define LS_NACK_TYPE 15
+#define LS_NACK_SEQ 16
+#define LS_TSEQ 17
+#define LS_TX_POS 19
+#define LS_TM_SPF 20
+#define LS_WD_ARMED 27
+#define LS_WD_MS 28
+#define LS_EV_WATCHDOG 33
+#define LS_TM_MASK 35
+#if LINK_WITH_CAPTURE
+#define LS_CHANGED 55
+#else
+#define LS_CHANGED 37
+#endif
+typedef char link_state_offsets[(offsetof(struct link_state, tm_gen) == LS_TM_GEN
+    && offsetof(struct link_state, tm_dropped) == LS_TM_DROPPED
+    && offsetof(struct link_state, uptime_ms) == LS_UPTIME_MS
+    && offsetof(struct link_state, rx_valid) == LS_RX_VALID
+    && offsetof(struct link_state, nack) == LS_NACK
+    && offsetof(struct link_state, nack_type) == LS_NACK_TYPE
+    && offsetof(struct link_state, nack_seq) == LS_NACK_SEQ
+    && offsetof(struct link_state, tseq) == LS_TSEQ
+    && offsetof(struct link_state, tx_pos) == LS_TX_POS
+    && offsetof(struct link_state, tm_spf) == LS_TM_SPF
+    && offsetof(struct link_state, wd_armed) == LS_WD_ARMED
+    && offsetof(struct link_state, wd_ms) == LS_WD_MS
+    && offsetof(struct link_state, ev_watchdog) == LS_EV_WATCHDOG
+    && offsetof(struct link_state, tm_mask) == LS_TM_MASK
+    && offsetof(struct link_state, changed) == LS_CHANGED) ? 1 : -1];
+#if LINK_WITH_CAPTURE
+#define LS_CAP_SP_CHANGED 37
+#define LS_CAP_TRIG 38
+#define LS_CAP_BYTES 39
+#define LS_CAP_PRE 40
+#define LS_CAP_MASK 41
+#define LS_CAP_THR 43
+#define LS_CR_W 45
+#define LS_CR_WI 46
+#define LS_CR_FILLED 47
+#define LS_CR_POST 48
+#define LS_CR_TOTAL 49
+#define LS_CR_START 50
+#define LS_CR_TIDX 51
+#define LS_CR_PREV_VALID 52
+#define LS_CR_PREV 53
+typedef char link_state_capture_offsets[(offsetof(struct link_state, cap_sp_changed) == LS_CAP_SP_CHANGED
+    && offsetof(struct link_state, cap_trig) == LS_CAP_TRIG
+    && offsetof(struct link_state, cap_bytes) == LS_CAP_BYTES
+    && offsetof(struct link_state, cap_pre) == LS_CAP_PRE
+    && offsetof(struct link_state, cap_mask) == LS_CAP_MASK
+    && offsetof(struct link_state, cap_thr) == LS_CAP_THR
+    && offsetof(struct link_state, cr.w) == LS_CR_W
+    && offsetof(struct link_state, cr.wi) == LS_CR_WI
+    && offsetof(struct link_state, cr.filled) == LS_CR_FILLED
+    && offsetof(struct link_state, cr.post) == LS_CR_POST
+    && offsetof(struct link_state, cr.total) == LS_CR_TOTAL
+    && offsetof(struct link_state, cr.start) == LS_CR_START
+    && offsetof(struct link_state, cr.tidx) == LS_CR_TIDX
+    && offsetof(struct link_state, cr.prev_valid) == LS_CR_PREV_VALID
+    && offsetof(struct link_state, cr.prev) == LS_CR_PREV) ? 1 : -1];
+#endif
+#endif
 
 typedef char link_status_layout[(offsetof(struct link_state, uptime_ms) == 8u) ? 1 : -1];
 
@@ -372,17 +502,17 @@ static uint8_t rom_next(void) __naked  /* link_rom[link_hot.ro++]: the module's 
 {
     __asm
     MOVLW   LOW(_link_rom)
-    ADDWF   (_link_hot + 6), W, A   ; TBLPTR = link_rom + ro
+    ADDWF   (_link_hot + LH_RO), W, A   ; TBLPTR = link_rom + ro
     MOVWF   _TBLPTRL, A
     MOVLW   HIGH(_link_rom)
-    ADDWFC  (_link_hot + 7), W, A
+    ADDWFC  (_link_hot + LH_RO + 1), W, A
     MOVWF   _TBLPTRH, A
     CLRF    _TBLPTRU, A             ; (CLRF and MOVLW keep the carry)
     MOVLW   UPPER(_link_rom)
     ADDWFC  _TBLPTRU, F, A
     TBLRD*
-    INFSNZ  (_link_hot + 6), F, A   ; ro++
-    INCF    (_link_hot + 7), F, A
+    INFSNZ  (_link_hot + LH_RO), F, A   ; ro++
+    INCF    (_link_hot + LH_RO + 1), F, A
     MOVF    _TABLAT, W, A           ; TABLAT
     RETURN
     __endasm;
@@ -478,24 +608,24 @@ static void crc_byte(uint8_t b) LINK_WPARAM __naked
 {
     (void)b;
     __asm
-    XORWF   (_link_hot + 3), W, A      ; x = hi ^ b
+    XORWF   (_link_hot + LH_CRC_HI), W, A      ; x = hi ^ b
     MOVWF   _PRODL, A
     SWAPF   _PRODL, W, A
     ANDLW   0x0F
     XORWF   _PRODL, F, A        ; x ^= x >> 4
     SWAPF   _PRODL, W, A
     ANDLW   0xF0                ; x << 4
-    XORWF   (_link_hot + 4), W, A
-    MOVWF   (_link_hot + 3), A         ; hi = lo ^ (x << 4)
+    XORWF   (_link_hot + LH_CRC_LO), W, A
+    MOVWF   (_link_hot + LH_CRC_HI), A         ; hi = lo ^ (x << 4)
     SWAPF   _PRODL, W, A
     RLNCF   _WREG, W, A         ; x rotated right by 3
     MOVWF   _PRODH, A
     ANDLW   0x1F                ; x >> 3
-    XORWF   (_link_hot + 3), F, A      ; hi ^= x >> 3
+    XORWF   (_link_hot + LH_CRC_HI), F, A      ; hi ^= x >> 3
     MOVF    _PRODH, W, A
     ANDLW   0xE0                ; x << 5
     XORWF   _PRODL, W, A
-    MOVWF   (_link_hot + 4), A         ; lo = x ^ (x << 5)
+    MOVWF   (_link_hot + LH_CRC_LO), A         ; lo = x ^ (x << 5)
     RETURN
     __endasm;
 }
@@ -516,8 +646,8 @@ static void crc_n(uint8_t n) LINK_WPARAM __naked   /* TABLAT counts (crc_byte ke
     (void)n;
     __asm
     MOVWF   _TABLAT, A
-    SETF    (_link_hot + 3), A      ; CRC_INIT
-    SETF    (_link_hot + 4), A
+    SETF    (_link_hot + LH_CRC_HI), A      ; CRC_INIT
+    SETF    (_link_hot + LH_CRC_LO), A
     MOVF    _TABLAT, F, A
     BZ      lcrc_end
     MOVFF   _cp_s, _FSR0L
@@ -580,8 +710,8 @@ static void row_of(uint8_t idx) LINK_WPARAM __naked   /* link_hot.ro = the entry
     (void)idx;
     __asm
     MULLW   14
-    MOVFF   _PRODL, (_link_hot + 6)
-    MOVFF   _PRODH, (_link_hot + 7)
+    MOVFF   _PRODL, (_link_hot + LH_RO)
+    MOVFF   _PRODH, (_link_hot + LH_RO + 1)
     RETURN
     __endasm;
 }
@@ -603,19 +733,19 @@ static void entry_load(uint8_t idx) LINK_WPARAM __naked   /* link_hot.e_off, lin
     (void)idx;
     __asm
     ADDLW   164                 ; rom_at(ROM_OFF + idx)
-    MOVWF   (_link_hot + 6), A
+    MOVWF   (_link_hot + LH_RO), A
     MOVLW   1
     BTFSC   _STATUS, 0, A
     ADDLW   1
-    MOVWF   (_link_hot + 7), A
+    MOVWF   (_link_hot + LH_RO + 1), A
     CALL    _rom_next
-    MOVWF   (_link_hot + 8), A      ; e_off
+    MOVWF   (_link_hot + LH_E_OFF), A      ; e_off
     MOVLW   29                  ; rom_at(ROM_SIZE + idx): LINK_N_ENTRIES - 1 past the byte read
-    ADDWF   (_link_hot + 6), F, A
+    ADDWF   (_link_hot + LH_RO), F, A
     MOVLW   0
-    ADDWFC  (_link_hot + 7), F, A
+    ADDWFC  (_link_hot + LH_RO + 1), F, A
     CALL    _rom_next
-    MOVWF   (_link_hot + 9), A      ; e_sz
+    MOVWF   (_link_hot + LH_E_SZ), A      ; e_sz
     RETURN
     __endasm;
 }
@@ -636,10 +766,10 @@ static void sign_extend(void) __naked      /* PRODL the fill byte, PRODH the ind
     __asm
     CLRF    _PRODL, A
     MOVLW   0x7F
-    ANDWF   (_link_hot + 9), W, A   ; e_sz
+    ANDWF   (_link_hot + LH_E_SZ), W, A   ; e_sz
     MOVWF   _PRODH, A
     LFSR    0, (_V - 1)
-    BTFSS   (_link_hot + 9), 7, A
+    BTFSS   (_link_hot + LH_E_SZ), 7, A
     BRA     lse_fill
     BTFSC   _PLUSW0, 7, A           ; V.b[n - 1] (PLUSW0) negative: fill with 0xFF
     SETF    _PRODL, A
@@ -690,7 +820,7 @@ static void value_at(uint8_t idx) LINK_WPARAM __naked      /* V = parameter or s
     __asm
     MOVWF   _PRODL, A               ; PRODL = idx
     CALL    _entry_load
-    INCF    (_link_hot + 8), W, A   ; e_off == NONE: a signal
+    INCF    (_link_hot + LH_E_OFF), W, A   ; e_off == NONE: a signal
     BNZ     lva_store
     MOVLW   11
     SUBWF   _PRODL, W, A            ; app_signal(idx - SIG_INDEX): low byte in W, high in PRODL
@@ -736,7 +866,7 @@ static uint8_t rom_cmp(uint8_t above) LINK_WPARAM __naked
     CALL    _rom_next
     MOVWF   _PRODH, A
     CLRF    _FSR0L, A               ; the upper half: the fill of the entry size code (link_hot.e_sz)
-    BTFSS   (_link_hot + 9), 7, A
+    BTFSS   (_link_hot + LH_E_SZ), 7, A
     BRA     lrc_fill
     BTFSC   _PRODH, 7, A
     SETF    _FSR0L, A
@@ -783,9 +913,9 @@ static uint8_t in_range(uint8_t idx) LINK_WPARAM __naked   /* V within the entry
     __asm
     CALL    _row_of
     MOVLW   8                       ; the row min
-    ADDWF   (_link_hot + 6), F, A
+    ADDWF   (_link_hot + LH_RO), F, A
     MOVLW   0
-    ADDWFC  (_link_hot + 7), F, A
+    ADDWFC  (_link_hot + LH_RO + 1), F, A
     MOVLW   0
     CALL    _rom_cmp                ; V < min
     IORLW   0
@@ -1040,12 +1170,6 @@ static uint8_t ee_load(void)
 #endif
 
 #if defined(__SDCC_pic16)
-#if LINK_WITH_CAPTURE
-#define LS_CHANGED 55                  /* offsetof(struct link_state, changed), for the assembly */
-#else
-#define LS_CHANGED 37
-#endif
-typedef char link_changed_layout[(offsetof(struct link_state, changed) == LS_CHANGED) ? 1 : -1];
 /* PIC18 assembly: no register held across the calls (S.changed counts), no frame */
 static void link_notify(void) __naked  /* app_param_changed for what the last command or load changed */
 {
@@ -1165,31 +1289,31 @@ void link_rx_byte(uint8_t b) LINK_WPARAM __naked
     (void)b;
     __asm
     MOVWF   _PRODL, A
-    MOVF    (_link_hot + 1), W, A      ; rx_ready
+    MOVF    (_link_hot + LH_RX_READY), W, A      ; rx_ready
     BNZ     _lrx_spill          ; the main loop holds rx_buf: the byte waits in the spill ring
     MOVF    _PRODL, F, A
     BZ      _lrx_delim
     MOVLW   46          ; LINK_RX_BYTES
-    CPFSLT  (_link_hot + 0), A         ; rx_n
+    CPFSLT  (_link_hot + LH_RX_N), A         ; rx_n
     BRA     _lrx_long
-    MOVF    (_link_hot + 0), W, A
+    MOVF    (_link_hot + LH_RX_N), W, A
     LFSR    0, _rx_buf
     MOVFF   _PRODL, _PLUSW0
-    INCF    (_link_hot + 0), F, A      ; rx_buf[rx_n++] = b
+    INCF    (_link_hot + LH_RX_N), F, A      ; rx_buf[rx_n++] = b
     RETURN
 _lrx_long:
-    SETF    (_link_hot + 0), A         ; longer than any frame: RX_SKIP
+    SETF    (_link_hot + LH_RX_N), A         ; longer than any frame: RX_SKIP
     RETURN
 _lrx_delim:
-    INCF    (_link_hot + 0), W, A
+    INCF    (_link_hot + LH_RX_N), W, A
     BZ      _lrx_clear          ; RX_SKIP: the garbage ends here
-    MOVF    (_link_hot + 0), F, A
+    MOVF    (_link_hot + LH_RX_N), F, A
     BZ      _lrx_done           ; nothing since the last delimiter
-    INCF    (_link_hot + 1), F, A      ; 0 -> 1: the frame is complete
+    INCF    (_link_hot + LH_RX_READY), F, A      ; 0 -> 1: the frame is complete
 _lrx_done:
     RETURN
 _lrx_clear:
-    CLRF    (_link_hot + 0), A
+    CLRF    (_link_hot + LH_RX_N), A
     RETURN
 _lrx_spill:
     BANKSEL _rx_sp_w
@@ -1202,7 +1326,7 @@ _lrx_spill:
     CPFSEQ  _PRODH, A           ; full (next == rx_sp_r): skip the store
     MOVWF   _rx_sp_w, B         ; the byte is in
     CPFSEQ  _rx_sp_w, B         ; stored: skip the count
-    INCF    (_link_hot + 2), F, A      ; rx_ovf: the byte is lost
+    INCF    (_link_hot + LH_RX_OVF), F, A      ; rx_ovf: the byte is lost
     RETURN
     __endasm;
 }
@@ -1241,7 +1365,7 @@ void link_rx_byte(uint8_t b) LINK_WPARAM
 static uint8_t cobs_decode(void) __naked   /* rx_buf decoded in place; the last run (1: well formed) */
 {
     __asm
-    DECF    (_link_hot + 0), W, A   ; rx_n - 1 bytes after the code byte
+    DECF    (_link_hot + LH_RX_N), W, A   ; rx_n - 1 bytes after the code byte
     MOVWF   _PRODH, A
     MOVFF   _rx_buf, _TABLAT        ; run = the code byte
     LFSR    0, (_rx_buf + 1)
@@ -1375,23 +1499,23 @@ static void tx_seal(uint8_t type) LINK_WPARAM __naked   /* payload A(0..link_hot
     (void)type;
     __asm
     MOVFF   _WREG, (_tx_buf + 2)    ; TYPE, LEN, SEQ
-    MOVFF   (_link_hot + 5), (_tx_buf + 1)
-    MOVFF   (_S + 17), (_tx_buf + 3)
+    MOVFF   (_link_hot + LH_N), (_tx_buf + 1)
+    MOVFF   (_S + LS_TSEQ), (_tx_buf + 3)
     MOVLW   LOW(_tx_buf + 1)        ; CRC over LEN .. payload
     MOVFF   _WREG, _cp_s
     MOVLW   HIGH(_tx_buf + 1)
     MOVFF   _WREG, (_cp_s + 1)
-    MOVF    (_link_hot + 5), W, A
+    MOVF    (_link_hot + LH_N), W, A
     ADDLW   3
     CALL    _crc_n
-    MOVFF   (_link_hot + 3), _POSTINC0 ; CRC high, low (POSTINC0)
-    MOVFF   (_link_hot + 4), _POSTINC0
-    MOVF    (_link_hot + 5), W, A   ; tx_len = body + COBS code + delimiter
+    MOVFF   (_link_hot + LH_CRC_HI), _POSTINC0 ; CRC high, low (POSTINC0)
+    MOVFF   (_link_hot + LH_CRC_LO), _POSTINC0
+    MOVF    (_link_hot + LH_N), W, A   ; tx_len = body + COBS code + delimiter
     ADDLW   7
-    MOVWF   (_link_hot + 10), A
+    MOVWF   (_link_hot + LH_TX_LEN), A
     BANKSEL _S
-    CLRF    (_S + 19), B            ; tx_pos = 0
-    MOVF    (_link_hot + 5), W, A   ; count = body bytes
+    CLRF    (_S + LS_TX_POS), B            ; tx_pos = 0
+    MOVF    (_link_hot + LH_N), W, A   ; count = body bytes
     ADDLW   5
     MOVWF   _PRODH, A
     LFSR    0, (_tx_buf + 1)
@@ -1452,7 +1576,7 @@ static void tx_drain(void) __naked
     __asm
     extern  _app_tx_free
     extern  _app_tx_byte
-    MOVF    (_link_hot + 10), W, A  ; tx_len: nothing to send
+    MOVF    (_link_hot + LH_TX_LEN), W, A  ; tx_len: nothing to send
     BZ      ltd_ret
     CALL    _app_tx_free
     IORLW   0
@@ -1460,15 +1584,15 @@ static void tx_drain(void) __naked
     MOVWF   _POSTDEC1, A            ; room (POSTDEC1)
 ltd_loop:
     BANKSEL _S
-    DECF    (_link_hot + 10), W, A  ; tx_pos == tx_len - 1: only the delimiter is left
-    XORWF   (_S + 19), W, B
+    DECF    (_link_hot + LH_TX_LEN), W, A  ; tx_pos == tx_len - 1: only the delimiter is left
+    XORWF   (_S + LS_TX_POS), W, B
     BZ      ltd_end
     LFSR    0, _tx_buf
-    MOVF    (_S + 19), W, B
+    MOVF    (_S + LS_TX_POS), W, B
     MOVF    _PLUSW0, W, A           ; tx_buf[tx_pos] (PLUSW0)
     CALL    _app_tx_byte
     BANKSEL _S
-    INCF    (_S + 19), F, B
+    INCF    (_S + LS_TX_POS), F, B
     MOVLW   1
     DECFSZ  _PLUSW1, F, A           ; room-- (PLUSW1)
     BRA     ltd_loop
@@ -1476,7 +1600,7 @@ ltd_loop:
 ltd_end:
     MOVLW   0
     CALL    _app_tx_byte            ; the delimiter
-    CLRF    (_link_hot + 10), A
+    CLRF    (_link_hot + LH_TX_LEN), A
 ltd_pop:
     MOVF    _PREINC1, F, A          ; drop room (PREINC1)
 ltd_ret:
@@ -1528,9 +1652,9 @@ lrc_loop:
     CALL    _rom_next
     MOVWF   _PRODH, A               ; PRODH = the byte
     LFSR    0, (_tx_buf + 4)        ; A(0)
-    MOVF    (_link_hot + 5), W, A   ; link_hot.n
+    MOVF    (_link_hot + LH_N), W, A   ; link_hot.n
     MOVFF   _PRODH, _PLUSW0         ; A(link_hot.n) (PLUSW0)
-    INCF    (_link_hot + 5), F, A
+    INCF    (_link_hot + LH_N), F, A
     DECFSZ  _PRODL, F, A
     BRA     lrc_loop
 lrc_end:
@@ -1541,11 +1665,11 @@ lrc_end:
 static uint8_t h_hello(void) __naked
 {
     __asm
-    CLRF    (_link_hot + 5), A      ; link_hot.n = 0
+    CLRF    (_link_hot + LH_N), A      ; link_hot.n = 0
     MOVLW   254              ; rom_at(ROM_HELLO)
-    MOVWF   (_link_hot + 6), A
+    MOVWF   (_link_hot + LH_RO), A
     MOVLW   1
-    MOVWF   (_link_hot + 7), A
+    MOVWF   (_link_hot + LH_RO + 1), A
     MOVLW   20
     CALL    _rom_copy
     RETLW   0
@@ -1560,20 +1684,20 @@ static void rom_val16(void) __naked
     MOVLW   2
     CALL    _rom_copy
     CLRF    _PRODL, A               ; PRODL = the fill
-    BTFSS   (_link_hot + 9), 7, A   ; e_sz: signed
+    BTFSS   (_link_hot + LH_E_SZ), 7, A   ; e_sz: signed
     BRA     lrv_fill
     LFSR    0, (_tx_buf + 3)        ; A(n - 1): the high byte (PLUSW0)
-    MOVF    (_link_hot + 5), W, A
+    MOVF    (_link_hot + LH_N), W, A
     BTFSC   _PLUSW0, 7, A
     SETF    _PRODL, A
 lrv_fill:
     LFSR    0, (_tx_buf + 4)
-    MOVF    (_link_hot + 5), W, A
+    MOVF    (_link_hot + LH_N), W, A
     MOVFF   _PRODL, _PLUSW0         ; A(n) (PLUSW0)
-    INCF    (_link_hot + 5), F, A
-    MOVF    (_link_hot + 5), W, A
+    INCF    (_link_hot + LH_N), F, A
+    MOVF    (_link_hot + LH_N), W, A
     MOVFF   _PRODL, _PLUSW0
-    INCF    (_link_hot + 5), F, A
+    INCF    (_link_hot + LH_N), F, A
     RETURN
     __endasm;
 }
@@ -1590,9 +1714,9 @@ static uint8_t h_param_info(void) __naked
     BNC     lpi_bad                 ; idx >= LINK_N_ENTRIES
     MOVFF   _FSR0L, _POSTDEC1       ; push idx (POSTDEC1)
     MOVLW   224              ; rom_at(ROM_NAME_LEN)
-    MOVWF   (_link_hot + 6), A
+    MOVWF   (_link_hot + LH_RO), A
     MOVLW   1
-    MOVWF   (_link_hot + 7), A
+    MOVWF   (_link_hot + LH_RO + 1), A
     MOVLW   35             ; PROD = ROM_NAMES
     MOVWF   _PRODL, A
     MOVLW   2
@@ -1611,7 +1735,7 @@ lpi_len:
     MOVWF   _POSTDEC1, A            ; push the length, the offset (idx stays below them)
     MOVFF   _PRODH, _POSTDEC1
     MOVFF   _PRODL, _POSTDEC1
-    CLRF    (_link_hot + 5), A      ; link_hot.n = 0
+    CLRF    (_link_hot + LH_N), A      ; link_hot.n = 0
     MOVLW   4
     MOVF    _PLUSW1, W, A           ; idx (PLUSW1)
     CALL    _entry_load             ; its size code widens min, max, default
@@ -1623,8 +1747,8 @@ lpi_len:
     CALL    _rom_val16              ; min, max, default
     CALL    _rom_val16
     CALL    _rom_val16
-    MOVFF   _PREINC1, (_link_hot + 6) ; rom_at(offset) (PREINC1)
-    MOVFF   _PREINC1, (_link_hot + 7)
+    MOVFF   _PREINC1, (_link_hot + LH_RO) ; rom_at(offset) (PREINC1)
+    MOVFF   _PREINC1, (_link_hot + LH_RO + 1)
     MOVF    _PREINC1, W, A          ; the length
     MOVF    _PREINC1, F, A          ; drop idx (each pop one instruction: an interrupt pushes at FSR1)
     CALL    _rom_copy
@@ -1695,7 +1819,7 @@ static uint8_t h_param_info(void)
 static uint8_t h_param_get(void) __naked
 {
     __asm
-    MOVF    (_link_hot + 5), W, A   ; 1 .. LINK_PARAM_GET_MAX ids
+    MOVF    (_link_hot + LH_N), W, A   ; 1 .. LINK_PARAM_GET_MAX ids
     BZ      lpg_bad
     SUBLW   10
     BNC     lpg_bad
@@ -1712,7 +1836,7 @@ lpg_check:
     INCF    _PLUSW1, F, A
     MOVLW   1
     MOVF    _PLUSW1, W, A
-    XORWF   (_link_hot + 5), W, A
+    XORWF   (_link_hot + LH_N), W, A
     BNZ     lpg_check
     MOVLW   1
     CLRF    _PLUSW1, A
@@ -1739,11 +1863,11 @@ lpg_value:
     INCF    _PLUSW1, F, A
     MOVLW   1
     MOVF    _PLUSW1, W, A
-    XORWF   (_link_hot + 5), W, A
+    XORWF   (_link_hot + LH_N), W, A
     BNZ     lpg_value
-    MOVF    (_link_hot + 5), W, A   ; 4 bytes an id
+    MOVF    (_link_hot + LH_N), W, A   ; 4 bytes an id
     MULLW   4
-    MOVFF   _PRODL, (_link_hot + 5)
+    MOVFF   _PRODL, (_link_hot + LH_N)
     MOVF    _PREINC1, F, A          ; drop i (PREINC1)
     RETLW   0
 lpg_unknown:
@@ -1863,25 +1987,25 @@ ltc_set:
     MOVFF   _PRODL, _POSTDEC1       ; the length, the bytes per sample (POSTDEC1)
     MOVFF   _PRODH, _POSTDEC1
     CALL    _crit_begin
-    CLRF    (_link_hot + 13), A     ; tm_dec = 0 while the settings change
-    CLRF    (_link_hot + 14), A
-    MOVFF   (_rx_buf + 3), (_S + 35)    ; tm_mask
-    MOVFF   (_rx_buf + 4), (_S + 36)
-    MOVFF   (_rx_buf + 7), (_S + 20)    ; tm_spf
-    MOVFF   _PREINC1, (_link_hot + 12) ; tm_nb (PREINC1)
-    CLRF    (_link_hot + 15), A     ; tr: div, counter, nsamp, len
-    CLRF    (_link_hot + 16), A
-    CLRF    (_link_hot + 17), A
-    CLRF    (_link_hot + 18), A
-    CLRF    (_link_hot + 19), A
-    CLRF    (_link_hot + 20), A
-    CLRF    (_link_hot + 11), A     ; tm_ready
+    CLRF    (_link_hot + LH_TM_DEC), A     ; tm_dec = 0 while the settings change
+    CLRF    (_link_hot + LH_TM_DEC + 1), A
+    MOVFF   (_rx_buf + 3), (_S + LS_TM_MASK)    ; tm_mask
+    MOVFF   (_rx_buf + 4), (_S + LS_TM_MASK + 1)
+    MOVFF   (_rx_buf + 7), (_S + LS_TM_SPF)    ; tm_spf
+    MOVFF   _PREINC1, (_link_hot + LH_TM_NB) ; tm_nb (PREINC1)
+    CLRF    (_link_hot + LH_TR_DIV), A     ; tr: div, counter, nsamp, len
+    CLRF    (_link_hot + LH_TR_DIV + 1), A
+    CLRF    (_link_hot + LH_TR_COUNTER), A
+    CLRF    (_link_hot + LH_TR_COUNTER + 1), A
+    CLRF    (_link_hot + LH_TR_NSAMP), A
+    CLRF    (_link_hot + LH_TR_LEN), A
+    CLRF    (_link_hot + LH_TM_READY), A     ; tm_ready
     BANKSEL _S
-    INCF    (_S + 1), F, B          ; tm_gen
-    MOVFF   (_rx_buf + 5), (_link_hot + 13)   ; tm_dec last
-    MOVFF   (_rx_buf + 6), (_link_hot + 14)
+    INCF    (_S + LS_TM_GEN), F, B          ; tm_gen
+    MOVFF   (_rx_buf + 5), (_link_hot + LH_TM_DEC)   ; tm_dec last
+    MOVFF   (_rx_buf + 6), (_link_hot + LH_TM_DEC + 1)
     CALL    _crit_end
-    MOVFF   (_S + 1), (_tx_buf + 4) ; A(0) = tm_gen, A(1) = the frame length (0: off)
+    MOVFF   (_S + LS_TM_GEN), (_tx_buf + 4) ; A(0) = tm_gen, A(1) = the frame length (0: off)
     MOVFF   _PREINC1, _PRODL        ; (PREINC1)
     BANKSEL _rx_buf
     MOVF    (_rx_buf + 5), W, B
@@ -1890,7 +2014,7 @@ ltc_set:
     MOVF    _PRODL, W, A
     MOVFF   _WREG, (_tx_buf + 5)
     MOVLW   2
-    MOVWF   (_link_hot + 5), A
+    MOVWF   (_link_hot + LH_N), A
     RETLW   0
 ltc_bad:
     RETLW   4
@@ -1938,7 +2062,7 @@ static uint8_t h_telem_config(void)
 static uint8_t h_capture_arm(void) __naked
 {
     __asm
-    CLRF    (_link_hot + 5), A      ; no reply payload
+    CLRF    (_link_hot + LH_N), A      ; no reply payload
     CALL    _mask_nsig
     MOVWF   _PRODH, A               ; PRODH = signals (0: a bad mask)
     BZ      lca_bad
@@ -1985,32 +2109,32 @@ lca_add:
     CALL    _crit_begin
     BANKSEL _S
     CLRF    _S, B                   ; IDLE while the settings change
-    MOVFF   (_rx_buf + 3), (_S + 41)    ; cap_mask
-    MOVFF   (_rx_buf + 4), (_S + 42)
-    MOVFF   _PREINC1, (_S + 39)     ; cap_bytes (PREINC1)
-    MOVFF   _PREINC1, (_link_hot + 22) ; cap_nb
-    MOVFF   (_rx_buf + 5), (_link_hot + 21) ; cap_n
-    MOVFF   (_rx_buf + 7), (_S + 40)    ; cap_pre
-    MOVFF   (_rx_buf + 9), (_link_hot + 23) ; cap_dec
-    MOVFF   (_rx_buf + 10), (_link_hot + 24)
-    MOVFF   (_rx_buf + 11), (_S + 38)   ; cap_trig
-    MOVFF   (_rx_buf + 12), (_S + 43)   ; cap_thr (SPEED_FALLING: complemented)
-    MOVFF   (_rx_buf + 13), (_S + 44)
-    MOVF    (_S + 38), W, B
+    MOVFF   (_rx_buf + 3), (_S + LS_CAP_MASK)    ; cap_mask
+    MOVFF   (_rx_buf + 4), (_S + LS_CAP_MASK + 1)
+    MOVFF   _PREINC1, (_S + LS_CAP_BYTES)     ; cap_bytes (PREINC1)
+    MOVFF   _PREINC1, (_link_hot + LH_CAP_NB) ; cap_nb
+    MOVFF   (_rx_buf + 5), (_link_hot + LH_CAP_N) ; cap_n
+    MOVFF   (_rx_buf + 7), (_S + LS_CAP_PRE)    ; cap_pre
+    MOVFF   (_rx_buf + 9), (_link_hot + LH_CAP_DEC) ; cap_dec
+    MOVFF   (_rx_buf + 10), (_link_hot + LH_CAP_DEC + 1)
+    MOVFF   (_rx_buf + 11), (_S + LS_CAP_TRIG)   ; cap_trig
+    MOVFF   (_rx_buf + 12), (_S + LS_CAP_THR)   ; cap_thr (SPEED_FALLING: complemented)
+    MOVFF   (_rx_buf + 13), (_S + LS_CAP_THR + 1)
+    MOVF    (_S + LS_CAP_TRIG), W, B
     XORLW   3
     BNZ     lca_clear
-    COMF    (_S + 43), F, B
-    COMF    (_S + 44), F, B
+    COMF    (_S + LS_CAP_THR), F, B
+    COMF    (_S + LS_CAP_THR + 1), F, B
 lca_clear:
-    LFSR    0, (_S + 45)            ; the record (S.cr, 10 bytes)
+    LFSR    0, (_S + LS_CR_W)            ; the record (S.cr, 10 bytes)
     MOVLW   10
 lca_zero:
     CLRF    _POSTINC0, A            ; POSTINC0
     DECFSZ  _WREG, F, A
     BRA     lca_zero
-    CLRF    (_link_hot + 25), A     ; cr_div
-    CLRF    (_link_hot + 26), A
-    CLRF    (_S + 37), B            ; cap_sp_changed
+    CLRF    (_link_hot + LH_CR_DIV), A     ; cr_div
+    CLRF    (_link_hot + LH_CR_DIV + 1), A
+    CLRF    (_S + LS_CAP_SP_CHANGED), B            ; cap_sp_changed
     MOVLW   1
     MOVWF   _S, B
     CALL    _crit_end
@@ -2078,7 +2202,7 @@ static uint8_t h_capture_read(void) __naked
 lcr_wrong:
     RETLW   6
 lcr_done:
-    MOVFF   (_S + 49), _PRODL       ; PRODL = total
+    MOVFF   (_S + LS_CR_TOTAL), _PRODL       ; PRODL = total
     BANKSEL _rx_buf
     MOVF    (_rx_buf + 4), W, B     ; start < 256
     BNZ     lcr_range
@@ -2088,8 +2212,8 @@ lcr_done:
     MOVWF   _PRODH, A
     MOVLW   3          ; A(0..6): state, total, trigger index, start (u16 each but the state)
     MOVFF   _WREG, (_tx_buf + 4)
-    MOVFF   (_S + 49), (_tx_buf + 5)
-    MOVFF   (_S + 51), (_tx_buf + 7)
+    MOVFF   (_S + LS_CR_TOTAL), (_tx_buf + 5)
+    MOVFF   (_S + LS_CR_TIDX), (_tx_buf + 7)
     MOVFF   (_rx_buf + 3), (_tx_buf + 9)
     MOVLW   0
     MOVFF   _WREG, (_tx_buf + 6)
@@ -2102,7 +2226,7 @@ lcr_done:
     MOVWF   _PRODL, A
     CLRF    _TABLAT, A
 lcr_fit:
-    MOVF    (_link_hot + 22), W, A  ; cap_nb
+    MOVF    (_link_hot + LH_CAP_NB), W, A  ; cap_nb
     SUBWF   _PRODL, F, A
     BNC     lcr_fitted
     INCF    _TABLAT, F, A
@@ -2112,20 +2236,20 @@ lcr_fitted:
     CPFSLT  _PRODH, A
     MOVWF   _PRODH, A
     MOVF    _PRODH, W, A            ; bytes = samples x cap_nb (PRODL)
-    MULWF   (_link_hot + 22), A
+    MULWF   (_link_hot + LH_CAP_NB), A
     MOVF    _PRODL, W, A            ; reply length = header + bytes
     ADDLW   7
-    MOVWF   (_link_hot + 5), A
+    MOVWF   (_link_hot + LH_N), A
     MOVFF   _PRODL, _TABLAT         ; TABLAT = bytes
     BANKSEL _S
     MOVFF   (_rx_buf + 3), _WREG    ; the first sample: (record start + start) mod cap_n
-    ADDWF   (_S + 50), W, B
+    ADDWF   (_S + LS_CR_START), W, B
     MOVWF   _PRODL, A
-    MOVF    (_link_hot + 21), W, A
+    MOVF    (_link_hot + LH_CAP_N), W, A
     CPFSLT  _PRODL, A
     SUBWF   _PRODL, F, A
     MOVF    _PRODL, W, A            ; its byte index (< 256)
-    MULWF   (_link_hot + 22), A
+    MULWF   (_link_hot + LH_CAP_NB), A
     MOVFF   _PRODL, _PRODH          ; PRODH = the byte index
     MOVLW   LOW(_tx_buf + 11)   ; cp_d: the reply after its header
     MOVFF   _WREG, _cp_d
@@ -2151,7 +2275,7 @@ lcr_loop:
     MOVFF   (_cp_s + 1), _FSR0H
     INCF    _PRODH, F, A
     DECF    _PRODH, W, A            ; past the last byte: back to the start
-    XORWF   (_S + 39), W, B
+    XORWF   (_S + LS_CAP_BYTES), W, B
     BNZ     lcr_next
     CLRF    _PRODH, A
     LFSR    0, _cap_buf
@@ -2379,24 +2503,24 @@ void link_poll(void) __naked
 lpl_loop:
     CALL    _wd_arm
     CALL    _tx_drain
-    MOVF    (_link_hot + 10), W, A  ; tx_len: a frame still leaving
+    MOVF    (_link_hot + LH_TX_LEN), W, A  ; tx_len: a frame still leaving
     BNZ     lpl_end
     BANKSEL _S
-    MOVF    (_S + 14), W, B         ; nack == NACK_PENDING: one BAD_CRC NACK
+    MOVF    (_S + LS_NACK), W, B         ; nack == NACK_PENDING: one BAD_CRC NACK
     XORLW   2
     BNZ     lpl_rx
-    CLRF    (_S + 14), B
-    MOVFF   (_S + 15), (_tx_buf + 4)   ; A(0) = the frame type, A(1) = BAD_CRC
+    CLRF    (_S + LS_NACK), B
+    MOVFF   (_S + LS_NACK_TYPE), (_tx_buf + 4)   ; A(0) = the frame type, A(1) = BAD_CRC
     MOVLW   2
     MOVFF   _WREG, (_tx_buf + 5)
     MOVLW   2
-    MOVWF   (_link_hot + 5), A
-    MOVFF   (_S + 16), (_S + 17)    ; SEQ of the bad frame
+    MOVWF   (_link_hot + LH_N), A
+    MOVFF   (_S + LS_NACK_SEQ), (_S + LS_TSEQ)    ; SEQ of the bad frame
     MOVLW   127
     CALL    _tx_seal
     BRA     lpl_next
 lpl_rx:
-    MOVF    (_link_hot + 1), W, A   ; rx_ready
+    MOVF    (_link_hot + LH_RX_READY), W, A   ; rx_ready
     BZ      lpl_ev
     CALL    _rx_frame
     IORLW   0
@@ -2410,10 +2534,10 @@ lpl_ev:
     CALL    _send_event
     IORLW   0
     BNZ     lpl_next
-    MOVF    (_link_hot + 11), W, A  ; tm_ready: the telemetry frame
+    MOVF    (_link_hot + LH_TM_READY), W, A  ; tm_ready: the telemetry frame
     BZ      lpl_end
-    MOVF    (_link_hot + 20), W, A  ; n = tr.len; A(0..) = tm_buf
-    MOVWF   (_link_hot + 5), A
+    MOVF    (_link_hot + LH_TR_LEN), W, A  ; n = tr.len; A(0..) = tm_buf
+    MOVWF   (_link_hot + LH_N), A
     MOVLW   LOW(_tx_buf + 4)
     MOVFF   _WREG, _cp_d
     MOVLW   HIGH(_tx_buf + 4)
@@ -2422,14 +2546,14 @@ lpl_ev:
     MOVFF   _WREG, _cp_s
     MOVLW   HIGH(_tm_buf)
     MOVFF   _WREG, (_cp_s + 1)
-    MOVF    (_link_hot + 5), W, A
+    MOVF    (_link_hot + LH_N), W, A
     CALL    _mcopy_n
-    MOVFF   (_S + 1), (_S + 17)     ; SEQ = tm_gen
+    MOVFF   (_S + LS_TM_GEN), (_S + LS_TSEQ)     ; SEQ = tm_gen
     MOVLW   96
     CALL    _tx_seal
-    CLRF    (_link_hot + 19), A     ; tr.nsamp = tr.len = 0, tm_ready = 0
-    CLRF    (_link_hot + 20), A
-    CLRF    (_link_hot + 11), A
+    CLRF    (_link_hot + LH_TR_NSAMP), A     ; tr.nsamp = tr.len = 0, tm_ready = 0
+    CLRF    (_link_hot + LH_TR_LEN), A
+    CLRF    (_link_hot + LH_TM_READY), A
 lpl_next:
     MOVF    _PREINC1, W, A          ; the pass count (PREINC1)
     DECF    _WREG, F, A
@@ -2519,8 +2643,8 @@ lps_loop:
     MOVFF   _TABLAT, _FSR0L         ; FSR0 = app_signal_src[j]
     TBLRD*+
     MOVFF   _TABLAT, _FSR0H
-    MOVF    (_sg + 4), W, B
-    IORWF   (_sg + 6), W, B
+    MOVF    (_sg + SG_TM), W, B
+    IORWF   (_sg + SG_CM), W, B
     BTFSS   _WREG, 0, A             ; signal j in neither mask: next
     BRA     lps_next
     MOVF    _FSR0L, W, A
@@ -2544,34 +2668,34 @@ lps_call:                          ; NULL: app_signal(j), the table pointer kept
     MOVFF   _PREINC1, _TBLPTRU
     BANKSEL _sg
 lps_have:
-    BTFSS   (_sg + 4), 0, B
+    BTFSS   (_sg + SG_TM), 0, B
     BRA     lps_cap
     MOVFF   _sg, _FSR0L             ; *sg.p++ = value
-    MOVFF   (_sg + 1), _FSR0H
+    MOVFF   (_sg + SG_P + 1), _FSR0H
     MOVFF   _PRODL, _POSTINC0
     MOVFF   _PRODH, _POSTINC0
     MOVFF   _FSR0L, _sg
-    MOVFF   _FSR0H, (_sg + 1)
+    MOVFF   _FSR0H, (_sg + SG_P + 1)
 lps_cap:
-    BTFSS   (_sg + 6), 0, B
+    BTFSS   (_sg + SG_CM), 0, B
     BRA     lps_next
-    MOVFF   (_sg + 2), _FSR0L       ; *sg.q++ = value
-    MOVFF   (_sg + 3), _FSR0H
+    MOVFF   (_sg + SG_Q), _FSR0L       ; *sg.q++ = value
+    MOVFF   (_sg + SG_Q + 1), _FSR0H
     MOVFF   _PRODL, _POSTINC0
     MOVFF   _PRODH, _POSTINC0
-    MOVFF   _FSR0L, (_sg + 2)
-    MOVFF   _FSR0H, (_sg + 3)
+    MOVFF   _FSR0L, (_sg + SG_Q)
+    MOVFF   _FSR0H, (_sg + SG_Q + 1)
 lps_next:
     BCF     _STATUS, 0, A ; tm >>= 1, cm >>= 1
-    RRCF    (_sg + 5), F, B
-    RRCF    (_sg + 4), F, B
+    RRCF    (_sg + SG_TM + 1), F, B
+    RRCF    (_sg + SG_TM), F, B
     BCF     _STATUS, 0, A
-    RRCF    (_sg + 7), F, B
-    RRCF    (_sg + 6), F, B
-    MOVF    (_sg + 4), W, B
-    IORWF   (_sg + 5), W, B
-    IORWF   (_sg + 6), W, B
-    IORWF   (_sg + 7), W, B
+    RRCF    (_sg + SG_CM + 1), F, B
+    RRCF    (_sg + SG_CM), F, B
+    MOVF    (_sg + SG_TM), W, B
+    IORWF   (_sg + SG_TM + 1), W, B
+    IORWF   (_sg + SG_CM), W, B
+    IORWF   (_sg + SG_CM + 1), W, B
     BNZ     lps_loop
     MOVFF   _PREINC1, _TABLAT       ; restore TABLAT, TBLPTRL, TBLPTRH, TBLPTRU (PREINC1)
     MOVFF   _PREINC1, _TBLPTRL
@@ -2614,13 +2738,14 @@ static void put_signals(void)
  * (W, STATUS, BSR, PROD are the interrupt's; app_signal and app_link_lost are called like the C
  * did).  Offsets into link_hot (access bank) and S are pinned by the layout checks below. */
 #if defined(__SDCC_pic16)
+#define LP_LINK_TIMEOUT 17                /* offsetof(link_params_t, link_timeout), checked below */
 typedef char link_isr_layout[(offsetof(struct link_fast, tm_ready) == 11u && offsetof(struct link_fast, tm_nb) == 12u
     && offsetof(struct link_fast, tm_dec) == 13u && offsetof(struct link_fast, tr) == 15u
     && offsetof(struct link_state, tm_dropped) == 6u && offsetof(struct link_state, rx_valid) == 13u
     && offsetof(struct link_state, tm_spf) == 20u && offsetof(struct link_state, wd_armed) == 27u
     && offsetof(struct link_state, wd_ms) == 28u && offsetof(struct link_state, ev_watchdog) == 33u
     && offsetof(struct link_state, tm_mask) == 35u
-    && offsetof(link_params_t, link_timeout) == 17u) ? 1 : -1];
+    && offsetof(link_params_t, link_timeout) == LP_LINK_TIMEOUT) ? 1 : -1];
 #if LINK_WITH_CAPTURE
 typedef char link_cap_layout[(offsetof(struct link_fast, cap_n) == 21u && offsetof(struct link_fast, cap_nb) == 22u
     && offsetof(struct link_fast, cap_dec) == 23u && offsetof(struct link_fast, cr_div) == 25u
@@ -2634,26 +2759,26 @@ typedef char link_cap_layout[(offsetof(struct link_fast, cap_n) == 21u && offset
 static void capture_due(void) __naked
 {
     __asm
-    INFSNZ  (_link_hot + 25), F, A  ; cr_div++
-    INCF    (_link_hot + 26), F, A
-    MOVF    (_link_hot + 23), W, A  ; cr_div - cap_dec: borrow = not due yet
-    SUBWF   (_link_hot + 25), W, A
-    MOVF    (_link_hot + 24), W, A
-    SUBWFB  (_link_hot + 26), W, A
+    INFSNZ  (_link_hot + LH_CR_DIV), F, A  ; cr_div++
+    INCF    (_link_hot + LH_CR_DIV + 1), F, A
+    MOVF    (_link_hot + LH_CAP_DEC), W, A  ; cr_div - cap_dec: borrow = not due yet
+    SUBWF   (_link_hot + LH_CR_DIV), W, A
+    MOVF    (_link_hot + LH_CAP_DEC + 1), W, A
+    SUBWFB  (_link_hot + LH_CR_DIV + 1), W, A
     BC      lcd_due
     RETURN
 lcd_due:
-    CLRF    (_link_hot + 25), A
-    CLRF    (_link_hot + 26), A
+    CLRF    (_link_hot + LH_CR_DIV), A
+    CLRF    (_link_hot + LH_CR_DIV + 1), A
     BANKSEL _S
     MOVF    _S, W, B                ; cap_state
     XORLW   1
     BNZ     lcd_slot
-    MOVF    (_S + 38), W, B         ; cap_trig
+    MOVF    (_S + LS_CAP_TRIG), W, B         ; cap_trig
     BZ      lcd_fire                ; IMMEDIATE
     XORLW   1
     BNZ     lcd_speed
-    MOVF    (_S + 37), W, B         ; SETPOINT_CHANGE: the setpoint was written
+    MOVF    (_S + LS_CAP_SP_CHANGED), W, B         ; SETPOINT_CHANGE: the setpoint was written
     BZ      lcd_slot
     BRA     lcd_fire
 lcd_speed:                          ; a crossing: sp in PRODH:PRODL
@@ -2662,27 +2787,27 @@ lcd_speed:                          ; a crossing: sp in PRODH:PRODL
     MOVFF   _PRODL, _PRODH
     MOVWF   _PRODL, A
     BANKSEL _S
-    MOVF    (_S + 38), W, B
+    MOVF    (_S + LS_CAP_TRIG), W, B
     XORLW   3
     BNZ     lcd_cmp
     COMF    _PRODL, F, A            ; falling through thr = ~speed rising through ~thr (stored so)
     COMF    _PRODH, F, A
 lcd_cmp:
-    MOVF    (_S + 52), W, B         ; no previous sample: no crossing
+    MOVF    (_S + LS_CR_PREV_VALID), W, B         ; no previous sample: no crossing
     BZ      lcd_keep
-    MOVF    (_S + 43), W, B         ; prev - thr: signed less-than is N xor OV
-    SUBWF   (_S + 53), W, B
-    MOVF    (_S + 44), W, B
-    SUBWFB  (_S + 54), W, B
+    MOVF    (_S + LS_CAP_THR), W, B         ; prev - thr: signed less-than is N xor OV
+    SUBWF   (_S + LS_CR_PREV), W, B
+    MOVF    (_S + LS_CAP_THR + 1), W, B
+    SUBWFB  (_S + LS_CR_PREV + 1), W, B
     BOV     lcd_ov1
     BNN     lcd_keep
     BRA     lcd_now
 lcd_ov1:
     BN      lcd_keep
 lcd_now:
-    MOVF    (_S + 43), W, B         ; sp - thr: greater or equal is N == OV
+    MOVF    (_S + LS_CAP_THR), W, B         ; sp - thr: greater or equal is N == OV
     SUBWF   _PRODL, W, A
-    MOVF    (_S + 44), W, B
+    MOVF    (_S + LS_CAP_THR + 1), W, B
     SUBWFB  _PRODH, W, A
     BOV     lcd_ov2
     BN      lcd_keep
@@ -2690,33 +2815,33 @@ lcd_now:
 lcd_ov2:
     BNN     lcd_keep
 lcd_yes:
-    MOVFF   _PRODL, (_S + 53)       ; prev = sp
-    MOVFF   _PRODH, (_S + 54)
+    MOVFF   _PRODL, (_S + LS_CR_PREV)       ; prev = sp
+    MOVFF   _PRODH, (_S + LS_CR_PREV + 1)
     BRA     lcd_fire
 lcd_keep:
-    MOVFF   _PRODL, (_S + 53)       ; prev = sp, prev_valid = 1
-    MOVFF   _PRODH, (_S + 54)
+    MOVFF   _PRODL, (_S + LS_CR_PREV)       ; prev = sp, prev_valid = 1
+    MOVFF   _PRODH, (_S + LS_CR_PREV + 1)
     MOVLW   1
-    MOVWF   (_S + 52), B
+    MOVWF   (_S + LS_CR_PREV_VALID), B
     BRA     lcd_slot
 lcd_fire:
-    MOVF    (_S + 47), W, B         ; tidx = min(filled, pre)
-    CPFSGT  (_S + 40), B
-    MOVF    (_S + 40), W, B
-    MOVWF   (_S + 51), B
-    CLRF    (_S + 48), B            ; post = 0
+    MOVF    (_S + LS_CR_FILLED), W, B         ; tidx = min(filled, pre)
+    CPFSGT  (_S + LS_CAP_PRE), B
+    MOVF    (_S + LS_CAP_PRE), W, B
+    MOVWF   (_S + LS_CR_TIDX), B
+    CLRF    (_S + LS_CR_POST), B            ; post = 0
     MOVLW   2
     MOVWF   _S, B
 lcd_slot:
-    MOVF    (_S + 46), W, B         ; sg.q = &cap_buf[wi], sg.cm = cap_mask
+    MOVF    (_S + LS_CR_WI), W, B         ; sg.q = &cap_buf[wi], sg.cm = cap_mask
     ADDLW   LOW(_cap_buf)
-    MOVFF   _WREG, (_sg + 2)
+    MOVFF   _WREG, (_sg + SG_Q)
     MOVLW   HIGH(_cap_buf)
     BTFSC   _STATUS, 0, A
     ADDLW   1
-    MOVFF   _WREG, (_sg + 3)
-    MOVFF   (_S + 41), (_sg + 6)
-    MOVFF   (_S + 42), (_sg + 7)
+    MOVFF   _WREG, (_sg + SG_Q + 1)
+    MOVFF   (_S + LS_CAP_MASK), (_sg + SG_CM)
+    MOVFF   (_S + LS_CAP_MASK + 1), (_sg + SG_CM + 1)
     RETURN
     __endasm;
 }
@@ -2725,33 +2850,33 @@ static void capture_done(void) __naked  /* after a sample was written: the ring 
 {
     __asm
     BANKSEL _S
-    MOVF    (_link_hot + 22), W, A  ; wi += cap_nb
-    ADDWF   (_S + 46), F, B
-    INCF    (_S + 45), F, B         ; w++
-    MOVF    (_link_hot + 21), W, A  ; W = cap_n
-    CPFSEQ  (_S + 45), B
+    MOVF    (_link_hot + LH_CAP_NB), W, A  ; wi += cap_nb
+    ADDWF   (_S + LS_CR_WI), F, B
+    INCF    (_S + LS_CR_W), F, B         ; w++
+    MOVF    (_link_hot + LH_CAP_N), W, A  ; W = cap_n
+    CPFSEQ  (_S + LS_CR_W), B
     BRA     lcd2_fill
-    CLRF    (_S + 45), B            ; the ring wraps
-    CLRF    (_S + 46), B
+    CLRF    (_S + LS_CR_W), B            ; the ring wraps
+    CLRF    (_S + LS_CR_WI), B
 lcd2_fill:
-    CPFSEQ  (_S + 47), B            ; filled < cap_n: one more
-    INCF    (_S + 47), F, B
+    CPFSEQ  (_S + LS_CR_FILLED), B            ; filled < cap_n: one more
+    INCF    (_S + LS_CR_FILLED), F, B
     MOVF    _S, W, B
     XORLW   2
     BNZ     lcd2_end
-    INCF    (_S + 48), F, B         ; post++
-    MOVF    (_S + 40), W, B         ; post + pre == cap_n: the record is complete
-    ADDWF   (_S + 48), W, B
-    XORWF   (_link_hot + 21), W, A
+    INCF    (_S + LS_CR_POST), F, B         ; post++
+    MOVF    (_S + LS_CAP_PRE), W, B         ; post + pre == cap_n: the record is complete
+    ADDWF   (_S + LS_CR_POST), W, B
+    XORWF   (_link_hot + LH_CAP_N), W, A
     BNZ     lcd2_end
-    MOVF    (_S + 51), W, B         ; total = tidx + post
-    ADDWF   (_S + 48), W, B
-    MOVWF   (_S + 49), B
-    SUBWF   (_S + 45), W, B         ; start = (w - total) mod cap_n
+    MOVF    (_S + LS_CR_TIDX), W, B         ; total = tidx + post
+    ADDWF   (_S + LS_CR_POST), W, B
+    MOVWF   (_S + LS_CR_TOTAL), B
+    SUBWF   (_S + LS_CR_W), W, B         ; start = (w - total) mod cap_n
     BC      lcd2_start
-    ADDWF   (_link_hot + 21), W, A
+    ADDWF   (_link_hot + LH_CAP_N), W, A
 lcd2_start:
-    MOVWF   (_S + 50), B
+    MOVWF   (_S + LS_CR_START), B
     MOVLW   3
     MOVWF   _S, B
 lcd2_end:
@@ -2764,58 +2889,58 @@ void link_sample(void) __naked
 {
     __asm
     BANKSEL _sg
-    CLRF    (_sg + 4), B            ; sg.tm = sg.cm = 0
-    CLRF    (_sg + 5), B
-    CLRF    (_sg + 6), B
-    CLRF    (_sg + 7), B
-    MOVF    (_link_hot + 13), W, A  ; telemetry on (tm_dec != 0)?
-    IORWF   (_link_hot + 14), W, A
+    CLRF    (_sg + SG_TM), B            ; sg.tm = sg.cm = 0
+    CLRF    (_sg + SG_TM + 1), B
+    CLRF    (_sg + SG_CM), B
+    CLRF    (_sg + SG_CM + 1), B
+    MOVF    (_link_hot + LH_TM_DEC), W, A  ; telemetry on (tm_dec != 0)?
+    IORWF   (_link_hot + LH_TM_DEC + 1), W, A
     BZ      lsm_cap
-    INFSNZ  (_link_hot + 15), F, A  ; tr.div++
-    INCF    (_link_hot + 16), F, A
-    MOVF    (_link_hot + 13), W, A  ; tr.div - tm_dec: borrow = not due yet
-    SUBWF   (_link_hot + 15), W, A
-    MOVF    (_link_hot + 14), W, A
-    SUBWFB  (_link_hot + 16), W, A
+    INFSNZ  (_link_hot + LH_TR_DIV), F, A  ; tr.div++
+    INCF    (_link_hot + LH_TR_DIV + 1), F, A
+    MOVF    (_link_hot + LH_TM_DEC), W, A  ; tr.div - tm_dec: borrow = not due yet
+    SUBWF   (_link_hot + LH_TR_DIV), W, A
+    MOVF    (_link_hot + LH_TM_DEC + 1), W, A
+    SUBWFB  (_link_hot + LH_TR_DIV + 1), W, A
     BNC     lsm_cap
-    CLRF    (_link_hot + 15), A
-    CLRF    (_link_hot + 16), A
+    CLRF    (_link_hot + LH_TR_DIV), A
+    CLRF    (_link_hot + LH_TR_DIV + 1), A
     BANKSEL _S
-    MOVF    (_link_hot + 11), W, A  ; tm_ready: the last frame is not sent yet: a drop
+    MOVF    (_link_hot + LH_TM_READY), W, A  ; tm_ready: the last frame is not sent yet: a drop
     BZ      lsm_fill
-    MOVF    (_S + 6), W, B          ; tm_dropped++, saturating: not at 0xFFFF
-    ANDWF   (_S + 7), W, B
+    MOVF    (_S + LS_TM_DROPPED), W, B          ; tm_dropped++, saturating: not at 0xFFFF
+    ANDWF   (_S + LS_TM_DROPPED + 1), W, B
     INCF    _WREG, W, A
     BZ      lsm_count
-    INFSNZ  (_S + 6), F, B
-    INCF    (_S + 7), F, B
+    INFSNZ  (_S + LS_TM_DROPPED), F, B
+    INCF    (_S + LS_TM_DROPPED + 1), F, B
     BRA     lsm_count
 lsm_fill:
-    MOVF    (_link_hot + 19), W, A  ; the first sample of a frame: its counter, the header
+    MOVF    (_link_hot + LH_TR_NSAMP), W, A  ; the first sample of a frame: its counter, the header
     BNZ     lsm_ptr
-    MOVFF   (_link_hot + 17), _tm_buf
-    MOVFF   (_link_hot + 18), (_tm_buf + 1)
+    MOVFF   (_link_hot + LH_TR_COUNTER), _tm_buf
+    MOVFF   (_link_hot + LH_TR_COUNTER + 1), (_tm_buf + 1)
     MOVLW   2
-    MOVWF   (_link_hot + 20), A
+    MOVWF   (_link_hot + LH_TR_LEN), A
 lsm_ptr:
-    MOVF    (_link_hot + 20), W, A  ; sg.p = &tm_buf[tr.len], sg.tm = tm_mask
+    MOVF    (_link_hot + LH_TR_LEN), W, A  ; sg.p = &tm_buf[tr.len], sg.tm = tm_mask
     ADDLW   LOW(_tm_buf)
     MOVFF   _WREG, _sg
     MOVLW   HIGH(_tm_buf)
     BTFSC   _STATUS, 0, A
     ADDLW   1
-    MOVFF   _WREG, (_sg + 1)
-    MOVFF   (_S + 35), (_sg + 4)
-    MOVFF   (_S + 36), (_sg + 5)
-    MOVF    (_link_hot + 12), W, A  ; tr.len += tm_nb, tr.nsamp++
-    ADDWF   (_link_hot + 20), F, A
-    INCF    (_link_hot + 19), F, A
-    MOVF    (_S + 20), W, B         ; tr.nsamp >= tm_spf: the frame is ready (filled before return)
-    CPFSLT  (_link_hot + 19), A
-    BSF     (_link_hot + 11), 0, A
+    MOVFF   _WREG, (_sg + SG_P + 1)
+    MOVFF   (_S + LS_TM_MASK), (_sg + SG_TM)
+    MOVFF   (_S + LS_TM_MASK + 1), (_sg + SG_TM + 1)
+    MOVF    (_link_hot + LH_TM_NB), W, A  ; tr.len += tm_nb, tr.nsamp++
+    ADDWF   (_link_hot + LH_TR_LEN), F, A
+    INCF    (_link_hot + LH_TR_NSAMP), F, A
+    MOVF    (_S + LS_TM_SPF), W, B         ; tr.nsamp >= tm_spf: the frame is ready (filled before return)
+    CPFSLT  (_link_hot + LH_TR_NSAMP), A
+    BSF     (_link_hot + LH_TM_READY), 0, A
 lsm_count:
-    INFSNZ  (_link_hot + 17), F, A  ; tr.counter++
-    INCF    (_link_hot + 18), F, A
+    INFSNZ  (_link_hot + LH_TR_COUNTER), F, A  ; tr.counter++
+    INCF    (_link_hot + LH_TR_COUNTER + 1), F, A
 lsm_cap:
 #if LINK_WITH_CAPTURE
     BANKSEL _S
@@ -2825,19 +2950,19 @@ lsm_cap:
     CALL    _capture_due
 #endif
     BANKSEL _sg
-    MOVF    (_sg + 4), W, B
-    IORWF   (_sg + 5), W, B
-    IORWF   (_sg + 6), W, B
-    IORWF   (_sg + 7), W, B
+    MOVF    (_sg + SG_TM), W, B
+    IORWF   (_sg + SG_TM + 1), W, B
+    IORWF   (_sg + SG_CM), W, B
+    IORWF   (_sg + SG_CM + 1), W, B
     BTFSS   _STATUS, 2, A ; a signal to write (Z clear)
     CALL    _put_signals
 #if LINK_WITH_CAPTURE
     BANKSEL _sg
-    MOVF    (_sg + 2), W, B         ; a capture sample was written: sg.q = 0, capture_done
-    IORWF   (_sg + 3), W, B
+    MOVF    (_sg + SG_Q), W, B         ; a capture sample was written: sg.q = 0, capture_done
+    IORWF   (_sg + SG_Q + 1), W, B
     BZ      lsm_end
-    CLRF    (_sg + 2), B
-    CLRF    (_sg + 3), B
+    CLRF    (_sg + SG_Q), B
+    CLRF    (_sg + SG_Q + 1), B
     CALL    _capture_done
 lsm_end:
 #endif
@@ -2851,45 +2976,45 @@ void link_tick_ms(void) __naked
     __asm
     extern  _app_link_lost
     BANKSEL _S
-    INCF    (_S + 8), F, B          ; uptime_ms++ (32 bits)
+    INCF    (_S + LS_UPTIME_MS), F, B          ; uptime_ms++ (32 bits)
     BNZ     ltk_wd
-    INCF    (_S + 9), F, B
+    INCF    (_S + LS_UPTIME_MS + 1), F, B
     BNZ     ltk_wd
-    INCF    (_S + 10), F, B
+    INCF    (_S + LS_UPTIME_MS + 2), F, B
     BNZ     ltk_wd
-    INCF    (_S + 11), F, B
+    INCF    (_S + LS_UPTIME_MS + 3), F, B
 ltk_wd:
-    MOVF    (_S + 27), W, B         ; wd_armed
+    MOVF    (_S + LS_WD_ARMED), W, B         ; wd_armed
     BZ      ltk_clear
-    MOVF    (_S + 13), W, B         ; rx_valid: a host command arrived
+    MOVF    (_S + LS_RX_VALID), W, B         ; rx_valid: a host command arrived
     BZ      ltk_count
-    CLRF    (_S + 13), B
+    CLRF    (_S + LS_RX_VALID), B
 ltk_clear:
-    CLRF    (_S + 28), B            ; wd_ms = 0
-    CLRF    (_S + 29), B
+    CLRF    (_S + LS_WD_MS), B            ; wd_ms = 0
+    CLRF    (_S + LS_WD_MS + 1), B
     RETURN
 ltk_count:
-    MOVF    (_S + 28), W, B         ; wd_ms++, saturating: not at 0xFFFF
-    ANDWF   (_S + 29), W, B
+    MOVF    (_S + LS_WD_MS), W, B         ; wd_ms++, saturating: not at 0xFFFF
+    ANDWF   (_S + LS_WD_MS + 1), W, B
     INCF    _WREG, W, A
     BZ      ltk_cmp
-    INFSNZ  (_S + 28), F, B
-    INCF    (_S + 29), F, B
+    INFSNZ  (_S + LS_WD_MS), F, B
+    INCF    (_S + LS_WD_MS + 1), F, B
 ltk_cmp:
-    MOVFF   (_link_params + 17), _PRODL  ; wd_ms - link_timeout: no borrow = expired
-    MOVFF   (_link_params + 18), _PRODH
+    MOVFF   (_link_params + LP_LINK_TIMEOUT), _PRODL  ; wd_ms - link_timeout: no borrow = expired
+    MOVFF   (_link_params + LP_LINK_TIMEOUT + 1), _PRODH
     MOVF    _PRODL, W, A
-    SUBWF   (_S + 28), W, B
+    SUBWF   (_S + LS_WD_MS), W, B
     MOVF    _PRODH, W, A
-    SUBWFB  (_S + 29), W, B
+    SUBWFB  (_S + LS_WD_MS + 1), W, B
     BNC     ltk_end
-    CLRF    (_S + 27), B            ; disarm, outputs off (the application), the event
-    CLRF    (_S + 28), B
-    CLRF    (_S + 29), B
+    CLRF    (_S + LS_WD_ARMED), B            ; disarm, outputs off (the application), the event
+    CLRF    (_S + LS_WD_MS), B
+    CLRF    (_S + LS_WD_MS + 1), B
     CALL    _app_link_lost
     BANKSEL _S
     MOVLW   1
-    MOVWF   (_S + 33), B
+    MOVWF   (_S + LS_EV_WATCHDOG), B
 ltk_end:
     RETURN
     __endasm;
