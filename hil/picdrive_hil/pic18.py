@@ -16,7 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
-from . import build, ihex
+from picdrive.firmware import ihex
+
+from . import build
 
 SOURCES = ("pic18cpu.c",)
 HEADERS = ("pic18cpu.h",)

@@ -16,7 +16,9 @@ import ctypes as C
 from dataclasses import dataclass
 from pathlib import Path
 
-from . import build, ihex
+from picdrive.firmware import ihex
+
+from . import build
 from .build import TwinError
 
 

@@ -38,13 +38,14 @@ from pathlib import Path
 
 from ..board import FCY_HZ
 from ..errors import PicdriveError
+from .ihex import FLASH_BYTES      # the PIC18F4431's program memory
 
 __all__ = ["TargetError", "Toolchain", "Budgets", "BUDGETS", "FCY_HZ", "RAM_BYTES", "FLASH_BYTES",
            "TARGET_SOURCES", "toolchain", "build_hex", "Build", "Function", "call_graph",
            "budget_lines", "over_budget", "build_measured", "enlarged_lkr", "shared_static_helpers", "unsaved_table_pointer",
            "EEPROM_GPTR_STUBS", "TEST_BUILD_CORE"]
 
-FLASH_BYTES = 16_384         # PIC18F4431 program memory
+ENLARGED_FLASH_BYTES = 0x20000   # enlarged_lkr's program memory (measurement links only)
 RAM_BYTES = 768              # PIC18F4431 data memory (0x000-0x2FF)
 HW_STACK_LEVELS = 31         # PIC18 return-address stack
 STACK_MODEL_BYTES = 256      # SDCC's small stack model: the software stack lives in one bank
@@ -185,20 +186,12 @@ def parse_map(text: str) -> tuple[list[Section], list[Symbol]]:
     return sections, symbols
 
 
-def read_hex(path) -> dict[int, int]:
-    """Intel HEX -> {byte address: value}."""
-    mem, upper = {}, 0
-    for line in Path(path).read_text().splitlines():
-        if not line.startswith(":"):
-            continue
-        b = bytes.fromhex(line[1:])
-        n, addr, typ = b[0], (b[1] << 8) | b[2], b[3]
-        if typ == 0:
-            for i in range(n):
-                mem[upper + addr + i] = b[4 + i]
-        elif typ == 4:
-            upper = ((b[4] << 8) | b[5]) << 16
-    return mem
+def read_hex(path, flash_bytes: int = FLASH_BYTES) -> bytearray:
+    """The program memory a linked HEX defines (erased bytes 0xFF), read and checked by
+    :func:`picdrive.firmware.ihex.load_hex` (record checksums, overlaps, the 18F4431's memories;
+    ``flash_bytes``: more for a measurement link, ``ENLARGED_FLASH_BYTES``)."""
+    from .ihex import load_hex
+    return load_hex(path, flash_bytes=flash_bytes).flash
 
 
 # ---------------------------------------------------------------------------
@@ -235,12 +228,15 @@ def _file_reg(word: int) -> int:
     return -1   # banked: not an SFR this analysis follows
 
 
-def _decode(mem: dict[int, int], start: int, end: int):
-    """Yield (address, kind, operands) for the instructions in [start, end)."""
+def _decode(mem: bytes, start: int, end: int):
+    """Yield (address, kind, operands) for the instructions in [start, end) of program memory
+    ``mem`` (read_hex's; beyond it reads as erased)."""
+    def byte(a):
+        return mem[a] if 0 <= a < len(mem) else 0xFF
     pc = start
     while pc < end:
-        w = mem.get(pc, 0xFF) | (mem.get(pc + 1, 0xFF) << 8)
-        w2 = mem.get(pc + 2, 0xFF) | (mem.get(pc + 3, 0xFF) << 8)
+        w = byte(pc) | (byte(pc + 1) << 8)
+        w2 = byte(pc + 2) | (byte(pc + 3) << 8)
         hi = w >> 8
         if (w & 0xFE00) == 0xEC00 or hi == 0xEF:            # CALL / GOTO
             target = ((w & 0xFF) | ((w2 & 0xFFF) << 8)) * 2
@@ -291,7 +287,7 @@ def const_tables(asm_text: str) -> set[str]:
     return set(_IVAL.findall(asm_text))
 
 
-def call_graph(mem: dict[int, int], sections: list[Section], symbols: list[Symbol],
+def call_graph(mem: bytes, sections: list[Section], symbols: list[Symbol],
                tables: set[str] = frozenset()) -> dict[str, Function]:
     """Functions of the linked program with their calls, frames and table-pointer use.
 
@@ -523,7 +519,8 @@ def build_hex(folder, out_dir, *, name: str = "firmware", linker_script=None, so
         _run([tc.gplink, "-m", "-w", "-s", lkr.resolve(), "-o", f"{name}.hex", *objs], work,
              "gplink (the firmware does not fit the PIC18F4431)" if linker_script is None else "gplink")
         sections, symbols = parse_map((work / f"{name}.map").read_text())
-        return sections, symbols, read_hex(work / f"{name}.hex")
+        return sections, symbols, read_hex(work / f"{name}.hex",
+                                           FLASH_BYTES if linker_script is None else ENLARGED_FLASH_BYTES)
 
     sections, symbols, mem = link(1)
     tables = const_tables(asm_text)
@@ -589,7 +586,7 @@ def enlarged_lkr() -> str:
     """
     return "\n".join([
         "LIBPATH .",
-        "CODEPAGE   NAME=page       START=0x0               END=0x1FFFF",
+        f"CODEPAGE   NAME=page       START=0x0               END=0x{ENLARGED_FLASH_BYTES - 1:X}",
         "CODEPAGE   NAME=idlocs     START=0x200000          END=0x200007       PROTECTED",
         "CODEPAGE   NAME=config     START=0x300000          END=0x30000D       PROTECTED",
         "CODEPAGE   NAME=devid      START=0x3FFFFE          END=0x3FFFFF       PROTECTED",
