@@ -453,6 +453,8 @@ typedef char link_status_layout[(offsetof(struct link_state, uptime_ms) == 8u) ?
 /* PIC18 assembly (main loop only): FSR0, PROD and the table pointer are the compiler's scratch
  * registers.  FSR2 is not used: it is the compiler's frame pointer, and a function of an
  * interrupt that sets it saves only its low byte (the stack's bank is fixed). */
+/* Contract: in n (W, 0: nothing), cp_s, cp_d; out the n bytes copied, cp_s and cp_d past them;
+ * clobbers W, STATUS, PROD, FSR0; n <= 255, the pointers stay in the data space. */
 static void mcopy_n(uint8_t n) LINK_WPARAM __naked  /* cp_d[0..n-1] = cp_s[0..n-1] (RAM to RAM) */
 {
     (void)n;
@@ -478,6 +480,8 @@ lmc_end:
     __endasm;
 }
 
+/* Contract: in n (W, 0: nothing), cp_d; out n zero bytes, cp_d past them; clobbers W, STATUS,
+ * PROD, FSR0. */
 static void mzero_n(uint8_t n) LINK_WPARAM __naked  /* cp_d[0..n-1] = 0 */
 {
     (void)n;
@@ -498,6 +502,9 @@ lmz_end:
     __endasm;
 }
 
+/* Contract: in link_hot.ro; out W = link_rom[ro], ro + 1 (wraps modulo 2^16, beyond the table's
+ * size); clobbers STATUS, TBLPTR, TABLAT (main loop only: an interrupt that reads tables saves
+ * them itself). */
 static uint8_t rom_next(void) __naked  /* link_rom[link_hot.ro++]: the module's only flash read */
 {
     __asm
@@ -552,6 +559,8 @@ static uint8_t rom_next(void)          /* link_rom[link_hot.ro++]: the module's 
 /* The signals of the mask in the command's first two argument bytes (telem_config, capture_arm):
  * their number, or 0 for an empty mask or one with bits beyond the table's signals. */
 #if defined(__SDCC_pic16)
+/* Contract: in R(0..1), the command's signal mask; out W = the number of signals in it, 0 for an
+ * empty mask or a bit beyond the table; clobbers W, STATUS, PROD, TABLAT. */
 static uint8_t mask_nsig(void) __naked     /* PROD shifts, TABLAT counts */
 {
     __asm
@@ -604,6 +613,8 @@ static uint8_t mask_nsig(void)
 #if defined(__SDCC_pic16)
 /* the same steps in PIC18 assembly (20 cycles instead of 70; x in PRODL, a rotation in PRODH:
  * scratch registers the compiler does not keep values in across a call) */
+/* Contract: in b (W), crc_hi:crc_lo; out the CRC-16/CCITT state after b; clobbers W, STATUS,
+ * PROD (FSR0 and TABLAT kept: crc_n counts in them); 8-bit register arithmetic, no overflow. */
 static void crc_byte(uint8_t b) LINK_WPARAM __naked
 {
     (void)b;
@@ -641,6 +652,8 @@ static void crc_byte(uint8_t b) LINK_WPARAM
 
 /* CRC of cp_s[0..n-1] into crc_hi, crc_lo; cp_s ends after them */
 #if defined(__SDCC_pic16)
+/* Contract: in n (W), cp_s; out crc_hi:crc_lo after the n bytes, cp_s past them; clobbers W,
+ * STATUS, PROD, FSR0, TABLAT. */
 static void crc_n(uint8_t n) LINK_WPARAM __naked   /* TABLAT counts (crc_byte keeps it and FSR0) */
 {
     (void)n;
@@ -705,6 +718,8 @@ static uint8_t entry_index(uint8_t id) LINK_WPARAM
 }
 
 #if defined(__SDCC_pic16)
+/* Contract: in idx (W); out link_hot.ro = idx ROW (one 8x8 product: 255 ROW < 2^16); clobbers W,
+ * PROD. */
 static void row_of(uint8_t idx) LINK_WPARAM __naked   /* link_hot.ro = the entry's row: idx ROW (MULLW) */
 {
     (void)idx;
@@ -728,6 +743,8 @@ typedef char link_entry_layout[(offsetof(struct link_fast, ro) == 6u && offsetof
                                 && offsetof(struct link_fast, e_sz) == 9u && ROM_SIZE == ROM_OFF + LINK_N_ENTRIES
                                 && ROM_OFF == 420u) ? 1 : -1];
 /* PIC18 assembly (the C below, step for step): ROM_SIZE + idx is one table further on */
+/* Contract: in idx (W) < LINK_N_ENTRIES; out link_hot.e_off, .e_sz (.ro just past e_sz's byte);
+ * clobbers W, STATUS, TBLPTR, TABLAT (PROD kept). */
 static void entry_load(uint8_t idx) LINK_WPARAM __naked   /* link_hot.e_off, link_hot.e_sz */
 {
     (void)idx;
@@ -761,6 +778,8 @@ static void entry_load(uint8_t idx) LINK_WPARAM   /* link_hot.e_off, link_hot.e_
 
 /* V.b[0..n-1] hold a value of size code link_hot.e_sz (n bytes, bit 7: signed): extend it to 32 bits */
 #if defined(__SDCC_pic16)
+/* Contract: in V.b[0..n-1] of size code link_hot.e_sz (bit 7: signed); out V extended to 32 bits
+ * (sign or zero fill); clobbers W, STATUS, PROD, FSR0. */
 static void sign_extend(void) __naked      /* PRODL the fill byte, PRODH the index, FSR0 at V */
 {
     __asm
@@ -814,6 +833,9 @@ static void store_put(void)            /* the parameter at link_hot.e_off = V (a
 
 #if defined(__SDCC_pic16)
 /* PIC18 assembly (the C below, step for step): idx in PRODL across entry_load (which keeps PROD) */
+/* Contract: in idx (W), a parameter or signal index; out V = its value, extended to 32 bits;
+ * clobbers W, STATUS, BSR, FSR0, PROD, TBLPTR, TABLAT and what the compiled C it calls may
+ * change (W, STATUS, BSR, PROD, FSR0, TBLPTR, TABLAT). */
 static void value_at(uint8_t idx) LINK_WPARAM __naked      /* V = parameter or signal */
 {
     (void)idx;
@@ -856,6 +878,9 @@ static void value_at(uint8_t idx) LINK_WPARAM      /* V = parameter or signal */
 #if ROW16
 /* (16-bit rows: X's upper half is the fill of the entry loaded last, entry_load) */
 #endif
+/* Contract: in above (W), V, the next 4 table bytes X; out W = 1 if V < X (above = 0) or X < V
+ * (above != 0), else 0; link_hot.ro past X; clobbers W, STATUS, BSR, PROD, FSR0, TBLPTR, TABLAT;
+ * the 32-bit signed compare reads N xor OV, so it cannot overflow. */
 static uint8_t rom_cmp(uint8_t above) LINK_WPARAM __naked
 {
     (void)above;
@@ -907,6 +932,8 @@ lrc_ge:
 }
 
 /* (the C below, step for step: row_at(idx, 8), V < min: 0, else not max < V) */
+/* Contract: in idx (W, its entry loaded), V; out W = 1 if min <= V <= max, else 0; clobbers as
+ * rom_cmp. */
 static uint8_t in_range(uint8_t idx) LINK_WPARAM __naked   /* V within the entry's [min, max] (entry idx loaded) */
 {
     (void)idx;
@@ -969,6 +996,10 @@ int32_t link_param_get(uint8_t id)
 #if defined(__SDCC_pic16)
 /* PIC18 assembly: V's upper half must be the sign extension of its lower half, else the nearer
  * limit; the result in PRODL (high byte) and W (low byte) */
+/* Contract: in id (W); out the parameter's value in PRODL:W, clamped to int16 when the stored
+ * value does not fit (the nearer limit), 0 for an unknown id; clobbers W, STATUS, BSR, FSR0,
+ * PROD, TBLPTR, TABLAT and what the compiled C it calls may change (W, STATUS, BSR, PROD, FSR0,
+ * TBLPTR, TABLAT). */
 int16_t link_param_i16(uint8_t id) LINK_WPARAM __naked
 {
     (void)id;
@@ -1171,6 +1202,9 @@ static uint8_t ee_load(void)
 
 #if defined(__SDCC_pic16)
 /* PIC18 assembly: no register held across the calls (S.changed counts), no frame */
+/* Contract: in S.changed (NONE, an id or EE_ALL); out app_param_changed called for it (for
+ * EE_ALL, every persisted parameter), S.changed = NONE; clobbers W, STATUS, BSR and what the
+ * compiled C it calls may change (W, STATUS, BSR, PROD, FSR0, TBLPTR, TABLAT). */
 static void link_notify(void) __naked  /* app_param_changed for what the last command or load changed */
 {
     __asm
@@ -1284,6 +1318,10 @@ void link_event(uint8_t event, uint8_t code)
 /* the C below in PIC18 assembly: at most 20 cycles a byte, no register saved (b in W, kept in PRODL,
  * stored through FSR0 + W (PLUSW0); the spill ring's read index copied to PRODH;
  * FSR0, PROD and BSR are saved by the interrupt's prologue) */
+/* Contract: in b (W), the receive state; out b stored in rx_buf or the spill ring, rx_n,
+ * rx_ready, rx_ovf and rx_sp_w updated (one-byte writes only); clobbers W, STATUS, BSR, PROD,
+ * FSR0 (the high-priority interrupt saves them); rx_n stops at the buffer's size (rx_ovf set),
+ * the ring's indices wrap at its size. */
 void link_rx_byte(uint8_t b) LINK_WPARAM __naked
 {
     (void)b;
@@ -1362,6 +1400,9 @@ void link_rx_byte(uint8_t b) LINK_WPARAM
 #if defined(__SDCC_pic16)
 /* PIC18 assembly: FSR0 walks the frame, each byte goes one place down (PLUSW0 with W = -1);
  * TABLAT the run, PRODH the count */
+/* Contract: in rx_buf[0..rx_n-1], a COBS frame; out the frame decoded in place, W = the body
+ * length if the length and CRC check, else 0, S.fc0/fc1 its CRC bytes; clobbers W, STATUS, PROD,
+ * FSR0, TABLAT. */
 static uint8_t cobs_decode(void) __naked   /* rx_buf decoded in place; the last run (1: well formed) */
 {
     __asm
@@ -1494,6 +1535,8 @@ typedef char link_tx_layout[(offsetof(struct link_state, tseq) == 17u && offseto
                             ? 1 : -1];
 /* PIC18 assembly: the CRC through crc_n (FSR0 ends on the CRC's place), then COBS in place with
  * FSR0 scanning: the last code byte is run bytes back (PLUSW0); TABLAT the run, PRODH the count. */
+/* Contract: in type (W), the payload A(0..link_hot.n-1), S.tseq; out the sealed frame in tx_buf
+ * (header, CRC, COBS in place), link_hot.tx_len; clobbers W, STATUS, BSR, PROD, FSR0, TABLAT. */
 static void tx_seal(uint8_t type) LINK_WPARAM __naked   /* payload A(0..link_hot.n-1), SEQ S.tseq */
 {
     (void)type;
@@ -1571,6 +1614,9 @@ static void tx_seal(uint8_t type) LINK_WPARAM   /* payload A(0..link_hot.n-1), S
 
 #if defined(__SDCC_pic16)
 /* PIC18 assembly (the C below, step for step): the room on the software stack (PLUSW1, W = 1) */
+/* Contract: in tx_buf[S.tx_pos..tx_len-1]; out as many bytes queued as app_tx_free allows,
+ * S.tx_pos on, tx_len = 0 when all are out; clobbers W, STATUS, BSR, FSR0 and what the compiled
+ * C it calls may change (W, STATUS, BSR, PROD, FSR0, TBLPTR, TABLAT). */
 static void tx_drain(void) __naked
 {
     __asm
@@ -1641,6 +1687,8 @@ static uint8_t drive_busy(void)
 #endif
 /* PIC18 assembly (the C below, step for step): no frame, no register saved; PROD counts and
  * carries (rom_next keeps it) */
+/* Contract: in n (W, <= 127), link_hot.ro, link_hot.n; out A(n..n+n-1) = the next n table bytes,
+ * ro and n past them; clobbers W, STATUS, PROD, FSR0, TBLPTR, TABLAT. */
 static void rom_copy(uint8_t n) LINK_WPARAM __naked /* A(link_hot.n..) = n flash bytes from link_hot.ro on */
 {
     (void)n;
@@ -1662,6 +1710,8 @@ lrc_end:
     __endasm;
 }
 
+/* Contract: in nothing (the hello command has no arguments); out the hello reply in A(0..),
+ * link_hot.n, W = 0 (answered); clobbers W, STATUS, PROD, FSR0, TBLPTR, TABLAT. */
 static uint8_t h_hello(void) __naked
 {
     __asm
@@ -1678,6 +1728,8 @@ static uint8_t h_hello(void) __naked
 
 #if ROW16
 /* A(link_hot.n..) = the next two table bytes widened to 4 by the loaded entry's size code */
+/* Contract: in the next two table bytes, the loaded entry's size code; out A(link_hot.n..+3) =
+ * them widened to 32 bits, n + 4; clobbers W, STATUS, PROD, FSR0, TBLPTR, TABLAT. */
 static void rom_val16(void) __naked
 {
     __asm
@@ -1705,6 +1757,8 @@ lrv_fill:
 
 /* the index and then the name's offset and length on the software stack across the calls (read
  * above FSR1 or popped by one instruction: an interrupt pushes at FSR1) */
+/* Contract: in R(0), an entry index; out the entry's description in A(0..), link_hot.n, W = 0
+ * (answered) or a NACK code; clobbers W, STATUS, PROD, FSR0, TBLPTR, TABLAT (software stack balanced). */
 static uint8_t h_param_info(void) __naked
 {
     __asm
@@ -1816,6 +1870,10 @@ static uint8_t h_param_info(void)
 #if defined(__SDCC_pic16)
 /* PIC18 assembly (the C below, step for step): the index on the software stack (PLUSW1 with
  * W = 1 reaches it across the calls), every id checked before any value is read */
+/* Contract: in R(0..), the ids asked for; out their values in A(0..), link_hot.n, W = 0 (answered) or a
+ * NACK code (every id checked before a value is read); clobbers W, STATUS, BSR, PROD, FSR0,
+ * TBLPTR, TABLAT and what the compiled C it calls may change (W, STATUS, BSR, PROD, FSR0,
+ * TBLPTR, TABLAT). */
 static uint8_t h_param_get(void) __naked
 {
     __asm
@@ -1958,6 +2016,10 @@ static void crit_end(void)
  * per frame (R(i) = rx_buf[3 + i]); PRODH the bytes per sample, PRODL the frame length, TABLAT
  * counts; the length and the bytes per sample wait on the software stack across the critical
  * section. */
+/* Contract: in R(0..4) (mask, decimation, samples per frame); out the telemetry setting (under
+ * the critical section), W = 0 (answered) or a NACK code; clobbers W, STATUS, BSR, PROD, TABLAT and what
+ * the compiled C it calls may change (W, STATUS, BSR, PROD, FSR0, TBLPTR, TABLAT); the frame
+ * length is checked against the payload before it is stored. */
 static uint8_t h_telem_config(void) __naked
 {
     __asm
@@ -2059,6 +2121,10 @@ static uint8_t h_telem_config(void)
  * pre-trigger, R(6..7) decimation, R(8) trigger, R(9..10) threshold (R(i) = rx_buf[3 + i]);
  * PRODL counts the words, PRODH the signals; the byte count and the bytes per sample wait on the
  * software stack across the critical section. */
+/* Contract: in R(0..10) (mask, samples, pre-trigger, decimation, trigger, threshold); out the
+ * capture armed (under the critical section), W = 0 (answered) or a NACK code; clobbers W, STATUS, BSR,
+ * PROD, FSR0, TABLAT and what the compiled C it calls may change (W, STATUS, BSR, PROD, FSR0,
+ * TBLPTR, TABLAT); the byte count is an 8x8 product checked against the buffer (<= 256). */
 static uint8_t h_capture_arm(void) __naked
 {
     __asm
@@ -2188,6 +2254,9 @@ static uint8_t h_capture_arm(void)
  * The samples sent: min(count, total - start, what fits), their bytes by the 8x8 multiplier
  * (at most 256: the buffer's size); FSR0 walks the ring (wrapping after cap_bytes) and the reply
  * (cp_d) in turn; PRODH the byte index, TABLAT the bytes left. */
+/* Contract: in R(0..2) (start, count); out the samples in A(0..), link_hot.n, W = 0 (answered) or a NACK
+ * code; clobbers W, STATUS, BSR, PROD, FSR0, TABLAT; byte counts by the 8x8 multiplier (at most
+ * 256), the ring's index wraps after cap_bytes. */
 static uint8_t h_capture_read(void) __naked
 {
     __asm
@@ -2495,6 +2564,10 @@ typedef char link_poll_layout[(offsetof(struct link_state, tm_gen) == 1u && offs
                               ? 1 : -1];
 /* PIC18 assembly (the C below, step for step): the pass count on the software stack, no register
  * held across the calls */
+/* Contract: in a received frame (rx_ready), the pending events and telemetry; out at most the
+ * frames one pass allows answered, events and telemetry queued; clobbers W, STATUS, BSR, PROD,
+ * FSR0, TABLAT and what the compiled C it calls may change (W, STATUS, BSR, PROD, FSR0, TBLPTR,
+ * TABLAT) (software stack balanced). */
 void link_poll(void) __naked
 {
     __asm
@@ -2624,6 +2697,9 @@ void link_poll(void)
  * read with TBLRD: TBLPTR and TABLAT are saved on entry and restored on exit (hazard a: this runs
  * in an interrupt, whatever the application's prologue saves).  FSR0 and PROD are saved by the
  * interrupt's prologue; sg (one bank) holds the pointers and the masks. */
+/* Contract: in sg.p, sg.q, sg.tm, sg.cm; out the selected signals written to the telemetry and
+ * capture samples; saves and restores TBLPTR and TABLAT itself (interrupt context), clobbers W,
+ * STATUS, BSR, PROD, FSR0 (saved by the interrupt's prologue). */
 static void put_signals(void) __naked
 {
     __asm
@@ -2756,6 +2832,9 @@ typedef char link_cap_layout[(offsetof(struct link_fast, cap_n) == 21u && offset
 
 /* decimation and trigger; a sample due: sg.q, sg.cm set (S.cr: w 45, wi 46, filled 47, post 48,
  * total 49, start 50, tidx 51, prev_valid 52, prev 53) */
+/* Contract: in the capture state S.cr and the decimation counter; out sg.q, sg.cm set when a
+ * sample is due (the trigger tested on its signal); clobbers W, STATUS, BSR, PROD, FSR0, TBLPTR,
+ * TABLAT. */
 static void capture_due(void) __naked
 {
     __asm
@@ -2846,6 +2925,9 @@ lcd_slot:
     __endasm;
 }
 
+/* Contract: in the sample just written; out the ring's write index and the record's counts on
+ * (S.cr), the capture state at its end; clobbers W, STATUS, BSR; counts are bytes (at most 128
+ * samples, 256 B). */
 static void capture_done(void) __naked  /* after a sample was written: the ring and the record */
 {
     __asm
@@ -2885,6 +2967,10 @@ lcd2_end:
 }
 #endif
 
+/* Contract: in the speed-loop sample (the signals through app_signal); out the telemetry and
+ * capture samples written when due (tm_ready set, drops counted); clobbers W, STATUS, BSR, PROD,
+ * FSR0, TBLPTR, TABLAT (interrupt context: the prologue saves them); counters wrap modulo 2^16
+ * as the C's. */
 void link_sample(void) __naked
 {
     __asm
@@ -2971,6 +3057,10 @@ lsm_end:
 }
 
 /* ---- time base: watchdog, uptime ---- */
+/* Contract: in nothing (a 1 ms tick); out S.uptime_ms + 1 (wraps modulo 2^32), the link watchdog
+ * counted and app_link_lost called once it expires; clobbers W, STATUS, BSR, PROD and what the
+ * compiled C it calls may change (W, STATUS, BSR, PROD, FSR0, TBLPTR, TABLAT); wd_ms saturates
+ * at 0xFFFF. */
 void link_tick_ms(void) __naked
 {
     __asm

@@ -58,7 +58,9 @@ TOOLCHAIN_SCRIPT = "scripts/pic_toolchain.sh"
 #: device library provides.  picdrive's code never forms a pointer into EEPROM, so they are
 #: unreachable: should one be reached anyway, reset (outputs off).  One copy for every SDCC
 #: build: main_sdcc.c (codegen renders it in), the bit-exact test's and bench/link_pic18.py's harnesses.
-EEPROM_GPTR_STUBS = """void eeprom_gptr_unused(void) __naked
+EEPROM_GPTR_STUBS = """/* Contract: never reached (no pointer into EEPROM is formed); if reached, RESET: the chip
+ * restarts with its outputs off. */
+void eeprom_gptr_unused(void) __naked
 {
     __asm
 """ + "".join(f"    global ___eeprom_gptr{op}{n}\n" for op in ("get", "put") for n in (1, 2, 3, 4)) + \
