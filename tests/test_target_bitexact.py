@@ -1,5 +1,9 @@
-"""Bit-exact on the target (issue 9, item 4): drive_core.c compiled by SDCC's pic16 port and run
-on the PIC18 core in gpsim, against the Python model (picdrive.firmware.fixedpoint), on random vectors.
+"""Bit-exact on the target: drive_core.c compiled by SDCC's pic16 port and run on the PIC18 core
+in gpsim, against the Python model (picdrive.firmware.fixedpoint), on random vectors (10^4 per
+function).  Configurations: the bundled duy2008 fuzzy-hinf build (2 rules: the assembly law), the
+hall-speed mixed-pid build (1 rule), the reference feedforward, and (MORE) SDCC's C law with 3 and
+8 rules, the derivative filter with the feedforward on the hall speed, and 1 rule with the
+feedforward on the hall speed.
 
 The chip generates its own vectors (xorshift32, biased to int16/int32 extremes and saturation) and
 folds every output into a checksum per function (rotate-xor and a sum, both 32-bit) and a 16-bit
@@ -568,3 +572,38 @@ def test_a_lost_upper_partial_product_is_caught(design):
     bad = _mutated(folder, tmp, "upper", "drive_core.c", old, "")
     verdict = compare(bad, tmp / "upper-run", plan, n=2000)
     assert verdict["speed"] is not None, verdict
+
+
+#: The configurations the fixtures above leave out, one build each: the C law (more than 2 rules
+#: or the derivative filter: the assembly law covers at most 2 rules without it) on both speed
+#: sources, the filter and the feedforward together, the most rules the protocol holds, and the
+#: assembly law with one rule and the feedforward on the hall speed.  (profile, rules, filter, ff)
+MORE = [("duy2008", 3, False, False), ("duy2008_halls", 2, True, True), ("duy2008", 8, True, False),
+        ("duy2008_halls", 1, False, True)]
+
+
+def _synthetic(tmp, profile: str, nr: int, dfilt: bool, ff: bool):
+    from picdrive.control_law import Rule, ScheduledLaw
+    from picdrive.result import DesignResult, save_design
+    prof = load_profile(profile)
+    rules = tuple(Rule(0.2 - 0.01 * j, 5.0 - 0.3 * j, 0.0005 if dfilt else 0.0, 10.0 - j) for j in range(nr))
+    law = ScheduledLaw(rules=rules, premise_rad_s=(0.0, 2600 * 3.141592653589793 / 30), sample_time_s=1e-3,
+                       u_min_v=-44.16, u_max_v=44.16, derivative_filter_hz=200.0 if dfilt else None,
+                       reference_ff_v_s_per_rad=0.1 if ff else 0.0)
+    path = save_design(DesignResult(method="zn", status="verified", profile_name=prof.name,
+                                    profile_sha256=prof.sha256, law=law, variant="test-fixture"),
+                       tmp / "synthetic.design.json")
+    fw = codegen.generate(prof, path)
+    return fw.plan, codegen.write_firmware(fw, tmp / "fw", check=False)
+
+
+@pytest.mark.parametrize("profile,nr,dfilt,ff", MORE, ids=[f"{p}-r{n}{'-dfilt' if d else ''}{'-ff' if f else ''}"
+                                                           for p, n, d, f in MORE])
+def test_pic18_code_matches_the_model_in_more_configurations(tmp_path, profile, nr, dfilt, ff):
+    plan, folder = _synthetic(tmp_path, profile, nr, dfilt, ff)
+    assert (plan.n_rules, bool(plan.dfilt_a), bool(plan.kff)) == (nr, dfilt, ff)
+    assert plan.speed_source == ("hall" if profile.endswith("halls") else "encoder")
+    # which law the chip runs: the assembly one (at most 2 rules, no filter) or SDCC's C
+    assert ("#define CORE_LAW_ASM 1" in (folder / "drive_core.c").read_text()) == (nr <= 2 and not dfilt)
+    verdict = compare(folder, tmp_path, plan)
+    assert verdict == {f: None for f in CHECKED}, verdict
