@@ -267,9 +267,7 @@ typedef char link_fast_capture_offsets[(offsetof(struct link_fast, cap_n) == LH_
 #endif
 
 #if defined(__SDCC_pic16)
-typedef char link_ro_layout[(offsetof(struct link_fast, ro) == 6u) ? 1 : -1];
-typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u
-                               && LINK_ACCESS_AT + sizeof(struct link_fast) <= 0x40u) ? 1 : -1];
+typedef char link_fast_layout[(LINK_ACCESS_AT + sizeof(struct link_fast) <= 0x40u) ? 1 : -1];
 #else
 typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u) ? 1 : -1];
 #endif
@@ -298,9 +296,6 @@ typedef char link_sg_offsets[(offsetof(struct link_sg, p) == SG_P
     && offsetof(struct link_sg, q) == SG_Q
     && offsetof(struct link_sg, tm) == SG_TM
     && offsetof(struct link_sg, cm) == SG_CM) ? 1 : -1];
-#endif
-#if defined(__SDCC_pic16)
-typedef char link_sg_layout[(offsetof(struct link_sg, tm) == 4u && offsetof(struct link_sg, cm) == 6u) ? 1 : -1];
 #endif
 static union { int32_t l; uint8_t b[4]; } V;   /* the value being moved (main loop only) */
 /* copies and loops walk static data-space pointers: no arguments on the software stack */
@@ -492,7 +487,7 @@ static void mzero_n(uint8_t n) LINK_WPARAM __naked  /* cp_d[0..n-1] = 0 */
     MOVFF   _cp_d, _FSR0L
     MOVFF   (_cp_d + 1), _FSR0H
 lmz_loop:
-    CLRF    _POSTINC0, A            ; POSTINC0
+    CLRF    _POSTINC0, A
     DECFSZ  _PRODL, F, A
     BRA     lmz_loop
     MOVFF   _FSR0L, _cp_d
@@ -520,7 +515,7 @@ static uint8_t rom_next(void) __naked  /* link_rom[link_hot.ro++]: the module's 
     TBLRD*
     INFSNZ  (_link_hot + LH_RO), F, A   ; ro++
     INCF    (_link_hot + LH_RO + 1), F, A
-    MOVF    _TABLAT, W, A           ; TABLAT
+    MOVF    _TABLAT, W, A
     RETURN
     __endasm;
 }
@@ -666,7 +661,7 @@ static void crc_n(uint8_t n) LINK_WPARAM __naked   /* TABLAT counts (crc_byte ke
     MOVFF   _cp_s, _FSR0L
     MOVFF   (_cp_s + 1), _FSR0H
 lcrc_loop:
-    MOVF    _POSTINC0, W, A         ; POSTINC0
+    MOVF    _POSTINC0, W, A
     CALL    _crc_byte
     DECFSZ  _TABLAT, F, A
     BRA     lcrc_loop
@@ -739,8 +734,7 @@ static void row_of(uint8_t idx) LINK_WPARAM        /* link_hot.ro = the entry's 
 #define row_at(idx, k) do { row_of(idx); link_hot.ro = (uint16_t)(link_hot.ro + (k)); } while (0)
 
 #if defined(__SDCC_pic16)
-typedef char link_entry_layout[(offsetof(struct link_fast, ro) == 6u && offsetof(struct link_fast, e_off) == 8u
-                                && offsetof(struct link_fast, e_sz) == 9u && ROM_SIZE == ROM_OFF + LINK_N_ENTRIES
+typedef char link_entry_layout[(ROM_SIZE == ROM_OFF + LINK_N_ENTRIES
                                 && ROM_OFF == 420u) ? 1 : -1];
 /* PIC18 assembly (the C below, step for step): ROM_SIZE + idx is one table further on */
 /* Contract: in idx (W) < LINK_N_ENTRIES; out link_hot.e_off, .e_sz (.ro just past e_sz's byte);
@@ -756,13 +750,13 @@ static void entry_load(uint8_t idx) LINK_WPARAM __naked   /* link_hot.e_off, lin
     ADDLW   1
     MOVWF   (_link_hot + LH_RO + 1), A
     CALL    _rom_next
-    MOVWF   (_link_hot + LH_E_OFF), A      ; e_off
+    MOVWF   (_link_hot + LH_E_OFF), A
     MOVLW   29                  ; rom_at(ROM_SIZE + idx): LINK_N_ENTRIES - 1 past the byte read
     ADDWF   (_link_hot + LH_RO), F, A
     MOVLW   0
     ADDWFC  (_link_hot + LH_RO + 1), F, A
     CALL    _rom_next
-    MOVWF   (_link_hot + LH_E_SZ), A      ; e_sz
+    MOVWF   (_link_hot + LH_E_SZ), A
     RETURN
     __endasm;
 }
@@ -785,7 +779,7 @@ static void sign_extend(void) __naked      /* PRODL the fill byte, PRODH the ind
     __asm
     CLRF    _PRODL, A
     MOVLW   0x7F
-    ANDWF   (_link_hot + LH_E_SZ), W, A   ; e_sz
+    ANDWF   (_link_hot + LH_E_SZ), W, A
     MOVWF   _PRODH, A
     LFSR    0, (_V - 1)
     BTFSS   (_link_hot + LH_E_SZ), 7, A
@@ -799,7 +793,7 @@ lse_loop:
     CPFSLT  _PRODH, A               ; index < 4: store the fill
     RETURN
     MOVF    _PRODH, W, A
-    MOVFF   _PRODL, _PLUSW0         ; V.b[index] = fill (PLUSW0)
+    MOVFF   _PRODL, _PLUSW0         ; V.b[index] = fill
     INCF    _PRODH, F, A
     BRA     lse_loop
     __endasm;
@@ -885,7 +879,7 @@ static uint8_t rom_cmp(uint8_t above) LINK_WPARAM __naked
 {
     (void)above;
     __asm
-    MOVWF   _POSTDEC1, A            ; POSTDEC1
+    MOVWF   _POSTDEC1, A
     CALL    _rom_next
     MOVWF   _PRODL, A
     CALL    _rom_next
@@ -1327,12 +1321,12 @@ void link_rx_byte(uint8_t b) LINK_WPARAM __naked
     (void)b;
     __asm
     MOVWF   _PRODL, A
-    MOVF    (_link_hot + LH_RX_READY), W, A      ; rx_ready
+    MOVF    (_link_hot + LH_RX_READY), W, A
     BNZ     _lrx_spill          ; the main loop holds rx_buf: the byte waits in the spill ring
     MOVF    _PRODL, F, A
     BZ      _lrx_delim
     MOVLW   46          ; LINK_RX_BYTES
-    CPFSLT  (_link_hot + LH_RX_N), A         ; rx_n
+    CPFSLT  (_link_hot + LH_RX_N), A
     BRA     _lrx_long
     MOVF    (_link_hot + LH_RX_N), W, A
     LFSR    0, _rx_buf
@@ -1413,7 +1407,7 @@ static uint8_t cobs_decode(void) __naked   /* rx_buf decoded in place; the last 
     MOVF    _PRODH, F, A
     BZ      lcd3_end
 lcd3_loop:
-    MOVF    _INDF0, W, A            ; INDF0
+    MOVF    _INDF0, W, A
     DECFSZ  _TABLAT, F, A           ; the run ends here: a code byte, the zero it stands for
     BRA     lcd3_put
     MOVWF   _TABLAT, A
@@ -1421,8 +1415,8 @@ lcd3_loop:
 lcd3_put:
     MOVWF   _PRODL, A
     MOVLW   0xFF
-    MOVFF   _PRODL, _PLUSW0         ; FSR0[-1] (PLUSW0)
-    MOVF    _POSTINC0, F, A         ; FSR0++ (POSTINC0)
+    MOVFF   _PRODL, _PLUSW0         ; FSR0[-1]
+    MOVF    _POSTINC0, F, A         ; FSR0++
     DECFSZ  _PRODH, F, A
     BRA     lcd3_loop
 lcd3_end:
@@ -1530,9 +1524,6 @@ static void rx_release(void)
 
 /* ---- transmit: body in tx_buf[1..], COBS-encoded in place, sent as the UART queue has room ---- */
 #if defined(__SDCC_pic16)
-typedef char link_tx_layout[(offsetof(struct link_state, tseq) == 17u && offsetof(struct link_state, tx_pos) == 19u
-                             && offsetof(struct link_fast, n) == 5u && offsetof(struct link_fast, tx_len) == 10u)
-                            ? 1 : -1];
 /* PIC18 assembly: the CRC through crc_n (FSR0 ends on the CRC's place), then COBS in place with
  * FSR0 scanning: the last code byte is run bytes back (PLUSW0); TABLAT the run, PRODH the count. */
 /* Contract: in type (W), the payload A(0..link_hot.n-1), S.tseq; out the sealed frame in tx_buf
@@ -1551,7 +1542,7 @@ static void tx_seal(uint8_t type) LINK_WPARAM __naked   /* payload A(0..link_hot
     MOVF    (_link_hot + LH_N), W, A
     ADDLW   3
     CALL    _crc_n
-    MOVFF   (_link_hot + LH_CRC_HI), _POSTINC0 ; CRC high, low (POSTINC0)
+    MOVFF   (_link_hot + LH_CRC_HI), _POSTINC0 ; CRC high, low
     MOVFF   (_link_hot + LH_CRC_LO), _POSTINC0
     MOVF    (_link_hot + LH_N), W, A   ; tx_len = body + COBS code + delimiter
     ADDLW   7
@@ -1569,7 +1560,7 @@ lts_loop:
     BNZ     lts_next
     MOVF    _TABLAT, W, A           ; *(this byte - run) = run: W = -run - 1 from FSR0 (one past it)
     SUBLW   0xFF
-    MOVFF   _TABLAT, _PLUSW0        ; PLUSW0
+    MOVFF   _TABLAT, _PLUSW0
     CLRF    _TABLAT, A
 lts_next:
     INCF    _TABLAT, F, A
@@ -1627,7 +1618,7 @@ static void tx_drain(void) __naked
     CALL    _app_tx_free
     IORLW   0
     BZ      ltd_ret
-    MOVWF   _POSTDEC1, A            ; room (POSTDEC1)
+    MOVWF   _POSTDEC1, A            ; room
 ltd_loop:
     BANKSEL _S
     DECF    (_link_hot + LH_TX_LEN), W, A  ; tx_pos == tx_len - 1: only the delimiter is left
@@ -1635,12 +1626,12 @@ ltd_loop:
     BZ      ltd_end
     LFSR    0, _tx_buf
     MOVF    (_S + LS_TX_POS), W, B
-    MOVF    _PLUSW0, W, A           ; tx_buf[tx_pos] (PLUSW0)
+    MOVF    _PLUSW0, W, A           ; tx_buf[tx_pos]
     CALL    _app_tx_byte
     BANKSEL _S
     INCF    (_S + LS_TX_POS), F, B
     MOVLW   1
-    DECFSZ  _PLUSW1, F, A           ; room-- (PLUSW1)
+    DECFSZ  _PLUSW1, F, A           ; room--
     BRA     ltd_loop
     BRA     ltd_pop
 ltd_end:
@@ -1648,7 +1639,7 @@ ltd_end:
     CALL    _app_tx_byte            ; the delimiter
     CLRF    (_link_hot + LH_TX_LEN), A
 ltd_pop:
-    MOVF    _PREINC1, F, A          ; drop room (PREINC1)
+    MOVF    _PREINC1, F, A          ; drop room
 ltd_ret:
     RETURN
     __endasm;
@@ -1701,7 +1692,7 @@ lrc_loop:
     MOVWF   _PRODH, A               ; PRODH = the byte
     LFSR    0, (_tx_buf + 4)        ; A(0)
     MOVF    (_link_hot + LH_N), W, A   ; link_hot.n
-    MOVFF   _PRODH, _PLUSW0         ; A(link_hot.n) (PLUSW0)
+    MOVFF   _PRODH, _PLUSW0         ; A(link_hot.n)
     INCF    (_link_hot + LH_N), F, A
     DECFSZ  _PRODL, F, A
     BRA     lrc_loop
@@ -1745,7 +1736,7 @@ static void rom_val16(void) __naked
 lrv_fill:
     LFSR    0, (_tx_buf + 4)
     MOVF    (_link_hot + LH_N), W, A
-    MOVFF   _PRODL, _PLUSW0         ; A(n) (PLUSW0)
+    MOVFF   _PRODL, _PLUSW0         ; A(n)
     INCF    (_link_hot + LH_N), F, A
     MOVF    (_link_hot + LH_N), W, A
     MOVFF   _PRODL, _PLUSW0
@@ -1766,7 +1757,7 @@ static uint8_t h_param_info(void) __naked
     MOVF    _FSR0L, W, A
     SUBLW   29
     BNC     lpi_bad                 ; idx >= LINK_N_ENTRIES
-    MOVFF   _FSR0L, _POSTDEC1       ; push idx (POSTDEC1)
+    MOVFF   _FSR0L, _POSTDEC1       ; push idx
     MOVLW   224              ; rom_at(ROM_NAME_LEN)
     MOVWF   (_link_hot + LH_RO), A
     MOVLW   1
@@ -1791,17 +1782,17 @@ lpi_len:
     MOVFF   _PRODL, _POSTDEC1
     CLRF    (_link_hot + LH_N), A      ; link_hot.n = 0
     MOVLW   4
-    MOVF    _PLUSW1, W, A           ; idx (PLUSW1)
+    MOVF    _PLUSW1, W, A           ; idx
     CALL    _entry_load             ; its size code widens min, max, default
     MOVLW   4
-    MOVF    _PLUSW1, W, A           ; idx (PLUSW1)
+    MOVF    _PLUSW1, W, A           ; idx
     CALL    _row_of
     MOVLW   8                       ; id, ctype, flags, unit, scale
     CALL    _rom_copy
     CALL    _rom_val16              ; min, max, default
     CALL    _rom_val16
     CALL    _rom_val16
-    MOVFF   _PREINC1, (_link_hot + LH_RO) ; rom_at(offset) (PREINC1)
+    MOVFF   _PREINC1, (_link_hot + LH_RO) ; rom_at(offset)
     MOVFF   _PREINC1, (_link_hot + LH_RO + 1)
     MOVF    _PREINC1, W, A          ; the length
     MOVF    _PREINC1, F, A          ; drop idx (each pop one instruction: an interrupt pushes at FSR1)
@@ -1881,12 +1872,12 @@ static uint8_t h_param_get(void) __naked
     BZ      lpg_bad
     SUBLW   10
     BNC     lpg_bad
-    CLRF    _POSTDEC1, A            ; i = 0 (POSTDEC1)
+    CLRF    _POSTDEC1, A            ; i = 0
 lpg_check:
     MOVLW   1
-    MOVF    _PLUSW1, W, A           ; i (PLUSW1)
+    MOVF    _PLUSW1, W, A           ; i
     LFSR    0, (_rx_buf + 3)
-    MOVF    _PLUSW0, W, A           ; R(i) (PLUSW0)
+    MOVF    _PLUSW0, W, A           ; R(i)
     CALL    _entry_index
     XORLW   0xFF
     BZ      lpg_unknown
@@ -1926,7 +1917,7 @@ lpg_value:
     MOVF    (_link_hot + LH_N), W, A   ; 4 bytes an id
     MULLW   4
     MOVFF   _PRODL, (_link_hot + LH_N)
-    MOVF    _PREINC1, F, A          ; drop i (PREINC1)
+    MOVF    _PREINC1, F, A          ; drop i
     RETLW   0
 lpg_unknown:
     MOVF    _PREINC1, F, A
@@ -2046,29 +2037,29 @@ ltc_len:
     DECFSZ  _TABLAT, F, A
     BRA     ltc_len
 ltc_set:
-    MOVFF   _PRODL, _POSTDEC1       ; the length, the bytes per sample (POSTDEC1)
+    MOVFF   _PRODL, _POSTDEC1       ; the length, the bytes per sample
     MOVFF   _PRODH, _POSTDEC1
     CALL    _crit_begin
     CLRF    (_link_hot + LH_TM_DEC), A     ; tm_dec = 0 while the settings change
     CLRF    (_link_hot + LH_TM_DEC + 1), A
-    MOVFF   (_rx_buf + 3), (_S + LS_TM_MASK)    ; tm_mask
+    MOVFF   (_rx_buf + 3), (_S + LS_TM_MASK)
     MOVFF   (_rx_buf + 4), (_S + LS_TM_MASK + 1)
-    MOVFF   (_rx_buf + 7), (_S + LS_TM_SPF)    ; tm_spf
-    MOVFF   _PREINC1, (_link_hot + LH_TM_NB) ; tm_nb (PREINC1)
+    MOVFF   (_rx_buf + 7), (_S + LS_TM_SPF)
+    MOVFF   _PREINC1, (_link_hot + LH_TM_NB) ; tm_nb
     CLRF    (_link_hot + LH_TR_DIV), A     ; tr: div, counter, nsamp, len
     CLRF    (_link_hot + LH_TR_DIV + 1), A
     CLRF    (_link_hot + LH_TR_COUNTER), A
     CLRF    (_link_hot + LH_TR_COUNTER + 1), A
     CLRF    (_link_hot + LH_TR_NSAMP), A
     CLRF    (_link_hot + LH_TR_LEN), A
-    CLRF    (_link_hot + LH_TM_READY), A     ; tm_ready
+    CLRF    (_link_hot + LH_TM_READY), A
     BANKSEL _S
-    INCF    (_S + LS_TM_GEN), F, B          ; tm_gen
+    INCF    (_S + LS_TM_GEN), F, B
     MOVFF   (_rx_buf + 5), (_link_hot + LH_TM_DEC)   ; tm_dec last
     MOVFF   (_rx_buf + 6), (_link_hot + LH_TM_DEC + 1)
     CALL    _crit_end
     MOVFF   (_S + LS_TM_GEN), (_tx_buf + 4) ; A(0) = tm_gen, A(1) = the frame length (0: off)
-    MOVFF   _PREINC1, _PRODL        ; (PREINC1)
+    MOVFF   _PREINC1, _PRODL
     BANKSEL _rx_buf
     MOVF    (_rx_buf + 5), W, B
     IORWF   (_rx_buf + 6), W, B
@@ -2155,14 +2146,14 @@ static uint8_t h_capture_arm(void) __naked
     BNZ     lca_bad
 lca_words:
     RLNCF   _PRODH, W, A            ; bytes per sample = 2 signals (at most 2 x 16)
-    MOVWF   _POSTDEC1, A            ; (POSTDEC1)
+    MOVWF   _POSTDEC1, A
     CLRF    _PRODL, A               ; PRODL = words
 lca_loop:
     MOVF    _PRODL, W, A            ; samples > LINK_CAPTURE_WORDS - words: too many
     SUBLW   64
     CPFSGT  (_rx_buf + 5), B
     BRA     lca_add
-    MOVF    _PREINC1, F, A          ; drop the pushed byte (PREINC1)
+    MOVF    _PREINC1, F, A          ; drop the pushed byte
     BRA     lca_bad
 lca_add:
     MOVF    (_rx_buf + 5), W, B
@@ -2171,19 +2162,19 @@ lca_add:
     BRA     lca_loop
     DECF    _PRODL, W, A            ; the last byte index: 2 words - 1
     ADDWF   _PRODL, W, A
-    MOVWF   _POSTDEC1, A            ; (POSTDEC1)
+    MOVWF   _POSTDEC1, A
     CALL    _crit_begin
     BANKSEL _S
     CLRF    _S, B                   ; IDLE while the settings change
-    MOVFF   (_rx_buf + 3), (_S + LS_CAP_MASK)    ; cap_mask
+    MOVFF   (_rx_buf + 3), (_S + LS_CAP_MASK)
     MOVFF   (_rx_buf + 4), (_S + LS_CAP_MASK + 1)
-    MOVFF   _PREINC1, (_S + LS_CAP_BYTES)     ; cap_bytes (PREINC1)
-    MOVFF   _PREINC1, (_link_hot + LH_CAP_NB) ; cap_nb
-    MOVFF   (_rx_buf + 5), (_link_hot + LH_CAP_N) ; cap_n
-    MOVFF   (_rx_buf + 7), (_S + LS_CAP_PRE)    ; cap_pre
-    MOVFF   (_rx_buf + 9), (_link_hot + LH_CAP_DEC) ; cap_dec
+    MOVFF   _PREINC1, (_S + LS_CAP_BYTES)     ; cap_bytes
+    MOVFF   _PREINC1, (_link_hot + LH_CAP_NB)
+    MOVFF   (_rx_buf + 5), (_link_hot + LH_CAP_N)
+    MOVFF   (_rx_buf + 7), (_S + LS_CAP_PRE)
+    MOVFF   (_rx_buf + 9), (_link_hot + LH_CAP_DEC)
     MOVFF   (_rx_buf + 10), (_link_hot + LH_CAP_DEC + 1)
-    MOVFF   (_rx_buf + 11), (_S + LS_CAP_TRIG)   ; cap_trig
+    MOVFF   (_rx_buf + 11), (_S + LS_CAP_TRIG)
     MOVFF   (_rx_buf + 12), (_S + LS_CAP_THR)   ; cap_thr (SPEED_FALLING: complemented)
     MOVFF   (_rx_buf + 13), (_S + LS_CAP_THR + 1)
     MOVF    (_S + LS_CAP_TRIG), W, B
@@ -2195,12 +2186,12 @@ lca_clear:
     LFSR    0, (_S + LS_CR_W)            ; the record (S.cr, 10 bytes)
     MOVLW   10
 lca_zero:
-    CLRF    _POSTINC0, A            ; POSTINC0
+    CLRF    _POSTINC0, A
     DECFSZ  _WREG, F, A
     BRA     lca_zero
-    CLRF    (_link_hot + LH_CR_DIV), A     ; cr_div
+    CLRF    (_link_hot + LH_CR_DIV), A
     CLRF    (_link_hot + LH_CR_DIV + 1), A
-    CLRF    (_S + LS_CAP_SP_CHANGED), B            ; cap_sp_changed
+    CLRF    (_S + LS_CAP_SP_CHANGED), B
     MOVLW   1
     MOVWF   _S, B
     CALL    _crit_end
@@ -2295,7 +2286,7 @@ lcr_done:
     MOVWF   _PRODL, A
     CLRF    _TABLAT, A
 lcr_fit:
-    MOVF    (_link_hot + LH_CAP_NB), W, A  ; cap_nb
+    MOVF    (_link_hot + LH_CAP_NB), W, A
     SUBWF   _PRODL, F, A
     BNC     lcr_fitted
     INCF    _TABLAT, F, A
@@ -2557,11 +2548,6 @@ static void wd_arm(void)
 }
 
 #if defined(__SDCC_pic16)
-typedef char link_poll_layout[(offsetof(struct link_state, tm_gen) == 1u && offsetof(struct link_state, nack) == 14u
-                               && offsetof(struct link_state, nack_type) == 15u
-                               && offsetof(struct link_state, nack_seq) == 16u
-                               && offsetof(struct link_state, tseq) == 17u && offsetof(struct link_fast, tr) == 15u)
-                              ? 1 : -1];
 /* PIC18 assembly (the C below, step for step): the pass count on the software stack, no register
  * held across the calls */
 /* Contract: in a received frame (rx_ready), the pending events and telemetry; out at most the
@@ -2572,7 +2558,7 @@ void link_poll(void) __naked
 {
     __asm
     MOVLW   8                       ; at most 8 frames a call
-    MOVWF   _POSTDEC1, A            ; POSTDEC1
+    MOVWF   _POSTDEC1, A
 lpl_loop:
     CALL    _wd_arm
     CALL    _tx_drain
@@ -2593,7 +2579,7 @@ lpl_loop:
     CALL    _tx_seal
     BRA     lpl_next
 lpl_rx:
-    MOVF    (_link_hot + LH_RX_READY), W, A   ; rx_ready
+    MOVF    (_link_hot + LH_RX_READY), W, A
     BZ      lpl_ev
     CALL    _rx_frame
     IORLW   0
@@ -2628,7 +2614,7 @@ lpl_ev:
     CLRF    (_link_hot + LH_TR_LEN), A
     CLRF    (_link_hot + LH_TM_READY), A
 lpl_next:
-    MOVF    _PREINC1, W, A          ; the pass count (PREINC1)
+    MOVF    _PREINC1, W, A          ; the pass count
     DECF    _WREG, F, A
     BZ      lpl_last
     MOVWF   _POSTDEC1, A
@@ -2703,7 +2689,7 @@ void link_poll(void)
 static void put_signals(void) __naked
 {
     __asm
-    MOVFF   _TBLPTRU, _POSTDEC1     ; save TBLPTRU, TBLPTRH, TBLPTRL, TABLAT (POSTDEC1)
+    MOVFF   _TBLPTRU, _POSTDEC1     ; save TBLPTRU, TBLPTRH, TBLPTRL, TABLAT
     MOVFF   _TBLPTRH, _POSTDEC1
     MOVFF   _TBLPTRL, _POSTDEC1
     MOVFF   _TABLAT, _POSTDEC1
@@ -2726,7 +2712,7 @@ lps_loop:
     MOVF    _FSR0L, W, A
     IORWF   _FSR0H, W, A
     BZ      lps_call
-    MOVFF   _POSTINC0, _PRODL       ; PRODL, PRODH = *src (POSTINC0)
+    MOVFF   _POSTINC0, _PRODL       ; PRODL, PRODH = *src
     MOVFF   _POSTINC0, _PRODH
     BRA     lps_have
 lps_call:                          ; NULL: app_signal(j), the table pointer kept across the call
@@ -2739,7 +2725,7 @@ lps_call:                          ; NULL: app_signal(j), the table pointer kept
     CALL    _app_signal             ; low byte in W, high byte in PRODL
     MOVFF   _PRODL, _PRODH
     MOVWF   _PRODL, A
-    MOVFF   _PREINC1, _TBLPTRL      ; PREINC1
+    MOVFF   _PREINC1, _TBLPTRL
     MOVFF   _PREINC1, _TBLPTRH
     MOVFF   _PREINC1, _TBLPTRU
     BANKSEL _sg
@@ -2773,7 +2759,7 @@ lps_next:
     IORWF   (_sg + SG_CM), W, B
     IORWF   (_sg + SG_CM + 1), W, B
     BNZ     lps_loop
-    MOVFF   _PREINC1, _TABLAT       ; restore TABLAT, TBLPTRL, TBLPTRH, TBLPTRU (PREINC1)
+    MOVFF   _PREINC1, _TABLAT       ; restore TABLAT, TBLPTRL, TBLPTRH, TBLPTRU
     MOVFF   _PREINC1, _TBLPTRL
     MOVFF   _PREINC1, _TBLPTRH
     MOVFF   _PREINC1, _TBLPTRU
@@ -2815,23 +2801,11 @@ static void put_signals(void)
  * did).  Offsets into link_hot (access bank) and S are pinned by the layout checks below. */
 #if defined(__SDCC_pic16)
 #define LP_LINK_TIMEOUT 17                /* offsetof(link_params_t, link_timeout), checked below */
-typedef char link_isr_layout[(offsetof(struct link_fast, tm_ready) == 11u && offsetof(struct link_fast, tm_nb) == 12u
-    && offsetof(struct link_fast, tm_dec) == 13u && offsetof(struct link_fast, tr) == 15u
-    && offsetof(struct link_state, tm_dropped) == 6u && offsetof(struct link_state, rx_valid) == 13u
-    && offsetof(struct link_state, tm_spf) == 20u && offsetof(struct link_state, wd_armed) == 27u
-    && offsetof(struct link_state, wd_ms) == 28u && offsetof(struct link_state, ev_watchdog) == 33u
-    && offsetof(struct link_state, tm_mask) == 35u
-    && offsetof(link_params_t, link_timeout) == LP_LINK_TIMEOUT) ? 1 : -1];
+typedef char link_isr_layout[(offsetof(link_params_t, link_timeout) == LP_LINK_TIMEOUT) ? 1 : -1];
 #if LINK_WITH_CAPTURE
-typedef char link_cap_layout[(offsetof(struct link_fast, cap_n) == 21u && offsetof(struct link_fast, cap_nb) == 22u
-    && offsetof(struct link_fast, cap_dec) == 23u && offsetof(struct link_fast, cr_div) == 25u
-    && offsetof(struct link_state, cap_sp_changed) == 37u && offsetof(struct link_state, cap_trig) == 38u
-    && offsetof(struct link_state, cap_pre) == 40u && offsetof(struct link_state, cap_bytes) == 39u && offsetof(struct link_state, cap_mask) == 41u
-    && offsetof(struct link_state, cap_thr) == 43u && offsetof(struct link_state, cr) == 45u
-    && sizeof S.cr == 10u) ? 1 : -1];
+typedef char link_cap_layout[(sizeof S.cr == 10u) ? 1 : -1];
 
-/* decimation and trigger; a sample due: sg.q, sg.cm set (S.cr: w 45, wi 46, filled 47, post 48,
- * total 49, start 50, tidx 51, prev_valid 52, prev 53) */
+/* decimation and trigger; a sample due: sg.q, sg.cm set */
 /* Contract: in the capture state S.cr and the decimation counter; out sg.q, sg.cm set when a
  * sample is due (the trigger tested on its signal); clobbers W, STATUS, BSR, PROD, FSR0, TBLPTR,
  * TABLAT. */
@@ -2853,7 +2827,7 @@ lcd_due:
     MOVF    _S, W, B                ; cap_state
     XORLW   1
     BNZ     lcd_slot
-    MOVF    (_S + LS_CAP_TRIG), W, B         ; cap_trig
+    MOVF    (_S + LS_CAP_TRIG), W, B
     BZ      lcd_fire                ; IMMEDIATE
     XORLW   1
     BNZ     lcd_speed
@@ -3074,7 +3048,7 @@ void link_tick_ms(void) __naked
     BNZ     ltk_wd
     INCF    (_S + LS_UPTIME_MS + 3), F, B
 ltk_wd:
-    MOVF    (_S + LS_WD_ARMED), W, B         ; wd_armed
+    MOVF    (_S + LS_WD_ARMED), W, B
     BZ      ltk_clear
     MOVF    (_S + LS_RX_VALID), W, B         ; rx_valid: a host command arrived
     BZ      ltk_count
