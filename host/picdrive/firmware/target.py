@@ -230,55 +230,64 @@ def _file_reg(word: int) -> int:
     return -1   # banked: not an SFR this analysis follows
 
 
-def _decode(mem: bytes, start: int, end: int):
-    """Yield (address, kind, operands) for the instructions in [start, end) of program memory
-    ``mem`` (read_hex's; beyond it reads as erased)."""
+BRANCHES = {0xE0: "BZ", 0xE1: "BNZ", 0xE2: "BC", 0xE3: "BNC", 0xE4: "BOV", 0xE5: "BNOV", 0xE6: "BN", 0xE7: "BNN"}
+_NAMED = {0x0012: ("return", 0), 0x0013: ("return", 1), 0x0010: ("retfie", 0), 0x0011: ("retfie", 1),
+          0x0005: ("push", None), 0x0006: ("pop", None), 0x00FF: ("reset", None), 0x0003: ("sleep", None)}
+
+
+def decode_insn(mem: bytes, pc: int) -> tuple[str, object, int, int, int]:
+    """The PIC18 instruction at ``pc`` of program memory ``mem`` (beyond it reads as erased):
+    ``(kind, operands, size in bytes, first word, second word)``.  The one Python decoder of
+    picdrive (the call graph here; the processor twin's stop messages, picdrive_hil.pil): control
+    flow by kind and target, the register moves the stack and table-pointer analyses follow, any
+    other instruction as "other" with the register it reads or writes (or -1)."""
     def byte(a):
         return mem[a] if 0 <= a < len(mem) else 0xFF
+    w = byte(pc) | (byte(pc + 1) << 8)
+    w2 = byte(pc + 2) | (byte(pc + 3) << 8)
+    hi = w >> 8
+    if (w & 0xFE00) == 0xEC00 or hi == 0xEF:                # CALL (FAST: bit 8) / GOTO
+        return ("call" if hi in (0xEC, 0xED) else "goto"), ((w & 0xFF) | ((w2 & 0xFFF) << 8)) * 2, 4, w, w2
+    if (w & 0xF000) == 0xC000:                               # MOVFF src, dst
+        return "movff", (w & 0xFFF, w2 & 0xFFF), 4, w, w2
+    if (w & 0xFFC0) == 0xEE00:                               # LFSR
+        return "lfsr", ((w >> 4) & 3, ((w & 0xF) << 8) | (w2 & 0xFF)), 4, w, w2
+    if (w & 0xF000) == 0xD000:                               # RCALL / BRA
+        n = w & 0x7FF
+        n = n - 0x800 if n & 0x400 else n
+        return ("rcall" if w & 0x0800 else "bra"), pc + 2 + 2 * n, 2, w, w2
+    if hi in BRANCHES:                                       # conditional branch: (name, target)
+        n = w & 0xFF
+        return "bcc", (BRANCHES[hi], pc + 2 + 2 * (n - 0x100 if n & 0x80 else n)), 2, w, w2
+    if 0x0008 <= w <= 0x000B:
+        return "tblrd", None, 2, w, w2
+    if w in _NAMED:
+        kind, op = _NAMED[w]
+        return kind, op, 2, w, w2
+    if hi == 0x0C:
+        return "retlw", w & 0xFF, 2, w, w2
+    if hi == 0x0E:
+        return "movlw", w & 0xFF, 2, w, w2
+    if (w & 0xFE00) == 0x6E00:
+        return "movwf", _file_reg(w), 2, w, w2
+    if (w & 0xFC00) == 0x5000:
+        return "movf", _file_reg(w), 2, w, w2
+    if (w & 0xFC00) == 0x2400:
+        return "addwf", (_file_reg(w), (w >> 9) & 1), 2, w, w2
+    if (w & 0xFC00) == 0x5C00:
+        return "subwf", (_file_reg(w), (w >> 9) & 1), 2, w, w2
+    if (w & 0xFC00) in (0x6800, 0x6A00) or (w & 0xF000) in (0x7000, 0x8000, 0x9000):
+        return "write", _file_reg(w), 2, w, w2                # SETF/CLRF, BTG/BSF/BCF: writes a register
+    return "other", _file_reg(w) if 0x1000 <= w < 0x7000 else -1, 2, w, w2
+
+
+def _decode(mem: bytes, start: int, end: int):
+    """Yield (address, kind, operands) for the instructions in [start, end) (decode_insn)."""
     pc = start
     while pc < end:
-        w = byte(pc) | (byte(pc + 1) << 8)
-        w2 = byte(pc + 2) | (byte(pc + 3) << 8)
-        hi = w >> 8
-        if (w & 0xFE00) == 0xEC00 or hi == 0xEF:            # CALL / GOTO
-            target = ((w & 0xFF) | ((w2 & 0xFFF) << 8)) * 2
-            yield pc, ("call" if hi in (0xEC, 0xED) else "goto"), target
-            pc += 4
-            continue
-        if (w & 0xF000) == 0xC000:                           # MOVFF src, dst
-            yield pc, "movff", (w & 0xFFF, w2 & 0xFFF)
-            pc += 4
-            continue
-        if (w & 0xFFC0) == 0xEE00:                           # LFSR
-            yield pc, "lfsr", ((w >> 4) & 3, ((w & 0xF) << 8) | (w2 & 0xFF))
-            pc += 4
-            continue
-        if (w & 0xF800) == 0xD800 or (w & 0xF800) == 0xD000:  # RCALL / BRA
-            n = w & 0x7FF
-            n = n - 0x800 if n & 0x400 else n
-            yield pc, ("rcall" if w & 0x0800 else "bra"), pc + 2 + 2 * n
-            pc += 2
-            continue
-        if 0x0008 <= w <= 0x000B:
-            yield pc, "tblrd", None
-        elif w == 0x0005:
-            yield pc, "push", None
-        elif hi == 0x0E:
-            yield pc, "movlw", w & 0xFF
-        elif (w & 0xFE00) == 0x6E00:
-            yield pc, "movwf", _file_reg(w)
-        elif (w & 0xFC00) == 0x5000:
-            yield pc, "movf", _file_reg(w)
-        elif (w & 0xFC00) == 0x2400:
-            yield pc, "addwf", (_file_reg(w), (w >> 9) & 1)
-        elif (w & 0xFC00) == 0x5C00:
-            yield pc, "subwf", (_file_reg(w), (w >> 9) & 1)
-        elif (w & 0xFC00) in (0x6800, 0x6A00) or (w & 0xF000) in (0x7000, 0x8000, 0x9000):
-            # SETF/CLRF, BTG/BSF/BCF: writes to a register
-            yield pc, "write", _file_reg(w)
-        else:
-            yield pc, "other", _file_reg(w) if 0x1000 <= w < 0x7000 else -1
-        pc += 2
+        kind, op, size, _w, _w2 = decode_insn(mem, pc)
+        yield pc, kind, op
+        pc += size
 
 
 _IVAL = re.compile(r"Starting pCode block for Ival\s*\n(?:\s*\S*\s+code\s*\n)?(_\w+):")
