@@ -19,23 +19,11 @@ comparison can fail: a one-LSB change of a constant and a lost upper partial pro
 product is assembly on the chip: the C form's missing 32-bit cast loses the same half).  The
 "duty" checksum also folds core_premise_k (the accumulator's 16-bit quotient on the chip).
 
-FIXED DEFECT, NAMED (history; the law is now assembly on SDCC, see
-test_a_changed_law_instruction_is_caught): SDCC 4.2 pic16 miscompiled core_law (and so core_control).  In
-    t = CORE_MULS(kc, i); cterm = CORE_SHIFT_C(t);
-    q = add32(pterm, st->d_filt);        /* (sa = pterm, sb = st->d_filt, add32s()) */
-    q = sub32(q, cterm);                 /* (sa = q, sb = cterm, sub32s()) */
-the compiler coalesces the single-use temporary cterm with the global sb it is later assigned to
-(drive_core.asm: "MOVFF _core_sh, _sb" right after the shift), past the intervening store
-sb = st->d_filt, so sub32s subtracts d_filt instead of the current term: on the chip the law
-ignores the current feedback (and the output window it sets) whenever they differ.  Seen in
-gpsim at vector 1 (parameter set 1, r=200 y=-478 i=32767): sub32s entered with sa=14408, sb=4
-(d_filt) instead of sb=1005281 (cterm); the chip returns u_max 6257 and leaves integ at 26626,
-the model and the gcc build give u_min -4719 and integ 91431874.  Any change of core_law's shape
-(six volatile debug stores) moves the allocation and hides it.  The fix belongs in
-firmware_templates/drive_core.c.j2 (e.g. no temporary between a computed term and its sa/sb
-store, or sa/sb volatile).  The template now declares sa/sb volatile: law and control agree
-with the model on all 10^4 vectors, and a copy without volatile still shows the fault
-(test_the_operand_pair_is_volatile_against_the_sdcc_miscompile).
+Why SDCC's C law runs on the chip too: SDCC 4.2 pic16 once miscompiled the C core_law (a
+single-use temporary coalesced with the global operand it was later stored to, past an
+intervening store: on the chip the law ignored its current feedback, the gcc build did not).  The
+C law is what SDCC compiles for plans with more than 2 rules or the derivative filter (MORE
+below); the assembly law of the other plans is held by test_a_changed_law_instruction_is_caught.
 
 MODEL AGAINST C, FIXED: core_speed_encoder on the chip equalled the gcc build, but both differed
 from fixedpoint.speed_encoder when w_avg = -32768, no count in the sample and K / t5 > 32767
