@@ -199,8 +199,13 @@ def read_hex(path, flash_bytes: int = FLASH_BYTES) -> bytearray:
 # ---------------------------------------------------------------------------
 # Call graph from the linked code
 # ---------------------------------------------------------------------------
-POSTDEC1, POSTINC1, PREINC1, FSR1L = 0xFE5, 0xFE6, 0xFE4, 0xFE1
-TABLE_REGS = {0xFF5: "TABLAT", 0xFF6: "TBLPTRL", 0xFF7: "TBLPTRH", 0xFF8: "TBLPTRU"}
+def _sfr(name: str) -> int:
+    from .p18f4431 import registers
+    return registers()[name]
+
+
+POSTDEC1, POSTINC1, PREINC1, FSR1L = (_sfr(n) for n in ("POSTDEC1", "POSTINC1", "PREINC1", "FSR1L"))
+TABLE_REGS = {_sfr(n): n for n in ("TABLAT", "TBLPTRL", "TBLPTRH", "TBLPTRU")}
 ACCESS_SPLIT = 0x60          # 18F4431: access-bank addresses >= 0x60 are SFRs 0xF60..
 
 
