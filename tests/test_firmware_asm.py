@@ -160,3 +160,22 @@ def test_the_templates_hold_no_register_address(name):
     text = (repo_root() / "firmware_templates" / name).read_text()
     assert not re.findall(r"\b0[xX][Ff][0-9A-Fa-f]{2}\b", text)
     assert p18f4431.registers()["PRODL"] == 0xFF3          # the names the assembly uses are the .inc's
+
+
+def test_a_wrong_offset_name_does_not_compile(tmp_path, monkeypatch):
+    """The offsets are checked against the structs at compile time: CORE_S_SPEED one byte off
+    (as if the description and the struct disagreed) stops SDCC at the layout check."""
+    from picdrive.firmware import core_layout, target
+    real = core_layout.Struct.c_offsets
+
+    def off_by_one(self, n_rules):
+        text = real(self, n_rules)
+        return text.replace(f"#define CORE_S_SPEED {self.offsets(n_rules)['speed']}",
+                            f"#define CORE_S_SPEED {self.offsets(n_rules)['speed'] + 1}") \
+            if self is core_layout.CORE_STATE else text
+    monkeypatch.setattr(core_layout.Struct, "c_offsets", off_by_one)
+    fw = codegen.generate(load_profile("duy2008"), EXAMPLES / "duy2008.fuzzy-hinf.design.json")
+    assert "#define CORE_S_SPEED 25" in fw.files["drive_core.h"]
+    folder = codegen.write_firmware(fw, tmp_path / "fw", check=False)
+    with pytest.raises(target.TargetError, match="core_state_layout"):
+        target.build_hex(folder, tmp_path / "hex", name="wrong")
