@@ -2,8 +2,8 @@
 
 The structs the speed loop's arithmetic works on -- ``core_params_t``, ``core_law_t``,
 ``core_state_t`` and ``core_in_t`` of ``drive_core.h``, and the SDCC build's scratch structs
-``core_acc_t`` (the 32-bit accumulator) and ``core_lw_t`` (the assembly law's intermediates) --
-are listed here field by field: name, C type, element count and comment.  From this one
+``core_acc_t`` (the 32-bit accumulator) and ``core_lw_t`` (the assembly law's intermediates), and
+drive.c's hall edge record ``hall_speed_t`` -- are listed here field by field: name, C type, element count and comment.  From this one
 description come:
 
 * the C typedefs (:meth:`Struct.c_typedef`, rendered into ``drive_core.h`` / ``drive_core.c``);
@@ -25,7 +25,7 @@ import textwrap
 from dataclasses import dataclass
 
 __all__ = ["Field", "Struct", "CTYPE_BYTES", "CORE_PARAMS", "CORE_LAW", "CORE_STATE", "CORE_IN", "CORE_ACC",
-           "CORE_LW", "STRUCTS", "model_class", "ctypes_struct", "offsets", "render_context"]
+           "CORE_LW", "HALL_SPEED", "STRUCTS", "model_class", "ctypes_struct", "offsets", "render_context"]
 
 CTYPE_BYTES = {"int8_t": 1, "uint8_t": 1, "int16_t": 2, "uint16_t": 2, "int32_t": 4, "uint32_t": 4}
 REQUIRED = object()
@@ -214,7 +214,15 @@ CORE_LW = Struct("core_lw_t", "CORE_LW_", (
     Field("frac", "int16_t", "weight of rule 2, Q12"),
 ), "The assembly law's intermediates (banked RAM).")
 
-STRUCTS = {s.c_name: s for s in (CORE_PARAMS, CORE_LAW, CORE_STATE, CORE_IN, CORE_ACC, CORE_LW)}
+HALL_SPEED = Struct("hall_speed_t", "HS_", (
+    Field("last", "uint16_t", "Timer5 at the last edge"),
+    Field("period", "uint16_t", "Timer5 counts between the last two edges"),
+    Field("from", "uint8_t", "the hall code before the last edge"),
+    Field("seen", "uint8_t", "edges as a run of ones, (seen << 1) | 1 each: bit 1 set = a period measured"),
+    Field("age", "uint8_t", "speed-loop samples since the last edge (0xFF: none)"),
+), "drive.c's hall edge record (speed from the halls): the hall interrupt's assembly writes it.")
+
+STRUCTS = {s.c_name: s for s in (CORE_PARAMS, CORE_LAW, CORE_STATE, CORE_IN, CORE_ACC, CORE_LW, HALL_SPEED)}
 
 
 def offsets(c_name: str, n_rules: int) -> dict[str, int]:
