@@ -29,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from picdrive.link import protocol as P  # noqa: E402
+from picdrive.firmware.p18f4431 import bits  # noqa: E402
 from picdrive.link.protocol_c import render_c  # noqa: E402
 from picdrive.link.client import Link  # noqa: E402
 from linksupport import build  # noqa: E402
@@ -92,7 +93,8 @@ def efficiency(table, baud: int) -> list[tuple[str, int, int, int]]:
 
 
 def ram(table, capture_bytes: int) -> tuple[dict[str, int], int]:
-    files = render_c(table, build_id=1, profile_hash=2, sample_hz=1000, capture_bytes=capture_bytes)
+    files = render_c(table, build_id=1, profile_hash=2, sample_hz=1000, capture_bytes=capture_bytes,
+                     sfr_bits=bits())
     with tempfile.TemporaryDirectory() as d:
         obj = build.avr_object(files, Path(d))
         sym = build.avr_ram_bytes(obj)

@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "hil"))
 sys.path.insert(0, str(ROOT / "host"))
 
-from picdrive_hil import ihex  # noqa: E402
+from picdrive.firmware import ihex  # noqa: E402
 from picdrive_hil.pic18 import Pic18  # noqa: E402
 from support import pic18diff as D  # noqa: E402
 

@@ -10,6 +10,7 @@ import pytest
 
 from picdrive.link import codec
 from picdrive.link import protocol as P
+from picdrive.firmware.p18f4431 import bits
 from picdrive.link.protocol_c import render_c
 from picdrive.link.client import BadCrcError, HandshakeMismatch, Link, LinkError, LinkTimeout, NackError, ParamError
 from picdrive.link.protocol import Nack
@@ -298,7 +299,7 @@ def test_handshake_mismatch_board_of_another_definition():
     misread it and names the difference."""
     e = TABLE["rule1_kp"]
     other = P.Table(tuple(dataclasses.replace(x, unit="V/A") if x is e else x for x in TABLE), 2)
-    b, url = _served(render_c(other, build_id=1, profile_hash=2, sample_hz=1000))
+    b, url = _served(render_c(other, build_id=1, profile_hash=2, sample_hz=1000, sfr_bits=bits()))
     try:
         with pytest.raises(HandshakeMismatch) as ei:
             Link.open(url, baudrate=FAST)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from picdrive.link import codec, protocol as P
+from picdrive.firmware.p18f4431 import bits
 from picdrive.link.protocol_c import render_c
 from picdrive.link.protocol import Nack
 
@@ -688,7 +689,8 @@ def test_build_without_capture_and_eeprom():
     """The generation options: a module rendered without capture NACKs its commands
     UNKNOWN_COMMAND and reports 0 capture words; without EEPROM it refuses eeprom_save and
     loads nothing.  Everything else works as in the full build."""
-    files = render_c(TABLE, build_id=1, profile_hash=2, sample_hz=1000, capture=False, eeprom=False)
+    files = render_c(TABLE, build_id=1, profile_hash=2, sample_hz=1000, capture=False, eeprom=False,
+                     sfr_bits=bits())
     assert "#define LINK_WITH_CAPTURE       0" in files["link_fw.h"]
     b = FakeBoard(TABLE, files=files, txq_bytes=4096)
     try:

@@ -48,7 +48,7 @@ def test_interrupt_paths_read_no_flash_table(asm):
     the four table registers before its first table access and restores them at its only return
     (put_signals' table of signal addresses)."""
     graph, bodies = build.asm_call_graph(asm), _bodies(asm)
-    table_regs = ["0xFF8", "0xFF7", "0xFF6", "0xFF5"]        # TBLPTRU, TBLPTRH, TBLPTRL, TABLAT
+    table_regs = ["_TBLPTRU", "_TBLPTRH", "_TBLPTRL", "_TABLAT"]
     saving = []
     for f in build.reachable(graph, ISR_ENTRIES):
         if f not in bodies:
@@ -61,8 +61,8 @@ def test_interrupt_paths_read_no_flash_table(asm):
         if not touches:
             continue
         saving.append(f)
-        assert code[:4] == [f"MOVFF {r} 0xFE5" for r in table_regs], f        # pushed first (POSTDEC1)
-        assert code[-5:] == [f"MOVFF 0xFE4 {r}" for r in reversed(table_regs)] + ["RETURN"], f
+        assert code[:4] == [f"MOVFF {r} _POSTDEC1" for r in table_regs], f     # pushed first
+        assert code[-5:] == [f"MOVFF _PREINC1 {r}" for r in reversed(table_regs)] + ["RETURN"], f
         assert sum(c.startswith(("RETURN", "RETFIE")) for c in code) == 1, f  # no other way out
         assert not any(c.startswith(("GOTO", "BRA")) and c.split()[1].startswith("_") for c in code), f
     assert saving == ["_put_signals"]
@@ -86,14 +86,14 @@ def test_rx_interrupt_shares_single_bytes_only():
     assert "S." not in body                                  # nothing of the main loop's state
     assert re.search(r"rx_buf\[rx_n\] = b;", body) and P.RX_BUFFER_BYTES < 256
     assert re.search(r"rx_spill\[rx_sp_w\] = b;", body) and P.RX_SPILL_BYTES < 256
-    # the PIC18 assembly form (SDCC) writes the same bytes (link_hot + 0, 1, 2: rx_n, rx_ready,
-    # rx_ovf, first in the block; rx_sp_w), the buffers through FSR0 + W (PLUSW0) and PRODL/PRODH
+    # the PIC18 assembly form (SDCC) writes the same bytes (link_hot's rx_n, rx_ready, rx_ovf,
+    # first in the block; rx_sp_w), the buffers through FSR0 + W (PLUSW0) and PRODL/PRODH
     # (saved by the interrupt prologue)
     assert list(fields)[:3] == ["rx_n", "rx_ready", "rx_ovf"]
-    targets = set(re.findall(r"^\s*(?:MOVWF|CLRF|SETF)\s+(\(_link_hot \+ \d\)|\w+)", asm, re.M))
-    targets |= set(re.findall(r"^\s*(?:INCF|DECF)\s+(\(_link_hot \+ \d\)|\w+),\s*F", asm, re.M))
+    targets = set(re.findall(r"^\s*(?:MOVWF|CLRF|SETF)\s+(\(_link_hot \+ LH_\w+\)|\w+)", asm, re.M))
+    targets |= set(re.findall(r"^\s*(?:INCF|DECF)\s+(\(_link_hot \+ LH_\w+\)|\w+),\s*F", asm, re.M))
     targets |= set(re.findall(r"^\s*MOVFF\s+\w+,\s*(\w+)", asm, re.M))
-    assert targets == {"(_link_hot + 0)", "(_link_hot + 1)", "(_link_hot + 2)", "0xFF3", "0xFEB",
+    assert targets == {"(_link_hot + LH_RX_N)", "(_link_hot + LH_RX_READY)", "(_link_hot + LH_RX_OVF)", "_PRODL",
                        "_rx_sp_w", "_PLUSW0", "_PRODH"}, targets
     assert re.search(r"LFSR\s+0,\s*_rx_buf", asm) and re.search(r"LFSR\s+0,\s*_rx_spill", asm) and "__asm" in asm
 

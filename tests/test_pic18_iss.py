@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import pytest
 
-from picdrive_hil import ihex
+from picdrive.firmware import ihex
 from picdrive_hil.pic18 import Pic18
 from support import pic18diff as D
 

@@ -8,6 +8,7 @@ import zlib
 import pytest
 
 from picdrive.link import protocol as P
+from picdrive.firmware.p18f4431 import bits
 from picdrive.link.protocol_c import render_c
 from picdrive.link.protocol_doc import render_markdown
 from picdrive.paths import repo_root
@@ -130,7 +131,7 @@ def _tables():
 @pytest.mark.parametrize("name,table", list(_tables()))
 def test_rendered_c_compiles_strict_gcc_and_avr(tmp_path, name, table):
     files = render_c(table, build_id=0xCAFE0001, profile_hash=0x01020304, sample_hz=1000,
-                       critical_begin="", critical_end="")
+                       critical_begin="", critical_end="", sfr_bits=bits())
     assert set(files) == {"link_fw.h", "link_fw.c"}
     h = files["link_fw.h"]
     assert f"#define LINK_TABLE_HASH         0x{table.hash:08X}UL" in h
@@ -176,7 +177,7 @@ def test_markdown_lists_every_command_code_and_entry():
 @pytest.mark.parametrize("rules,capture", [(2, P.CAPTURE_BYTES_DEFAULT), (5, 64)])
 def test_stated_ram_budget_is_what_avr_gcc_allocates(tmp_path, rules, capture):
     t = P.build_table(rules)
-    files = render_c(t, build_id=1, profile_hash=2, capture_bytes=capture)
+    files = render_c(t, build_id=1, profile_hash=2, capture_bytes=capture, sfr_bits=bits())
     sym = build.avr_ram_bytes(build.avr_object(files, tmp_path))
     budget = P.ram_budget(t, capture)
     buffers = ("rx_buf", "rx_spill", "tx_buf", "tm_buf", "rp_data", "link_params", "cap_buf")

@@ -135,6 +135,23 @@ def test_committed_hex_is_what_the_toolchain_builds(tmp_path):
         assert not (committed / "duy2008.hex").exists()
 
 
+def test_the_build_reads_its_hex_through_the_checked_reader(tmp_path):
+    """The call-graph analysis reads the linked HEX with picdrive.firmware.ihex (the twin's
+    reader): the committed HEX's flash as the reader gives it, and a record whose checksum is
+    wrong is refused instead of decoded."""
+    from picdrive.firmware import ihex
+    committed = firmware_build_dir() / "duy2008" / "duy2008.hex"
+    mem = target.read_hex(committed)
+    assert mem == ihex.load_hex(committed).flash and len(mem) == target.FLASH_BYTES
+    lines = committed.read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln[7:9] == "00")
+    lines[k] = lines[k][:-2] + f"{(int(lines[k][-2:], 16) + 1) & 0xFF:02X}"
+    bad = tmp_path / "bad.hex"
+    bad.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ihex.HexError, match="checksum"):
+        target.read_hex(bad)
+
+
 # ---------------------------------------------------------------------------
 # The checks themselves: each finds the hazard it is for
 # ---------------------------------------------------------------------------

@@ -1,5 +1,9 @@
-"""Bit-exact on the target (issue 9, item 4): drive_core.c compiled by SDCC's pic16 port and run
-on the PIC18 core in gpsim, against the Python model (picdrive.firmware.fixedpoint), on random vectors.
+"""Bit-exact on the target: drive_core.c compiled by SDCC's pic16 port and run on the PIC18 core
+in gpsim, against the Python model (picdrive.firmware.fixedpoint), on random vectors (10^4 per
+function).  Configurations: the bundled duy2008 fuzzy-hinf build (2 rules: the assembly law), the
+hall-speed mixed-pid build (1 rule), the reference feedforward, and (MORE) SDCC's C law with 3 and
+8 rules, the derivative filter with the feedforward on the hall speed, and 1 rule with the
+feedforward on the hall speed.
 
 The chip generates its own vectors (xorshift32, biased to int16/int32 extremes and saturation) and
 folds every output into a checksum per function (rotate-xor and a sum, both 32-bit) and a 16-bit
@@ -15,23 +19,11 @@ comparison can fail: a one-LSB change of a constant and a lost upper partial pro
 product is assembly on the chip: the C form's missing 32-bit cast loses the same half).  The
 "duty" checksum also folds core_premise_k (the accumulator's 16-bit quotient on the chip).
 
-FIXED DEFECT, NAMED (history; the law is now assembly on SDCC, see
-test_a_changed_law_instruction_is_caught): SDCC 4.2 pic16 miscompiled core_law (and so core_control).  In
-    t = CORE_MULS(kc, i); cterm = CORE_SHIFT_C(t);
-    q = add32(pterm, st->d_filt);        /* (sa = pterm, sb = st->d_filt, add32s()) */
-    q = sub32(q, cterm);                 /* (sa = q, sb = cterm, sub32s()) */
-the compiler coalesces the single-use temporary cterm with the global sb it is later assigned to
-(drive_core.asm: "MOVFF _core_sh, _sb" right after the shift), past the intervening store
-sb = st->d_filt, so sub32s subtracts d_filt instead of the current term: on the chip the law
-ignores the current feedback (and the output window it sets) whenever they differ.  Seen in
-gpsim at vector 1 (parameter set 1, r=200 y=-478 i=32767): sub32s entered with sa=14408, sb=4
-(d_filt) instead of sb=1005281 (cterm); the chip returns u_max 6257 and leaves integ at 26626,
-the model and the gcc build give u_min -4719 and integ 91431874.  Any change of core_law's shape
-(six volatile debug stores) moves the allocation and hides it.  The fix belongs in
-firmware_templates/drive_core.c.j2 (e.g. no temporary between a computed term and its sa/sb
-store, or sa/sb volatile).  The template now declares sa/sb volatile: law and control agree
-with the model on all 10^4 vectors, and a copy without volatile still shows the fault
-(test_the_operand_pair_is_volatile_against_the_sdcc_miscompile).
+Why SDCC's C law runs on the chip too: SDCC 4.2 pic16 once miscompiled the C core_law (a
+single-use temporary coalesced with the global operand it was later stored to, past an
+intervening store: on the chip the law ignored its current feedback, the gcc build did not).  The
+C law is what SDCC compiles for plans with more than 2 rules or the derivative filter (MORE
+below); the assembly law of the other plans is held by test_a_changed_law_instruction_is_caught.
 
 MODEL AGAINST C, FIXED: core_speed_encoder on the chip equalled the gcc build, but both differed
 from fixedpoint.speed_encoder when w_avg = -32768, no count in the sample and K / t5 > 32767
@@ -506,8 +498,8 @@ def test_a_changed_feedforward_constant_is_caught(design_ff):
     plan, folder, tmp = design_ff
     text = (folder / "drive_core.c").read_text()
     start = text.index("    ; reference feedforward: ff = ")
-    m = re.compile(r"    MOVLW   (\d+)\n    MOVWF   _core_acc \+ 8, A\n").search(text, start)
-    assert m and m.start() - start < 600, "the feedforward's literal was not found"
+    m = re.compile(r"    MOVLW   (\d+)\n    MOVWF   _core_acc \+ CORE_ACC_A, A\n").search(text, start)
+    assert m and m.start() - start < 900, "the feedforward's literal was not found"
     v = int(m[1])
     lit = m[0].replace(f"MOVLW   {v}", f"MOVLW   {v + 1 if v < 255 else v - 1}")
     bad = _mutated(folder, tmp, "kff", "drive_core.c", text[start:m.end()], text[start:m.start()] + lit)
@@ -520,7 +512,8 @@ def test_a_changed_law_instruction_is_caught(design):
     one changed literal in it (mu1 = 4097 - frac instead of 4096 - frac) must make the chip
     disagree with the model, so the comparison runs the assembly the HEX holds."""
     plan, folder, tmp = design
-    old = "    MOVLW   0x10\n    ADDWFC  _core_acc + 1, F, A\n    MOVFF   _core_acc + 0, _core_s + 11\n"
+    old = ("    MOVLW   0x10\n    ADDWFC  _core_acc + CORE_ACC_X + 1, F, A\n"
+           "    MOVFF   _core_acc + CORE_ACC_X, _core_s + CORE_S_LAW_MU1\n")
     bad = _mutated(folder, tmp, "asm", "drive_core.c", old, old.replace("0x10", "0x11"))
     verdict = compare(bad, tmp / "asm-run", plan, n=200, funcs=("law", "control"))
     assert verdict["law"] is not None and verdict["law"].startswith("first failing vector"), verdict
@@ -558,12 +551,47 @@ def test_a_lost_upper_partial_product_is_caught(design):
     product's upper half removed) must make the chip disagree with the model."""
     plan, folder, tmp = design
     old = ("    ; x += (mag K_hi) 2^16: the upper partial product\n"
-           "    MOVFF   _core_lw + 4, _core_acc + 13\n"
-           "    MOVF    _core_acc + 13, W, A\n"
-           "    ADDWF   _core_acc + 2, F, A\n"
-           "    MOVFF   _core_lw + 5, _core_acc + 13\n"
-           "    MOVF    _core_acc + 13, W, A\n"
-           "    ADDWFC  _core_acc + 3, F, A\n")
+           "    MOVFF   _core_lw + CORE_LW_INC, _core_acc + CORE_ACC_T\n"
+           "    MOVF    _core_acc + CORE_ACC_T, W, A\n"
+           "    ADDWF   _core_acc + CORE_ACC_X + 2, F, A\n"
+           "    MOVFF   _core_lw + CORE_LW_INC + 1, _core_acc + CORE_ACC_T\n"
+           "    MOVF    _core_acc + CORE_ACC_T, W, A\n"
+           "    ADDWFC  _core_acc + CORE_ACC_X + 3, F, A\n")
     bad = _mutated(folder, tmp, "upper", "drive_core.c", old, "")
     verdict = compare(bad, tmp / "upper-run", plan, n=2000)
     assert verdict["speed"] is not None, verdict
+
+
+#: The configurations the fixtures above leave out, one build each: the C law (more than 2 rules
+#: or the derivative filter: the assembly law covers at most 2 rules without it) on both speed
+#: sources, the filter and the feedforward together, the most rules the protocol holds, and the
+#: assembly law with one rule and the feedforward on the hall speed.  (profile, rules, filter, ff)
+MORE = [("duy2008", 3, False, False), ("duy2008_halls", 2, True, True), ("duy2008", 8, True, False),
+        ("duy2008_halls", 1, False, True)]
+
+
+def _synthetic(tmp, profile: str, nr: int, dfilt: bool, ff: bool):
+    from picdrive.control_law import Rule, ScheduledLaw
+    from picdrive.result import DesignResult, save_design
+    prof = load_profile(profile)
+    rules = tuple(Rule(0.2 - 0.01 * j, 5.0 - 0.3 * j, 0.0005 if dfilt else 0.0, 10.0 - j) for j in range(nr))
+    law = ScheduledLaw(rules=rules, premise_rad_s=(0.0, 2600 * 3.141592653589793 / 30), sample_time_s=1e-3,
+                       u_min_v=-44.16, u_max_v=44.16, derivative_filter_hz=200.0 if dfilt else None,
+                       reference_ff_v_s_per_rad=0.1 if ff else 0.0)
+    path = save_design(DesignResult(method="zn", status="verified", profile_name=prof.name,
+                                    profile_sha256=prof.sha256, law=law, variant="test-fixture"),
+                       tmp / "synthetic.design.json")
+    fw = codegen.generate(prof, path)
+    return fw.plan, codegen.write_firmware(fw, tmp / "fw", check=False)
+
+
+@pytest.mark.parametrize("profile,nr,dfilt,ff", MORE, ids=[f"{p}-r{n}{'-dfilt' if d else ''}{'-ff' if f else ''}"
+                                                           for p, n, d, f in MORE])
+def test_pic18_code_matches_the_model_in_more_configurations(tmp_path, profile, nr, dfilt, ff):
+    plan, folder = _synthetic(tmp_path, profile, nr, dfilt, ff)
+    assert (plan.n_rules, bool(plan.dfilt_a), bool(plan.kff)) == (nr, dfilt, ff)
+    assert plan.speed_source == ("hall" if profile.endswith("halls") else "encoder")
+    # which law the chip runs: the assembly one (at most 2 rules, no filter) or SDCC's C
+    assert ("#define CORE_LAW_ASM 1" in (folder / "drive_core.c").read_text()) == (nr <= 2 and not dfilt)
+    verdict = compare(folder, tmp_path, plan)
+    assert verdict == {f: None for f in CHECKED}, verdict

@@ -97,12 +97,13 @@ def test_param_set_loads_each_speed_loop_parameter_into_core_p(twin):
 def test_duty_registers_follow_the_law_output_while_running(twin):
     """write_duty (assembly): the three PDC pairs hold core_s.pdc and SEVTCMP pdc / 8 (mid on-time)
     between speed-loop samples, at several instants of a run in both directions."""
-    from picdrive.firmware import p18f4431
+    from picdrive.firmware import core_layout, p18f4431
     tw, _ = twin
     reg = p18f4431.registers()
     b = target.build_measured(FW, Path(tempfile.mkdtemp()), name="duy2008")
     _, symbols = target.parse_map(b.hex_path.with_suffix(".map").read_text())
     core_s = next(s.address for s in symbols if s.name == "_core_s")
+    pdc_at = core_layout.offsets("core_state_t", 2)["pdc"]     # the chip's (SDCC's) layout
     h = (FW / "link_fw.h").read_text()
     lt = _define(h, "LINK_ID_LINK_TIMEOUT")
 
@@ -116,7 +117,7 @@ def test_duty_registers_follow_the_law_output_while_running(twin):
         for _ in range(12):
             tw.run(0.0173)
             tw.uart_read()
-            pdc = word(core_s + 32, core_s + 33)
+            pdc = word(core_s + pdc_at, core_s + pdc_at + 1)
             pdcs = [word(reg[f"PDC{j}L"], reg[f"PDC{j}H"]) for j in range(3)]
             sev = word(reg["SEVTCMPL"], reg["SEVTCMPH"])
             assert pdcs == [pdc] * 3 and sev == pdc >> 3, (cmd, pdc, pdcs, sev)

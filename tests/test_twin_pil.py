@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from picdrive_hil.ihex import HexError
+from picdrive.firmware.ihex import HexError
 from picdrive_hil.twin import BoardConfig, Twin, TwinError
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -18,6 +18,11 @@
  */
 #include <stddef.h>
 #include "link_fw.h"
+#if defined(__SDCC_pic16)
+/* the registers the assembly names (p18f4431.inc's names): SDCC declares every SFR of the device
+ * header to the assembler */
+#include <xc.h>
+#endif
 
 
 #ifndef LINK_CRITICAL_BEGIN
@@ -212,11 +217,57 @@ LINK_FAST_RAM struct link_fast {
     uint16_t cr_div;                   /* capture decimation counter, restarted by capture_arm */
 #endif
 } link_hot;
+#if defined(__SDCC_pic16)
+/* struct link_fast's fields the assembly addresses, by byte offset (SDCC packs the struct: no
+ * padding), each checked against offsetof */
+#define LH_RX_N 0
+#define LH_RX_READY 1
+#define LH_RX_OVF 2
+#define LH_CRC_HI 3
+#define LH_CRC_LO 4
+#define LH_N 5
+#define LH_RO 6
+#define LH_E_OFF 8
+#define LH_E_SZ 9
+#define LH_TX_LEN 10
+#define LH_TM_READY 11
+#define LH_TM_NB 12
+#define LH_TM_DEC 13
+#define LH_TR_DIV 15
+#define LH_TR_COUNTER 17
+#define LH_TR_NSAMP 19
+#define LH_TR_LEN 20
+typedef char link_fast_offsets[(offsetof(struct link_fast, rx_n) == LH_RX_N
+    && offsetof(struct link_fast, rx_ready) == LH_RX_READY
+    && offsetof(struct link_fast, rx_ovf) == LH_RX_OVF
+    && offsetof(struct link_fast, crc_hi) == LH_CRC_HI
+    && offsetof(struct link_fast, crc_lo) == LH_CRC_LO
+    && offsetof(struct link_fast, n) == LH_N
+    && offsetof(struct link_fast, ro) == LH_RO
+    && offsetof(struct link_fast, e_off) == LH_E_OFF
+    && offsetof(struct link_fast, e_sz) == LH_E_SZ
+    && offsetof(struct link_fast, tx_len) == LH_TX_LEN
+    && offsetof(struct link_fast, tm_ready) == LH_TM_READY
+    && offsetof(struct link_fast, tm_nb) == LH_TM_NB
+    && offsetof(struct link_fast, tm_dec) == LH_TM_DEC
+    && offsetof(struct link_fast, tr.div) == LH_TR_DIV
+    && offsetof(struct link_fast, tr.counter) == LH_TR_COUNTER
+    && offsetof(struct link_fast, tr.nsamp) == LH_TR_NSAMP
+    && offsetof(struct link_fast, tr.len) == LH_TR_LEN) ? 1 : -1];
+#if LINK_WITH_CAPTURE
+#define LH_CAP_N 21
+#define LH_CAP_NB 22
+#define LH_CAP_DEC 23
+#define LH_CR_DIV 25
+typedef char link_fast_capture_offsets[(offsetof(struct link_fast, cap_n) == LH_CAP_N
+    && offsetof(struct link_fast, cap_nb) == LH_CAP_NB
+    && offsetof(struct link_fast, cap_dec) == LH_CAP_DEC
+    && offsetof(struct link_fast, cr_div) == LH_CR_DIV) ? 1 : -1];
+#endif
+#endif
 
 #if defined(__SDCC_pic16)
-typedef char link_ro_layout[(offsetof(struct link_fast, ro) == 6u) ? 1 : -1];
-typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u
-                               && LINK_ACCESS_AT + sizeof(struct link_fast) <= 0x40u) ? 1 : -1];
+typedef char link_fast_layout[(LINK_ACCESS_AT + sizeof(struct link_fast) <= 0x40u) ? 1 : -1];
 #else
 typedef char link_fast_layout[(offsetof(struct link_fast, crc_lo) == 4u) ? 1 : -1];
 #endif
@@ -235,7 +286,16 @@ static struct link_sg {
     uint16_t cm;
 } sg;
 #if defined(__SDCC_pic16)
-typedef char link_sg_layout[(offsetof(struct link_sg, tm) == 4u && offsetof(struct link_sg, cm) == 6u) ? 1 : -1];
+/* struct link_sg's fields the assembly addresses, by byte offset (SDCC packs the struct: no
+ * padding), each checked against offsetof */
+#define SG_P 0
+#define SG_Q 2
+#define SG_TM 4
+#define SG_CM 6
+typedef char link_sg_offsets[(offsetof(struct link_sg, p) == SG_P
+    && offsetof(struct link_sg, q) == SG_Q
+    && offsetof(struct link_sg, tm) == SG_TM
+    && offsetof(struct link_sg, cm) == SG_CM) ? 1 : -1];
 #endif
 static union { int32_t l; uint8_t b[4]; } V;   /* the value being moved (main loop only) */
 /* copies and loops walk static data-space pointers: no arguments on the software stack */
@@ -306,6 +366,76 @@ static struct link_state {
     uint8_t rx_lost_at;                /* bytes were lost to a full spill ring after its byte at
                                         * this index (NONE: no loss pending) */
 } S;
+#if defined(__SDCC_pic16)
+/* struct link_state's fields the assembly addresses, by byte offset (SDCC packs the struct: no
+ * padding), each checked against offsetof */
+#define LS_TM_GEN 1
+#define LS_TM_DROPPED 6
+#define LS_UPTIME_MS 8
+#define LS_RX_VALID 13
+#define LS_NACK 14
+#define LS_NACK_TYPE 15
+#define LS_NACK_SEQ 16
+#define LS_TSEQ 17
+#define LS_TX_POS 19
+#define LS_TM_SPF 20
+#define LS_WD_ARMED 27
+#define LS_WD_MS 28
+#define LS_EV_WATCHDOG 33
+#define LS_TM_MASK 35
+#if LINK_WITH_CAPTURE
+#define LS_CHANGED 55
+#else
+#define LS_CHANGED 37
+#endif
+typedef char link_state_offsets[(offsetof(struct link_state, tm_gen) == LS_TM_GEN
+    && offsetof(struct link_state, tm_dropped) == LS_TM_DROPPED
+    && offsetof(struct link_state, uptime_ms) == LS_UPTIME_MS
+    && offsetof(struct link_state, rx_valid) == LS_RX_VALID
+    && offsetof(struct link_state, nack) == LS_NACK
+    && offsetof(struct link_state, nack_type) == LS_NACK_TYPE
+    && offsetof(struct link_state, nack_seq) == LS_NACK_SEQ
+    && offsetof(struct link_state, tseq) == LS_TSEQ
+    && offsetof(struct link_state, tx_pos) == LS_TX_POS
+    && offsetof(struct link_state, tm_spf) == LS_TM_SPF
+    && offsetof(struct link_state, wd_armed) == LS_WD_ARMED
+    && offsetof(struct link_state, wd_ms) == LS_WD_MS
+    && offsetof(struct link_state, ev_watchdog) == LS_EV_WATCHDOG
+    && offsetof(struct link_state, tm_mask) == LS_TM_MASK
+    && offsetof(struct link_state, changed) == LS_CHANGED) ? 1 : -1];
+#if LINK_WITH_CAPTURE
+#define LS_CAP_SP_CHANGED 37
+#define LS_CAP_TRIG 38
+#define LS_CAP_BYTES 39
+#define LS_CAP_PRE 40
+#define LS_CAP_MASK 41
+#define LS_CAP_THR 43
+#define LS_CR_W 45
+#define LS_CR_WI 46
+#define LS_CR_FILLED 47
+#define LS_CR_POST 48
+#define LS_CR_TOTAL 49
+#define LS_CR_START 50
+#define LS_CR_TIDX 51
+#define LS_CR_PREV_VALID 52
+#define LS_CR_PREV 53
+typedef char link_state_capture_offsets[(offsetof(struct link_state, cap_sp_changed) == LS_CAP_SP_CHANGED
+    && offsetof(struct link_state, cap_trig) == LS_CAP_TRIG
+    && offsetof(struct link_state, cap_bytes) == LS_CAP_BYTES
+    && offsetof(struct link_state, cap_pre) == LS_CAP_PRE
+    && offsetof(struct link_state, cap_mask) == LS_CAP_MASK
+    && offsetof(struct link_state, cap_thr) == LS_CAP_THR
+    && offsetof(struct link_state, cr.w) == LS_CR_W
+    && offsetof(struct link_state, cr.wi) == LS_CR_WI
+    && offsetof(struct link_state, cr.filled) == LS_CR_FILLED
+    && offsetof(struct link_state, cr.post) == LS_CR_POST
+    && offsetof(struct link_state, cr.total) == LS_CR_TOTAL
+    && offsetof(struct link_state, cr.start) == LS_CR_START
+    && offsetof(struct link_state, cr.tidx) == LS_CR_TIDX
+    && offsetof(struct link_state, cr.prev_valid) == LS_CR_PREV_VALID
+    && offsetof(struct link_state, cr.prev) == LS_CR_PREV) ? 1 : -1];
+#endif
+#endif
 
 typedef char link_status_layout[(offsetof(struct link_state, uptime_ms) == 8u) ? 1 : -1];
 
@@ -318,67 +448,74 @@ typedef char link_status_layout[(offsetof(struct link_state, uptime_ms) == 8u) ?
 /* PIC18 assembly (main loop only): FSR0, PROD and the table pointer are the compiler's scratch
  * registers.  FSR2 is not used: it is the compiler's frame pointer, and a function of an
  * interrupt that sets it saves only its low byte (the stack's bank is fixed). */
+/* Contract: in n (W, 0: nothing), cp_s, cp_d; out the n bytes copied, cp_s and cp_d past them;
+ * clobbers W, STATUS, PROD, FSR0; n <= 255, the pointers stay in the data space. */
 static void mcopy_n(uint8_t n) LINK_WPARAM __naked  /* cp_d[0..n-1] = cp_s[0..n-1] (RAM to RAM) */
 {
     (void)n;
     __asm
-    MOVWF   0xFF3, A                ; PRODL = n
-    MOVF    0xFF3, F, A
+    MOVWF   _PRODL, A               ; PRODL = n
+    MOVF    _PRODL, F, A
     BZ      lmc_end
 lmc_loop:
-    MOVFF   _cp_s, 0xFE9            ; PRODH = *cp_s++ (FSR0 only: FSR2 is the frame pointer of an
-    MOVFF   (_cp_s + 1), 0xFEA      ; interrupt function, which saves only its low byte)
-    MOVFF   0xFEE, 0xFF4
-    MOVFF   0xFE9, _cp_s
-    MOVFF   0xFEA, (_cp_s + 1)
-    MOVFF   _cp_d, 0xFE9            ; *cp_d++ = PRODH
-    MOVFF   (_cp_d + 1), 0xFEA
-    MOVFF   0xFF4, 0xFEE
-    MOVFF   0xFE9, _cp_d
-    MOVFF   0xFEA, (_cp_d + 1)
-    DECFSZ  0xFF3, F, A
+    MOVFF   _cp_s, _FSR0L           ; PRODH = *cp_s++ (FSR0 only: FSR2 is the frame pointer of an
+    MOVFF   (_cp_s + 1), _FSR0H     ; interrupt function, which saves only its low byte)
+    MOVFF   _POSTINC0, _PRODH
+    MOVFF   _FSR0L, _cp_s
+    MOVFF   _FSR0H, (_cp_s + 1)
+    MOVFF   _cp_d, _FSR0L           ; *cp_d++ = PRODH
+    MOVFF   (_cp_d + 1), _FSR0H
+    MOVFF   _PRODH, _POSTINC0
+    MOVFF   _FSR0L, _cp_d
+    MOVFF   _FSR0H, (_cp_d + 1)
+    DECFSZ  _PRODL, F, A
     BRA     lmc_loop
 lmc_end:
     RETURN
     __endasm;
 }
 
+/* Contract: in n (W, 0: nothing), cp_d; out n zero bytes, cp_d past them; clobbers W, STATUS,
+ * PROD, FSR0. */
 static void mzero_n(uint8_t n) LINK_WPARAM __naked  /* cp_d[0..n-1] = 0 */
 {
     (void)n;
     __asm
-    MOVWF   0xFF3, A
-    MOVF    0xFF3, F, A
+    MOVWF   _PRODL, A
+    MOVF    _PRODL, F, A
     BZ      lmz_end
-    MOVFF   _cp_d, 0xFE9
-    MOVFF   (_cp_d + 1), 0xFEA
+    MOVFF   _cp_d, _FSR0L
+    MOVFF   (_cp_d + 1), _FSR0H
 lmz_loop:
-    CLRF    0xFEE, A                ; POSTINC0
-    DECFSZ  0xFF3, F, A
+    CLRF    _POSTINC0, A
+    DECFSZ  _PRODL, F, A
     BRA     lmz_loop
-    MOVFF   0xFE9, _cp_d
-    MOVFF   0xFEA, (_cp_d + 1)
+    MOVFF   _FSR0L, _cp_d
+    MOVFF   _FSR0H, (_cp_d + 1)
 lmz_end:
     RETURN
     __endasm;
 }
 
+/* Contract: in link_hot.ro; out W = link_rom[ro], ro + 1 (wraps modulo 2^16, beyond the table's
+ * size); clobbers STATUS, TBLPTR, TABLAT (main loop only: an interrupt that reads tables saves
+ * them itself). */
 static uint8_t rom_next(void) __naked  /* link_rom[link_hot.ro++]: the module's only flash read */
 {
     __asm
     MOVLW   LOW(_link_rom)
-    ADDWF   (_link_hot + 6), W, A   ; TBLPTR = link_rom + ro
-    MOVWF   0xFF6, A
+    ADDWF   (_link_hot + LH_RO), W, A   ; TBLPTR = link_rom + ro
+    MOVWF   _TBLPTRL, A
     MOVLW   HIGH(_link_rom)
-    ADDWFC  (_link_hot + 7), W, A
-    MOVWF   0xFF7, A
-    CLRF    0xFF8, A                ; (CLRF and MOVLW keep the carry)
+    ADDWFC  (_link_hot + LH_RO + 1), W, A
+    MOVWF   _TBLPTRH, A
+    CLRF    _TBLPTRU, A             ; (CLRF and MOVLW keep the carry)
     MOVLW   UPPER(_link_rom)
-    ADDWFC  0xFF8, F, A
+    ADDWFC  _TBLPTRU, F, A
     TBLRD*
-    INFSNZ  (_link_hot + 6), F, A   ; ro++
-    INCF    (_link_hot + 7), F, A
-    MOVF    0xFF5, W, A             ; TABLAT
+    INFSNZ  (_link_hot + LH_RO), F, A   ; ro++
+    INCF    (_link_hot + LH_RO + 1), F, A
+    MOVF    _TABLAT, W, A
     RETURN
     __endasm;
 }
@@ -417,30 +554,32 @@ static uint8_t rom_next(void)          /* link_rom[link_hot.ro++]: the module's 
 /* The signals of the mask in the command's first two argument bytes (telem_config, capture_arm):
  * their number, or 0 for an empty mask or one with bits beyond the table's signals. */
 #if defined(__SDCC_pic16)
+/* Contract: in R(0..1), the command's signal mask; out W = the number of signals in it, 0 for an
+ * empty mask or a bit beyond the table; clobbers W, STATUS, PROD, TABLAT. */
 static uint8_t mask_nsig(void) __naked     /* PROD shifts, TABLAT counts */
 {
     __asm
-    MOVFF   (_rx_buf + 3), 0xFF3    ; PRODL, PRODH = R(0), R(1)
-    MOVFF   (_rx_buf + 4), 0xFF4
+    MOVFF   (_rx_buf + 3), _PRODL   ; PRODL, PRODH = R(0), R(1)
+    MOVFF   (_rx_buf + 4), _PRODH
     MOVLW   0xF8
-    ANDWF   0xFF4, W, A
+    ANDWF   _PRODH, W, A
     BNZ     lmn_bad
     MOVLW   0x00
-    ANDWF   0xFF3, W, A
+    ANDWF   _PRODL, W, A
     BNZ     lmn_bad
-    CLRF    0xFF5, A
+    CLRF    _TABLAT, A
 lmn_loop:
-    MOVF    0xFF3, W, A
-    IORWF   0xFF4, W, A
+    MOVF    _PRODL, W, A
+    IORWF   _PRODH, W, A
     BZ      lmn_end
-    BCF     0xFD8, 0, A
-    RRCF    0xFF4, F, A
-    RRCF    0xFF3, F, A
-    BTFSC   0xFD8, 0, A
-    INCF    0xFF5, F, A
+    BCF     _STATUS, 0, A
+    RRCF    _PRODH, F, A
+    RRCF    _PRODL, F, A
+    BTFSC   _STATUS, 0, A
+    INCF    _TABLAT, F, A
     BRA     lmn_loop
 lmn_end:
-    MOVF    0xFF5, W, A
+    MOVF    _TABLAT, W, A
     RETURN
 lmn_bad:
     RETLW   0
@@ -467,30 +606,32 @@ static uint8_t mask_nsig(void)
 #define CRC_INIT() do { crc_hi = 0xFFu; crc_lo = 0xFFu; } while (0)
 
 #if defined(__SDCC_pic16)
-/* the same steps in PIC18 assembly (20 cycles instead of 70; x in PRODL (0xFF3), a rotation in PRODH (0xFF4):
+/* the same steps in PIC18 assembly (20 cycles instead of 70; x in PRODL, a rotation in PRODH:
  * scratch registers the compiler does not keep values in across a call) */
+/* Contract: in b (W), crc_hi:crc_lo; out the CRC-16/CCITT state after b; clobbers W, STATUS,
+ * PROD (FSR0 and TABLAT kept: crc_n counts in them); 8-bit register arithmetic, no overflow. */
 static void crc_byte(uint8_t b) LINK_WPARAM __naked
 {
     (void)b;
     __asm
-    XORWF   (_link_hot + 3), W, A      ; x = hi ^ b
-    MOVWF   0xFF3, A
-    SWAPF   0xFF3, W, A
+    XORWF   (_link_hot + LH_CRC_HI), W, A      ; x = hi ^ b
+    MOVWF   _PRODL, A
+    SWAPF   _PRODL, W, A
     ANDLW   0x0F
-    XORWF   0xFF3, F, A         ; x ^= x >> 4
-    SWAPF   0xFF3, W, A
+    XORWF   _PRODL, F, A        ; x ^= x >> 4
+    SWAPF   _PRODL, W, A
     ANDLW   0xF0                ; x << 4
-    XORWF   (_link_hot + 4), W, A
-    MOVWF   (_link_hot + 3), A         ; hi = lo ^ (x << 4)
-    SWAPF   0xFF3, W, A
-    RLNCF   0xFE8, W, A         ; x rotated right by 3
-    MOVWF   0xFF4, A
+    XORWF   (_link_hot + LH_CRC_LO), W, A
+    MOVWF   (_link_hot + LH_CRC_HI), A         ; hi = lo ^ (x << 4)
+    SWAPF   _PRODL, W, A
+    RLNCF   _WREG, W, A         ; x rotated right by 3
+    MOVWF   _PRODH, A
     ANDLW   0x1F                ; x >> 3
-    XORWF   (_link_hot + 3), F, A      ; hi ^= x >> 3
-    MOVF    0xFF4, W, A
+    XORWF   (_link_hot + LH_CRC_HI), F, A      ; hi ^= x >> 3
+    MOVF    _PRODH, W, A
     ANDLW   0xE0                ; x << 5
-    XORWF   0xFF3, W, A
-    MOVWF   (_link_hot + 4), A         ; lo = x ^ (x << 5)
+    XORWF   _PRODL, W, A
+    MOVWF   (_link_hot + LH_CRC_LO), A         ; lo = x ^ (x << 5)
     RETURN
     __endasm;
 }
@@ -506,24 +647,26 @@ static void crc_byte(uint8_t b) LINK_WPARAM
 
 /* CRC of cp_s[0..n-1] into crc_hi, crc_lo; cp_s ends after them */
 #if defined(__SDCC_pic16)
+/* Contract: in n (W), cp_s; out crc_hi:crc_lo after the n bytes, cp_s past them; clobbers W,
+ * STATUS, PROD, FSR0, TABLAT. */
 static void crc_n(uint8_t n) LINK_WPARAM __naked   /* TABLAT counts (crc_byte keeps it and FSR0) */
 {
     (void)n;
     __asm
-    MOVWF   0xFF5, A
-    SETF    (_link_hot + 3), A      ; CRC_INIT
-    SETF    (_link_hot + 4), A
-    MOVF    0xFF5, F, A
+    MOVWF   _TABLAT, A
+    SETF    (_link_hot + LH_CRC_HI), A      ; CRC_INIT
+    SETF    (_link_hot + LH_CRC_LO), A
+    MOVF    _TABLAT, F, A
     BZ      lcrc_end
-    MOVFF   _cp_s, 0xFE9
-    MOVFF   (_cp_s + 1), 0xFEA
+    MOVFF   _cp_s, _FSR0L
+    MOVFF   (_cp_s + 1), _FSR0H
 lcrc_loop:
-    MOVF    0xFEE, W, A             ; POSTINC0
+    MOVF    _POSTINC0, W, A
     CALL    _crc_byte
-    DECFSZ  0xFF5, F, A
+    DECFSZ  _TABLAT, F, A
     BRA     lcrc_loop
-    MOVFF   0xFE9, _cp_s
-    MOVFF   0xFEA, (_cp_s + 1)
+    MOVFF   _FSR0L, _cp_s
+    MOVFF   _FSR0H, (_cp_s + 1)
 lcrc_end:
     RETURN
     __endasm;
@@ -570,13 +713,15 @@ static uint8_t entry_index(uint8_t id) LINK_WPARAM
 }
 
 #if defined(__SDCC_pic16)
+/* Contract: in idx (W); out link_hot.ro = idx ROW (one 8x8 product: 255 ROW < 2^16); clobbers W,
+ * PROD. */
 static void row_of(uint8_t idx) LINK_WPARAM __naked   /* link_hot.ro = the entry's row: idx ROW (MULLW) */
 {
     (void)idx;
     __asm
     MULLW   14
-    MOVFF   0xFF3, (_link_hot + 6)
-    MOVFF   0xFF4, (_link_hot + 7)
+    MOVFF   _PRODL, (_link_hot + LH_RO)
+    MOVFF   _PRODH, (_link_hot + LH_RO + 1)
     RETURN
     __endasm;
 }
@@ -589,28 +734,29 @@ static void row_of(uint8_t idx) LINK_WPARAM        /* link_hot.ro = the entry's 
 #define row_at(idx, k) do { row_of(idx); link_hot.ro = (uint16_t)(link_hot.ro + (k)); } while (0)
 
 #if defined(__SDCC_pic16)
-typedef char link_entry_layout[(offsetof(struct link_fast, ro) == 6u && offsetof(struct link_fast, e_off) == 8u
-                                && offsetof(struct link_fast, e_sz) == 9u && ROM_SIZE == ROM_OFF + LINK_N_ENTRIES
+typedef char link_entry_layout[(ROM_SIZE == ROM_OFF + LINK_N_ENTRIES
                                 && ROM_OFF == 420u) ? 1 : -1];
 /* PIC18 assembly (the C below, step for step): ROM_SIZE + idx is one table further on */
+/* Contract: in idx (W) < LINK_N_ENTRIES; out link_hot.e_off, .e_sz (.ro just past e_sz's byte);
+ * clobbers W, STATUS, TBLPTR, TABLAT (PROD kept). */
 static void entry_load(uint8_t idx) LINK_WPARAM __naked   /* link_hot.e_off, link_hot.e_sz */
 {
     (void)idx;
     __asm
     ADDLW   164                 ; rom_at(ROM_OFF + idx)
-    MOVWF   (_link_hot + 6), A
+    MOVWF   (_link_hot + LH_RO), A
     MOVLW   1
-    BTFSC   0xFD8, 0, A
+    BTFSC   _STATUS, 0, A
     ADDLW   1
-    MOVWF   (_link_hot + 7), A
+    MOVWF   (_link_hot + LH_RO + 1), A
     CALL    _rom_next
-    MOVWF   (_link_hot + 8), A      ; e_off
+    MOVWF   (_link_hot + LH_E_OFF), A
     MOVLW   29                  ; rom_at(ROM_SIZE + idx): LINK_N_ENTRIES - 1 past the byte read
-    ADDWF   (_link_hot + 6), F, A
+    ADDWF   (_link_hot + LH_RO), F, A
     MOVLW   0
-    ADDWFC  (_link_hot + 7), F, A
+    ADDWFC  (_link_hot + LH_RO + 1), F, A
     CALL    _rom_next
-    MOVWF   (_link_hot + 9), A      ; e_sz
+    MOVWF   (_link_hot + LH_E_SZ), A
     RETURN
     __endasm;
 }
@@ -626,27 +772,29 @@ static void entry_load(uint8_t idx) LINK_WPARAM   /* link_hot.e_off, link_hot.e_
 
 /* V.b[0..n-1] hold a value of size code link_hot.e_sz (n bytes, bit 7: signed): extend it to 32 bits */
 #if defined(__SDCC_pic16)
+/* Contract: in V.b[0..n-1] of size code link_hot.e_sz (bit 7: signed); out V extended to 32 bits
+ * (sign or zero fill); clobbers W, STATUS, PROD, FSR0. */
 static void sign_extend(void) __naked      /* PRODL the fill byte, PRODH the index, FSR0 at V */
 {
     __asm
-    CLRF    0xFF3, A
+    CLRF    _PRODL, A
     MOVLW   0x7F
-    ANDWF   (_link_hot + 9), W, A   ; e_sz
-    MOVWF   0xFF4, A
+    ANDWF   (_link_hot + LH_E_SZ), W, A
+    MOVWF   _PRODH, A
     LFSR    0, (_V - 1)
-    BTFSS   (_link_hot + 9), 7, A
+    BTFSS   (_link_hot + LH_E_SZ), 7, A
     BRA     lse_fill
-    BTFSC   0xFEB, 7, A             ; V.b[n - 1] (PLUSW0) negative: fill with 0xFF
-    SETF    0xFF3, A
+    BTFSC   _PLUSW0, 7, A           ; V.b[n - 1] (PLUSW0) negative: fill with 0xFF
+    SETF    _PRODL, A
 lse_fill:
     LFSR    0, _V
 lse_loop:
     MOVLW   0x04
-    CPFSLT  0xFF4, A                ; index < 4: store the fill
+    CPFSLT  _PRODH, A               ; index < 4: store the fill
     RETURN
-    MOVF    0xFF4, W, A
-    MOVFF   0xFF3, 0xFEB            ; V.b[index] = fill (PLUSW0)
-    INCF    0xFF4, F, A
+    MOVF    _PRODH, W, A
+    MOVFF   _PRODL, _PLUSW0         ; V.b[index] = fill
+    INCF    _PRODH, F, A
     BRA     lse_loop
     __endasm;
 }
@@ -679,20 +827,23 @@ static void store_put(void)            /* the parameter at link_hot.e_off = V (a
 
 #if defined(__SDCC_pic16)
 /* PIC18 assembly (the C below, step for step): idx in PRODL across entry_load (which keeps PROD) */
+/* Contract: in idx (W), a parameter or signal index; out V = its value, extended to 32 bits;
+ * clobbers W, STATUS, BSR, FSR0, PROD, TBLPTR, TABLAT and what the compiled C it calls may
+ * change (W, STATUS, BSR, PROD, FSR0, TBLPTR, TABLAT). */
 static void value_at(uint8_t idx) LINK_WPARAM __naked      /* V = parameter or signal */
 {
     (void)idx;
     __asm
-    MOVWF   0xFF3, A                ; PRODL = idx
+    MOVWF   _PRODL, A               ; PRODL = idx
     CALL    _entry_load
-    INCF    (_link_hot + 8), W, A   ; e_off == NONE: a signal
+    INCF    (_link_hot + LH_E_OFF), W, A   ; e_off == NONE: a signal
     BNZ     lva_store
     MOVLW   11
-    SUBWF   0xFF3, W, A             ; app_signal(idx - SIG_INDEX): low byte in W, high in PRODL
+    SUBWF   _PRODL, W, A            ; app_signal(idx - SIG_INDEX): low byte in W, high in PRODL
     CALL    _app_signal
     BANKSEL _V
     MOVWF   _V, B
-    MOVFF   0xFF3, (_V + 1)
+    MOVFF   _PRODL, (_V + 1)
     GOTO    _sign_extend
 lva_store:
     GOTO    _store_get
@@ -721,43 +872,46 @@ static void value_at(uint8_t idx) LINK_WPARAM      /* V = parameter or signal */
 #if ROW16
 /* (16-bit rows: X's upper half is the fill of the entry loaded last, entry_load) */
 #endif
+/* Contract: in above (W), V, the next 4 table bytes X; out W = 1 if V < X (above = 0) or X < V
+ * (above != 0), else 0; link_hot.ro past X; clobbers W, STATUS, BSR, PROD, FSR0, TBLPTR, TABLAT;
+ * the 32-bit signed compare reads N xor OV, so it cannot overflow. */
 static uint8_t rom_cmp(uint8_t above) LINK_WPARAM __naked
 {
     (void)above;
     __asm
-    MOVWF   0xFE5, A                ; POSTDEC1
+    MOVWF   _POSTDEC1, A
     CALL    _rom_next
-    MOVWF   0xFF3, A
+    MOVWF   _PRODL, A
     CALL    _rom_next
-    MOVWF   0xFF4, A
-    CLRF    0xFE9, A                ; the upper half: the fill of the entry size code (link_hot.e_sz)
-    BTFSS   (_link_hot + 9), 7, A
+    MOVWF   _PRODH, A
+    CLRF    _FSR0L, A               ; the upper half: the fill of the entry size code (link_hot.e_sz)
+    BTFSS   (_link_hot + LH_E_SZ), 7, A
     BRA     lrc_fill
-    BTFSC   0xFF4, 7, A
-    SETF    0xFE9, A
+    BTFSC   _PRODH, 7, A
+    SETF    _FSR0L, A
 lrc_fill:
-    MOVFF   0xFE9, 0xFF5            ; the top byte in TABLAT too (FSR0H holds 4 bits only)
-    MOVF    0xFE4, F, A             ; PREINC1: Z = below
+    MOVFF   _FSR0L, _TABLAT         ; the top byte in TABLAT too (FSR0H holds 4 bits only)
+    MOVF    _PREINC1, F, A          ; PREINC1: Z = below
     BANKSEL _V
     BNZ     lrc_above
-    MOVF    0xFF3, W, A             ; V - X
+    MOVF    _PRODL, W, A            ; V - X
     SUBWF   _V, W, B
-    MOVF    0xFF4, W, A
+    MOVF    _PRODH, W, A
     SUBWFB  (_V + 1), W, B
-    MOVF    0xFE9, W, A
+    MOVF    _FSR0L, W, A
     SUBWFB  (_V + 2), W, B
-    MOVF    0xFF5, W, A
+    MOVF    _TABLAT, W, A
     SUBWFB  (_V + 3), W, B
     BRA     lrc_sign
 lrc_above:
     MOVF    _V, W, B                ; X - V
-    SUBWF   0xFF3, W, A
+    SUBWF   _PRODL, W, A
     MOVF    (_V + 1), W, B
-    SUBWFB  0xFF4, W, A
+    SUBWFB  _PRODH, W, A
     MOVF    (_V + 2), W, B
-    SUBWFB  0xFE9, W, A
+    SUBWFB  _FSR0L, W, A
     MOVF    (_V + 3), W, B
-    SUBWFB  0xFF5, W, A
+    SUBWFB  _TABLAT, W, A
 lrc_sign:
     BOV     lrc_ov
     BN      lrc_lt
@@ -772,15 +926,17 @@ lrc_ge:
 }
 
 /* (the C below, step for step: row_at(idx, 8), V < min: 0, else not max < V) */
+/* Contract: in idx (W, its entry loaded), V; out W = 1 if min <= V <= max, else 0; clobbers as
+ * rom_cmp. */
 static uint8_t in_range(uint8_t idx) LINK_WPARAM __naked   /* V within the entry's [min, max] (entry idx loaded) */
 {
     (void)idx;
     __asm
     CALL    _row_of
     MOVLW   8                       ; the row min
-    ADDWF   (_link_hot + 6), F, A
+    ADDWF   (_link_hot + LH_RO), F, A
     MOVLW   0
-    ADDWFC  (_link_hot + 7), F, A
+    ADDWFC  (_link_hot + LH_RO + 1), F, A
     MOVLW   0
     CALL    _rom_cmp                ; V < min
     IORLW   0
@@ -834,15 +990,19 @@ int32_t link_param_get(uint8_t id)
 #if defined(__SDCC_pic16)
 /* PIC18 assembly: V's upper half must be the sign extension of its lower half, else the nearer
  * limit; the result in PRODL (high byte) and W (low byte) */
+/* Contract: in id (W); out the parameter's value in PRODL:W, clamped to int16 when the stored
+ * value does not fit (the nearer limit), 0 for an unknown id; clobbers W, STATUS, BSR, FSR0,
+ * PROD, TBLPTR, TABLAT and what the compiled C it calls may change (W, STATUS, BSR, PROD, FSR0,
+ * TBLPTR, TABLAT). */
 int16_t link_param_i16(uint8_t id) LINK_WPARAM __naked
 {
     (void)id;
     __asm
     CALL    _entry_index
-    MOVWF   0xFF3, A
-    INCF    0xFF3, W, A             ; NONE: unknown id, 0
+    MOVWF   _PRODL, A
+    INCF    _PRODL, W, A            ; NONE: unknown id, 0
     BZ      lpi_zero
-    MOVF    0xFF3, W, A
+    MOVF    _PRODL, W, A
     CALL    _value_at
     BANKSEL _V
     MOVLW   0x00                    ; the sign extension of the low half
@@ -852,21 +1012,21 @@ int16_t link_param_i16(uint8_t id) LINK_WPARAM __naked
     BRA     lpi_sat
     CPFSEQ  (_V + 3), B
     BRA     lpi_sat
-    MOVFF   (_V + 1), 0xFF3
+    MOVFF   (_V + 1), _PRODL
     MOVF    _V, W, B
     RETURN
 lpi_sat:
     BTFSC   (_V + 3), 7, B
     BRA     lpi_min
     MOVLW   0x7F                    ; INT16_MAX
-    MOVWF   0xFF3, A
+    MOVWF   _PRODL, A
     RETLW   0xFF
 lpi_min:
     MOVLW   0x80                    ; INT16_MIN
-    MOVWF   0xFF3, A
+    MOVWF   _PRODL, A
     RETLW   0x00
 lpi_zero:
-    CLRF    0xFF3, A
+    CLRF    _PRODL, A
     RETLW   0x00
     __endasm;
 }
@@ -1035,13 +1195,10 @@ static uint8_t ee_load(void)
 #endif
 
 #if defined(__SDCC_pic16)
-#if LINK_WITH_CAPTURE
-#define LS_CHANGED 55                  /* offsetof(struct link_state, changed), for the assembly */
-#else
-#define LS_CHANGED 37
-#endif
-typedef char link_changed_layout[(offsetof(struct link_state, changed) == LS_CHANGED) ? 1 : -1];
 /* PIC18 assembly: no register held across the calls (S.changed counts), no frame */
+/* Contract: in S.changed (NONE, an id or EE_ALL); out app_param_changed called for it (for
+ * EE_ALL, every persisted parameter), S.changed = NONE; clobbers W, STATUS, BSR and what the
+ * compiled C it calls may change (W, STATUS, BSR, PROD, FSR0, TBLPTR, TABLAT). */
 static void link_notify(void) __naked  /* app_param_changed for what the last command or load changed */
 {
     __asm
@@ -1152,42 +1309,43 @@ void link_event(uint8_t event, uint8_t code)
 
 /* ---- receive: the interrupt only stores the byte and marks the frame complete ---- */
 #if defined(__SDCC_pic16)
-/* the C below in PIC18 assembly: at most 20 cycles a byte, no register saved (b in W, kept in PRODL
- * (0xFF3), stored through FSR0 + W (PLUSW0, 0xFEB); the spill ring's read index copied to PRODH;
+/* the C below in PIC18 assembly: at most 20 cycles a byte, no register saved (b in W, kept in PRODL,
+ * stored through FSR0 + W (PLUSW0); the spill ring's read index copied to PRODH;
  * FSR0, PROD and BSR are saved by the interrupt's prologue) */
+/* Contract: in b (W), the receive state; out b stored in rx_buf or the spill ring, rx_n,
+ * rx_ready, rx_ovf and rx_sp_w updated (one-byte writes only); clobbers W, STATUS, BSR, PROD,
+ * FSR0 (the high-priority interrupt saves them); rx_n stops at the buffer's size (rx_ovf set),
+ * the ring's indices wrap at its size. */
 void link_rx_byte(uint8_t b) LINK_WPARAM __naked
 {
     (void)b;
     __asm
-    extern  _PRODL
-    extern  _PRODH
-    extern  _PLUSW0
-    MOVWF   0xFF3, A
-    MOVF    (_link_hot + 1), W, A      ; rx_ready
+    MOVWF   _PRODL, A
+    MOVF    (_link_hot + LH_RX_READY), W, A
     BNZ     _lrx_spill          ; the main loop holds rx_buf: the byte waits in the spill ring
-    MOVF    0xFF3, F, A
+    MOVF    _PRODL, F, A
     BZ      _lrx_delim
     MOVLW   46          ; LINK_RX_BYTES
-    CPFSLT  (_link_hot + 0), A         ; rx_n
+    CPFSLT  (_link_hot + LH_RX_N), A
     BRA     _lrx_long
-    MOVF    (_link_hot + 0), W, A
+    MOVF    (_link_hot + LH_RX_N), W, A
     LFSR    0, _rx_buf
-    MOVFF   0xFF3, 0xFEB
-    INCF    (_link_hot + 0), F, A      ; rx_buf[rx_n++] = b
+    MOVFF   _PRODL, _PLUSW0
+    INCF    (_link_hot + LH_RX_N), F, A      ; rx_buf[rx_n++] = b
     RETURN
 _lrx_long:
-    SETF    (_link_hot + 0), A         ; longer than any frame: RX_SKIP
+    SETF    (_link_hot + LH_RX_N), A         ; longer than any frame: RX_SKIP
     RETURN
 _lrx_delim:
-    INCF    (_link_hot + 0), W, A
+    INCF    (_link_hot + LH_RX_N), W, A
     BZ      _lrx_clear          ; RX_SKIP: the garbage ends here
-    MOVF    (_link_hot + 0), F, A
+    MOVF    (_link_hot + LH_RX_N), F, A
     BZ      _lrx_done           ; nothing since the last delimiter
-    INCF    (_link_hot + 1), F, A      ; 0 -> 1: the frame is complete
+    INCF    (_link_hot + LH_RX_READY), F, A      ; 0 -> 1: the frame is complete
 _lrx_done:
     RETURN
 _lrx_clear:
-    CLRF    (_link_hot + 0), A
+    CLRF    (_link_hot + LH_RX_N), A
     RETURN
 _lrx_spill:
     BANKSEL _rx_sp_w
@@ -1200,7 +1358,7 @@ _lrx_spill:
     CPFSEQ  _PRODH, A           ; full (next == rx_sp_r): skip the store
     MOVWF   _rx_sp_w, B         ; the byte is in
     CPFSEQ  _rx_sp_w, B         ; stored: skip the count
-    INCF    (_link_hot + 2), F, A      ; rx_ovf: the byte is lost
+    INCF    (_link_hot + LH_RX_OVF), F, A      ; rx_ovf: the byte is lost
     RETURN
     __endasm;
 }
@@ -1236,30 +1394,33 @@ void link_rx_byte(uint8_t b) LINK_WPARAM
 #if defined(__SDCC_pic16)
 /* PIC18 assembly: FSR0 walks the frame, each byte goes one place down (PLUSW0 with W = -1);
  * TABLAT the run, PRODH the count */
+/* Contract: in rx_buf[0..rx_n-1], a COBS frame; out the frame decoded in place, W = the body
+ * length if the length and CRC check, else 0, S.fc0/fc1 its CRC bytes; clobbers W, STATUS, PROD,
+ * FSR0, TABLAT. */
 static uint8_t cobs_decode(void) __naked   /* rx_buf decoded in place; the last run (1: well formed) */
 {
     __asm
-    DECF    (_link_hot + 0), W, A   ; rx_n - 1 bytes after the code byte
-    MOVWF   0xFF4, A
-    MOVFF   _rx_buf, 0xFF5          ; run = the code byte
+    DECF    (_link_hot + LH_RX_N), W, A   ; rx_n - 1 bytes after the code byte
+    MOVWF   _PRODH, A
+    MOVFF   _rx_buf, _TABLAT        ; run = the code byte
     LFSR    0, (_rx_buf + 1)
-    MOVF    0xFF4, F, A
+    MOVF    _PRODH, F, A
     BZ      lcd3_end
 lcd3_loop:
-    MOVF    0xFEF, W, A             ; INDF0
-    DECFSZ  0xFF5, F, A             ; the run ends here: a code byte, the zero it stands for
+    MOVF    _INDF0, W, A
+    DECFSZ  _TABLAT, F, A           ; the run ends here: a code byte, the zero it stands for
     BRA     lcd3_put
-    MOVWF   0xFF5, A
+    MOVWF   _TABLAT, A
     MOVLW   0
 lcd3_put:
-    MOVWF   0xFF3, A
+    MOVWF   _PRODL, A
     MOVLW   0xFF
-    MOVFF   0xFF3, 0xFEB            ; FSR0[-1] (PLUSW0)
-    MOVF    0xFEE, F, A             ; FSR0++ (POSTINC0)
-    DECFSZ  0xFF4, F, A
+    MOVFF   _PRODL, _PLUSW0         ; FSR0[-1]
+    MOVF    _POSTINC0, F, A         ; FSR0++
+    DECFSZ  _PRODH, F, A
     BRA     lcd3_loop
 lcd3_end:
-    MOVF    0xFF5, W, A
+    MOVF    _TABLAT, W, A
     RETURN
     __endasm;
 }
@@ -1363,52 +1524,51 @@ static void rx_release(void)
 
 /* ---- transmit: body in tx_buf[1..], COBS-encoded in place, sent as the UART queue has room ---- */
 #if defined(__SDCC_pic16)
-typedef char link_tx_layout[(offsetof(struct link_state, tseq) == 17u && offsetof(struct link_state, tx_pos) == 19u
-                             && offsetof(struct link_fast, n) == 5u && offsetof(struct link_fast, tx_len) == 10u)
-                            ? 1 : -1];
 /* PIC18 assembly: the CRC through crc_n (FSR0 ends on the CRC's place), then COBS in place with
  * FSR0 scanning: the last code byte is run bytes back (PLUSW0); TABLAT the run, PRODH the count. */
+/* Contract: in type (W), the payload A(0..link_hot.n-1), S.tseq; out the sealed frame in tx_buf
+ * (header, CRC, COBS in place), link_hot.tx_len; clobbers W, STATUS, BSR, PROD, FSR0, TABLAT. */
 static void tx_seal(uint8_t type) LINK_WPARAM __naked   /* payload A(0..link_hot.n-1), SEQ S.tseq */
 {
     (void)type;
     __asm
-    MOVFF   0xFE8, (_tx_buf + 2)    ; TYPE, LEN, SEQ
-    MOVFF   (_link_hot + 5), (_tx_buf + 1)
-    MOVFF   (_S + 17), (_tx_buf + 3)
+    MOVFF   _WREG, (_tx_buf + 2)    ; TYPE, LEN, SEQ
+    MOVFF   (_link_hot + LH_N), (_tx_buf + 1)
+    MOVFF   (_S + LS_TSEQ), (_tx_buf + 3)
     MOVLW   LOW(_tx_buf + 1)        ; CRC over LEN .. payload
-    MOVFF   0xFE8, _cp_s
+    MOVFF   _WREG, _cp_s
     MOVLW   HIGH(_tx_buf + 1)
-    MOVFF   0xFE8, (_cp_s + 1)
-    MOVF    (_link_hot + 5), W, A
+    MOVFF   _WREG, (_cp_s + 1)
+    MOVF    (_link_hot + LH_N), W, A
     ADDLW   3
     CALL    _crc_n
-    MOVFF   (_link_hot + 3), 0xFEE  ; CRC high, low (POSTINC0)
-    MOVFF   (_link_hot + 4), 0xFEE
-    MOVF    (_link_hot + 5), W, A   ; tx_len = body + COBS code + delimiter
+    MOVFF   (_link_hot + LH_CRC_HI), _POSTINC0 ; CRC high, low
+    MOVFF   (_link_hot + LH_CRC_LO), _POSTINC0
+    MOVF    (_link_hot + LH_N), W, A   ; tx_len = body + COBS code + delimiter
     ADDLW   7
-    MOVWF   (_link_hot + 10), A
+    MOVWF   (_link_hot + LH_TX_LEN), A
     BANKSEL _S
-    CLRF    (_S + 19), B            ; tx_pos = 0
-    MOVF    (_link_hot + 5), W, A   ; count = body bytes
+    CLRF    (_S + LS_TX_POS), B            ; tx_pos = 0
+    MOVF    (_link_hot + LH_N), W, A   ; count = body bytes
     ADDLW   5
-    MOVWF   0xFF4, A
+    MOVWF   _PRODH, A
     LFSR    0, (_tx_buf + 1)
     MOVLW   1
-    MOVWF   0xFF5, A                ; run = 1: the code byte is run bytes back
+    MOVWF   _TABLAT, A              ; run = 1: the code byte is run bytes back
 lts_loop:
-    MOVF    0xFEE, W, A             ; POSTINC0: a zero becomes the distance to the next one
+    MOVF    _POSTINC0, W, A         ; POSTINC0: a zero becomes the distance to the next one
     BNZ     lts_next
-    MOVF    0xFF5, W, A             ; *(this byte - run) = run: W = -run - 1 from FSR0 (one past it)
+    MOVF    _TABLAT, W, A           ; *(this byte - run) = run: W = -run - 1 from FSR0 (one past it)
     SUBLW   0xFF
-    MOVFF   0xFF5, 0xFEB            ; PLUSW0
-    CLRF    0xFF5, A
+    MOVFF   _TABLAT, _PLUSW0
+    CLRF    _TABLAT, A
 lts_next:
-    INCF    0xFF5, F, A
-    DECFSZ  0xFF4, F, A
+    INCF    _TABLAT, F, A
+    DECFSZ  _PRODH, F, A
     BRA     lts_loop
-    MOVF    0xFF5, W, A             ; the last code byte: run back from one past the end
+    MOVF    _TABLAT, W, A           ; the last code byte: run back from one past the end
     SUBLW   0
-    MOVFF   0xFF5, 0xFEB
+    MOVFF   _TABLAT, _PLUSW0
     RETURN
     __endasm;
 }
@@ -1445,38 +1605,41 @@ static void tx_seal(uint8_t type) LINK_WPARAM   /* payload A(0..link_hot.n-1), S
 
 #if defined(__SDCC_pic16)
 /* PIC18 assembly (the C below, step for step): the room on the software stack (PLUSW1, W = 1) */
+/* Contract: in tx_buf[S.tx_pos..tx_len-1]; out as many bytes queued as app_tx_free allows,
+ * S.tx_pos on, tx_len = 0 when all are out; clobbers W, STATUS, BSR, FSR0 and what the compiled
+ * C it calls may change (W, STATUS, BSR, PROD, FSR0, TBLPTR, TABLAT). */
 static void tx_drain(void) __naked
 {
     __asm
     extern  _app_tx_free
     extern  _app_tx_byte
-    MOVF    (_link_hot + 10), W, A  ; tx_len: nothing to send
+    MOVF    (_link_hot + LH_TX_LEN), W, A  ; tx_len: nothing to send
     BZ      ltd_ret
     CALL    _app_tx_free
     IORLW   0
     BZ      ltd_ret
-    MOVWF   0xFE5, A                ; room (POSTDEC1)
+    MOVWF   _POSTDEC1, A            ; room
 ltd_loop:
     BANKSEL _S
-    DECF    (_link_hot + 10), W, A  ; tx_pos == tx_len - 1: only the delimiter is left
-    XORWF   (_S + 19), W, B
+    DECF    (_link_hot + LH_TX_LEN), W, A  ; tx_pos == tx_len - 1: only the delimiter is left
+    XORWF   (_S + LS_TX_POS), W, B
     BZ      ltd_end
     LFSR    0, _tx_buf
-    MOVF    (_S + 19), W, B
-    MOVF    0xFEB, W, A             ; tx_buf[tx_pos] (PLUSW0)
+    MOVF    (_S + LS_TX_POS), W, B
+    MOVF    _PLUSW0, W, A           ; tx_buf[tx_pos]
     CALL    _app_tx_byte
     BANKSEL _S
-    INCF    (_S + 19), F, B
+    INCF    (_S + LS_TX_POS), F, B
     MOVLW   1
-    DECFSZ  0xFE3, F, A             ; room-- (PLUSW1)
+    DECFSZ  _PLUSW1, F, A           ; room--
     BRA     ltd_loop
     BRA     ltd_pop
 ltd_end:
     MOVLW   0
     CALL    _app_tx_byte            ; the delimiter
-    CLRF    (_link_hot + 10), A
+    CLRF    (_link_hot + LH_TX_LEN), A
 ltd_pop:
-    MOVF    0xFE4, F, A             ; drop room (PREINC1)
+    MOVF    _PREINC1, F, A          ; drop room
 ltd_ret:
     RETURN
     __endasm;
@@ -1515,35 +1678,39 @@ static uint8_t drive_busy(void)
 #endif
 /* PIC18 assembly (the C below, step for step): no frame, no register saved; PROD counts and
  * carries (rom_next keeps it) */
+/* Contract: in n (W, <= 127), link_hot.ro, link_hot.n; out A(n..n+n-1) = the next n table bytes,
+ * ro and n past them; clobbers W, STATUS, PROD, FSR0, TBLPTR, TABLAT. */
 static void rom_copy(uint8_t n) LINK_WPARAM __naked /* A(link_hot.n..) = n flash bytes from link_hot.ro on */
 {
     (void)n;
     __asm
-    MOVWF   0xFF3, A                ; PRODL = n
-    MOVF    0xFF3, F, A
+    MOVWF   _PRODL, A               ; PRODL = n
+    MOVF    _PRODL, F, A
     BZ      lrc_end
 lrc_loop:
     CALL    _rom_next
-    MOVWF   0xFF4, A                ; PRODH = the byte
+    MOVWF   _PRODH, A               ; PRODH = the byte
     LFSR    0, (_tx_buf + 4)        ; A(0)
-    MOVF    (_link_hot + 5), W, A   ; link_hot.n
-    MOVFF   0xFF4, 0xFEB            ; A(link_hot.n) (PLUSW0)
-    INCF    (_link_hot + 5), F, A
-    DECFSZ  0xFF3, F, A
+    MOVF    (_link_hot + LH_N), W, A   ; link_hot.n
+    MOVFF   _PRODH, _PLUSW0         ; A(link_hot.n)
+    INCF    (_link_hot + LH_N), F, A
+    DECFSZ  _PRODL, F, A
     BRA     lrc_loop
 lrc_end:
     RETURN
     __endasm;
 }
 
+/* Contract: in nothing (the hello command has no arguments); out the hello reply in A(0..),
+ * link_hot.n, W = 0 (answered); clobbers W, STATUS, PROD, FSR0, TBLPTR, TABLAT. */
 static uint8_t h_hello(void) __naked
 {
     __asm
-    CLRF    (_link_hot + 5), A      ; link_hot.n = 0
+    CLRF    (_link_hot + LH_N), A      ; link_hot.n = 0
     MOVLW   254              ; rom_at(ROM_HELLO)
-    MOVWF   (_link_hot + 6), A
+    MOVWF   (_link_hot + LH_RO), A
     MOVLW   1
-    MOVWF   (_link_hot + 7), A
+    MOVWF   (_link_hot + LH_RO + 1), A
     MOVLW   20
     CALL    _rom_copy
     RETLW   0
@@ -1552,26 +1719,28 @@ static uint8_t h_hello(void) __naked
 
 #if ROW16
 /* A(link_hot.n..) = the next two table bytes widened to 4 by the loaded entry's size code */
+/* Contract: in the next two table bytes, the loaded entry's size code; out A(link_hot.n..+3) =
+ * them widened to 32 bits, n + 4; clobbers W, STATUS, PROD, FSR0, TBLPTR, TABLAT. */
 static void rom_val16(void) __naked
 {
     __asm
     MOVLW   2
     CALL    _rom_copy
-    CLRF    0xFF3, A                ; PRODL = the fill
-    BTFSS   (_link_hot + 9), 7, A   ; e_sz: signed
+    CLRF    _PRODL, A               ; PRODL = the fill
+    BTFSS   (_link_hot + LH_E_SZ), 7, A   ; e_sz: signed
     BRA     lrv_fill
     LFSR    0, (_tx_buf + 3)        ; A(n - 1): the high byte (PLUSW0)
-    MOVF    (_link_hot + 5), W, A
-    BTFSC   0xFEB, 7, A
-    SETF    0xFF3, A
+    MOVF    (_link_hot + LH_N), W, A
+    BTFSC   _PLUSW0, 7, A
+    SETF    _PRODL, A
 lrv_fill:
     LFSR    0, (_tx_buf + 4)
-    MOVF    (_link_hot + 5), W, A
-    MOVFF   0xFF3, 0xFEB            ; A(n) (PLUSW0)
-    INCF    (_link_hot + 5), F, A
-    MOVF    (_link_hot + 5), W, A
-    MOVFF   0xFF3, 0xFEB
-    INCF    (_link_hot + 5), F, A
+    MOVF    (_link_hot + LH_N), W, A
+    MOVFF   _PRODL, _PLUSW0         ; A(n)
+    INCF    (_link_hot + LH_N), F, A
+    MOVF    (_link_hot + LH_N), W, A
+    MOVFF   _PRODL, _PLUSW0
+    INCF    (_link_hot + LH_N), F, A
     RETURN
     __endasm;
 }
@@ -1579,52 +1748,54 @@ lrv_fill:
 
 /* the index and then the name's offset and length on the software stack across the calls (read
  * above FSR1 or popped by one instruction: an interrupt pushes at FSR1) */
+/* Contract: in R(0), an entry index; out the entry's description in A(0..), link_hot.n, W = 0
+ * (answered) or a NACK code; clobbers W, STATUS, PROD, FSR0, TBLPTR, TABLAT (software stack balanced). */
 static uint8_t h_param_info(void) __naked
 {
     __asm
-    MOVFF   (_rx_buf + 3), 0xFE9    ; FSR0L = idx = R(0): the lengths to add
-    MOVF    0xFE9, W, A
+    MOVFF   (_rx_buf + 3), _FSR0L   ; FSR0L = idx = R(0): the lengths to add
+    MOVF    _FSR0L, W, A
     SUBLW   29
     BNC     lpi_bad                 ; idx >= LINK_N_ENTRIES
-    MOVFF   0xFE9, 0xFE5            ; push idx (POSTDEC1)
+    MOVFF   _FSR0L, _POSTDEC1       ; push idx
     MOVLW   224              ; rom_at(ROM_NAME_LEN)
-    MOVWF   (_link_hot + 6), A
+    MOVWF   (_link_hot + LH_RO), A
     MOVLW   1
-    MOVWF   (_link_hot + 7), A
+    MOVWF   (_link_hot + LH_RO + 1), A
     MOVLW   35             ; PROD = ROM_NAMES
-    MOVWF   0xFF3, A
+    MOVWF   _PRODL, A
     MOVLW   2
-    MOVWF   0xFF4, A
-    MOVF    0xFE9, F, A
+    MOVWF   _PRODH, A
+    MOVF    _FSR0L, F, A
     BZ      lpi_len
 lpi_sum:                            ; the name offset: the lengths before it
     CALL    _rom_next
-    ADDWF   0xFF3, F, A
+    ADDWF   _PRODL, F, A
     MOVLW   0
-    ADDWFC  0xFF4, F, A
-    DECFSZ  0xFE9, F, A
+    ADDWFC  _PRODH, F, A
+    DECFSZ  _FSR0L, F, A
     BRA     lpi_sum
 lpi_len:
     CALL    _rom_next               ; the name length
-    MOVWF   0xFE5, A                ; push the length, the offset (idx stays below them)
-    MOVFF   0xFF4, 0xFE5
-    MOVFF   0xFF3, 0xFE5
-    CLRF    (_link_hot + 5), A      ; link_hot.n = 0
+    MOVWF   _POSTDEC1, A            ; push the length, the offset (idx stays below them)
+    MOVFF   _PRODH, _POSTDEC1
+    MOVFF   _PRODL, _POSTDEC1
+    CLRF    (_link_hot + LH_N), A      ; link_hot.n = 0
     MOVLW   4
-    MOVF    0xFE3, W, A             ; idx (PLUSW1)
+    MOVF    _PLUSW1, W, A           ; idx
     CALL    _entry_load             ; its size code widens min, max, default
     MOVLW   4
-    MOVF    0xFE3, W, A             ; idx (PLUSW1)
+    MOVF    _PLUSW1, W, A           ; idx
     CALL    _row_of
     MOVLW   8                       ; id, ctype, flags, unit, scale
     CALL    _rom_copy
     CALL    _rom_val16              ; min, max, default
     CALL    _rom_val16
     CALL    _rom_val16
-    MOVFF   0xFE4, (_link_hot + 6)  ; rom_at(offset) (PREINC1)
-    MOVFF   0xFE4, (_link_hot + 7)
-    MOVF    0xFE4, W, A             ; the length
-    MOVF    0xFE4, F, A             ; drop idx (each pop one instruction: an interrupt pushes at FSR1)
+    MOVFF   _PREINC1, (_link_hot + LH_RO) ; rom_at(offset)
+    MOVFF   _PREINC1, (_link_hot + LH_RO + 1)
+    MOVF    _PREINC1, W, A          ; the length
+    MOVF    _PREINC1, F, A          ; drop idx (each pop one instruction: an interrupt pushes at FSR1)
     CALL    _rom_copy
     RETLW   0
 lpi_bad:
@@ -1690,62 +1861,66 @@ static uint8_t h_param_info(void)
 #if defined(__SDCC_pic16)
 /* PIC18 assembly (the C below, step for step): the index on the software stack (PLUSW1 with
  * W = 1 reaches it across the calls), every id checked before any value is read */
+/* Contract: in R(0..), the ids asked for; out their values in A(0..), link_hot.n, W = 0 (answered) or a
+ * NACK code (every id checked before a value is read); clobbers W, STATUS, BSR, PROD, FSR0,
+ * TBLPTR, TABLAT and what the compiled C it calls may change (W, STATUS, BSR, PROD, FSR0,
+ * TBLPTR, TABLAT). */
 static uint8_t h_param_get(void) __naked
 {
     __asm
-    MOVF    (_link_hot + 5), W, A   ; 1 .. LINK_PARAM_GET_MAX ids
+    MOVF    (_link_hot + LH_N), W, A   ; 1 .. LINK_PARAM_GET_MAX ids
     BZ      lpg_bad
     SUBLW   10
     BNC     lpg_bad
-    CLRF    0xFE5, A                ; i = 0 (POSTDEC1)
+    CLRF    _POSTDEC1, A            ; i = 0
 lpg_check:
     MOVLW   1
-    MOVF    0xFE3, W, A             ; i (PLUSW1)
+    MOVF    _PLUSW1, W, A           ; i
     LFSR    0, (_rx_buf + 3)
-    MOVF    0xFEB, W, A             ; R(i) (PLUSW0)
+    MOVF    _PLUSW0, W, A           ; R(i)
     CALL    _entry_index
     XORLW   0xFF
     BZ      lpg_unknown
     MOVLW   1
-    INCF    0xFE3, F, A
+    INCF    _PLUSW1, F, A
     MOVLW   1
-    MOVF    0xFE3, W, A
-    XORWF   (_link_hot + 5), W, A
+    MOVF    _PLUSW1, W, A
+    XORWF   (_link_hot + LH_N), W, A
     BNZ     lpg_check
     MOVLW   1
-    CLRF    0xFE3, A
+    CLRF    _PLUSW1, A
 lpg_value:
     MOVLW   1
-    MOVF    0xFE3, W, A
+    MOVF    _PLUSW1, W, A
     LFSR    0, (_rx_buf + 3)
-    MOVF    0xFEB, W, A
+    MOVF    _PLUSW0, W, A
     CALL    _entry_index
     CALL    _value_at
     MOVLW   1                       ; A(4 i ..) = V
-    MOVF    0xFE3, W, A
+    MOVF    _PLUSW1, W, A
     MULLW   4
     LFSR    0, (_tx_buf + 4)
-    MOVF    0xFF3, W, A
-    ADDWF   0xFE9, F, A
-    BTFSC   0xFD8, 0, A
-    INCF    0xFEA, F, A
-    MOVFF   _V, 0xFEE
-    MOVFF   (_V + 1), 0xFEE
-    MOVFF   (_V + 2), 0xFEE
-    MOVFF   (_V + 3), 0xFEE
+    MOVF    _PRODL, W, A
+    ADDWF   _FSR0L, F, A
+    BTFSC   _STATUS, 0, A
+    INCF    _FSR0H, F, A
+    MOVFF   _V, _POSTINC0
+    MOVFF   (_V + 1), _POSTINC0
+    MOVFF   (_V + 2), _POSTINC0
+    MOVFF   (_V + 3), _POSTINC0
     MOVLW   1
-    INCF    0xFE3, F, A
+    INCF    _PLUSW1, F, A
     MOVLW   1
-    MOVF    0xFE3, W, A
-    XORWF   (_link_hot + 5), W, A
+    MOVF    _PLUSW1, W, A
+    XORWF   (_link_hot + LH_N), W, A
     BNZ     lpg_value
-    MOVF    (_link_hot + 5), W, A   ; 4 bytes an id
+    MOVF    (_link_hot + LH_N), W, A   ; 4 bytes an id
     MULLW   4
-    MOVFF   0xFF3, (_link_hot + 5)
-    MOVF    0xFE4, F, A             ; drop i (PREINC1)
+    MOVFF   _PRODL, (_link_hot + LH_N)
+    MOVF    _PREINC1, F, A          ; drop i
     RETLW   0
 lpg_unknown:
-    MOVF    0xFE4, F, A
+    MOVF    _PREINC1, F, A
     RETLW   8
 lpg_bad:
     RETLW   3
@@ -1832,63 +2007,67 @@ static void crit_end(void)
  * per frame (R(i) = rx_buf[3 + i]); PRODH the bytes per sample, PRODL the frame length, TABLAT
  * counts; the length and the bytes per sample wait on the software stack across the critical
  * section. */
+/* Contract: in R(0..4) (mask, decimation, samples per frame); out the telemetry setting (under
+ * the critical section), W = 0 (answered) or a NACK code; clobbers W, STATUS, BSR, PROD, TABLAT and what
+ * the compiled C it calls may change (W, STATUS, BSR, PROD, FSR0, TBLPTR, TABLAT); the frame
+ * length is checked against the payload before it is stored. */
 static uint8_t h_telem_config(void) __naked
 {
     __asm
     CALL    _mask_nsig
-    MOVWF   0xFF4, A
-    RLNCF   0xFF4, F, A             ; PRODH = 2 signals
+    MOVWF   _PRODH, A
+    RLNCF   _PRODH, F, A            ; PRODH = 2 signals
     MOVLW   2
-    MOVWF   0xFF3, A                ; PRODL = the frame length
+    MOVWF   _PRODL, A               ; PRODL = the frame length
     BANKSEL _rx_buf
     MOVF    (_rx_buf + 5), W, B     ; decimation 0: telemetry off, nothing to check
     IORWF   (_rx_buf + 6), W, B
     BZ      ltc_set
-    MOVF    0xFF4, W, A             ; a bad mask
+    MOVF    _PRODH, W, A            ; a bad mask
     BZ      ltc_bad
     MOVF    (_rx_buf + 7), W, B     ; samples per frame >= 1
     BZ      ltc_bad
-    MOVWF   0xFF5, A
+    MOVWF   _TABLAT, A
 ltc_len:
-    MOVF    0xFF4, W, A             ; header + samples x bytes, by additions, <= LINK_MAX_PAYLOAD
-    ADDWF   0xFF3, F, A
-    MOVF    0xFF3, W, A
+    MOVF    _PRODH, W, A            ; header + samples x bytes, by additions, <= LINK_MAX_PAYLOAD
+    ADDWF   _PRODL, F, A
+    MOVF    _PRODL, W, A
     SUBLW   40
     BNC     ltc_bad
-    DECFSZ  0xFF5, F, A
+    DECFSZ  _TABLAT, F, A
     BRA     ltc_len
 ltc_set:
-    MOVFF   0xFF3, 0xFE5            ; the length, the bytes per sample (POSTDEC1)
-    MOVFF   0xFF4, 0xFE5
+    MOVFF   _PRODL, _POSTDEC1       ; the length, the bytes per sample
+    MOVFF   _PRODH, _POSTDEC1
     CALL    _crit_begin
-    CLRF    (_link_hot + 13), A     ; tm_dec = 0 while the settings change
-    CLRF    (_link_hot + 14), A
-    MOVFF   (_rx_buf + 3), (_S + 35)    ; tm_mask
-    MOVFF   (_rx_buf + 4), (_S + 36)
-    MOVFF   (_rx_buf + 7), (_S + 20)    ; tm_spf
-    MOVFF   0xFE4, (_link_hot + 12) ; tm_nb (PREINC1)
-    CLRF    (_link_hot + 15), A     ; tr: div, counter, nsamp, len
-    CLRF    (_link_hot + 16), A
-    CLRF    (_link_hot + 17), A
-    CLRF    (_link_hot + 18), A
-    CLRF    (_link_hot + 19), A
-    CLRF    (_link_hot + 20), A
-    CLRF    (_link_hot + 11), A     ; tm_ready
+    CLRF    (_link_hot + LH_TM_DEC), A     ; tm_dec = 0 while the settings change
+    CLRF    (_link_hot + LH_TM_DEC + 1), A
+    MOVFF   (_rx_buf + 3), (_S + LS_TM_MASK)
+    MOVFF   (_rx_buf + 4), (_S + LS_TM_MASK + 1)
+    MOVFF   (_rx_buf + 7), (_S + LS_TM_SPF)
+    MOVFF   _PREINC1, (_link_hot + LH_TM_NB) ; tm_nb
+    CLRF    (_link_hot + LH_TR_DIV), A     ; tr: div, counter, nsamp, len
+    CLRF    (_link_hot + LH_TR_DIV + 1), A
+    CLRF    (_link_hot + LH_TR_COUNTER), A
+    CLRF    (_link_hot + LH_TR_COUNTER + 1), A
+    CLRF    (_link_hot + LH_TR_NSAMP), A
+    CLRF    (_link_hot + LH_TR_LEN), A
+    CLRF    (_link_hot + LH_TM_READY), A
     BANKSEL _S
-    INCF    (_S + 1), F, B          ; tm_gen
-    MOVFF   (_rx_buf + 5), (_link_hot + 13)   ; tm_dec last
-    MOVFF   (_rx_buf + 6), (_link_hot + 14)
+    INCF    (_S + LS_TM_GEN), F, B
+    MOVFF   (_rx_buf + 5), (_link_hot + LH_TM_DEC)   ; tm_dec last
+    MOVFF   (_rx_buf + 6), (_link_hot + LH_TM_DEC + 1)
     CALL    _crit_end
-    MOVFF   (_S + 1), (_tx_buf + 4) ; A(0) = tm_gen, A(1) = the frame length (0: off)
-    MOVFF   0xFE4, 0xFF3            ; (PREINC1)
+    MOVFF   (_S + LS_TM_GEN), (_tx_buf + 4) ; A(0) = tm_gen, A(1) = the frame length (0: off)
+    MOVFF   _PREINC1, _PRODL
     BANKSEL _rx_buf
     MOVF    (_rx_buf + 5), W, B
     IORWF   (_rx_buf + 6), W, B
-    BTFSS   0xFD8, 2, A
-    MOVF    0xFF3, W, A
-    MOVFF   0xFE8, (_tx_buf + 5)
+    BTFSS   _STATUS, 2, A
+    MOVF    _PRODL, W, A
+    MOVFF   _WREG, (_tx_buf + 5)
     MOVLW   2
-    MOVWF   (_link_hot + 5), A
+    MOVWF   (_link_hot + LH_N), A
     RETLW   0
 ltc_bad:
     RETLW   4
@@ -1933,12 +2112,16 @@ static uint8_t h_telem_config(void)
  * pre-trigger, R(6..7) decimation, R(8) trigger, R(9..10) threshold (R(i) = rx_buf[3 + i]);
  * PRODL counts the words, PRODH the signals; the byte count and the bytes per sample wait on the
  * software stack across the critical section. */
+/* Contract: in R(0..10) (mask, samples, pre-trigger, decimation, trigger, threshold); out the
+ * capture armed (under the critical section), W = 0 (answered) or a NACK code; clobbers W, STATUS, BSR,
+ * PROD, FSR0, TABLAT and what the compiled C it calls may change (W, STATUS, BSR, PROD, FSR0,
+ * TBLPTR, TABLAT); the byte count is an 8x8 product checked against the buffer (<= 256). */
 static uint8_t h_capture_arm(void) __naked
 {
     __asm
-    CLRF    (_link_hot + 5), A      ; no reply payload
+    CLRF    (_link_hot + LH_N), A      ; no reply payload
     CALL    _mask_nsig
-    MOVWF   0xFF4, A                ; PRODH = signals (0: a bad mask)
+    MOVWF   _PRODH, A               ; PRODH = signals (0: a bad mask)
     BZ      lca_bad
     BANKSEL _rx_buf
     MOVF    (_rx_buf + 6), W, B     ; samples, pre-trigger: high bytes 0
@@ -1962,53 +2145,53 @@ static uint8_t h_capture_arm(void) __naked
     MOVF    (_rx_buf + 7), W, B
     BNZ     lca_bad
 lca_words:
-    RLNCF   0xFF4, W, A             ; bytes per sample = 2 signals (at most 2 x 16)
-    MOVWF   0xFE5, A                ; (POSTDEC1)
-    CLRF    0xFF3, A                ; PRODL = words
+    RLNCF   _PRODH, W, A            ; bytes per sample = 2 signals (at most 2 x 16)
+    MOVWF   _POSTDEC1, A
+    CLRF    _PRODL, A               ; PRODL = words
 lca_loop:
-    MOVF    0xFF3, W, A             ; samples > LINK_CAPTURE_WORDS - words: too many
+    MOVF    _PRODL, W, A            ; samples > LINK_CAPTURE_WORDS - words: too many
     SUBLW   64
     CPFSGT  (_rx_buf + 5), B
     BRA     lca_add
-    MOVF    0xFE4, F, A             ; drop the pushed byte (PREINC1)
+    MOVF    _PREINC1, F, A          ; drop the pushed byte
     BRA     lca_bad
 lca_add:
     MOVF    (_rx_buf + 5), W, B
-    ADDWF   0xFF3, F, A
-    DECFSZ  0xFF4, F, A
+    ADDWF   _PRODL, F, A
+    DECFSZ  _PRODH, F, A
     BRA     lca_loop
-    DECF    0xFF3, W, A             ; the last byte index: 2 words - 1
-    ADDWF   0xFF3, W, A
-    MOVWF   0xFE5, A                ; (POSTDEC1)
+    DECF    _PRODL, W, A            ; the last byte index: 2 words - 1
+    ADDWF   _PRODL, W, A
+    MOVWF   _POSTDEC1, A
     CALL    _crit_begin
     BANKSEL _S
     CLRF    _S, B                   ; IDLE while the settings change
-    MOVFF   (_rx_buf + 3), (_S + 41)    ; cap_mask
-    MOVFF   (_rx_buf + 4), (_S + 42)
-    MOVFF   0xFE4, (_S + 39)        ; cap_bytes (PREINC1)
-    MOVFF   0xFE4, (_link_hot + 22) ; cap_nb
-    MOVFF   (_rx_buf + 5), (_link_hot + 21) ; cap_n
-    MOVFF   (_rx_buf + 7), (_S + 40)    ; cap_pre
-    MOVFF   (_rx_buf + 9), (_link_hot + 23) ; cap_dec
-    MOVFF   (_rx_buf + 10), (_link_hot + 24)
-    MOVFF   (_rx_buf + 11), (_S + 38)   ; cap_trig
-    MOVFF   (_rx_buf + 12), (_S + 43)   ; cap_thr (SPEED_FALLING: complemented)
-    MOVFF   (_rx_buf + 13), (_S + 44)
-    MOVF    (_S + 38), W, B
+    MOVFF   (_rx_buf + 3), (_S + LS_CAP_MASK)
+    MOVFF   (_rx_buf + 4), (_S + LS_CAP_MASK + 1)
+    MOVFF   _PREINC1, (_S + LS_CAP_BYTES)     ; cap_bytes
+    MOVFF   _PREINC1, (_link_hot + LH_CAP_NB)
+    MOVFF   (_rx_buf + 5), (_link_hot + LH_CAP_N)
+    MOVFF   (_rx_buf + 7), (_S + LS_CAP_PRE)
+    MOVFF   (_rx_buf + 9), (_link_hot + LH_CAP_DEC)
+    MOVFF   (_rx_buf + 10), (_link_hot + LH_CAP_DEC + 1)
+    MOVFF   (_rx_buf + 11), (_S + LS_CAP_TRIG)
+    MOVFF   (_rx_buf + 12), (_S + LS_CAP_THR)   ; cap_thr (SPEED_FALLING: complemented)
+    MOVFF   (_rx_buf + 13), (_S + LS_CAP_THR + 1)
+    MOVF    (_S + LS_CAP_TRIG), W, B
     XORLW   3
     BNZ     lca_clear
-    COMF    (_S + 43), F, B
-    COMF    (_S + 44), F, B
+    COMF    (_S + LS_CAP_THR), F, B
+    COMF    (_S + LS_CAP_THR + 1), F, B
 lca_clear:
-    LFSR    0, (_S + 45)            ; the record (S.cr, 10 bytes)
+    LFSR    0, (_S + LS_CR_W)            ; the record (S.cr, 10 bytes)
     MOVLW   10
 lca_zero:
-    CLRF    0xFEE, A                ; POSTINC0
-    DECFSZ  0xFE8, F, A
+    CLRF    _POSTINC0, A
+    DECFSZ  _WREG, F, A
     BRA     lca_zero
-    CLRF    (_link_hot + 25), A     ; cr_div
-    CLRF    (_link_hot + 26), A
-    CLRF    (_S + 37), B            ; cap_sp_changed
+    CLRF    (_link_hot + LH_CR_DIV), A
+    CLRF    (_link_hot + LH_CR_DIV + 1), A
+    CLRF    (_S + LS_CAP_SP_CHANGED), B
     MOVLW   1
     MOVWF   _S, B
     CALL    _crit_end
@@ -2062,6 +2245,9 @@ static uint8_t h_capture_arm(void)
  * The samples sent: min(count, total - start, what fits), their bytes by the 8x8 multiplier
  * (at most 256: the buffer's size); FSR0 walks the ring (wrapping after cap_bytes) and the reply
  * (cp_d) in turn; PRODH the byte index, TABLAT the bytes left. */
+/* Contract: in R(0..2) (start, count); out the samples in A(0..), link_hot.n, W = 0 (answered) or a NACK
+ * code; clobbers W, STATUS, BSR, PROD, FSR0, TABLAT; byte counts by the 8x8 multiplier (at most
+ * 256), the ring's index wraps after cap_bytes. */
 static uint8_t h_capture_read(void) __naked
 {
     __asm
@@ -2076,85 +2262,85 @@ static uint8_t h_capture_read(void) __naked
 lcr_wrong:
     RETLW   6
 lcr_done:
-    MOVFF   (_S + 49), 0xFF3        ; PRODL = total
+    MOVFF   (_S + LS_CR_TOTAL), _PRODL       ; PRODL = total
     BANKSEL _rx_buf
     MOVF    (_rx_buf + 4), W, B     ; start < 256
     BNZ     lcr_range
     MOVF    (_rx_buf + 3), W, B     ; PRODH = total - start (start <= total)
-    SUBWF   0xFF3, W, A
+    SUBWF   _PRODL, W, A
     BNC     lcr_range
-    MOVWF   0xFF4, A
+    MOVWF   _PRODH, A
     MOVLW   3          ; A(0..6): state, total, trigger index, start (u16 each but the state)
-    MOVFF   0xFE8, (_tx_buf + 4)
-    MOVFF   (_S + 49), (_tx_buf + 5)
-    MOVFF   (_S + 51), (_tx_buf + 7)
+    MOVFF   _WREG, (_tx_buf + 4)
+    MOVFF   (_S + LS_CR_TOTAL), (_tx_buf + 5)
+    MOVFF   (_S + LS_CR_TIDX), (_tx_buf + 7)
     MOVFF   (_rx_buf + 3), (_tx_buf + 9)
     MOVLW   0
-    MOVFF   0xFE8, (_tx_buf + 6)
-    MOVFF   0xFE8, (_tx_buf + 8)
-    MOVFF   0xFE8, (_tx_buf + 10)
+    MOVFF   _WREG, (_tx_buf + 6)
+    MOVFF   _WREG, (_tx_buf + 8)
+    MOVFF   _WREG, (_tx_buf + 10)
     MOVF    (_rx_buf + 5), W, B     ; samples = min(count, total - start)
-    CPFSLT  0xFF4, A
-    MOVWF   0xFF4, A
+    CPFSLT  _PRODH, A
+    MOVWF   _PRODH, A
     MOVLW   33   ; and what fits after the header
-    MOVWF   0xFF3, A
-    CLRF    0xFF5, A
+    MOVWF   _PRODL, A
+    CLRF    _TABLAT, A
 lcr_fit:
-    MOVF    (_link_hot + 22), W, A  ; cap_nb
-    SUBWF   0xFF3, F, A
+    MOVF    (_link_hot + LH_CAP_NB), W, A
+    SUBWF   _PRODL, F, A
     BNC     lcr_fitted
-    INCF    0xFF5, F, A
+    INCF    _TABLAT, F, A
     BRA     lcr_fit
 lcr_fitted:
-    MOVF    0xFF5, W, A
-    CPFSLT  0xFF4, A
-    MOVWF   0xFF4, A
-    MOVF    0xFF4, W, A             ; bytes = samples x cap_nb (PRODL)
-    MULWF   (_link_hot + 22), A
-    MOVF    0xFF3, W, A             ; reply length = header + bytes
+    MOVF    _TABLAT, W, A
+    CPFSLT  _PRODH, A
+    MOVWF   _PRODH, A
+    MOVF    _PRODH, W, A            ; bytes = samples x cap_nb (PRODL)
+    MULWF   (_link_hot + LH_CAP_NB), A
+    MOVF    _PRODL, W, A            ; reply length = header + bytes
     ADDLW   7
-    MOVWF   (_link_hot + 5), A
-    MOVFF   0xFF3, 0xFF5            ; TABLAT = bytes
+    MOVWF   (_link_hot + LH_N), A
+    MOVFF   _PRODL, _TABLAT         ; TABLAT = bytes
     BANKSEL _S
-    MOVFF   (_rx_buf + 3), 0xFE8    ; the first sample: (record start + start) mod cap_n
-    ADDWF   (_S + 50), W, B
-    MOVWF   0xFF3, A
-    MOVF    (_link_hot + 21), W, A
-    CPFSLT  0xFF3, A
-    SUBWF   0xFF3, F, A
-    MOVF    0xFF3, W, A             ; its byte index (< 256)
-    MULWF   (_link_hot + 22), A
-    MOVFF   0xFF3, 0xFF4            ; PRODH = the byte index
+    MOVFF   (_rx_buf + 3), _WREG    ; the first sample: (record start + start) mod cap_n
+    ADDWF   (_S + LS_CR_START), W, B
+    MOVWF   _PRODL, A
+    MOVF    (_link_hot + LH_CAP_N), W, A
+    CPFSLT  _PRODL, A
+    SUBWF   _PRODL, F, A
+    MOVF    _PRODL, W, A            ; its byte index (< 256)
+    MULWF   (_link_hot + LH_CAP_NB), A
+    MOVFF   _PRODL, _PRODH          ; PRODH = the byte index
     MOVLW   LOW(_tx_buf + 11)   ; cp_d: the reply after its header
-    MOVFF   0xFE8, _cp_d
+    MOVFF   _WREG, _cp_d
     MOVLW   HIGH(_tx_buf + 11)
-    MOVFF   0xFE8, (_cp_d + 1)
+    MOVFF   _WREG, (_cp_d + 1)
     LFSR    0, _cap_buf
-    MOVF    0xFF4, W, A
-    ADDWF   0xFE9, F, A
-    BTFSC   0xFD8, 0, A
-    INCF    0xFEA, F, A
-    MOVF    0xFF5, F, A
+    MOVF    _PRODH, W, A
+    ADDWF   _FSR0L, F, A
+    BTFSC   _STATUS, 0, A
+    INCF    _FSR0H, F, A
+    MOVF    _TABLAT, F, A
     BZ      lcr_end
 lcr_loop:
-    MOVFF   0xFEE, 0xFF3            ; PRODL = the ring byte (POSTINC0), then *cp_d++ = PRODL
-    MOVFF   0xFE9, _cp_s            ; (FSR0 only: the ring position waits in cp_s)
-    MOVFF   0xFEA, (_cp_s + 1)
-    MOVFF   _cp_d, 0xFE9
-    MOVFF   (_cp_d + 1), 0xFEA
-    MOVFF   0xFF3, 0xFEE
-    MOVFF   0xFE9, _cp_d
-    MOVFF   0xFEA, (_cp_d + 1)
-    MOVFF   _cp_s, 0xFE9
-    MOVFF   (_cp_s + 1), 0xFEA
-    INCF    0xFF4, F, A
-    DECF    0xFF4, W, A             ; past the last byte: back to the start
-    XORWF   (_S + 39), W, B
+    MOVFF   _POSTINC0, _PRODL       ; PRODL = the ring byte (POSTINC0), then *cp_d++ = PRODL
+    MOVFF   _FSR0L, _cp_s           ; (FSR0 only: the ring position waits in cp_s)
+    MOVFF   _FSR0H, (_cp_s + 1)
+    MOVFF   _cp_d, _FSR0L
+    MOVFF   (_cp_d + 1), _FSR0H
+    MOVFF   _PRODL, _POSTINC0
+    MOVFF   _FSR0L, _cp_d
+    MOVFF   _FSR0H, (_cp_d + 1)
+    MOVFF   _cp_s, _FSR0L
+    MOVFF   (_cp_s + 1), _FSR0H
+    INCF    _PRODH, F, A
+    DECF    _PRODH, W, A            ; past the last byte: back to the start
+    XORWF   (_S + LS_CAP_BYTES), W, B
     BNZ     lcr_next
-    CLRF    0xFF4, A
+    CLRF    _PRODH, A
     LFSR    0, _cap_buf
 lcr_next:
-    DECFSZ  0xFF5, F, A
+    DECFSZ  _TABLAT, F, A
     BRA     lcr_loop
 lcr_end:
     RETLW   0
@@ -2362,39 +2548,38 @@ static void wd_arm(void)
 }
 
 #if defined(__SDCC_pic16)
-typedef char link_poll_layout[(offsetof(struct link_state, tm_gen) == 1u && offsetof(struct link_state, nack) == 14u
-                               && offsetof(struct link_state, nack_type) == 15u
-                               && offsetof(struct link_state, nack_seq) == 16u
-                               && offsetof(struct link_state, tseq) == 17u && offsetof(struct link_fast, tr) == 15u)
-                              ? 1 : -1];
 /* PIC18 assembly (the C below, step for step): the pass count on the software stack, no register
  * held across the calls */
+/* Contract: in a received frame (rx_ready), the pending events and telemetry; out at most the
+ * frames one pass allows answered, events and telemetry queued; clobbers W, STATUS, BSR, PROD,
+ * FSR0, TABLAT and what the compiled C it calls may change (W, STATUS, BSR, PROD, FSR0, TBLPTR,
+ * TABLAT) (software stack balanced). */
 void link_poll(void) __naked
 {
     __asm
     MOVLW   8                       ; at most 8 frames a call
-    MOVWF   0xFE5, A                ; POSTDEC1
+    MOVWF   _POSTDEC1, A
 lpl_loop:
     CALL    _wd_arm
     CALL    _tx_drain
-    MOVF    (_link_hot + 10), W, A  ; tx_len: a frame still leaving
+    MOVF    (_link_hot + LH_TX_LEN), W, A  ; tx_len: a frame still leaving
     BNZ     lpl_end
     BANKSEL _S
-    MOVF    (_S + 14), W, B         ; nack == NACK_PENDING: one BAD_CRC NACK
+    MOVF    (_S + LS_NACK), W, B         ; nack == NACK_PENDING: one BAD_CRC NACK
     XORLW   2
     BNZ     lpl_rx
-    CLRF    (_S + 14), B
-    MOVFF   (_S + 15), (_tx_buf + 4)   ; A(0) = the frame type, A(1) = BAD_CRC
+    CLRF    (_S + LS_NACK), B
+    MOVFF   (_S + LS_NACK_TYPE), (_tx_buf + 4)   ; A(0) = the frame type, A(1) = BAD_CRC
     MOVLW   2
-    MOVFF   0xFE8, (_tx_buf + 5)
+    MOVFF   _WREG, (_tx_buf + 5)
     MOVLW   2
-    MOVWF   (_link_hot + 5), A
-    MOVFF   (_S + 16), (_S + 17)    ; SEQ of the bad frame
+    MOVWF   (_link_hot + LH_N), A
+    MOVFF   (_S + LS_NACK_SEQ), (_S + LS_TSEQ)    ; SEQ of the bad frame
     MOVLW   127
     CALL    _tx_seal
     BRA     lpl_next
 lpl_rx:
-    MOVF    (_link_hot + 1), W, A   ; rx_ready
+    MOVF    (_link_hot + LH_RX_READY), W, A
     BZ      lpl_ev
     CALL    _rx_frame
     IORLW   0
@@ -2408,34 +2593,34 @@ lpl_ev:
     CALL    _send_event
     IORLW   0
     BNZ     lpl_next
-    MOVF    (_link_hot + 11), W, A  ; tm_ready: the telemetry frame
+    MOVF    (_link_hot + LH_TM_READY), W, A  ; tm_ready: the telemetry frame
     BZ      lpl_end
-    MOVF    (_link_hot + 20), W, A  ; n = tr.len; A(0..) = tm_buf
-    MOVWF   (_link_hot + 5), A
+    MOVF    (_link_hot + LH_TR_LEN), W, A  ; n = tr.len; A(0..) = tm_buf
+    MOVWF   (_link_hot + LH_N), A
     MOVLW   LOW(_tx_buf + 4)
-    MOVFF   0xFE8, _cp_d
+    MOVFF   _WREG, _cp_d
     MOVLW   HIGH(_tx_buf + 4)
-    MOVFF   0xFE8, (_cp_d + 1)
+    MOVFF   _WREG, (_cp_d + 1)
     MOVLW   LOW(_tm_buf)
-    MOVFF   0xFE8, _cp_s
+    MOVFF   _WREG, _cp_s
     MOVLW   HIGH(_tm_buf)
-    MOVFF   0xFE8, (_cp_s + 1)
-    MOVF    (_link_hot + 5), W, A
+    MOVFF   _WREG, (_cp_s + 1)
+    MOVF    (_link_hot + LH_N), W, A
     CALL    _mcopy_n
-    MOVFF   (_S + 1), (_S + 17)     ; SEQ = tm_gen
+    MOVFF   (_S + LS_TM_GEN), (_S + LS_TSEQ)     ; SEQ = tm_gen
     MOVLW   96
     CALL    _tx_seal
-    CLRF    (_link_hot + 19), A     ; tr.nsamp = tr.len = 0, tm_ready = 0
-    CLRF    (_link_hot + 20), A
-    CLRF    (_link_hot + 11), A
+    CLRF    (_link_hot + LH_TR_NSAMP), A     ; tr.nsamp = tr.len = 0, tm_ready = 0
+    CLRF    (_link_hot + LH_TR_LEN), A
+    CLRF    (_link_hot + LH_TM_READY), A
 lpl_next:
-    MOVF    0xFE4, W, A             ; the pass count (PREINC1)
-    DECF    0xFE8, F, A
+    MOVF    _PREINC1, W, A          ; the pass count
+    DECF    _WREG, F, A
     BZ      lpl_last
-    MOVWF   0xFE5, A
+    MOVWF   _POSTDEC1, A
     BRA     lpl_loop
 lpl_end:
-    MOVF    0xFE4, F, A             ; drop the pass count
+    MOVF    _PREINC1, F, A          ; drop the pass count
 lpl_last:
     CALL    _wd_arm                 ; again: a start just executed arms the watchdog at once
     RETURN
@@ -2498,83 +2683,86 @@ void link_poll(void)
  * read with TBLRD: TBLPTR and TABLAT are saved on entry and restored on exit (hazard a: this runs
  * in an interrupt, whatever the application's prologue saves).  FSR0 and PROD are saved by the
  * interrupt's prologue; sg (one bank) holds the pointers and the masks. */
+/* Contract: in sg.p, sg.q, sg.tm, sg.cm; out the selected signals written to the telemetry and
+ * capture samples; saves and restores TBLPTR and TABLAT itself (interrupt context), clobbers W,
+ * STATUS, BSR, PROD, FSR0 (saved by the interrupt's prologue). */
 static void put_signals(void) __naked
 {
     __asm
-    MOVFF   0xFF8, 0xFE5            ; save TBLPTRU, TBLPTRH, TBLPTRL, TABLAT (POSTDEC1)
-    MOVFF   0xFF7, 0xFE5
-    MOVFF   0xFF6, 0xFE5
-    MOVFF   0xFF5, 0xFE5
+    MOVFF   _TBLPTRU, _POSTDEC1     ; save TBLPTRU, TBLPTRH, TBLPTRL, TABLAT
+    MOVFF   _TBLPTRH, _POSTDEC1
+    MOVFF   _TBLPTRL, _POSTDEC1
+    MOVFF   _TABLAT, _POSTDEC1
     MOVLW   UPPER(_app_signal_src)
-    MOVWF   0xFF8, A
+    MOVWF   _TBLPTRU, A
     MOVLW   HIGH(_app_signal_src)
-    MOVWF   0xFF7, A
+    MOVWF   _TBLPTRH, A
     MOVLW   LOW(_app_signal_src)
-    MOVWF   0xFF6, A
+    MOVWF   _TBLPTRL, A
     BANKSEL _sg
 lps_loop:
     TBLRD*+
-    MOVFF   0xFF5, 0xFE9            ; FSR0 = app_signal_src[j]
+    MOVFF   _TABLAT, _FSR0L         ; FSR0 = app_signal_src[j]
     TBLRD*+
-    MOVFF   0xFF5, 0xFEA
-    MOVF    (_sg + 4), W, B
-    IORWF   (_sg + 6), W, B
-    BTFSS   0xFE8, 0, A             ; signal j in neither mask: next
+    MOVFF   _TABLAT, _FSR0H
+    MOVF    (_sg + SG_TM), W, B
+    IORWF   (_sg + SG_CM), W, B
+    BTFSS   _WREG, 0, A             ; signal j in neither mask: next
     BRA     lps_next
-    MOVF    0xFE9, W, A
-    IORWF   0xFEA, W, A
+    MOVF    _FSR0L, W, A
+    IORWF   _FSR0H, W, A
     BZ      lps_call
-    MOVFF   0xFEE, 0xFF3            ; PRODL, PRODH = *src (POSTINC0)
-    MOVFF   0xFEE, 0xFF4
+    MOVFF   _POSTINC0, _PRODL       ; PRODL, PRODH = *src
+    MOVFF   _POSTINC0, _PRODH
     BRA     lps_have
 lps_call:                          ; NULL: app_signal(j), the table pointer kept across the call
-    MOVFF   0xFF8, 0xFE5
-    MOVFF   0xFF7, 0xFE5
-    MOVFF   0xFF6, 0xFE5
+    MOVFF   _TBLPTRU, _POSTDEC1
+    MOVFF   _TBLPTRH, _POSTDEC1
+    MOVFF   _TBLPTRL, _POSTDEC1
     MOVLW   LOW(_app_signal_src + 2)    ; j = (TBLPTR - (app_signal_src + 2)) / 2, the low bytes suffice
-    SUBWF   0xFF6, W, A
-    RRNCF   0xFE8, W, A
+    SUBWF   _TBLPTRL, W, A
+    RRNCF   _WREG, W, A
     CALL    _app_signal             ; low byte in W, high byte in PRODL
-    MOVFF   0xFF3, 0xFF4
-    MOVWF   0xFF3, A
-    MOVFF   0xFE4, 0xFF6            ; PREINC1
-    MOVFF   0xFE4, 0xFF7
-    MOVFF   0xFE4, 0xFF8
+    MOVFF   _PRODL, _PRODH
+    MOVWF   _PRODL, A
+    MOVFF   _PREINC1, _TBLPTRL
+    MOVFF   _PREINC1, _TBLPTRH
+    MOVFF   _PREINC1, _TBLPTRU
     BANKSEL _sg
 lps_have:
-    BTFSS   (_sg + 4), 0, B
+    BTFSS   (_sg + SG_TM), 0, B
     BRA     lps_cap
-    MOVFF   _sg, 0xFE9              ; *sg.p++ = value
-    MOVFF   (_sg + 1), 0xFEA
-    MOVFF   0xFF3, 0xFEE
-    MOVFF   0xFF4, 0xFEE
-    MOVFF   0xFE9, _sg
-    MOVFF   0xFEA, (_sg + 1)
+    MOVFF   _sg, _FSR0L             ; *sg.p++ = value
+    MOVFF   (_sg + SG_P + 1), _FSR0H
+    MOVFF   _PRODL, _POSTINC0
+    MOVFF   _PRODH, _POSTINC0
+    MOVFF   _FSR0L, _sg
+    MOVFF   _FSR0H, (_sg + SG_P + 1)
 lps_cap:
-    BTFSS   (_sg + 6), 0, B
+    BTFSS   (_sg + SG_CM), 0, B
     BRA     lps_next
-    MOVFF   (_sg + 2), 0xFE9        ; *sg.q++ = value
-    MOVFF   (_sg + 3), 0xFEA
-    MOVFF   0xFF3, 0xFEE
-    MOVFF   0xFF4, 0xFEE
-    MOVFF   0xFE9, (_sg + 2)
-    MOVFF   0xFEA, (_sg + 3)
+    MOVFF   (_sg + SG_Q), _FSR0L       ; *sg.q++ = value
+    MOVFF   (_sg + SG_Q + 1), _FSR0H
+    MOVFF   _PRODL, _POSTINC0
+    MOVFF   _PRODH, _POSTINC0
+    MOVFF   _FSR0L, (_sg + SG_Q)
+    MOVFF   _FSR0H, (_sg + SG_Q + 1)
 lps_next:
-    BCF     0xFD8, 0, A             ; tm >>= 1, cm >>= 1
-    RRCF    (_sg + 5), F, B
-    RRCF    (_sg + 4), F, B
-    BCF     0xFD8, 0, A
-    RRCF    (_sg + 7), F, B
-    RRCF    (_sg + 6), F, B
-    MOVF    (_sg + 4), W, B
-    IORWF   (_sg + 5), W, B
-    IORWF   (_sg + 6), W, B
-    IORWF   (_sg + 7), W, B
+    BCF     _STATUS, 0, A ; tm >>= 1, cm >>= 1
+    RRCF    (_sg + SG_TM + 1), F, B
+    RRCF    (_sg + SG_TM), F, B
+    BCF     _STATUS, 0, A
+    RRCF    (_sg + SG_CM + 1), F, B
+    RRCF    (_sg + SG_CM), F, B
+    MOVF    (_sg + SG_TM), W, B
+    IORWF   (_sg + SG_TM + 1), W, B
+    IORWF   (_sg + SG_CM), W, B
+    IORWF   (_sg + SG_CM + 1), W, B
     BNZ     lps_loop
-    MOVFF   0xFE4, 0xFF5            ; restore TABLAT, TBLPTRL, TBLPTRH, TBLPTRU (PREINC1)
-    MOVFF   0xFE4, 0xFF6
-    MOVFF   0xFE4, 0xFF7
-    MOVFF   0xFE4, 0xFF8
+    MOVFF   _PREINC1, _TABLAT       ; restore TABLAT, TBLPTRL, TBLPTRH, TBLPTRU
+    MOVFF   _PREINC1, _TBLPTRL
+    MOVFF   _PREINC1, _TBLPTRH
+    MOVFF   _PREINC1, _TBLPTRU
     RETURN
     __endasm;
 }
@@ -2612,144 +2800,139 @@ static void put_signals(void)
  * (W, STATUS, BSR, PROD are the interrupt's; app_signal and app_link_lost are called like the C
  * did).  Offsets into link_hot (access bank) and S are pinned by the layout checks below. */
 #if defined(__SDCC_pic16)
-typedef char link_isr_layout[(offsetof(struct link_fast, tm_ready) == 11u && offsetof(struct link_fast, tm_nb) == 12u
-    && offsetof(struct link_fast, tm_dec) == 13u && offsetof(struct link_fast, tr) == 15u
-    && offsetof(struct link_state, tm_dropped) == 6u && offsetof(struct link_state, rx_valid) == 13u
-    && offsetof(struct link_state, tm_spf) == 20u && offsetof(struct link_state, wd_armed) == 27u
-    && offsetof(struct link_state, wd_ms) == 28u && offsetof(struct link_state, ev_watchdog) == 33u
-    && offsetof(struct link_state, tm_mask) == 35u
-    && offsetof(link_params_t, link_timeout) == 17u) ? 1 : -1];
+#define LP_LINK_TIMEOUT 17                /* offsetof(link_params_t, link_timeout), checked below */
+typedef char link_isr_layout[(offsetof(link_params_t, link_timeout) == LP_LINK_TIMEOUT) ? 1 : -1];
 #if LINK_WITH_CAPTURE
-typedef char link_cap_layout[(offsetof(struct link_fast, cap_n) == 21u && offsetof(struct link_fast, cap_nb) == 22u
-    && offsetof(struct link_fast, cap_dec) == 23u && offsetof(struct link_fast, cr_div) == 25u
-    && offsetof(struct link_state, cap_sp_changed) == 37u && offsetof(struct link_state, cap_trig) == 38u
-    && offsetof(struct link_state, cap_pre) == 40u && offsetof(struct link_state, cap_bytes) == 39u && offsetof(struct link_state, cap_mask) == 41u
-    && offsetof(struct link_state, cap_thr) == 43u && offsetof(struct link_state, cr) == 45u
-    && sizeof S.cr == 10u) ? 1 : -1];
+typedef char link_cap_layout[(sizeof S.cr == 10u) ? 1 : -1];
 
-/* decimation and trigger; a sample due: sg.q, sg.cm set (S.cr: w 45, wi 46, filled 47, post 48,
- * total 49, start 50, tidx 51, prev_valid 52, prev 53) */
+/* decimation and trigger; a sample due: sg.q, sg.cm set */
+/* Contract: in the capture state S.cr and the decimation counter; out sg.q, sg.cm set when a
+ * sample is due (the trigger tested on its signal); clobbers W, STATUS, BSR, PROD, FSR0, TBLPTR,
+ * TABLAT. */
 static void capture_due(void) __naked
 {
     __asm
-    INFSNZ  (_link_hot + 25), F, A  ; cr_div++
-    INCF    (_link_hot + 26), F, A
-    MOVF    (_link_hot + 23), W, A  ; cr_div - cap_dec: borrow = not due yet
-    SUBWF   (_link_hot + 25), W, A
-    MOVF    (_link_hot + 24), W, A
-    SUBWFB  (_link_hot + 26), W, A
+    INFSNZ  (_link_hot + LH_CR_DIV), F, A  ; cr_div++
+    INCF    (_link_hot + LH_CR_DIV + 1), F, A
+    MOVF    (_link_hot + LH_CAP_DEC), W, A  ; cr_div - cap_dec: borrow = not due yet
+    SUBWF   (_link_hot + LH_CR_DIV), W, A
+    MOVF    (_link_hot + LH_CAP_DEC + 1), W, A
+    SUBWFB  (_link_hot + LH_CR_DIV + 1), W, A
     BC      lcd_due
     RETURN
 lcd_due:
-    CLRF    (_link_hot + 25), A
-    CLRF    (_link_hot + 26), A
+    CLRF    (_link_hot + LH_CR_DIV), A
+    CLRF    (_link_hot + LH_CR_DIV + 1), A
     BANKSEL _S
     MOVF    _S, W, B                ; cap_state
     XORLW   1
     BNZ     lcd_slot
-    MOVF    (_S + 38), W, B         ; cap_trig
+    MOVF    (_S + LS_CAP_TRIG), W, B
     BZ      lcd_fire                ; IMMEDIATE
     XORLW   1
     BNZ     lcd_speed
-    MOVF    (_S + 37), W, B         ; SETPOINT_CHANGE: the setpoint was written
+    MOVF    (_S + LS_CAP_SP_CHANGED), W, B         ; SETPOINT_CHANGE: the setpoint was written
     BZ      lcd_slot
     BRA     lcd_fire
 lcd_speed:                          ; a crossing: sp in PRODH:PRODL
     MOVLW   0
     CALL    _app_signal             ; low byte in W, high byte in PRODL
-    MOVFF   0xFF3, 0xFF4
-    MOVWF   0xFF3, A
+    MOVFF   _PRODL, _PRODH
+    MOVWF   _PRODL, A
     BANKSEL _S
-    MOVF    (_S + 38), W, B
+    MOVF    (_S + LS_CAP_TRIG), W, B
     XORLW   3
     BNZ     lcd_cmp
-    COMF    0xFF3, F, A             ; falling through thr = ~speed rising through ~thr (stored so)
-    COMF    0xFF4, F, A
+    COMF    _PRODL, F, A            ; falling through thr = ~speed rising through ~thr (stored so)
+    COMF    _PRODH, F, A
 lcd_cmp:
-    MOVF    (_S + 52), W, B         ; no previous sample: no crossing
+    MOVF    (_S + LS_CR_PREV_VALID), W, B         ; no previous sample: no crossing
     BZ      lcd_keep
-    MOVF    (_S + 43), W, B         ; prev - thr: signed less-than is N xor OV
-    SUBWF   (_S + 53), W, B
-    MOVF    (_S + 44), W, B
-    SUBWFB  (_S + 54), W, B
+    MOVF    (_S + LS_CAP_THR), W, B         ; prev - thr: signed less-than is N xor OV
+    SUBWF   (_S + LS_CR_PREV), W, B
+    MOVF    (_S + LS_CAP_THR + 1), W, B
+    SUBWFB  (_S + LS_CR_PREV + 1), W, B
     BOV     lcd_ov1
     BNN     lcd_keep
     BRA     lcd_now
 lcd_ov1:
     BN      lcd_keep
 lcd_now:
-    MOVF    (_S + 43), W, B         ; sp - thr: greater or equal is N == OV
-    SUBWF   0xFF3, W, A
-    MOVF    (_S + 44), W, B
-    SUBWFB  0xFF4, W, A
+    MOVF    (_S + LS_CAP_THR), W, B         ; sp - thr: greater or equal is N == OV
+    SUBWF   _PRODL, W, A
+    MOVF    (_S + LS_CAP_THR + 1), W, B
+    SUBWFB  _PRODH, W, A
     BOV     lcd_ov2
     BN      lcd_keep
     BRA     lcd_yes
 lcd_ov2:
     BNN     lcd_keep
 lcd_yes:
-    MOVFF   0xFF3, (_S + 53)        ; prev = sp
-    MOVFF   0xFF4, (_S + 54)
+    MOVFF   _PRODL, (_S + LS_CR_PREV)       ; prev = sp
+    MOVFF   _PRODH, (_S + LS_CR_PREV + 1)
     BRA     lcd_fire
 lcd_keep:
-    MOVFF   0xFF3, (_S + 53)        ; prev = sp, prev_valid = 1
-    MOVFF   0xFF4, (_S + 54)
+    MOVFF   _PRODL, (_S + LS_CR_PREV)       ; prev = sp, prev_valid = 1
+    MOVFF   _PRODH, (_S + LS_CR_PREV + 1)
     MOVLW   1
-    MOVWF   (_S + 52), B
+    MOVWF   (_S + LS_CR_PREV_VALID), B
     BRA     lcd_slot
 lcd_fire:
-    MOVF    (_S + 47), W, B         ; tidx = min(filled, pre)
-    CPFSGT  (_S + 40), B
-    MOVF    (_S + 40), W, B
-    MOVWF   (_S + 51), B
-    CLRF    (_S + 48), B            ; post = 0
+    MOVF    (_S + LS_CR_FILLED), W, B         ; tidx = min(filled, pre)
+    CPFSGT  (_S + LS_CAP_PRE), B
+    MOVF    (_S + LS_CAP_PRE), W, B
+    MOVWF   (_S + LS_CR_TIDX), B
+    CLRF    (_S + LS_CR_POST), B            ; post = 0
     MOVLW   2
     MOVWF   _S, B
 lcd_slot:
-    MOVF    (_S + 46), W, B         ; sg.q = &cap_buf[wi], sg.cm = cap_mask
+    MOVF    (_S + LS_CR_WI), W, B         ; sg.q = &cap_buf[wi], sg.cm = cap_mask
     ADDLW   LOW(_cap_buf)
-    MOVFF   0xFE8, (_sg + 2)
+    MOVFF   _WREG, (_sg + SG_Q)
     MOVLW   HIGH(_cap_buf)
-    BTFSC   0xFD8, 0, A
+    BTFSC   _STATUS, 0, A
     ADDLW   1
-    MOVFF   0xFE8, (_sg + 3)
-    MOVFF   (_S + 41), (_sg + 6)
-    MOVFF   (_S + 42), (_sg + 7)
+    MOVFF   _WREG, (_sg + SG_Q + 1)
+    MOVFF   (_S + LS_CAP_MASK), (_sg + SG_CM)
+    MOVFF   (_S + LS_CAP_MASK + 1), (_sg + SG_CM + 1)
     RETURN
     __endasm;
 }
 
+/* Contract: in the sample just written; out the ring's write index and the record's counts on
+ * (S.cr), the capture state at its end; clobbers W, STATUS, BSR; counts are bytes (at most 128
+ * samples, 256 B). */
 static void capture_done(void) __naked  /* after a sample was written: the ring and the record */
 {
     __asm
     BANKSEL _S
-    MOVF    (_link_hot + 22), W, A  ; wi += cap_nb
-    ADDWF   (_S + 46), F, B
-    INCF    (_S + 45), F, B         ; w++
-    MOVF    (_link_hot + 21), W, A  ; W = cap_n
-    CPFSEQ  (_S + 45), B
+    MOVF    (_link_hot + LH_CAP_NB), W, A  ; wi += cap_nb
+    ADDWF   (_S + LS_CR_WI), F, B
+    INCF    (_S + LS_CR_W), F, B         ; w++
+    MOVF    (_link_hot + LH_CAP_N), W, A  ; W = cap_n
+    CPFSEQ  (_S + LS_CR_W), B
     BRA     lcd2_fill
-    CLRF    (_S + 45), B            ; the ring wraps
-    CLRF    (_S + 46), B
+    CLRF    (_S + LS_CR_W), B            ; the ring wraps
+    CLRF    (_S + LS_CR_WI), B
 lcd2_fill:
-    CPFSEQ  (_S + 47), B            ; filled < cap_n: one more
-    INCF    (_S + 47), F, B
+    CPFSEQ  (_S + LS_CR_FILLED), B            ; filled < cap_n: one more
+    INCF    (_S + LS_CR_FILLED), F, B
     MOVF    _S, W, B
     XORLW   2
     BNZ     lcd2_end
-    INCF    (_S + 48), F, B         ; post++
-    MOVF    (_S + 40), W, B         ; post + pre == cap_n: the record is complete
-    ADDWF   (_S + 48), W, B
-    XORWF   (_link_hot + 21), W, A
+    INCF    (_S + LS_CR_POST), F, B         ; post++
+    MOVF    (_S + LS_CAP_PRE), W, B         ; post + pre == cap_n: the record is complete
+    ADDWF   (_S + LS_CR_POST), W, B
+    XORWF   (_link_hot + LH_CAP_N), W, A
     BNZ     lcd2_end
-    MOVF    (_S + 51), W, B         ; total = tidx + post
-    ADDWF   (_S + 48), W, B
-    MOVWF   (_S + 49), B
-    SUBWF   (_S + 45), W, B         ; start = (w - total) mod cap_n
+    MOVF    (_S + LS_CR_TIDX), W, B         ; total = tidx + post
+    ADDWF   (_S + LS_CR_POST), W, B
+    MOVWF   (_S + LS_CR_TOTAL), B
+    SUBWF   (_S + LS_CR_W), W, B         ; start = (w - total) mod cap_n
     BC      lcd2_start
-    ADDWF   (_link_hot + 21), W, A
+    ADDWF   (_link_hot + LH_CAP_N), W, A
 lcd2_start:
-    MOVWF   (_S + 50), B
+    MOVWF   (_S + LS_CR_START), B
     MOVLW   3
     MOVWF   _S, B
 lcd2_end:
@@ -2758,84 +2941,88 @@ lcd2_end:
 }
 #endif
 
+/* Contract: in the speed-loop sample (the signals through app_signal); out the telemetry and
+ * capture samples written when due (tm_ready set, drops counted); clobbers W, STATUS, BSR, PROD,
+ * FSR0, TBLPTR, TABLAT (interrupt context: the prologue saves them); counters wrap modulo 2^16
+ * as the C's. */
 void link_sample(void) __naked
 {
     __asm
     BANKSEL _sg
-    CLRF    (_sg + 4), B            ; sg.tm = sg.cm = 0
-    CLRF    (_sg + 5), B
-    CLRF    (_sg + 6), B
-    CLRF    (_sg + 7), B
-    MOVF    (_link_hot + 13), W, A  ; telemetry on (tm_dec != 0)?
-    IORWF   (_link_hot + 14), W, A
+    CLRF    (_sg + SG_TM), B            ; sg.tm = sg.cm = 0
+    CLRF    (_sg + SG_TM + 1), B
+    CLRF    (_sg + SG_CM), B
+    CLRF    (_sg + SG_CM + 1), B
+    MOVF    (_link_hot + LH_TM_DEC), W, A  ; telemetry on (tm_dec != 0)?
+    IORWF   (_link_hot + LH_TM_DEC + 1), W, A
     BZ      lsm_cap
-    INFSNZ  (_link_hot + 15), F, A  ; tr.div++
-    INCF    (_link_hot + 16), F, A
-    MOVF    (_link_hot + 13), W, A  ; tr.div - tm_dec: borrow = not due yet
-    SUBWF   (_link_hot + 15), W, A
-    MOVF    (_link_hot + 14), W, A
-    SUBWFB  (_link_hot + 16), W, A
+    INFSNZ  (_link_hot + LH_TR_DIV), F, A  ; tr.div++
+    INCF    (_link_hot + LH_TR_DIV + 1), F, A
+    MOVF    (_link_hot + LH_TM_DEC), W, A  ; tr.div - tm_dec: borrow = not due yet
+    SUBWF   (_link_hot + LH_TR_DIV), W, A
+    MOVF    (_link_hot + LH_TM_DEC + 1), W, A
+    SUBWFB  (_link_hot + LH_TR_DIV + 1), W, A
     BNC     lsm_cap
-    CLRF    (_link_hot + 15), A
-    CLRF    (_link_hot + 16), A
+    CLRF    (_link_hot + LH_TR_DIV), A
+    CLRF    (_link_hot + LH_TR_DIV + 1), A
     BANKSEL _S
-    MOVF    (_link_hot + 11), W, A  ; tm_ready: the last frame is not sent yet: a drop
+    MOVF    (_link_hot + LH_TM_READY), W, A  ; tm_ready: the last frame is not sent yet: a drop
     BZ      lsm_fill
-    MOVF    (_S + 6), W, B          ; tm_dropped++, saturating: not at 0xFFFF
-    ANDWF   (_S + 7), W, B
-    INCF    0xFE8, W, A
+    MOVF    (_S + LS_TM_DROPPED), W, B          ; tm_dropped++, saturating: not at 0xFFFF
+    ANDWF   (_S + LS_TM_DROPPED + 1), W, B
+    INCF    _WREG, W, A
     BZ      lsm_count
-    INFSNZ  (_S + 6), F, B
-    INCF    (_S + 7), F, B
+    INFSNZ  (_S + LS_TM_DROPPED), F, B
+    INCF    (_S + LS_TM_DROPPED + 1), F, B
     BRA     lsm_count
 lsm_fill:
-    MOVF    (_link_hot + 19), W, A  ; the first sample of a frame: its counter, the header
+    MOVF    (_link_hot + LH_TR_NSAMP), W, A  ; the first sample of a frame: its counter, the header
     BNZ     lsm_ptr
-    MOVFF   (_link_hot + 17), _tm_buf
-    MOVFF   (_link_hot + 18), (_tm_buf + 1)
+    MOVFF   (_link_hot + LH_TR_COUNTER), _tm_buf
+    MOVFF   (_link_hot + LH_TR_COUNTER + 1), (_tm_buf + 1)
     MOVLW   2
-    MOVWF   (_link_hot + 20), A
+    MOVWF   (_link_hot + LH_TR_LEN), A
 lsm_ptr:
-    MOVF    (_link_hot + 20), W, A  ; sg.p = &tm_buf[tr.len], sg.tm = tm_mask
+    MOVF    (_link_hot + LH_TR_LEN), W, A  ; sg.p = &tm_buf[tr.len], sg.tm = tm_mask
     ADDLW   LOW(_tm_buf)
-    MOVFF   0xFE8, _sg
+    MOVFF   _WREG, _sg
     MOVLW   HIGH(_tm_buf)
-    BTFSC   0xFD8, 0, A
+    BTFSC   _STATUS, 0, A
     ADDLW   1
-    MOVFF   0xFE8, (_sg + 1)
-    MOVFF   (_S + 35), (_sg + 4)
-    MOVFF   (_S + 36), (_sg + 5)
-    MOVF    (_link_hot + 12), W, A  ; tr.len += tm_nb, tr.nsamp++
-    ADDWF   (_link_hot + 20), F, A
-    INCF    (_link_hot + 19), F, A
-    MOVF    (_S + 20), W, B         ; tr.nsamp >= tm_spf: the frame is ready (filled before return)
-    CPFSLT  (_link_hot + 19), A
-    BSF     (_link_hot + 11), 0, A
+    MOVFF   _WREG, (_sg + SG_P + 1)
+    MOVFF   (_S + LS_TM_MASK), (_sg + SG_TM)
+    MOVFF   (_S + LS_TM_MASK + 1), (_sg + SG_TM + 1)
+    MOVF    (_link_hot + LH_TM_NB), W, A  ; tr.len += tm_nb, tr.nsamp++
+    ADDWF   (_link_hot + LH_TR_LEN), F, A
+    INCF    (_link_hot + LH_TR_NSAMP), F, A
+    MOVF    (_S + LS_TM_SPF), W, B         ; tr.nsamp >= tm_spf: the frame is ready (filled before return)
+    CPFSLT  (_link_hot + LH_TR_NSAMP), A
+    BSF     (_link_hot + LH_TM_READY), 0, A
 lsm_count:
-    INFSNZ  (_link_hot + 17), F, A  ; tr.counter++
-    INCF    (_link_hot + 18), F, A
+    INFSNZ  (_link_hot + LH_TR_COUNTER), F, A  ; tr.counter++
+    INCF    (_link_hot + LH_TR_COUNTER + 1), F, A
 lsm_cap:
 #if LINK_WITH_CAPTURE
     BANKSEL _S
     DECF    _S, W, B                ; cap_state ARMED or TRIGGERED: a capture sample may be due
     SUBLW   1
-    BTFSC   0xFD8, 0, A
+    BTFSC   _STATUS, 0, A
     CALL    _capture_due
 #endif
     BANKSEL _sg
-    MOVF    (_sg + 4), W, B
-    IORWF   (_sg + 5), W, B
-    IORWF   (_sg + 6), W, B
-    IORWF   (_sg + 7), W, B
-    BTFSS   0xFD8, 2, A             ; a signal to write (Z clear)
+    MOVF    (_sg + SG_TM), W, B
+    IORWF   (_sg + SG_TM + 1), W, B
+    IORWF   (_sg + SG_CM), W, B
+    IORWF   (_sg + SG_CM + 1), W, B
+    BTFSS   _STATUS, 2, A ; a signal to write (Z clear)
     CALL    _put_signals
 #if LINK_WITH_CAPTURE
     BANKSEL _sg
-    MOVF    (_sg + 2), W, B         ; a capture sample was written: sg.q = 0, capture_done
-    IORWF   (_sg + 3), W, B
+    MOVF    (_sg + SG_Q), W, B         ; a capture sample was written: sg.q = 0, capture_done
+    IORWF   (_sg + SG_Q + 1), W, B
     BZ      lsm_end
-    CLRF    (_sg + 2), B
-    CLRF    (_sg + 3), B
+    CLRF    (_sg + SG_Q), B
+    CLRF    (_sg + SG_Q + 1), B
     CALL    _capture_done
 lsm_end:
 #endif
@@ -2844,50 +3031,54 @@ lsm_end:
 }
 
 /* ---- time base: watchdog, uptime ---- */
+/* Contract: in nothing (a 1 ms tick); out S.uptime_ms + 1 (wraps modulo 2^32), the link watchdog
+ * counted and app_link_lost called once it expires; clobbers W, STATUS, BSR, PROD and what the
+ * compiled C it calls may change (W, STATUS, BSR, PROD, FSR0, TBLPTR, TABLAT); wd_ms saturates
+ * at 0xFFFF. */
 void link_tick_ms(void) __naked
 {
     __asm
     extern  _app_link_lost
     BANKSEL _S
-    INCF    (_S + 8), F, B          ; uptime_ms++ (32 bits)
+    INCF    (_S + LS_UPTIME_MS), F, B          ; uptime_ms++ (32 bits)
     BNZ     ltk_wd
-    INCF    (_S + 9), F, B
+    INCF    (_S + LS_UPTIME_MS + 1), F, B
     BNZ     ltk_wd
-    INCF    (_S + 10), F, B
+    INCF    (_S + LS_UPTIME_MS + 2), F, B
     BNZ     ltk_wd
-    INCF    (_S + 11), F, B
+    INCF    (_S + LS_UPTIME_MS + 3), F, B
 ltk_wd:
-    MOVF    (_S + 27), W, B         ; wd_armed
+    MOVF    (_S + LS_WD_ARMED), W, B
     BZ      ltk_clear
-    MOVF    (_S + 13), W, B         ; rx_valid: a host command arrived
+    MOVF    (_S + LS_RX_VALID), W, B         ; rx_valid: a host command arrived
     BZ      ltk_count
-    CLRF    (_S + 13), B
+    CLRF    (_S + LS_RX_VALID), B
 ltk_clear:
-    CLRF    (_S + 28), B            ; wd_ms = 0
-    CLRF    (_S + 29), B
+    CLRF    (_S + LS_WD_MS), B            ; wd_ms = 0
+    CLRF    (_S + LS_WD_MS + 1), B
     RETURN
 ltk_count:
-    MOVF    (_S + 28), W, B         ; wd_ms++, saturating: not at 0xFFFF
-    ANDWF   (_S + 29), W, B
-    INCF    0xFE8, W, A
+    MOVF    (_S + LS_WD_MS), W, B         ; wd_ms++, saturating: not at 0xFFFF
+    ANDWF   (_S + LS_WD_MS + 1), W, B
+    INCF    _WREG, W, A
     BZ      ltk_cmp
-    INFSNZ  (_S + 28), F, B
-    INCF    (_S + 29), F, B
+    INFSNZ  (_S + LS_WD_MS), F, B
+    INCF    (_S + LS_WD_MS + 1), F, B
 ltk_cmp:
-    MOVFF   (_link_params + 17), 0xFF3   ; wd_ms - link_timeout: no borrow = expired
-    MOVFF   (_link_params + 18), 0xFF4
-    MOVF    0xFF3, W, A
-    SUBWF   (_S + 28), W, B
-    MOVF    0xFF4, W, A
-    SUBWFB  (_S + 29), W, B
+    MOVFF   (_link_params + LP_LINK_TIMEOUT), _PRODL  ; wd_ms - link_timeout: no borrow = expired
+    MOVFF   (_link_params + LP_LINK_TIMEOUT + 1), _PRODH
+    MOVF    _PRODL, W, A
+    SUBWF   (_S + LS_WD_MS), W, B
+    MOVF    _PRODH, W, A
+    SUBWFB  (_S + LS_WD_MS + 1), W, B
     BNC     ltk_end
-    CLRF    (_S + 27), B            ; disarm, outputs off (the application), the event
-    CLRF    (_S + 28), B
-    CLRF    (_S + 29), B
+    CLRF    (_S + LS_WD_ARMED), B            ; disarm, outputs off (the application), the event
+    CLRF    (_S + LS_WD_MS), B
+    CLRF    (_S + LS_WD_MS + 1), B
     CALL    _app_link_lost
     BANKSEL _S
     MOVLW   1
-    MOVWF   (_S + 33), B
+    MOVWF   (_S + LS_EV_WATCHDOG), B
 ltk_end:
     RETURN
     __endasm;

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Sequence
 
 from picdrive.errors import PicdriveError
+from picdrive.firmware.target import ENLARGED_FLASH_BYTES
 
 CSRC = Path(__file__).resolve().parent / "csrc"
 
@@ -194,8 +195,8 @@ def twin_group(gen_dir: Path) -> Group:
 
 PIL_UNITY = "twin_pil_all.c"
 # the processor twin's memories when the firmware does not fit the 18F4431: the enlarged
-# linker script's (picdrive.firmware.target.enlarged_lkr: 128 KB flash, GPRs to 0x5FF).  Only on request.
-ENLARGED_FLASH_BYTES = 0x20000
+# linker script's (picdrive.firmware.target.enlarged_lkr: ENLARGED_FLASH_BYTES of flash, GPRs to
+# 0x5FF).  Only on request.
 ENLARGED_RAM_END = 0x600
 
 

@@ -16,7 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
-from . import build, ihex
+from picdrive.firmware import ihex, p18f4431
+
+from . import build
 
 SOURCES = ("pic18cpu.c",)
 HEADERS = ("pic18cpu.h",)
@@ -27,12 +29,11 @@ STATUS_NAMES = {0: "ok", 1: "break", 2: "sleep", 3: "stack_overflow", 4: "stack_
                 5: "reset_instruction", 16: "pc_outside_flash", 17: "illegal_opcode"}
 FATAL = 16
 
-# core register addresses
-SFR = {"TOSU": 0xFFF, "TOSH": 0xFFE, "TOSL": 0xFFD, "STKPTR": 0xFFC, "PCLATU": 0xFFB,
-       "PCLATH": 0xFFA, "PCL": 0xFF9, "TBLPTRU": 0xFF8, "TBLPTRH": 0xFF7, "TBLPTRL": 0xFF6,
-       "TABLAT": 0xFF5, "PRODH": 0xFF4, "PRODL": 0xFF3, "INTCON": 0xFF2, "INTCON2": 0xFF1,
-       "INTCON3": 0xFF0, "FSR0H": 0xFEA, "FSR0L": 0xFE9, "WREG": 0xFE8, "FSR1H": 0xFE2,
-       "FSR1L": 0xFE1, "BSR": 0xFE0, "FSR2H": 0xFDA, "FSR2L": 0xFD9, "STATUS": 0xFD8, "RCON": 0xFD0}
+# core register addresses, from p18f4431.inc
+SFR = {n: p18f4431.registers()[n] for n in (
+    "TOSU", "TOSH", "TOSL", "STKPTR", "PCLATU", "PCLATH", "PCL", "TBLPTRU", "TBLPTRH", "TBLPTRL", "TABLAT",
+    "PRODH", "PRODL", "INTCON", "INTCON2", "INTCON3", "FSR0H", "FSR0L", "WREG", "FSR1H", "FSR1L", "BSR",
+    "FSR2H", "FSR2L", "STATUS", "RCON")}
 # pic18_snapshot's layout (then RAM 0x000-0x2FF)
 SNAPSHOT_REGS = ("WREG", "STATUS", "BSR", "FSR0L", "FSR0H", "FSR1L", "FSR1H", "FSR2L", "FSR2H",
                  "PRODL", "PRODH", "TABLAT", "TBLPTRL", "TBLPTRH", "TBLPTRU", "STKPTR", "PCLATH", "PCLATU")

@@ -16,7 +16,9 @@ import ctypes as C
 from dataclasses import dataclass
 from pathlib import Path
 
-from . import build, ihex
+from picdrive.firmware import ihex
+
+from . import build
 from .build import TwinError
 
 
@@ -129,37 +131,30 @@ def check_config(img: ihex.HexImage, board, name: str) -> list[str]:
             f"{'resets' if img.stvren else 'does not reset'} the core; the twin stops either way)"]
 
 
-_BRANCH = {0xE0: "BZ", 0xE1: "BNZ", 0xE2: "BC", 0xE3: "BNC", 0xE4: "BOV", 0xE5: "BNOV", 0xE6: "BN", 0xE7: "BNN"}
-
-
 def mnemonic(flash: bytes, addr: int) -> str:
     """The instruction at ``addr`` in words a reader recognises: control flow by name, anything
-    else by its opcode word(s) (no full disassembler: gpdasm does that)."""
-    def word(a):
-        return flash[a] | (flash[a + 1] << 8) if 0 <= a < len(flash) - 1 else None
-    w, w2 = word(addr), word(addr + 2)
-    if w is None:
+    else by its opcode word(s) (no full disassembler: gpdasm does that).  Decoded by
+    picdrive.firmware.target.decode_insn, the build's own decoder."""
+    from picdrive.firmware.target import decode_insn
+    if not 0 <= addr < len(flash) - 1:
         return f"(no instruction: 0x{addr:06X} is outside the flash)"
-    two = f"0x{w:04X} 0x{w2:04X}" if w2 is not None else f"0x{w:04X}"
-    if (w & 0xFF00) == 0xEF00 and w2 is not None:
-        return f"GOTO 0x{((w & 0xFF) | ((w2 & 0xFFF) << 8)) << 1:06X} ({two})"
-    if (w & 0xFE00) == 0xEC00 and w2 is not None:
-        return f"CALL 0x{((w & 0xFF) | ((w2 & 0xFFF) << 8)) << 1:06X}{', FAST' if w & 0x100 else ''} ({two})"
-    if (w & 0xF000) == 0xD000:
-        n = w & 0x7FF
-        n = n - 0x800 if n & 0x400 else n
-        return f"{'RCALL' if w & 0x800 else 'BRA'} 0x{addr + 2 + 2 * n:06X} (0x{w:04X})"
-    if (w >> 8) in _BRANCH:
-        n = w & 0xFF
-        n = n - 0x100 if n & 0x80 else n
-        return f"{_BRANCH[w >> 8]} 0x{addr + 2 + 2 * n:06X} (0x{w:04X})"
-    named = {0x0012: "RETURN", 0x0013: "RETURN FAST", 0x0010: "RETFIE", 0x0011: "RETFIE FAST",
-             0x0005: "PUSH", 0x0006: "POP", 0x00FF: "RESET", 0x0003: "SLEEP"}
-    if w in named:
-        return f"{named[w]} (0x{w:04X})"
-    if (w & 0xFF00) == 0x0C00:
-        return f"RETLW 0x{w & 0xFF:02X} (0x{w:04X})"
-    if (w & 0xFF00) == 0x6E00 and (w & 0xFF) == 0xF9:
+    kind, op, size, w, w2 = decode_insn(flash, addr)
+    two = f"0x{w:04X} 0x{w2:04X}" if addr + 3 < len(flash) else f"0x{w:04X}"
+    if kind == "goto":
+        return f"GOTO 0x{op:06X} ({two})"
+    if kind == "call":
+        return f"CALL 0x{op:06X}{', FAST' if w & 0x100 else ''} ({two})"
+    if kind in ("rcall", "bra"):
+        return f"{kind.upper()} 0x{op:06X} (0x{w:04X})"
+    if kind == "bcc":
+        return f"{op[0]} 0x{op[1]:06X} (0x{w:04X})"
+    if kind in ("return", "retfie"):
+        return f"{kind.upper()}{' FAST' if op else ''} (0x{w:04X})"
+    if kind in ("push", "pop", "reset", "sleep"):
+        return f"{kind.upper()} (0x{w:04X})"
+    if kind == "retlw":
+        return f"RETLW 0x{op:02X} (0x{w:04X})"
+    if kind == "movwf" and op == 0xFF9:
         return f"MOVWF PCL (0x{w:04X}, a computed jump)"
     return f"opcode 0x{w:04X}"
 

@@ -14,6 +14,7 @@ import tempfile
 from pathlib import Path
 
 from picdrive.link import protocol as P
+from picdrive.firmware.p18f4431 import bits
 from picdrive.link.protocol_c import render_c
 
 HERE = Path(__file__).resolve().parent
@@ -32,7 +33,7 @@ def render(table: P.Table | None = None, *, build_id: int = DEFAULT_BUILD_ID,
            capture_bytes: int = P.CAPTURE_BYTES_DEFAULT) -> dict[str, str]:
     table = table if table is not None else P.build_table(2)
     return render_c(table, build_id=build_id, profile_hash=profile_hash, sample_hz=sample_hz,
-                      capture_bytes=capture_bytes)
+                      capture_bytes=capture_bytes, sfr_bits=bits())
 
 
 def _run(cmd: list[str], cwd: Path) -> None:

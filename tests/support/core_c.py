@@ -18,27 +18,11 @@ __all__ = ["core_structs", "build_core_lib", "rand_params", "rand_law_state", "c
 
 def core_structs(n_rules: int, kff: bool = False):
     """ctypes mirrors of core_params_t, core_law_t, core_state_t for ``n_rules`` rules (``kff``: a
-    build with the reference feedforward, core_s.ff)."""
-    import ctypes as C
-
-    class Params(C.Structure):
-        _fields_ = [("kp", C.c_int16 * n_rules), ("kits", C.c_int16 * n_rules), ("kdts", C.c_int16 * n_rules),
-                    ("kc", C.c_int16 * n_rules), ("premise_lo", C.c_int16), ("premise_hi", C.c_int16),
-                    ("mu_k", C.c_uint16), ("b_q14", C.c_int16), ("u_min", C.c_int16), ("u_max", C.c_int16),
-                    ("controller", C.c_uint8), ("ilim", C.c_int16), ("accel_step", C.c_uint16)]
-
-    class Law(C.Structure):
-        _fields_ = [("integ", C.c_int32), ("d_filt", C.c_int32), ("y_prev", C.c_int16), ("primed", C.c_uint8),
-                    ("mu1", C.c_int16)]
-
-    class State(C.Structure):
-        _fields_ = [("law", Law), ("speed_valid", C.c_uint8), ("pos_prev", C.c_uint16), ("t5_prev", C.c_uint16),
-                    ("w_avg", C.c_int16), ("r_applied", C.c_int16), ("cap", C.c_int16),
-                    ("speed", C.c_int16), ("current", C.c_int16), ("u", C.c_int16), ("dir", C.c_uint8),
-                    ("hold", C.c_uint8), ("pdc", C.c_uint16), ("umin", C.c_int16), ("umax", C.c_int16),
-                    ("t2_prev", C.c_uint8)] + ([("ff", C.c_int32)] if kff else [])
-
-    return Params, Law, State
+    build with the reference feedforward, core_s.ff), from picdrive.firmware.core_layout."""
+    from picdrive.firmware import core_layout as L
+    made: dict = {}
+    defined = {"CORE_KFF"} if kff else set()
+    return tuple(L.ctypes_struct(s, n_rules, defined, made) for s in (L.CORE_PARAMS, L.CORE_LAW, L.CORE_STATE))
 
 
 def build_core_lib(folder, out_dir=None, cc: str = "gcc"):

@@ -32,7 +32,7 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from picdrive_hil import ihex
+from picdrive.firmware import ihex
 from picdrive_hil.pic18 import Pic18, library
 
 CHECK, DONE, START = 0x40, 0x42, 0x44

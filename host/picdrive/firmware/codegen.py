@@ -436,7 +436,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     """
     import jinja2
 
-    from . import fixedpoint, p18f4431, pcpwm, pinmap
+    from . import core_layout, fixedpoint, p18f4431, pcpwm, pinmap
     from .. import outputs
     from ..link import protocol, protocol_c
     from ..paths import templates_dir
@@ -473,7 +473,8 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                                    capture_bytes=capture_bytes, capture=bool(link_capture),
                                    eeprom=bool(link_eeprom),
                                    critical_begin="extern void fw_lock(void); fw_lock();",
-                                   critical_end="extern void fw_unlock(void); fw_unlock();")
+                                   critical_end="extern void fw_unlock(void); fw_unlock();",
+                                   sfr_bits=p18f4431.bits())
     except protocol.ProtocolError as e:
         raise CodegenError(f"the protocol table cannot hold this design's numbers: {e}") from None
 
@@ -486,6 +487,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                link_id={e.name: e.id for e in table.entries}, link_off=_store_offsets(table),
                signal_index={e.name: i for i, e in enumerate(table.signals)},
                bit=p18f4431.bits(),    # bit positions by name, for the assembly: {{ bit.PIR1.RCIF }}
+               layout=core_layout.render_context(plan.n_rules),   # the core's structs and offsets
                link_state={s.name: int(s) for s in protocol.State})   # the drive states, for the assembly
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(templates_dir())),
                              undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True,

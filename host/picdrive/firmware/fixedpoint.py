@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 
 from ..board import FCY_HZ
 from ..errors import PicdriveError
+from .core_layout import CORE_LAW, CORE_PARAMS, CORE_STATE, MU_ONE, model_class
 
 __all__ = ["FixedPointError", "Coef", "FixedPointPlan", "plan_fixed_point", "ParamSpec",
            "param_specs", "signal_specs", "law_parameters", "INT16_MIN", "INT16_MAX", "INT32_MIN", "INT32_MAX",
@@ -53,7 +54,6 @@ INT16_MIN, INT16_MAX = -32768, 32767
 INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
 ADC_COUNTS = 1024          # 10-bit converter, code = Vin / Vref * 1024
 ADC_VREF_V = 5.0
-MU_ONE = 4096              # Q12 membership
 REL_ERR_LIMIT = 0.01       # largest accepted quantisation error of a coefficient
 GAIN_HEADROOM = 2.0
 MT_K_MIN = 65538           # smallest M/T speed constant whose CORE_MT_DMAX = (2^32 - 1) // K is <= 65534
@@ -657,34 +657,9 @@ def signal_specs(plan: FixedPointPlan) -> dict[str, ParamSpec]:
 # ---------------------------------------------------------------------------
 # The model of drive_core.c (names as in the C)
 # ---------------------------------------------------------------------------
-@dataclass
-class LawParams:
-    """core_params_t of the C (raw values, copied from the parameter store)."""
-
-    kp: list
-    kits: list
-    kdts: list
-    kc: list
-    premise_lo: int
-    premise_hi: int
-    mu_k: int
-    b_q14: int
-    u_min: int
-    u_max: int
-    controller: int = 1          # 0 = rule 1 only (PID), 1 = memberships blend all rules
-    ilim: int = 1023
-    accel_step: int = 0          # speed LSB per sample, 0 = no ramp
-
-
-@dataclass
-class LawState:
-    """core_law_t of the C."""
-
-    integ: int = 0
-    d_filt: int = 0
-    y_prev: int = 0
-    primed: int = 0
-    mu1: int = MU_ONE
+LawParams = model_class(CORE_PARAMS, "LawParams", "core_params_t of the C (raw values, copied from the parameter "
+                        "store): picdrive.firmware.core_layout.CORE_PARAMS.")
+LawState = model_class(CORE_LAW, "LawState", "core_law_t of the C: core_layout.CORE_LAW.")
 
 
 def law_params_from_plan(plan: FixedPointPlan) -> LawParams:
@@ -766,24 +741,8 @@ def law_step(plan: FixedPointPlan, p: LawParams, st: LawState, r: int, y: int, i
     return umin if u < umin else umax if u > umax else u
 
 
-@dataclass
-class CoreState:
-    """core_state_t of the C."""
-
-    law: LawState = field(default_factory=LawState)
-    speed_valid: int = 0
-    pos_prev: int = 0
-    t5_prev: int = 0
-    w_avg: int = 0
-    r_applied: int = 0
-    cap: int = 0
-    speed: int = 0
-    current: int = 0
-    u: int = 0
-    dir: int = 0
-    hold: int = 0
-    pdc: int = 0
-    t2_prev: int = 0             # encoder: TMR2 read with the last sample's position (its instant)
+CoreState = model_class(CORE_STATE, "CoreState", "core_state_t of the C: core_layout.CORE_STATE.",
+                        nested={"core_law_t": LawState})
 
 
 def core_reset(plan: FixedPointPlan, st: CoreState) -> None:

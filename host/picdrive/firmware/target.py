@@ -38,13 +38,14 @@ from pathlib import Path
 
 from ..board import FCY_HZ
 from ..errors import PicdriveError
+from .ihex import FLASH_BYTES      # the PIC18F4431's program memory
 
 __all__ = ["TargetError", "Toolchain", "Budgets", "BUDGETS", "FCY_HZ", "RAM_BYTES", "FLASH_BYTES",
            "TARGET_SOURCES", "toolchain", "build_hex", "Build", "Function", "call_graph",
            "budget_lines", "over_budget", "build_measured", "enlarged_lkr", "shared_static_helpers", "unsaved_table_pointer",
            "EEPROM_GPTR_STUBS", "TEST_BUILD_CORE"]
 
-FLASH_BYTES = 16_384         # PIC18F4431 program memory
+ENLARGED_FLASH_BYTES = 0x20000   # enlarged_lkr's program memory (measurement links only)
 RAM_BYTES = 768              # PIC18F4431 data memory (0x000-0x2FF)
 HW_STACK_LEVELS = 31         # PIC18 return-address stack
 STACK_MODEL_BYTES = 256      # SDCC's small stack model: the software stack lives in one bank
@@ -57,7 +58,9 @@ TOOLCHAIN_SCRIPT = "scripts/pic_toolchain.sh"
 #: device library provides.  picdrive's code never forms a pointer into EEPROM, so they are
 #: unreachable: should one be reached anyway, reset (outputs off).  One copy for every SDCC
 #: build: main_sdcc.c (codegen renders it in), the bit-exact test's and bench/link_pic18.py's harnesses.
-EEPROM_GPTR_STUBS = """void eeprom_gptr_unused(void) __naked
+EEPROM_GPTR_STUBS = """/* Contract: never reached (no pointer into EEPROM is formed); if reached, RESET: the chip
+ * restarts with its outputs off. */
+void eeprom_gptr_unused(void) __naked
 {
     __asm
 """ + "".join(f"    global ___eeprom_gptr{op}{n}\n" for op in ("get", "put") for n in (1, 2, 3, 4)) + \
@@ -185,27 +188,24 @@ def parse_map(text: str) -> tuple[list[Section], list[Symbol]]:
     return sections, symbols
 
 
-def read_hex(path) -> dict[int, int]:
-    """Intel HEX -> {byte address: value}."""
-    mem, upper = {}, 0
-    for line in Path(path).read_text().splitlines():
-        if not line.startswith(":"):
-            continue
-        b = bytes.fromhex(line[1:])
-        n, addr, typ = b[0], (b[1] << 8) | b[2], b[3]
-        if typ == 0:
-            for i in range(n):
-                mem[upper + addr + i] = b[4 + i]
-        elif typ == 4:
-            upper = ((b[4] << 8) | b[5]) << 16
-    return mem
+def read_hex(path, flash_bytes: int = FLASH_BYTES) -> bytearray:
+    """The program memory a linked HEX defines (erased bytes 0xFF), read and checked by
+    :func:`picdrive.firmware.ihex.load_hex` (record checksums, overlaps, the 18F4431's memories;
+    ``flash_bytes``: more for a measurement link, ``ENLARGED_FLASH_BYTES``)."""
+    from .ihex import load_hex
+    return load_hex(path, flash_bytes=flash_bytes).flash
 
 
 # ---------------------------------------------------------------------------
 # Call graph from the linked code
 # ---------------------------------------------------------------------------
-POSTDEC1, POSTINC1, PREINC1, FSR1L = 0xFE5, 0xFE6, 0xFE4, 0xFE1
-TABLE_REGS = {0xFF5: "TABLAT", 0xFF6: "TBLPTRL", 0xFF7: "TBLPTRH", 0xFF8: "TBLPTRU"}
+def _sfr(name: str) -> int:
+    from .p18f4431 import registers
+    return registers()[name]
+
+
+POSTDEC1, POSTINC1, PREINC1, FSR1L = (_sfr(n) for n in ("POSTDEC1", "POSTINC1", "PREINC1", "FSR1L"))
+TABLE_REGS = {_sfr(n): n for n in ("TABLAT", "TBLPTRL", "TBLPTRH", "TBLPTRU")}
 ACCESS_SPLIT = 0x60          # 18F4431: access-bank addresses >= 0x60 are SFRs 0xF60..
 
 
@@ -235,52 +235,64 @@ def _file_reg(word: int) -> int:
     return -1   # banked: not an SFR this analysis follows
 
 
-def _decode(mem: dict[int, int], start: int, end: int):
-    """Yield (address, kind, operands) for the instructions in [start, end)."""
+BRANCHES = {0xE0: "BZ", 0xE1: "BNZ", 0xE2: "BC", 0xE3: "BNC", 0xE4: "BOV", 0xE5: "BNOV", 0xE6: "BN", 0xE7: "BNN"}
+_NAMED = {0x0012: ("return", 0), 0x0013: ("return", 1), 0x0010: ("retfie", 0), 0x0011: ("retfie", 1),
+          0x0005: ("push", None), 0x0006: ("pop", None), 0x00FF: ("reset", None), 0x0003: ("sleep", None)}
+
+
+def decode_insn(mem: bytes, pc: int) -> tuple[str, object, int, int, int]:
+    """The PIC18 instruction at ``pc`` of program memory ``mem`` (beyond it reads as erased):
+    ``(kind, operands, size in bytes, first word, second word)``.  The one Python decoder of
+    picdrive (the call graph here; the processor twin's stop messages, picdrive_hil.pil): control
+    flow by kind and target, the register moves the stack and table-pointer analyses follow, any
+    other instruction as "other" with the register it reads or writes (or -1)."""
+    def byte(a):
+        return mem[a] if 0 <= a < len(mem) else 0xFF
+    w = byte(pc) | (byte(pc + 1) << 8)
+    w2 = byte(pc + 2) | (byte(pc + 3) << 8)
+    hi = w >> 8
+    if (w & 0xFE00) == 0xEC00 or hi == 0xEF:                # CALL (FAST: bit 8) / GOTO
+        return ("call" if hi in (0xEC, 0xED) else "goto"), ((w & 0xFF) | ((w2 & 0xFFF) << 8)) * 2, 4, w, w2
+    if (w & 0xF000) == 0xC000:                               # MOVFF src, dst
+        return "movff", (w & 0xFFF, w2 & 0xFFF), 4, w, w2
+    if (w & 0xFFC0) == 0xEE00:                               # LFSR
+        return "lfsr", ((w >> 4) & 3, ((w & 0xF) << 8) | (w2 & 0xFF)), 4, w, w2
+    if (w & 0xF000) == 0xD000:                               # RCALL / BRA
+        n = w & 0x7FF
+        n = n - 0x800 if n & 0x400 else n
+        return ("rcall" if w & 0x0800 else "bra"), pc + 2 + 2 * n, 2, w, w2
+    if hi in BRANCHES:                                       # conditional branch: (name, target)
+        n = w & 0xFF
+        return "bcc", (BRANCHES[hi], pc + 2 + 2 * (n - 0x100 if n & 0x80 else n)), 2, w, w2
+    if 0x0008 <= w <= 0x000B:
+        return "tblrd", None, 2, w, w2
+    if w in _NAMED:
+        kind, op = _NAMED[w]
+        return kind, op, 2, w, w2
+    if hi == 0x0C:
+        return "retlw", w & 0xFF, 2, w, w2
+    if hi == 0x0E:
+        return "movlw", w & 0xFF, 2, w, w2
+    if (w & 0xFE00) == 0x6E00:
+        return "movwf", _file_reg(w), 2, w, w2
+    if (w & 0xFC00) == 0x5000:
+        return "movf", _file_reg(w), 2, w, w2
+    if (w & 0xFC00) == 0x2400:
+        return "addwf", (_file_reg(w), (w >> 9) & 1), 2, w, w2
+    if (w & 0xFC00) == 0x5C00:
+        return "subwf", (_file_reg(w), (w >> 9) & 1), 2, w, w2
+    if (w & 0xFC00) in (0x6800, 0x6A00) or (w & 0xF000) in (0x7000, 0x8000, 0x9000):
+        return "write", _file_reg(w), 2, w, w2                # SETF/CLRF, BTG/BSF/BCF: writes a register
+    return "other", _file_reg(w) if 0x1000 <= w < 0x7000 else -1, 2, w, w2
+
+
+def _decode(mem: bytes, start: int, end: int):
+    """Yield (address, kind, operands) for the instructions in [start, end) (decode_insn)."""
     pc = start
     while pc < end:
-        w = mem.get(pc, 0xFF) | (mem.get(pc + 1, 0xFF) << 8)
-        w2 = mem.get(pc + 2, 0xFF) | (mem.get(pc + 3, 0xFF) << 8)
-        hi = w >> 8
-        if (w & 0xFE00) == 0xEC00 or hi == 0xEF:            # CALL / GOTO
-            target = ((w & 0xFF) | ((w2 & 0xFFF) << 8)) * 2
-            yield pc, ("call" if hi in (0xEC, 0xED) else "goto"), target
-            pc += 4
-            continue
-        if (w & 0xF000) == 0xC000:                           # MOVFF src, dst
-            yield pc, "movff", (w & 0xFFF, w2 & 0xFFF)
-            pc += 4
-            continue
-        if (w & 0xFFC0) == 0xEE00:                           # LFSR
-            yield pc, "lfsr", ((w >> 4) & 3, ((w & 0xF) << 8) | (w2 & 0xFF))
-            pc += 4
-            continue
-        if (w & 0xF800) == 0xD800 or (w & 0xF800) == 0xD000:  # RCALL / BRA
-            n = w & 0x7FF
-            n = n - 0x800 if n & 0x400 else n
-            yield pc, ("rcall" if w & 0x0800 else "bra"), pc + 2 + 2 * n
-            pc += 2
-            continue
-        if 0x0008 <= w <= 0x000B:
-            yield pc, "tblrd", None
-        elif w == 0x0005:
-            yield pc, "push", None
-        elif hi == 0x0E:
-            yield pc, "movlw", w & 0xFF
-        elif (w & 0xFE00) == 0x6E00:
-            yield pc, "movwf", _file_reg(w)
-        elif (w & 0xFC00) == 0x5000:
-            yield pc, "movf", _file_reg(w)
-        elif (w & 0xFC00) == 0x2400:
-            yield pc, "addwf", (_file_reg(w), (w >> 9) & 1)
-        elif (w & 0xFC00) == 0x5C00:
-            yield pc, "subwf", (_file_reg(w), (w >> 9) & 1)
-        elif (w & 0xFC00) in (0x6800, 0x6A00) or (w & 0xF000) in (0x7000, 0x8000, 0x9000):
-            # SETF/CLRF, BTG/BSF/BCF: writes to a register
-            yield pc, "write", _file_reg(w)
-        else:
-            yield pc, "other", _file_reg(w) if 0x1000 <= w < 0x7000 else -1
-        pc += 2
+        kind, op, size, _w, _w2 = decode_insn(mem, pc)
+        yield pc, kind, op
+        pc += size
 
 
 _IVAL = re.compile(r"Starting pCode block for Ival\s*\n(?:\s*\S*\s+code\s*\n)?(_\w+):")
@@ -291,7 +303,7 @@ def const_tables(asm_text: str) -> set[str]:
     return set(_IVAL.findall(asm_text))
 
 
-def call_graph(mem: dict[int, int], sections: list[Section], symbols: list[Symbol],
+def call_graph(mem: bytes, sections: list[Section], symbols: list[Symbol],
                tables: set[str] = frozenset()) -> dict[str, Function]:
     """Functions of the linked program with their calls, frames and table-pointer use.
 
@@ -523,7 +535,8 @@ def build_hex(folder, out_dir, *, name: str = "firmware", linker_script=None, so
         _run([tc.gplink, "-m", "-w", "-s", lkr.resolve(), "-o", f"{name}.hex", *objs], work,
              "gplink (the firmware does not fit the PIC18F4431)" if linker_script is None else "gplink")
         sections, symbols = parse_map((work / f"{name}.map").read_text())
-        return sections, symbols, read_hex(work / f"{name}.hex")
+        return sections, symbols, read_hex(work / f"{name}.hex",
+                                           FLASH_BYTES if linker_script is None else ENLARGED_FLASH_BYTES)
 
     sections, symbols, mem = link(1)
     tables = const_tables(asm_text)
@@ -589,7 +602,7 @@ def enlarged_lkr() -> str:
     """
     return "\n".join([
         "LIBPATH .",
-        "CODEPAGE   NAME=page       START=0x0               END=0x1FFFF",
+        f"CODEPAGE   NAME=page       START=0x0               END=0x{ENLARGED_FLASH_BYTES - 1:X}",
         "CODEPAGE   NAME=idlocs     START=0x200000          END=0x200007       PROTECTED",
         "CODEPAGE   NAME=config     START=0x300000          END=0x30000D       PROTECTED",
         "CODEPAGE   NAME=devid      START=0x3FFFFE          END=0x3FFFFF       PROTECTED",

@@ -127,7 +127,8 @@ def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, ca
 
 def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float | None = None,
              capture_bytes: int = CAPTURE_BYTES_DEFAULT, critical_begin: str = "",
-             critical_end: str = "", capture: bool = True, eeprom: bool = True) -> dict[str, str]:
+             critical_end: str = "", capture: bool = True, eeprom: bool = True,
+             sfr_bits: dict | None = None) -> dict[str, str]:
     """Render the C link module for ``table``.
 
     Returns ``{"link_fw.h": text, "link_fw.c": text}``.  ``build_id`` and
@@ -144,6 +145,9 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
     persistence, or leave them out to save flash (``LINK_WITH_CAPTURE``/``LINK_WITH_EEPROM``;
     a build without capture NACKs its commands UNKNOWN_COMMAND and reports 0 capture words in
     hello; one without EEPROM refuses eeprom_save and loads nothing).
+    ``sfr_bits``: the device's bit positions by register and bit name
+    (``picdrive.firmware.p18f4431.bits()``), for the PIC18 assembly's bit operands; the
+    firmware layer owns the device description, so its caller passes it in.
     """
     if not isinstance(table, Table):
         raise ProtocolError("render_c needs a protocol.Table from build_table()")
@@ -159,6 +163,8 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
         hz = int(round(sample_hz))
     for k, (name, code, _doc) in enumerate(BOARD_FRAMES):
         assert code not in COMMAND_BY_CODE
+    if sfr_bits is None:
+        raise ProtocolError("render_c needs sfr_bits: picdrive.firmware.p18f4431.bits() (the assembly's bit names)")
     ctx = dict(
         table=table, entries=table.entries, params=table.params, signals=table.signals,
         persisted=table.persisted, commands=COMMANDS, version=PROTOCOL_VERSION,
@@ -175,7 +181,7 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
         ee_magic=EEPROM_MAGIC, ee_version=EEPROM_LAYOUT_VERSION, ee_header=EEPROM_HEADER_BYTES,
         ee_image=table.eeprom_image_bytes, telem_header=TELEMETRY_HEADER_BYTES,
         capread_header=CAPTURE_READ_HEADER_BYTES, budget=ram_budget(table, capture_bytes), state_bytes=STATE_BYTES,
-        critical_begin=critical_begin, critical_end=critical_end, c_int=_c_int,
+        critical_begin=critical_begin, critical_end=critical_end, c_int=_c_int, bit=sfr_bits,
         with_capture=bool(capture), with_eeprom=bool(eeprom),
         cmd=COMMAND_BY_NAME, hexu=lambda v: f"0x{v:08X}UL", **_c_tables(table, build_id, profile_hash, hz,
                                                                           capture_bytes // 2),

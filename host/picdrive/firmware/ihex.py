@@ -1,4 +1,6 @@
-"""Intel HEX (INHX32) images for the PIC18F4431, strictly validated.
+"""Intel HEX (INHX32) images for the PIC18F4431, strictly validated: the one HEX reader of
+picdrive (the firmware build's call-graph analysis, picdrive.firmware.target, and the
+processor twin, picdrive_hil, both read through it).
 
 A HEX from gputils, SDCC or XC8 addresses bytes: program flash 0x0000-0x3FFF
 (16 KB), user ID 0x200000-0x200007, configuration bytes 0x300000-0x30000D
