@@ -242,3 +242,27 @@ def test_twin_comparator_sees_the_current_inside_the_pwm_period(micro):
     excess = pwm_ripple_peak_a(micro.inverter.bus_voltage_v, micro.motor.r_line_ohm, micro.motor.l_line_h, d, h)
     assert excess > 0.1
     assert cp.state.i_peak_a == pytest.approx(i_avg + excess, rel=1e-6)
+
+
+def test_the_backup_is_judged_on_what_it_cut_not_on_ripple_past_the_limit():
+    """A flywheel accelerating at the 10 A limit (T-Motor AK80-6, its ZN law): the window holds the mean
+    current at the limit, so the sampled current crosses it by its ripple and the backup's cap leaves the
+    top in some samples, yet never cuts the law's output: the window alone holds the current.  With the
+    current limit halved in the firmware only (the law's window still at 10 A), the backup does cut it."""
+    from pathlib import Path
+    from picdrive.analysis.steptest import run_sim, sim_plan
+    from picdrive.control_law import Rule, ScheduledLaw
+    from picdrive.gate import BuiltDrive
+    prof = load_profile(Path(__file__).parent / "motors" / "tmotor_ak80_6_flywheel.toml")
+    law = ScheduledLaw(rules=(Rule(10.47017288457329, 2028.82192435831, 0.013508396044606847, 0.0),),
+                       premise_rad_s=(0.0, 41.8879020478639), sample_time_s=1e-3, u_min_v=-22.08, u_max_v=22.08,
+                       current_limit_a=10.0, kb_v_s_per_rad=prof.motor.kb_v_s_per_rad, r_ohm=prof.motor.r_line_ohm)
+    drive = BuiltDrive()
+    sim = run_sim(prof, law, sim_plan(prof), measurement=drive.speed_measurement(prof, law), disturbances=False,
+                  three_phase=drive.three_phase_plant)
+    assert np.sum(sim.cap_active) > 0 and not np.any(sim.cap_cut)
+    assert np.max(sim.i_meas) > 10.0                              # it did cross the limit
+    low = prof.replace(inverter={"current_limit_a": 5.0})
+    sim = run_sim(low, law, sim_plan(prof), measurement=drive.speed_measurement(low, law), disturbances=False,
+                  three_phase=drive.three_phase_plant)
+    assert np.sum(sim.cap_cut) > 10

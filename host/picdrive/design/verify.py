@@ -393,19 +393,24 @@ def _sim_checks(profile, law, drive) -> dict:
                                              f"trip; the current limit is {profile.inverter.current_limit_a:g} A"}
     if not out["sim_peak_bus_current_a"]["ok"]:
         out["sim_peak_bus_current_a"]["fix"] = _peak_current_fix(profile, f["peak_current_ripple_a"])
-    n_cap = int(np.sum(sim.cap_active))
+    # the window holds the mean current at the limit, so the sampled current crosses it by its ripple and
+    # the backup's cap leaves the top now and then; that is harmless while the cap stays above what the
+    # law asks (the window still sets the output).  Counted: the samples where the cap cut the output.
+    n_cap = int(np.sum(sim.cap_cut))
     out["sim_current_backup_samples"] = {"value": n_cap, "limit": 0, "ok": bool(n_cap == 0), "unit": "samples",
-                                         "note": "samples with the firmware's walk-down backup (measured current "
-                                                 "above the limit) engaged: the window alone must hold the current"}
+                                         "note": "samples where the firmware's walk-down backup (measured current "
+                                                 "above the limit) cut the law's output: the window alone must hold "
+                                                 f"the current (the cap left the top in {int(np.sum(sim.cap_active))} "
+                                                 "samples)"}
     # the same run with the injected disturbance (the 2016 paper's w3), kept apart
     try:
         sd = run_sim(profile, law, plan, measurement=measurement, three_phase=drive.three_phase_plant)
         fd = step_figures(sd, plan, profile)
         dist = {k: round(fd[k], 4) for k, _, _ in RUN_FIGURES}
-        dist["current_backup_samples"] = int(np.sum(sd.cap_active))
+        dist["current_backup_samples"] = int(np.sum(sd.cap_cut))
         fails = run_failures(fd, lims, "with the disturbance")
         if dist["current_backup_samples"]:
-            fails.append(f"with the disturbance: the current walk-down backup engaged for "
+            fails.append(f"with the disturbance: the current walk-down backup cut the output in "
                          f"{dist['current_backup_samples']} samples (limit 0)")
     except FloatingPointError:
         dist, fails = "diverged", ["with the disturbance: the simulation diverged"]

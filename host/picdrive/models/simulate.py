@@ -286,6 +286,7 @@ class SixStepResult:
     i_fine: np.ndarray
     i_peak_fine: np.ndarray = field(default_factory=lambda: np.zeros(0))   # |i| + the PWM ripple above the
                                                                             # period average (pwm_ripple_peak_a)
+    cap_cut: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # the backup cap cut the law's output
 
     @property
     def rpm(self) -> np.ndarray:
@@ -413,6 +414,7 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     rpm = 2.0 * math.pi / 60.0
     o = {k: np.zeros(n) for k in ("t", "omega", "y", "i", "im", "u", "lo", "hi", "dir", "I", "ref", "load")}
     cap_on = np.zeros(n, bool)
+    cap_cut = np.zeros(n, bool)
     nf = n * n_sub
     tf, wf, jf, pf = np.zeros(nf), np.zeros(nf), np.zeros(nf), np.zeros(nf)
     ripple = {}                                      # duty -> the PWM ripple above the period average
@@ -479,9 +481,10 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
         cap = max(0.0, cap - cap_step) if over else min(pl.u_bridge_v, cap + cap_step)
         r = rfun(t) * rpm
         lo, hi = law.output_limits(y)
-        u = law_step(law, st, r, y, i_m)
-        u = min(max(u, -cap, -pl.u_bridge_v), cap, pl.u_bridge_v)
+        u_law = law_step(law, st, r, y, i_m)
+        u = min(max(u_law, -cap, -pl.u_bridge_v), cap, pl.u_bridge_v)
         cap_on[k] = cap < pl.u_bridge_v - 1e-9
+        cap_cut[k] = abs(u_law) > cap + 1e-9       # the backup, not the window, set the output
         newdir = 1 if u < 0 else 0
         hold = False
         if u != 0.0 and newdir != dir_fw:
@@ -578,7 +581,7 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     return SixStepResult(t=o["t"], omega=o["omega"], y=o["y"], i=o["i"], i_meas=o["im"], u=o["u"], u_lo=o["lo"],
                          u_hi=o["hi"], direction=o["dir"], integ=o["I"], ref=o["ref"], load=o["load"],
                          cap_active=cap_on, t_fine=tf[:kf], omega_fine=wf[:kf], i_fine=jf[:kf],
-                         i_peak_fine=pf[:kf])
+                         i_peak_fine=pf[:kf], cap_cut=cap_cut)
 
 
 def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: float, load_n_m: float = 0.0,
