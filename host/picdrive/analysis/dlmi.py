@@ -85,6 +85,7 @@ class SampledTS:
     meas_names: tuple
     current_gain: float             # measured current = current_gain x the model's current state (dq: i_bus/i_q)
     vertices: list = field(default_factory=list)
+    D: list | None = None           # D[i] (s x 1): the command's weight in the performance output (None: 0)
 
     @property
     def r(self) -> int:
@@ -148,7 +149,7 @@ def _discretise(Ap, Bp, Bwp, ts_s, delay_s):
 
 
 def sampled_model(profile, ts, *, zero_gain_states=(), delay_s: float | None = None, dc_vertices: bool = False,
-                  current_gain: float = 1.0) -> SampledTS:
+                  current_gain: float = 1.0, effort_weight: float = 0.0) -> SampledTS:
     """The sampled TS model of the law's loop (module docstring) from the continuous TS model ``ts``.
 
     Parameters
@@ -170,6 +171,10 @@ def sampled_model(profile, ts, *, zero_gain_states=(), delay_s: float | None = N
         certificate then also covers the plant the verification checks.
     current_gain : float
         The measured current per unit of the model's current state (dq: ``i_bus / i_q``).
+    effort_weight : float
+        Weight of the command in the performance output, rad/s per V: an output row ``z_u = effort_weight u``
+        beside the speed error (0: none).  It prices the command against the speed error in the H-inf
+        norm, so a larger weight gives gentler gains.
 
     Vertices: each rule's plant at R nominal and x (1 -+ eps) (``ts.E H1``, Assumption 1's
     direction, at ``F = -+rho``), at each polytope offset of ``ts`` (the EMF range) and at the
@@ -253,13 +258,17 @@ def sampled_model(profile, ts, *, zero_gain_states=(), delay_s: float | None = N
     B = [[Si @ T @ b * su for b in Bi] for Bi in B]
     Bw = [[Si @ T @ bw for bw in Bwi] for Bwi in Bw]
     C = [c @ Ti @ Sm for c in C]
+    D = [np.zeros((c.shape[0], 1)) for c in C]
+    if effort_weight > 0:
+        C = [np.vstack([c, np.zeros((1, n))]) for c in C]
+        D = [np.vstack([d, [[float(effort_weight) * su]]]) for d in D]
     st = list(ts.state_names)
     plant_names = st[:npl]
     meas = ("y (measured speed)",) + tuple(plant_names[k] for k in cur) + (st[-1],)
     all_names = tuple(plant_names) + ("w_avg", "w_avg_prev", "u_prev", st[-1])
     return SampledTS(A=A, B=B, Bw=Bw, C=C, n_meas=n_meas, T=T, S=S, su=su, ts_s=Ts, delay_s=hd,
                      state_names=meas + tuple(all_names[k] for k in rest), meas_names=meas,
-                     current_gain=float(current_gain), vertices=names)
+                     current_gain=float(current_gain), vertices=names, D=D)
 
 
 def normalised(sm: SampledTS) -> tuple[SampledTS, float, float]:
@@ -270,9 +279,12 @@ def normalised(sm: SampledTS) -> tuple[SampledTS, float, float]:
     sit at 1e-4 .. 1e-2 on duy2008."""
     from dataclasses import replace
     nb = max(float(np.linalg.norm(bw, 2)) for bwi in sm.Bw for bw in bwi)
-    nc = max(float(np.linalg.norm(c, 2)) for c in sm.C)
-    nb, nc = (x if x > 0 else 1.0 for x in (nb, nc))
-    return replace(sm, Bw=[[bw / nb for bw in bwi] for bwi in sm.Bw], C=[c / nc for c in sm.C]), nb, nc
+    nb = nb if nb > 0 else 1.0
+    nc = max(float(np.linalg.norm(np.hstack([c, d]), 2)) for c, d in zip(sm.C, sm.D or [np.zeros((c.shape[0], 1))
+                                                                                        for c in sm.C]))
+    nc = nc if nc > 0 else 1.0
+    return replace(sm, Bw=[[bw / nb for bw in bwi] for bwi in sm.Bw], C=[c / nc for c in sm.C],
+                   D=None if sm.D is None else [d / nc for d in sm.D]), nb, nc
 
 
 def rescaled(sm: SampledTS, d) -> SampledTS:
@@ -295,7 +307,7 @@ def brl_blocks(sm: SampledTS, i: int, j: int, v: int, Q, G, Yj, gamma, *, scale_
     A, B, Bw, C = sm.A[i][v], sm.B[i][v], sm.Bw[i][v], sm.C[i]
     n, p, s = A.shape[0], Bw.shape[1], C.shape[0]
     AG = A @ G + B @ Yj
-    CG = C @ G
+    CG = C @ G if sm.D is None else C @ G + sm.D[i] @ Yj
     if scale_gamma:
         sg = math.sqrt(float(gamma))
         bw, cg, gi_p, gi_s = Bw / sg, CG / sg, np.eye(p), np.eye(s)

@@ -37,7 +37,7 @@ G_BOUND = 1e3
 #: solver off the same degenerate directions; gamma_min moves by about REG x trace(Q), a fraction of a percent
 REG = 1e-4
 #: most alternations of the gains and the slack (solve_discrete)
-MAX_ALTERNATIONS = 12
+MAX_ALTERNATIONS = 8
 
 
 @dataclass
@@ -172,7 +172,7 @@ def _read(sm, prob, var, status, radius, dt) -> DiscreteSolution:
 
 
 def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: float = GAMMA_BACK_OFF,
-                   solver: str = "CLARABEL", start: SampledTS | None = None) -> DiscreteSolution:
+                   solver: str = "CLARABEL", start=None) -> DiscreteSolution:
     """Smallest gamma of the sampled-loop LMIs with every closed-loop pole in ``|z| < radius``, then
     the analytic centre at ``(1 + back_off) gamma_min`` (module docstring).
 
@@ -192,7 +192,7 @@ def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: floa
     same = all(all(np.array_equal(x[i][v], x[0][v]) for v in range(sm.nv)) for x in (sm.A, sm.B, sm.Bw)
                for i in range(sm.r)) and all(np.array_equal(c, sm.C[0]) for c in sm.C)
     if same and sm.r > 1:
-        sm = replace(sm, A=sm.A[:1], B=sm.B[:1], Bw=sm.Bw[:1], C=sm.C[:1])
+        sm = replace(sm, A=sm.A[:1], B=sm.B[:1], Bw=sm.Bw[:1], C=sm.C[:1], D=None if sm.D is None else sm.D[:1])
 
     def run(model, centre=None, disk=True, sv=solver, **kw):
         nonlocal n_solves
@@ -220,9 +220,11 @@ def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: floa
     # first solve is the structured one on the start model (default: the model itself) without the pole disk
     # (with it, on the unscaled model, the solver fails outright); SCS when Clarabel fails there (only its
     # scale is used)
-    st = sm if start is None else start
-    if same and st.r > 1:
-        st = replace(st, A=st.A[:1], B=st.B[:1], Bw=st.Bw[:1], C=st.C[:1])
+    stages = [] if start is None else (list(start) if isinstance(start, (list, tuple)) else [start])
+    if same:
+        stages = [replace(x, A=x.A[:1], B=x.B[:1], Bw=x.Bw[:1], C=x.C[:1], D=None if x.D is None else x.D[:1])
+                  for x in stages]
+    st = sm if not stages else stages[0]
     st0, _, _ = normalised(st)
     first = run(st0, disk=False)
     if first.Q is None and solver != "SCS":
@@ -255,10 +257,11 @@ def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: floa
     best = run(st1, disk=False)
     if not best.feasible:
         return done(best, nb, nc)
-    best, G_last, _ = alternate(st1 if start is not None else sm1, best, disk=False)
-    if start is not None:
+    best, G_last, _ = alternate(st1 if stages else sm1, best, disk=False)
+    # continuation: each further stage (then the model itself) from the previous stage's gains
+    for nxt in [normalised(rescaled(x, d))[0] for x in stages[1:]] + ([sm1] if stages else []):
         trial = DiscreteSolution(True, "start", gamma=math.inf, K=best.K)
-        best, G_last, fail = alternate(sm1, trial, disk=False)
+        best, G_last, fail = alternate(nxt, trial, disk=False)
         if G_last is None:
             out = fail if fail is not None else best
             out.feasible = False

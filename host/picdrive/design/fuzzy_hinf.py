@@ -560,6 +560,8 @@ OPTIONS: dict[str, str] = {
                    "model with the computation delay and the firmware's speed measurement, "
                    "picdrive.design.fuzzy_dhinf) or 'continuous' (Theorem 1 in continuous time with the pole-disk "
                    "search, checked on the sampled loop afterwards)",
+    "effort_weight_rad_s_per_v": "six-step, discrete: weight of the command in the H-inf output (default: 0, "
+                                 "then w_top/u_max x 1, 4, 16 until the law verifies)",
     "pole_disk_radius": "six-step, discrete: every closed-loop pole inside |z| < this (default none: the H-inf "
                         "certificate alone, which already puts them inside the unit circle)",
     "zero_gain_states": "six-step: states with zero gain (default none; [1] drops the current feedback, which the "
@@ -671,6 +673,7 @@ _OPTION_KINDS: dict[str, tuple] = {
     "zero_gain_states": (list, None, None),
     "time_domain": (str, None, None),
     "pole_disk_radius": (float, 1e-3, 0.9999),
+    "effort_weight_rad_s_per_v": (float, 0.0, 1e9),
 }
 
 
@@ -885,7 +888,8 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     if time_domain == "discrete":
         res = _design_discrete(profile, ts, model, model_opts, zero, b, drive=drive, simulate=simulate,
                                solver=solver, res_opts={**res_opts, "time_domain": "discrete"},
-                               radius=options.get("pole_disk_radius"), plant_note=plant_note, timings=timings)
+                               radius=options.get("pole_disk_radius"), plant_note=plant_note, timings=timings,
+                               effort_weight=options.get("effort_weight_rad_s_per_v"))
         if by_default and model == "six-step-averaged" and not res.ok:
             return _fall_back_to_dc(profile, res, drive=drive, progress=progress, gamma=gamma, options=options)
         return res
@@ -977,28 +981,66 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     return res
 
 
-def _sampled_for(profile, ts, model, zero):
+def _sampled_for(profile, ts, model, zero, effort_weight: float = 0.0):
     """The sampled model of the law's loop for a six-step TS model (:func:`picdrive.analysis.dlmi.sampled_model`)
-    and the start model of the synthesis (the same without the EMF polytope)."""
+    and the synthesis's continuation stages: the rule plants at the nominal EMF, then with the EMF range, then
+    (the averaged model) with the DC equivalent added -- each stage starts from the previous one's gains."""
     from ..analysis.dlmi import sampled_model
     k_i = 1.0
     if ts.n == 4:
         from ..models.dqmodel import dq_params
         k_i = dq_params(profile).ki_ibus_per_iq
     dc = model == "six-step-averaged"
-    sm = sampled_model(profile, ts, zero_gain_states=zero, dc_vertices=dc, current_gain=k_i)
-    start = sampled_model(profile, ts.with_(dA=None), zero_gain_states=zero, current_gain=k_i)
-    return sm, start
+    kw = dict(zero_gain_states=zero, current_gain=k_i, effort_weight=effort_weight)
+    sm = sampled_model(profile, ts, dc_vertices=dc, **kw)
+    stages = [sampled_model(profile, ts.with_(dA=None), **kw)]
+    if dc and ts.dA is not None:
+        stages.append(sampled_model(profile, ts, **kw))
+    return sm, stages
 
 
 def _design_discrete(profile, ts, model, model_opts, zero, b, *, drive, simulate, solver, res_opts, radius,
-                     plant_note, timings):
+                     plant_note, timings, effort_weight=None):
     """The six-step law designed at the speed-loop rate (:mod:`picdrive.design.fuzzy_dhinf`), verified.
 
     The gains are the centred solution of the sampled-loop LMIs on every rule, R vertex and EMF vertex (and,
     on the averaged model, the DC equivalent the verification's sampled check uses); the setpoint weight is
     chosen as the continuous design's (the largest of ``1 + Kb/kp``, its midpoint with 1, and 1 that verifies).
     """
+    # the command's weight in the H-inf output, rad/s per V: none first (the speed error alone), then the
+    # full command priced as the full speed error (w_top / u_max) and 4 and 16 times that -- gentler gains at
+    # each step, the first that verifies is kept (as the continuous design walks its pole disk down)
+    u_max = profile.inverter.bus_voltage_v * profile.max_duty()
+    w_top = max(float(ts.info.get("state_scale", [1.0])[0]), 1.0)
+    base = w_top / u_max
+    weights = [float(effort_weight)] if effort_weight is not None else [0.0, base, 4.0 * base, 16.0 * base]
+    tries: list[dict] = []
+    out = None
+    t_all = 0.0
+    for ew in weights:
+        r = _design_discrete_at(profile, ts, model, model_opts, zero, b, ew, drive=drive, simulate=simulate,
+                                solver=solver, res_opts=res_opts, radius=radius, plant_note=plant_note,
+                                timings=timings)
+        t_all += sum(v for k, v in r.timings_s.items() if k in ("lmi", "verify"))
+        tries.append({"effort_weight_rad_s_per_v": ew, "status": r.status, "gamma": r.certificate.get("gamma"),
+                      "reasons": [x[:200] for x in r.reasons[:3]]})
+        if out is None or r.ok or (not out.ok and r.certificate.get("feasible") and
+                                   not out.certificate.get("feasible")):
+            out = r
+        if r.ok:
+            break
+    out.certificate["effort_tries"] = tries
+    if not out.ok and len(tries) > 1:
+        out.reasons.append("tried effort weights " + ", ".join(f"{t['effort_weight_rad_s_per_v']:.3g}" for t in tries)
+                           + " rad/s per V: " + "; ".join(f"{t['effort_weight_rad_s_per_v']:.3g}: "
+                                                          f"{(t['reasons'] or [t['status']])[0][:120]}"
+                                                          for t in tries))
+    return out
+
+
+def _design_discrete_at(profile, ts, model, model_opts, zero, b, effort_weight, *, drive, simulate, solver,
+                        res_opts, radius, plant_note, timings):
+    """:func:`_design_discrete` at one effort weight."""
     import time as _t
     from ..analysis.dlmi import closed_loop_radius, law_gains
     from ..control_law import Rule
@@ -1006,8 +1048,8 @@ def _design_discrete(profile, ts, model, model_opts, zero, b, *, drive, simulate
     from .fuzzy_dhinf import solve_discrete
     from .verify import verify_design
     t0 = _t.perf_counter()
-    sm, start = _sampled_for(profile, ts, model, zero)
-    sol = solve_discrete(sm, radius=None if radius is None else float(radius), solver=solver, start=start)
+    sm, stages = _sampled_for(profile, ts, model, zero, effort_weight)
+    sol = solve_discrete(sm, radius=None if radius is None else float(radius), solver=solver, start=stages)
     t_lmi = _t.perf_counter() - t0
     opts = {**res_opts, "pole_disk_radius": radius}
     opts.pop("pole_disk_rad_s", None)
@@ -1015,6 +1057,7 @@ def _design_discrete(profile, ts, model, model_opts, zero, b, *, drive, simulate
                        profile_sha256=profile.sha256, law=None,
                        profile_path=None if profile.path is None else str(profile.path), options=opts)
     cert: dict[str, Any] = {"time_domain": "discrete", "model": model, "model_options": model_opts,
+                            "effort_weight_rad_s_per_v": effort_weight,
                             "solver_status": sol.status, "gamma": sol.gamma, "pole_disk_radius": radius,
                             "sample_time_s": sm.ts_s, "delay_s": sm.delay_s, "vertices": list(sm.vertices),
                             "zero_gain_states": list(zero), "premise_rad_s": list(ts.premise_rad_s),

@@ -177,7 +177,8 @@ def _discrete_certificate_checks(profile, cert) -> dict:
     from .fuzzy_hinf import _sampled_for
     out: dict[str, Any] = {}
     ts = model_for(profile, cert["model"], cert.get("model_options", {}))
-    sm, _ = _sampled_for(profile, ts, cert["model"], tuple(cert.get("zero_gain_states", ())))
+    sm, _ = _sampled_for(profile, ts, cert["model"], tuple(cert.get("zero_gain_states", ())),
+                         float(cert.get("effort_weight_rad_s_per_v") or 0.0))
     S = np.asarray(cert["state_scale"], float)
     smn, nb, nc = normalised(rescaled(sm, S / sm.S))
     K = [np.asarray(k, float) for k in cert["K"]]
@@ -205,7 +206,8 @@ def _discrete_certificate_checks(profile, cert) -> dict:
     worst_h = 0.0
     for v in range(smn.nv):
         for i in range(smn.r):
-            h = dhinf_norm(smn.A[i][v] + smn.B[i][v] @ K[i], smn.Bw[i][v], smn.C[i]) * nb * nc
+            Cz = smn.C[i] if smn.D is None else smn.C[i] + smn.D[i] @ K[i]
+            h = dhinf_norm(smn.A[i][v] + smn.B[i][v] @ K[i], smn.Bw[i][v], Cz) * nb * nc
             worst_h = max(worst_h, h)
     bound = float(cert["certified_gain"])
     out["hinf_norm"] = {"value": worst_h, "limit": bound, "ok": bool(worst_h <= bound * (1 + 1e-6)), "unit": "z/w",
