@@ -377,10 +377,16 @@ def dlmi_margins(sm: SampledTS, Q, G, Y, gamma, *, Qd=None, radius=None, centre=
 # Independent checks
 # ---------------------------------------------------------------------------
 def dhinf_norm(A, B, C, D=None) -> float:
-    """H-inf norm of the discrete system ``(A, B, C, D)`` (sup over the unit circle of the largest
-    singular value); ``inf`` if A is not Schur.  The bilinear map ``z = (1 + s)/(1 - s)`` sends the unit
-    circle onto the imaginary axis and keeps the norm; :func:`picdrive.analysis.h2hinf.hinf_norm` then
-    bisects the Hamiltonian of the continuous system."""
+    """H-inf norm of the discrete system ``(A, B, C, D)`` (real matrices): the sup over the unit circle of the
+    largest singular value; ``inf`` if A is not Schur.
+
+    Two estimates, the larger kept: the bilinear map ``z = (1 + s)/(1 - s)`` (unit circle onto the imaginary
+    axis, norm kept) and :func:`picdrive.analysis.h2hinf.hinf_norm`'s Hamiltonian bisection there; and a sweep
+    of ``theta`` in ``[0, pi]`` (4,097 points, then a bounded scalar search around the five largest).  The
+    bisection alone misses a lightly damped peak of a pole near ``z = -1`` (mapped to a fast continuous pole:
+    14.19 against 18.76 on a 4-state test system), the sweep alone can miss a peak narrower than its step;
+    each is a lower bound where the other errs."""
+    from scipy.optimize import minimize_scalar
     from .h2hinf import hinf_norm
     A, B, C = (np.atleast_2d(np.asarray(M, float)) for M in (A, B, C))
     D = np.zeros((C.shape[0], B.shape[1])) if D is None else np.atleast_2d(np.asarray(D, float))
@@ -392,7 +398,20 @@ def dhinf_norm(A, B, C, D=None) -> float:
     Bc = math.sqrt(2.0) * Mi @ B
     Cc = math.sqrt(2.0) * C @ Mi
     Dc = D - C @ Mi @ B
-    return float(hinf_norm(Ac, Bc, Cc, Dc)[0])
+    h_bil = float(hinf_norm(Ac, Bc, Cc, Dc)[0])
+
+    def sigma(th):
+        return float(np.linalg.svd(C @ np.linalg.solve(np.exp(1j * th) * np.eye(n) - A, B) + D,
+                                   compute_uv=False)[0])
+    th = np.linspace(0.0, math.pi, 4097)
+    sg = np.array([sigma(t) for t in th])
+    best = float(sg.max())
+    step = th[1] - th[0]
+    for k in np.argsort(-sg)[:5]:
+        lo, hi = max(0.0, th[k] - step), min(math.pi, th[k] + step)
+        r = minimize_scalar(lambda t: -sigma(t), bounds=(lo, hi), method="bounded", options={"xatol": 1e-12})
+        best = max(best, -float(r.fun))
+    return max(h_bil, best)
 
 
 def closed_loop_radius(sm: SampledTS, K, mu=None) -> tuple[float, str]:

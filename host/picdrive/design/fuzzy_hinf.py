@@ -820,7 +820,12 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     res_opts = {"gamma": gamma, **{k: v for k, v in options.items()}, "alpha": alpha, "rho": rho, "delta": delta}
     if variant == "six-step":
         res_opts["plant_model"] = plant_model      # the record names the model the gains were designed on
+    if time_domain == "discrete":
         res_opts["time_domain"] = time_domain
+    else:
+        # a continuous design's record carries no time_domain: every record made before the loop-rate synthesis
+        # became the default is one (the bundled designs under examples/), and they stay valid
+        res_opts.pop("time_domain", None)
 
     def solve(disk):
         if gamma is None:
