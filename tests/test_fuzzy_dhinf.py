@@ -157,8 +157,9 @@ def test_a_failure_names_the_reason_with_numbers():
     """A pole disk no law can meet (|z| < 0.05 with the integrator and the mechanical mode): the design fails
     and says which requirement, the solver's status and how to get a design."""
     p = _profile("duy2008")
+    # time_domain given: no fallback to the continuous design
     r = fuzzy_hinf.design(p, drive=DRIVE, progress=False, plant_model="six-step", simulate=False,
-                          pole_disk_radius=0.05, effort_weight_rad_s_per_v=0.0)
+                          pole_disk_radius=0.05, effort_weight_rad_s_per_v=0.0, time_domain="discrete")
     assert not r.ok
     why = r.reasons[0]
     assert "no H-inf certificate for the sampled loop" in why and "1000 Hz" in why

@@ -37,7 +37,7 @@ G_BOUND = 1e3
 #: solver off the same degenerate directions; gamma_min moves by about REG x trace(Q), a fraction of a percent
 REG = 1e-4
 #: most alternations of the gains and the slack (solve_discrete)
-MAX_ALTERNATIONS = 8
+MAX_ALTERNATIONS = 5
 
 
 @dataclass
@@ -237,7 +237,7 @@ def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: floa
 
     def alternate(model, best, G_last=None, disk=True):
         """Alternate: the gains fixed, the best full slack G; that G fixed, the best gains.  Each step is
-        feasible at the previous point, so gamma never rises; stop when it falls by less than 0.1 %."""
+        feasible at the previous point, so gamma never rises; stop when it falls by less than 1 %."""
         for _ in range(MAX_ALTERNATIONS):
             a = run(model, K_fixed=best.K, disk=disk)
             if not a.feasible:
@@ -248,7 +248,7 @@ def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: floa
             G_last = a.G
             gain = (best.gamma - b.gamma) / best.gamma if math.isfinite(best.gamma) else 1.0
             best = b
-            if gain < 1e-3:
+            if gain < 1e-2:
                 break
         return best, G_last, None
 

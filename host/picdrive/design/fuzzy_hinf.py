@@ -896,7 +896,9 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
                                radius=options.get("pole_disk_radius"), plant_note=plant_note, timings=timings,
                                effort_weight=options.get("effort_weight_rad_s_per_v"))
         if by_default and model == "six-step-averaged" and not res.ok:
-            return _fall_back_to_dc(profile, res, drive=drive, progress=progress, gamma=gamma, options=options)
+            res = _fall_back_to_dc(profile, res, drive=drive, progress=progress, gamma=gamma, options=options)
+        if not res.ok and "time_domain" not in options:
+            return _fall_back_to_continuous(profile, res, drive=drive, progress=progress, options=options)
         return res
 
     # six-step: the pole disk from the sampled loop with the firmware's measurement and the verification
@@ -1130,6 +1132,29 @@ def _design_discrete_at(profile, ts, model, model_opts, zero, b, effort_weight, 
     out.certificate["setpoint_weights"] = tries
     out.timings_s["verify"] = t_ver
     return out
+
+
+def _fall_back_to_continuous(profile, failed, *, drive, progress, options):
+    """The default loop-rate design failed its verification (or has no certificate): the continuous
+    Theorem 1 design, judged by the same verification; when it verifies it is returned with the reason in
+    ``certificate.time_domain_fallback`` and a warning (never silently), else the loop-rate failure with the
+    continuous design's reason added.  Seen on duy2008: the loop-rate law's current feedback (kc 37-38 V/A
+    against the continuous design's 27) holds the command at the current window's edge on the rippling
+    current sample in steady state (sim_saturated_steady_fraction 0.04-0.07)."""
+    why = "; ".join(x[:200] for x in failed.reasons[:2]) or failed.status
+    discrete_only = ("pole_disk_radius", "effort_weight_rad_s_per_v")
+    cont = design(profile, drive=drive, progress=progress, variant="six-step",
+                  **{**{k: v for k, v in options.items() if k not in discrete_only}, "time_domain": "continuous"})
+    if not cont.ok:
+        failed.reasons.append("the continuous Theorem 1 design (time_domain 'continuous') fails too: "
+                              + ("; ".join(x[:200] for x in cont.reasons[:1]) or cont.status))
+        return failed
+    note = f"designed by the continuous Theorem 1, not at the loop rate: the loop-rate design failed ({why})"
+    cont.certificate["time_domain_fallback"] = note
+    cont.options["time_domain"] = "continuous"        # a redesign with the recorded options reproduces it
+    cont.timings_s = {"discrete_attempt": float(sum(failed.timings_s.values())), **cont.timings_s}
+    warnings.warn(f"fuzzy-hinf, profile {profile.name!r}: {note}", stacklevel=3)
+    return cont
 
 
 def _fall_back_to_dc(profile, failed, *, drive, progress, gamma, options):
