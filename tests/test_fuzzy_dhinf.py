@@ -164,6 +164,7 @@ def test_a_failure_names_the_reason_with_numbers():
     why = r.reasons[0]
     assert "no H-inf certificate for the sampled loop" in why and "1000 Hz" in why
     assert "|z| < 0.05" in why and "solver status" in why and "mixed-pid or zn" in why
+    assert "verbose" not in why                           # no third-party advice picdrive cannot act on
 
 
 def test_options_of_the_other_time_domain_are_refused():

@@ -1045,6 +1045,14 @@ def _design_discrete(profile, ts, model, model_opts, zero, b, *, drive, simulate
     return out
 
 
+def _status_words(status: str) -> str:
+    """A solver status for a picdrive message: a solver exception's text (which suggests options picdrive
+    does not have, e.g. cvxpy's "solve with verbose=True") is replaced by what it means."""
+    if status.startswith("solver error"):
+        return "numerical failure (the interior-point solver stopped without a point)"
+    return status
+
+
 def _design_discrete_at(profile, ts, model, model_opts, zero, b, effort_weight, *, drive, simulate, solver,
                         res_opts, radius, plant_note, timings):
     """:func:`_design_discrete` at one effort weight."""
@@ -1080,7 +1088,7 @@ def _design_discrete_at(profile, ts, model, model_opts, zero, b, effort_weight, 
         why = sol.extra.get("why") or sol.extra.get("centring") or ""
         res.fail(f"no H-inf certificate for the sampled loop ({sm.r} rules x {sm.nv} vertices: "
                  f"{', '.join(sm.vertices[:3])}{', ...' if sm.nv > 3 else ''}) at {profile.control.speed_loop_hz:g} Hz"
-                 f" with the firmware's law (kp, ki, kc): solver status {sol.status!r}"
+                 f" with the firmware's law (kp, ki, kc): solver status {_status_words(sol.status)!r}"
                  + (f", largest LMI eigenvalue {sol.max_eig:.3g}" if math.isfinite(sol.max_eig) else "")
                  + (f"; {why}" if why else "")
                  + "; try mixed-pid or zn, or time_domain='continuous'")
@@ -1090,12 +1098,10 @@ def _design_discrete_at(profile, ts, model, model_opts, zero, b, effort_weight, 
     cert.update(feasible=True, lmi_max_eig=sol.max_eig, K=[np.asarray(k) for k in sol.K], Q=sol.Q, G=sol.G,
                 Y=[np.asarray(y) for y in sol.Y], Qd=sol.Qd, state_scale=np.asarray(ms.S),
                 certified_gain=sol.gamma)
-    rad, where = closed_loop_radius(ms, sol.K)
+    rad, _ = closed_loop_radius(ms, sol.K)
     cert["design_spectral_radius"] = rad
     rules = tuple(Rule(kp=kp, ki=ki, kd=0.0, kc=kc) for kp, ki, kc in law_gains(ms, sol.K))
     if b is None:
-        kp_t = rules[-1].kp if len(rules) else 0.0
-        from ..control_law import ScheduledLaw  # noqa: F401  (the law's blend below)
         law0 = _law_from_rules(profile, ts, rules, 1.0)
         kp_t = law0.gains_at(profile.speed_step_rpm() * 2 * math.pi / 60).kp
         b_emf = 1.0 + profile.motor.kb_v_s_per_rad / kp_t if kp_t > 0 else 1.0
