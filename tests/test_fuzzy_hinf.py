@@ -132,7 +132,9 @@ def six_step(request):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         p = load_profile(request.param)
-    return p, fuzzy_hinf.design(p, drive=DRIVE, progress=False)
+    # the continuous Theorem 1 (the bundled designs under examples/ are its); the default at the loop rate is
+    # tests/test_fuzzy_dhinf.py's
+    return p, fuzzy_hinf.design(p, drive=DRIVE, progress=False, time_domain="continuous")
 
 
 def test_six_step_design_verified_with_its_certificate(six_step):
@@ -183,12 +185,15 @@ def test_six_step_without_current_feedback_is_infeasible_and_says_so():
     s = solve_theorem1(ts, 1e5, delta=None, zero_gain_states=(1,))
     assert not s.feasible and s.status == "infeasible"
     r = fuzzy_hinf.design(p, drive=DRIVE, progress=False, zero_gain_states=[1], pole_disk_rad_s=1000.0,
+                          time_domain="continuous",
                           plant_model="six-step")
     assert not r.ok and "infeasible" in r.reasons[0] and r.certificate["model"] == "six-step"
 
 
 def test_the_committed_design_reproduces(six_step):
-    """examples/<profile>.fuzzy-hinf.design.json is what the code designs now (default options).
+    """examples/<profile>.fuzzy-hinf.design.json is what the continuous Theorem 1 designs now (its default
+    options; the record of a continuous design carries no time_domain, as every design before the loop-rate
+    synthesis became the default).
     The gains are the analytic centre of the LMIs at 1.05 x gamma_min (minimise_gamma's back_off): perturbing
     the solve (Clarabel's tolerances 1e-9 / 1e-7 instead of 1e-8, its equilibration off, the model's A and B
     perturbed at 1e-9 relative) moves them by at most 5.5e-5 relative on assawinchaichote2016 and 3.1e-5 on
@@ -310,7 +315,7 @@ def test_a_design_on_the_dc_equivalent_by_profile_field_or_visible_fallback():
     import dataclasses
     p = load_profile("duy2008")
     p6 = dataclasses.replace(p, design={**p.design, "plant_model": "six-step"})
-    kw = dict(progress=False, simulate=False, pole_disk_rad_s=412.0)
+    kw = dict(progress=False, simulate=False, pole_disk_rad_s=412.0, time_domain="continuous")
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
         r = fuzzy_hinf.design(p6, drive=DRIVE, **kw)

@@ -350,6 +350,8 @@ def summary_lines(r: DesignResult) -> list[str]:
                                                       if r.options.get("plant_model") else ""))
     if cert.get("plant_model_fallback"):
         out.append(f"  note      {cert['plant_model_fallback']}")
+    if cert.get("time_domain_fallback"):
+        out.append(f"  note      {cert['time_domain_fallback']}")
     for reason in r.reasons:
         out.append(f"  reason    {reason}")
     if r.law is not None:

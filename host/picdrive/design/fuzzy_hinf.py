@@ -307,7 +307,7 @@ class _Problem:
         return sol
 
 
-def _quiet_solve(prob, solver) -> tuple[str, list[str]]:
+def _quiet_solve(prob, solver, **settings) -> tuple[str, list[str]]:
     """Solve a cvxpy problem without letting the solver's or cvxpy's text reach the user.
 
     cvxpy warns ("Solution may be inaccurate. Try another solver, adjusting the solver settings, or solve
@@ -325,7 +325,7 @@ def _quiet_solve(prob, solver) -> tuple[str, list[str]]:
         with warnings.catch_warnings(record=True) as seen:
             warnings.simplefilter("always")
             try:
-                prob.solve(solver=solver)
+                prob.solve(solver=solver, **settings)
                 status = str(prob.status)
             except cp.error.SolverError as e:
                 status = f"solver error: {e}"
@@ -556,6 +556,14 @@ OPTIONS: dict[str, str] = {
     "simulate": "run the nonlinear verification simulation (default true)",
     "setpoint_weight": "six-step: law's b (default: the largest of 1 + Kb/kp, its midpoint with 1, and 1 that "
                        "passes the verification; the certified loop is the same for every b)",
+    "time_domain": "six-step: 'discrete' (default: the H-inf synthesis at the speed-loop rate on the sampled "
+                   "model with the computation delay and the firmware's speed measurement, "
+                   "picdrive.design.fuzzy_dhinf) or 'continuous' (Theorem 1 in continuous time with the pole-disk "
+                   "search, checked on the sampled loop afterwards)",
+    "effort_weight_rad_s_per_v": "six-step, discrete: weight of the command in the H-inf output (default: 0, "
+                                 "then w_top/u_max x 1, 4, 16 until the law verifies)",
+    "pole_disk_radius": "six-step, discrete: every closed-loop pole inside |z| < this (default none: the H-inf "
+                        "certificate alone, which already puts them inside the unit circle)",
     "zero_gain_states": "six-step: states with zero gain (default none; [1] drops the current feedback, which the "
                         "block-diagonal Lyapunov structure then makes infeasible on the bundled motors)",
 }
@@ -633,6 +641,13 @@ def _law_from_gains(profile, ts, K, setpoint_weight: float | None = None) -> "Sc
         if dq and abs(k[2]) > 1e-9 * max(1.0, np.max(np.abs(k))):
             raise FuzzyHinfError(f"six-step gain has a nonzero i_d weight {k[2]:g}: the structure constraint failed")
         rules.append(Rule(kp=float(-k[0]), ki=float(k[-1]), kd=0.0, kc=float(-k[1] / k_i)))
+    return _law_from_rules(profile, ts, rules, setpoint_weight)
+
+
+def _law_from_rules(profile, ts, rules, setpoint_weight: float | None = None) -> "ScheduledLaw":
+    """The firmware's law from its rules (:class:`picdrive.control_law.Rule`): the current window, an
+    integrator range of 1.25 x what the equilibria need, the premise of ``ts``."""
+    from ..control_law import ScheduledLaw
     u_max = profile.inverter.bus_voltage_v * profile.max_duty()
     b = 1.0 if setpoint_weight is None else float(setpoint_weight)
     i_lim = 1.25 * max(u_max, integrator_need_v(profile, rules, b))
@@ -656,6 +671,9 @@ _OPTION_KINDS: dict[str, tuple] = {
     "solver": (str, None, None),
     "setpoint_weight": (float, 0.0, 1.999),
     "zero_gain_states": (list, None, None),
+    "time_domain": (str, None, None),
+    "pole_disk_radius": (float, 1e-3, 0.9999),
+    "effort_weight_rad_s_per_v": (float, 0.0, 1e9),
 }
 
 
@@ -749,6 +767,21 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
         raise FuzzyHinfError("option plant_model='averaged' identifies the speed-dependent model from the drive's "
                              "three-phase plant: it needs the built drive (picdrive design passes it; in Python "
                              "pass drive=picdrive.gate.BuiltDrive())")
+    time_domain = options.get("time_domain", "discrete" if variant == "six-step" else "continuous")
+    if time_domain not in ("discrete", "continuous"):
+        raise FuzzyHinfError(f"option time_domain={time_domain!r}: expected 'discrete' (the default) or 'continuous'")
+    if time_domain == "discrete" and variant != "six-step":
+        raise FuzzyHinfError(f"option time_domain='discrete' designs the six-step drive's sampled loop: drop "
+                             f"--variant {variant} (or the option)")
+    if time_domain == "discrete" and gamma is not None:
+        raise FuzzyHinfError("a prescribed gamma is the continuous design's (Theorem 1): at the loop rate gamma is "
+                             "minimised; drop gamma or pass time_domain='continuous'")
+    if time_domain == "discrete" and options.get("pole_disk_rad_s") is not None:
+        raise FuzzyHinfError("option pole_disk_rad_s is the continuous design's (rad/s); at the loop rate the "
+                             "pole region is pole_disk_radius (|z| < radius), or time_domain='continuous'")
+    if time_domain == "continuous" and options.get("pole_disk_radius") is not None:
+        raise FuzzyHinfError("option pole_disk_radius is the discrete design's; the continuous one takes "
+                             "pole_disk_rad_s")
     model_opts = {k: options.get(k) for k in ("rules", "resistance_uncertainty", "integral_weight_rad_s")}
     model_opts["rho"] = rho
     t_ident = None
@@ -761,11 +794,12 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
             model_opts["integral_weight_rad_s"] = (m.viscous_friction_n_m_s + m.kt_n_m_per_a * m.kb_v_s_per_rad
                                                    / m.r_line_ohm) / m.inertia_kg_m2
         # a winding no pole disk can hold (no_certificate_reason: R/L alone decides) is refused before the
-        # identification, which would cost seconds for nothing
+        # identification, which would cost seconds for nothing (the continuous design only: at the loop rate
+        # the current mode is a sampled pole like any other)
         top_disk = math.pi / 2.0 * profile.control.speed_loop_hz if options.get("pole_disk_rad_s") is None \
             else float(options["pole_disk_rad_s"])
-        if plant_model == "averaged" and not no_certificate_reason(profile, model_for(profile, "six-step", model_opts),
-                                                                   top_disk):
+        if plant_model == "averaged" and (time_domain == "discrete" or not no_certificate_reason(
+                profile, model_for(profile, "six-step", model_opts), top_disk)):
             from ..models.averaged import identify_cached
             model = "six-step-averaged"
             ti = _t.perf_counter()
@@ -786,6 +820,12 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     res_opts = {"gamma": gamma, **{k: v for k, v in options.items()}, "alpha": alpha, "rho": rho, "delta": delta}
     if variant == "six-step":
         res_opts["plant_model"] = plant_model      # the record names the model the gains were designed on
+    if time_domain == "discrete":
+        res_opts["time_domain"] = time_domain
+    else:
+        # a continuous design's record carries no time_domain: every record made before the loop-rate synthesis
+        # became the default is one (the bundled designs under examples/), and they stay valid
+        res_opts.pop("time_domain", None)
 
     def solve(disk):
         if gamma is None:
@@ -848,6 +888,17 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
             t2 = _t.perf_counter()
             verify_design(profile, res, drive=drive, simulate=simulate)
             res.timings_s["verify"] = _t.perf_counter() - t2
+        return res
+
+    if time_domain == "discrete":
+        res = _design_discrete(profile, ts, model, model_opts, zero, b, drive=drive, simulate=simulate,
+                               solver=solver, res_opts={**res_opts, "time_domain": "discrete"},
+                               radius=options.get("pole_disk_radius"), plant_note=plant_note, timings=timings,
+                               effort_weight=options.get("effort_weight_rad_s_per_v"))
+        if by_default and model == "six-step-averaged" and not res.ok:
+            res = _fall_back_to_dc(profile, res, drive=drive, progress=progress, gamma=gamma, options=options)
+        if not res.ok and "time_domain" not in options:
+            return _fall_back_to_continuous(profile, res, drive=drive, progress=progress, options=options)
         return res
 
     # six-step: the pole disk from the sampled loop with the firmware's measurement and the verification
@@ -935,6 +986,181 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     if by_default and model == "six-step-averaged" and not res.ok:
         return _fall_back_to_dc(profile, res, drive=drive, progress=progress, gamma=gamma, options=options)
     return res
+
+
+def _sampled_for(profile, ts, model, zero, effort_weight: float = 0.0):
+    """The sampled model of the law's loop for a six-step TS model (:func:`picdrive.analysis.dlmi.sampled_model`)
+    and the synthesis's continuation stages: the rule plants at the nominal EMF, then with the EMF range, then
+    (the averaged model) with the DC equivalent added -- each stage starts from the previous one's gains."""
+    from ..analysis.dlmi import sampled_model
+    k_i = 1.0
+    if ts.n == 4:
+        from ..models.dqmodel import dq_params
+        k_i = dq_params(profile).ki_ibus_per_iq
+    dc = model == "six-step-averaged"
+    kw = dict(zero_gain_states=zero, current_gain=k_i, effort_weight=effort_weight)
+    sm = sampled_model(profile, ts, dc_vertices=dc, **kw)
+    stages = [sampled_model(profile, ts.with_(dA=None), **kw)]
+    if dc and ts.dA is not None:
+        stages.append(sampled_model(profile, ts, **kw))
+    return sm, stages
+
+
+def _design_discrete(profile, ts, model, model_opts, zero, b, *, drive, simulate, solver, res_opts, radius,
+                     plant_note, timings, effort_weight=None):
+    """The six-step law designed at the speed-loop rate (:mod:`picdrive.design.fuzzy_dhinf`), verified.
+
+    The gains are the centred solution of the sampled-loop LMIs on every rule, R vertex and EMF vertex (and,
+    on the averaged model, the DC equivalent the verification's sampled check uses); the setpoint weight is
+    chosen as the continuous design's (the largest of ``1 + Kb/kp``, its midpoint with 1, and 1 that verifies).
+    """
+    # the command's weight in the H-inf output, rad/s per V: none first (the speed error alone), then the
+    # full command priced as the full speed error (w_top / u_max) and 4 and 16 times that -- gentler gains at
+    # each step, the first that verifies is kept (as the continuous design walks its pole disk down)
+    u_max = profile.inverter.bus_voltage_v * profile.max_duty()
+    w_top = max(float(ts.info.get("state_scale", [1.0])[0]), 1.0)
+    base = w_top / u_max
+    weights = [float(effort_weight)] if effort_weight is not None else [0.0, base, 4.0 * base, 16.0 * base]
+    tries: list[dict] = []
+    out = None
+    t_all = 0.0
+    for ew in weights:
+        r = _design_discrete_at(profile, ts, model, model_opts, zero, b, ew, drive=drive, simulate=simulate,
+                                solver=solver, res_opts=res_opts, radius=radius, plant_note=plant_note,
+                                timings=timings)
+        t_all += sum(v for k, v in r.timings_s.items() if k in ("lmi", "verify"))
+        tries.append({"effort_weight_rad_s_per_v": ew, "status": r.status, "gamma": r.certificate.get("gamma"),
+                      "reasons": [x[:200] for x in r.reasons[:3]]})
+        if out is None or r.ok or (not out.ok and r.certificate.get("feasible") and
+                                   not out.certificate.get("feasible")):
+            out = r
+        if r.ok:
+            break
+    out.certificate["effort_tries"] = tries
+    if not out.ok and len(tries) > 1:
+        out.reasons.append("tried effort weights " + ", ".join(f"{t['effort_weight_rad_s_per_v']:.3g}" for t in tries)
+                           + " rad/s per V: " + "; ".join(f"{t['effort_weight_rad_s_per_v']:.3g}: "
+                                                          f"{(t['reasons'] or [t['status']])[0][:120]}"
+                                                          for t in tries))
+    return out
+
+
+def _status_words(status: str) -> str:
+    """A solver status for a picdrive message: a solver exception's text (which suggests options picdrive
+    does not have, e.g. cvxpy's "solve with verbose=True") is replaced by what it means."""
+    if status.startswith("solver error"):
+        return "numerical failure (the interior-point solver stopped without a point)"
+    return status
+
+
+def _design_discrete_at(profile, ts, model, model_opts, zero, b, effort_weight, *, drive, simulate, solver,
+                        res_opts, radius, plant_note, timings):
+    """:func:`_design_discrete` at one effort weight."""
+    import time as _t
+    from ..analysis.dlmi import closed_loop_radius, law_gains
+    from ..control_law import Rule
+    from ..result import DesignResult
+    from .fuzzy_dhinf import solve_discrete
+    from .verify import verify_design
+    t0 = _t.perf_counter()
+    sm, stages = _sampled_for(profile, ts, model, zero, effort_weight)
+    sol = solve_discrete(sm, radius=None if radius is None else float(radius), solver=solver, start=stages)
+    t_lmi = _t.perf_counter() - t0
+    opts = {**res_opts, "pole_disk_radius": radius}
+    opts.pop("pole_disk_rad_s", None)
+    res = DesignResult(method="fuzzy-hinf", variant="six-step", status="verified", profile_name=profile.name,
+                       profile_sha256=profile.sha256, law=None,
+                       profile_path=None if profile.path is None else str(profile.path), options=opts)
+    cert: dict[str, Any] = {"time_domain": "discrete", "model": model, "model_options": model_opts,
+                            "effort_weight_rad_s_per_v": effort_weight,
+                            "solver_status": sol.status, "gamma": sol.gamma, "pole_disk_radius": radius,
+                            "sample_time_s": sm.ts_s, "delay_s": sm.delay_s, "vertices": list(sm.vertices),
+                            "zero_gain_states": list(zero), "premise_rad_s": list(ts.premise_rad_s),
+                            "state_names": list(sm.state_names), "measured": list(sm.meas_names),
+                            **{k: v for k, v in sol.extra.items() if k not in ("lmi_margins", "solver_notes")}}
+    if plant_note:
+        cert["plant_model_fallback"] = plant_note
+    if "emf_range_v_s" in ts.info:
+        cert["emf_range_v_s"] = list(ts.info["emf_range_v_s"])
+    res.certificate = cert
+    res.timings_s = {**timings, "lmi": t_lmi}
+    if not sol.feasible:
+        why = sol.extra.get("why") or sol.extra.get("centring") or ""
+        res.fail(f"no H-inf certificate for the sampled loop ({sm.r} rules x {sm.nv} vertices: "
+                 f"{', '.join(sm.vertices[:3])}{', ...' if sm.nv > 3 else ''}) at {profile.control.speed_loop_hz:g} Hz"
+                 f" with the firmware's law (kp, ki, kc): solver status {_status_words(sol.status)!r}"
+                 + (f", largest LMI eigenvalue {sol.max_eig:.3g}" if math.isfinite(sol.max_eig) else "")
+                 + (f"; {why}" if why else "")
+                 + "; try mixed-pid or zn, or time_domain='continuous'")
+        cert["feasible"] = False
+        return res
+    ms = sol.model
+    cert.update(feasible=True, lmi_max_eig=sol.max_eig, K=[np.asarray(k) for k in sol.K], Q=sol.Q, G=sol.G,
+                Y=[np.asarray(y) for y in sol.Y], Qd=sol.Qd, state_scale=np.asarray(ms.S),
+                certified_gain=sol.gamma)
+    rad, _ = closed_loop_radius(ms, sol.K)
+    cert["design_spectral_radius"] = rad
+    rules = tuple(Rule(kp=kp, ki=ki, kd=0.0, kc=kc) for kp, ki, kc in law_gains(ms, sol.K))
+    if b is None:
+        law0 = _law_from_rules(profile, ts, rules, 1.0)
+        kp_t = law0.gains_at(profile.speed_step_rpm() * 2 * math.pi / 60).kp
+        b_emf = 1.0 + profile.motor.kb_v_s_per_rad / kp_t if kp_t > 0 else 1.0
+        b_emf = min(b_emf, 1.9)
+        b_list = [b_emf, 0.5 * (1.0 + b_emf), 1.0] if b_emf > 1.0 + 1e-6 else [1.0]
+    else:
+        b_list = [b]
+    tries = []
+    t_ver = 0.0
+    out = None
+    for bb in b_list:
+        rb = DesignResult(method="fuzzy-hinf", variant="six-step", status="verified", profile_name=profile.name,
+                          profile_sha256=profile.sha256, law=_law_from_rules(profile, ts, rules, bb),
+                          profile_path=res.profile_path, options=dict(opts))
+        rb.certificate = dict(cert)
+        rb.timings_s = dict(res.timings_s)
+        tb = _t.perf_counter()
+        verify_design(profile, rb, drive=drive, simulate=simulate)
+        t_ver += _t.perf_counter() - tb
+        note = ""
+        if rb.ok and bb != b_list[-1] and simulate:
+            # a weight above 1 is kept only with the 0.5 % overshoot margin, as the continuous design
+            v = rb.verification
+            worst = max([v["sim_overshoot_pct"]["value"]] +
+                        [f["overshoot_pct"] for f in v["sim_resistance_uncertainty"]["value"].values()
+                         if isinstance(f, dict)])
+            if worst > 0.5:
+                note = f"overshoot {worst:.3g} % > the 0.5 % margin kept for b > 1"
+        tries.append({"b": bb, "status": rb.status if not note else "not kept",
+                      "reasons": [x[:160] for x in rb.reasons] + ([note] if note else [])})
+        out = rb
+        if rb.ok and not note:
+            break
+    out.certificate["setpoint_weights"] = tries
+    out.timings_s["verify"] = t_ver
+    return out
+
+
+def _fall_back_to_continuous(profile, failed, *, drive, progress, options):
+    """The default loop-rate design failed its verification (or has no certificate): the continuous
+    Theorem 1 design, judged by the same verification; when it verifies it is returned with the reason in
+    ``certificate.time_domain_fallback`` and a warning (never silently), else the loop-rate failure with the
+    continuous design's reason added.  Seen on duy2008: the loop-rate law's current feedback (kc 37-38 V/A
+    against the continuous design's 27) holds the command at the current window's edge on the rippling
+    current sample in steady state (sim_saturated_steady_fraction 0.04-0.07)."""
+    why = "; ".join(x[:200] for x in failed.reasons[:2]) or failed.status
+    discrete_only = ("pole_disk_radius", "effort_weight_rad_s_per_v")
+    cont = design(profile, drive=drive, progress=progress, variant="six-step",
+                  **{**{k: v for k, v in options.items() if k not in discrete_only}, "time_domain": "continuous"})
+    if not cont.ok:
+        failed.reasons.append("the continuous Theorem 1 design (time_domain 'continuous') fails too: "
+                              + ("; ".join(x[:200] for x in cont.reasons[:1]) or cont.status))
+        return failed
+    note = f"designed by the continuous Theorem 1, not at the loop rate: the loop-rate design failed ({why})"
+    cont.certificate["time_domain_fallback"] = note
+    cont.options["time_domain"] = "continuous"        # a redesign with the recorded options reproduces it
+    cont.timings_s = {"discrete_attempt": float(sum(failed.timings_s.values())), **cont.timings_s}
+    warnings.warn(f"fuzzy-hinf, profile {profile.name!r}: {note}", stacklevel=3)
+    return cont
 
 
 def _fall_back_to_dc(profile, failed, *, drive, progress, gamma, options):
