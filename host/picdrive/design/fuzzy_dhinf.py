@@ -36,6 +36,8 @@ G_BOUND = 1e3
 #: weight of trace(Q) (+ trace(Q_d)) added to gamma in the minimisations (normalised units): it keeps the
 #: solver off the same degenerate directions; gamma_min moves by about REG x trace(Q), a fraction of a percent
 REG = 1e-4
+#: centred rounds after the alternation (solve_discrete)
+CENTRE_ROUNDS = 3
 #: most alternations of the gains and the slack (solve_discrete)
 MAX_ALTERNATIONS = 5
 
@@ -261,12 +263,18 @@ def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: floa
     # continuation: each further stage (then the model itself) from the previous stage's gains
     for nxt in [normalised(rescaled(x, d))[0] for x in stages[1:]] + ([sm1] if stages else []):
         trial = DiscreteSolution(True, "start", gamma=math.inf, K=best.K)
+        prev = best
         best, G_last, fail = alternate(nxt, trial, disk=False)
         if G_last is None:
-            out = fail if fail is not None else best
+            # the previous stage's gains do not hold here: this stage's own structured solve, then alternate
+            own = run(nxt, disk=False)
+            if own.feasible:
+                best, G_last, fail = alternate(nxt, own, disk=False)
+        if G_last is None:
+            out = fail if fail is not None else prev
             out.feasible = False
-            out.extra["why"] = ("the start model's gains have no certificate on the full model (every vertex, "
-                                "the pole disk)")
+            out.extra["why"] = (f"no certificate on the vertex set of {nxt.nv} vertices per rule, neither from the "
+                                "previous stage's gains nor from its own structured solve")
             return done(out, nb, nc)
     if radius is not None and G_last is not None:
         # the pole disk last: from the disk-free optimum's gains (with the disk from the start the structured
@@ -286,13 +294,25 @@ def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: floa
     g_min = best.gamma
     why = []
     for k in (1.0, 2.0, 4.0):
-        s = run(sm1, (1.0 + k * back_off) * g_min, G_fixed=G_last)
-        if s.status == "optimal" and s.feasible:
+        gc = (1.0 + k * back_off) * g_min
+        # centred rounds: the slack G at the analytic centre of the LMIs with the gains fixed, then the gains at
+        # the analytic centre with that G fixed, at the same gamma -- both points unique; the alternation's G
+        # (a minimiser, on the boundary) moved the gains by 10 % under a 1e-9 perturbation of the model
+        s, K = None, best.K
+        for _ in range(CENTRE_ROUNDS):
+            a = run(sm1, gc, K_fixed=K)
+            if not (a.status == "optimal" and a.feasible):
+                s = a
+                break
+            s = run(sm1, gc, G_fixed=a.G)
+            if not (s.status == "optimal" and s.feasible):
+                break
+            s.G, K = a.G, s.K
+        if s is not None and s.status == "optimal" and s.feasible:
             s.extra.update(gamma_min=g_min, gamma_back_off=k * back_off, centre_margin=-s.max_eig)
-            s.G = G_last
             return done(s, nb, nc)
-        why.append(f"gamma = {1 + k * back_off:g} gamma_min: status {s.status!r}"
-                   + ("" if s.status != "optimal" else f", largest LMI eigenvalue {s.max_eig:.3g}"))
+        why.append(f"gamma = {1 + k * back_off:g} gamma_min: status {s.status if s else 'none'!r}"
+                   + ("" if s is None or s.status != "optimal" else f", largest LMI eigenvalue {s.max_eig:.3g}"))
     best.extra.update(gamma_min=g_min,
                       centring="the centred solve failed (" + "; ".join(why) + "): the minimising point is kept")
     return done(best, nb, nc)
