@@ -208,7 +208,9 @@ column gives the verified designs' figures (budgets: {b.flash_bytes:,} B, {b.ram
 and reason.  Figures: twin / verification, on the speed averaged over one hall sector.  A verified
 fuzzy-hinf design names the plant model its gains were designed on: the averaged model (the default,
 docs/scheduling.md), or the DC equivalent where the averaged-model design failed its verification and
-the design fell back (recorded in the design's `certificate.plant_model_fallback`).
+the design fell back (recorded in the design's `certificate.plant_model_fallback`).  Each row is
+from the last run that included its profile: `bench/motors.py --write` runs them all, `--update NAME ...`
+those profiles (a full run costs about an hour of CPU).
 """
 
 
@@ -217,9 +219,18 @@ def main(argv=None) -> int:
     ap.add_argument("--jobs", type=int, default=None, help="worker processes (default: min(2, CPUs))")
     ap.add_argument("--only", nargs="*", help="profile names (file stems) to run")
     ap.add_argument("--write", action="store_true", help="regenerate docs/motors.md from this run")
+    ap.add_argument("--update", nargs="+", metavar="NAME",
+                    help="run these profiles and replace (or add) their rows of docs/motors.md, keeping the rest")
     args = ap.parse_args(argv)
+    if args.update and (args.only or args.write):
+        print("--update names the profiles itself: without --only or --write", file=sys.stderr)
+        return 2
+    unknown = sorted(set(args.update or ()) - {p.stem for p in profiles()})
+    if unknown:
+        print(f"--update: no profile {', '.join(unknown)} in {CORPUS}", file=sys.stderr)
+        return 2
     t0 = time.perf_counter()
-    cases = run_all(args.only, args.jobs)
+    cases = run_all(args.update or args.only, args.jobs)
     wall = time.perf_counter() - t0
     from picdrive.firmware.target import BUDGETS
     text = DOC_HEAD.format(b=BUDGETS) + "\n" + table(cases) + "\n"
@@ -228,6 +239,15 @@ def main(argv=None) -> int:
     n_bad = sum(bool(judge(c)) for c in cases)
     print(f"{len(cases)} cases: {n_ver} verified, {len(cases) - n_ver} refused, {n_bad} out of tolerance; "
           f"{wall:.0f} s wall")
+    if args.update:
+        rows = {ln.split(" | ")[0]: ln for ln in table(cases).splitlines()[2:]}
+        old = DOC.read_text().splitlines()
+        head_end = next(i for i, ln in enumerate(old) if ln.startswith("| profile | source |"))
+        kept = {ln.split(" | ")[0]: ln for ln in old[head_end + 2:] if ln.startswith("| `")}
+        kept.update(rows)
+        body = [kept[k] for k in sorted(kept)]
+        DOC.write_text(DOC_HEAD.format(b=BUDGETS) + "\n" + "\n".join(table([]).splitlines()[:2] + body) + "\n")
+        print(f"updated {len(rows)} rows of {DOC}")
     if args.write:
         if args.only:
             print("--write needs the whole corpus (no --only)", file=sys.stderr)

@@ -156,10 +156,12 @@ def test_a_fast_winding_gets_a_verified_design():
     cont = fuzzy_hinf.design(p, drive=DRIVE, progress=False, time_domain="continuous", plant_model="six-step",
                              simulate=False)
     assert not cont.ok and "no fuzzy-hinf certificate exists at any gamma" in cont.reasons[0]
-    r = fuzzy_hinf.design(p, drive=DRIVE, progress=False)
+    with pytest.warns(UserWarning, match="designed at the loop rate, not by the continuous Theorem 1"):
+        r = fuzzy_hinf.design(p, drive=DRIVE, progress=False)      # the default: continuous, then the loop rate
     assert r.ok, r.reasons
     c, v = r.certificate, r.verification
     assert c["time_domain"] == "discrete" and r.options["time_domain"] == "discrete"
+    assert "no fuzzy-hinf certificate exists at any gamma" in c["time_domain_fallback"]
     assert v["sampled_spectral_radius"]["value"] < 1.0 and v["discrete_spectral_radius"]["value"] < 1.0
     assert v["lmi_max_eig"]["value"] < 0 and v["hinf_norm"]["value"] <= c["certified_gain"] * (1 + 1e-6)
     assert v["sim_overshoot_pct"]["ok"] and v["sim_settling_s"]["ok"]
@@ -182,8 +184,10 @@ def test_a_failure_names_the_reason_with_numbers():
 def test_options_of_the_other_time_domain_are_refused():
     p = _profile("duy2008")
     with pytest.raises(fuzzy_hinf.FuzzyHinfError, match="pole_disk_radius"):
-        fuzzy_hinf.design(p, drive=DRIVE, progress=False, pole_disk_rad_s=400.0)
+        fuzzy_hinf.design(p, drive=DRIVE, progress=False, pole_disk_rad_s=400.0, time_domain="discrete")
     with pytest.raises(fuzzy_hinf.FuzzyHinfError, match="continuous"):
-        fuzzy_hinf.design(p, drive=DRIVE, progress=False, gamma=10.0)
+        fuzzy_hinf.design(p, drive=DRIVE, progress=False, gamma=10.0, time_domain="discrete")
+    with pytest.raises(fuzzy_hinf.FuzzyHinfError, match="pole_disk_rad_s"):
+        fuzzy_hinf.design(p, drive=DRIVE, progress=False, pole_disk_radius=0.5, time_domain="continuous")
     with pytest.raises(fuzzy_hinf.FuzzyHinfError, match="time_domain"):
         fuzzy_hinf.design(p, drive=DRIVE, progress=False, time_domain="z")

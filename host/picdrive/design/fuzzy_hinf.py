@@ -58,6 +58,7 @@ from ..analysis.sampled import sampled_radius, six_step_equilibrium
 from ..control_law import ScheduledLaw
 from ..errors import PicdriveError
 from ..models.tsfuzzy import model_for
+from .verify import drive_limit_failed
 
 __all__ = ["Theorem1Solution", "solve_theorem1", "minimise_gamma", "design", "DEFAULT_SOLVER", "FuzzyHinfError",
            "OPTIONS"]
@@ -556,10 +557,11 @@ OPTIONS: dict[str, str] = {
     "simulate": "run the nonlinear verification simulation (default true)",
     "setpoint_weight": "six-step: law's b (default: the largest of 1 + Kb/kp, its midpoint with 1, and 1 that "
                        "passes the verification; the certified loop is the same for every b)",
-    "time_domain": "six-step: 'discrete' (default: the H-inf synthesis at the speed-loop rate on the sampled "
-                   "model with the computation delay and the firmware's speed measurement, "
-                   "picdrive.design.fuzzy_dhinf) or 'continuous' (Theorem 1 in continuous time with the pole-disk "
-                   "search, checked on the sampled loop afterwards)",
+    "time_domain": "six-step: 'continuous' (Theorem 1 in continuous time with the pole-disk search, checked on "
+                   "the sampled loop afterwards) or 'discrete' (the H-inf synthesis at the speed-loop rate on the "
+                   "sampled model with the computation delay and the firmware's speed measurement, "
+                   "picdrive.design.fuzzy_dhinf); default: the continuous design, and where it fails for the "
+                   "law's sake the loop-rate one",
     "effort_weight_rad_s_per_v": "six-step, discrete: weight of the command in the H-inf output (default: 0, "
                                  "then w_top/u_max x 1, 4, 16 until the law verifies)",
     "pole_disk_radius": "six-step, discrete: every closed-loop pole inside |z| < this (default none: the H-inf "
@@ -732,6 +734,16 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
         raise FuzzyHinfError(f"unknown fuzzy-hinf option(s) {', '.join(map(repr, unknown))}; known options: "
                              f"{', '.join(OPTIONS)}")
     _check_options(options, gamma)
+    if variant == "six-step" and "time_domain" not in options and gamma is None:
+        # the default: the continuous Theorem 1 (seconds, reproducible to 1e-4), and where it fails for the
+        # law's sake -- no certificate for a fast winding, a sampled loop it did not design for -- the
+        # synthesis at the loop rate (minutes); a limit of the drive no gains pass ends it there
+        discrete_only = ("pole_disk_radius", "effort_weight_rad_s_per_v")
+        cont = design(profile, drive=drive, progress=progress, variant=variant,
+                      **{k: v for k, v in options.items() if k not in discrete_only}, time_domain="continuous")
+        if cont.ok or drive_limit_failed(cont):
+            return cont
+        return _fall_back_to_discrete(profile, cont, drive=drive, progress=progress, options=options)
     d = profile.design
     alpha = float(options.get("alpha", d.get("alpha", 2.0)))
     rho = float(options.get("rho", d.get("rho", 1.0)))
@@ -767,9 +779,10 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
         raise FuzzyHinfError("option plant_model='averaged' identifies the speed-dependent model from the drive's "
                              "three-phase plant: it needs the built drive (picdrive design passes it; in Python "
                              "pass drive=picdrive.gate.BuiltDrive())")
-    time_domain = options.get("time_domain", "discrete" if variant == "six-step" else "continuous")
+    time_domain = options.get("time_domain", "continuous")
     if time_domain not in ("discrete", "continuous"):
-        raise FuzzyHinfError(f"option time_domain={time_domain!r}: expected 'discrete' (the default) or 'continuous'")
+        raise FuzzyHinfError(f"option time_domain={time_domain!r}: expected 'continuous' (Theorem 1) or 'discrete' "
+                             "(the synthesis at the loop rate; by default tried where the continuous design fails)")
     if time_domain == "discrete" and variant != "six-step":
         raise FuzzyHinfError(f"option time_domain='discrete' designs the six-step drive's sampled loop: drop "
                              f"--variant {variant} (or the option)")
@@ -895,10 +908,8 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
                                solver=solver, res_opts={**res_opts, "time_domain": "discrete"},
                                radius=options.get("pole_disk_radius"), plant_note=plant_note, timings=timings,
                                effort_weight=options.get("effort_weight_rad_s_per_v"))
-        if by_default and model == "six-step-averaged" and not res.ok:
+        if by_default and model == "six-step-averaged" and not res.ok and not drive_limit_failed(res):
             res = _fall_back_to_dc(profile, res, drive=drive, progress=progress, gamma=gamma, options=options)
-        if not res.ok and "time_domain" not in options:
-            return _fall_back_to_continuous(profile, res, drive=drive, progress=progress, options=options)
         return res
 
     # six-step: the pole disk from the sampled loop with the firmware's measurement and the verification
@@ -983,9 +994,31 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
                  "; ".join(f"{t['pole_disk_rad_s']:.0f} rad/s: {t['status']}" for t in tries))
     res.certificate["disk_tries"] = tries
     res.timings_s = {**timings, "lmi": t_lmi, "verify": t_ver}
-    if by_default and model == "six-step-averaged" and not res.ok:
+    if by_default and model == "six-step-averaged" and not res.ok and not drive_limit_failed(res):
         return _fall_back_to_dc(profile, res, drive=drive, progress=progress, gamma=gamma, options=options)
     return res
+
+
+def _fall_back_to_discrete(profile, failed, *, drive, progress, options):
+    """The default continuous design failed for the law's sake: the synthesis at the loop rate, judged by the
+    same verification; when it verifies it is returned with the reason in ``certificate.time_domain_fallback``
+    and a warning (never silently), else the continuous failure with the loop-rate design's reason added.
+    Seen on the corpus: fast windings (L/R 15-40 us) have no continuous certificate at any gamma and verify at
+    the loop rate (docs/design-fuzzy.md)."""
+    why = "; ".join(x[:200] for x in failed.reasons[:2]) or failed.status
+    continuous_only = ("pole_disk_rad_s",)
+    disc = design(profile, drive=drive, progress=progress, variant="six-step",
+                  **{**{k: v for k, v in options.items() if k not in continuous_only}, "time_domain": "discrete"})
+    if not disc.ok:
+        failed.reasons.append("the synthesis at the loop rate (time_domain 'discrete') fails too: "
+                              + ("; ".join(x[:200] for x in disc.reasons[:1]) or disc.status))
+        failed.timings_s = {"discrete_attempt": float(sum(disc.timings_s.values())), **failed.timings_s}
+        return failed
+    note = f"designed at the loop rate, not by the continuous Theorem 1: the continuous design failed ({why})"
+    disc.certificate["time_domain_fallback"] = note
+    disc.timings_s = {"continuous_attempt": float(sum(failed.timings_s.values())), **disc.timings_s}
+    warnings.warn(f"fuzzy-hinf, profile {profile.name!r}: {note}", stacklevel=3)
+    return disc
 
 
 def _sampled_for(profile, ts, model, zero, effort_weight: float = 0.0):
@@ -1138,29 +1171,6 @@ def _design_discrete_at(profile, ts, model, model_opts, zero, b, effort_weight, 
     out.certificate["setpoint_weights"] = tries
     out.timings_s["verify"] = t_ver
     return out
-
-
-def _fall_back_to_continuous(profile, failed, *, drive, progress, options):
-    """The default loop-rate design failed its verification (or has no certificate): the continuous
-    Theorem 1 design, judged by the same verification; when it verifies it is returned with the reason in
-    ``certificate.time_domain_fallback`` and a warning (never silently), else the loop-rate failure with the
-    continuous design's reason added.  Seen on duy2008: the loop-rate law's current feedback (kc 37-38 V/A
-    against the continuous design's 27) holds the command at the current window's edge on the rippling
-    current sample in steady state (sim_saturated_steady_fraction 0.04-0.07)."""
-    why = "; ".join(x[:200] for x in failed.reasons[:2]) or failed.status
-    discrete_only = ("pole_disk_radius", "effort_weight_rad_s_per_v")
-    cont = design(profile, drive=drive, progress=progress, variant="six-step",
-                  **{**{k: v for k, v in options.items() if k not in discrete_only}, "time_domain": "continuous"})
-    if not cont.ok:
-        failed.reasons.append("the continuous Theorem 1 design (time_domain 'continuous') fails too: "
-                              + ("; ".join(x[:200] for x in cont.reasons[:1]) or cont.status))
-        return failed
-    note = f"designed by the continuous Theorem 1, not at the loop rate: the loop-rate design failed ({why})"
-    cont.certificate["time_domain_fallback"] = note
-    cont.options["time_domain"] = "continuous"        # a redesign with the recorded options reproduces it
-    cont.timings_s = {"discrete_attempt": float(sum(failed.timings_s.values())), **cont.timings_s}
-    warnings.warn(f"fuzzy-hinf, profile {profile.name!r}: {note}", stacklevel=3)
-    return cont
 
 
 def _fall_back_to_dc(profile, failed, *, drive, progress, gamma, options):
