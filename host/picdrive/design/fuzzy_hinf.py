@@ -964,16 +964,7 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
             tb = _t.perf_counter()
             verify_design(profile, rb, drive=drive, simulate=simulate)
             t_ver += _t.perf_counter() - tb
-            note = ""
-            if rb.ok and bb != b_list[-1] and simulate:
-                # a weight above 1 is kept only with the 0.5 % overshoot margin (mixed-pid's GA bound): the model
-                # under-predicts the twin's overshoot by up to ~0.7 point (docs/design-fuzzy.md)
-                v = rb.verification
-                worst = max([v["sim_overshoot_pct"]["value"]] +
-                            [f["overshoot_pct"] for f in v["sim_resistance_uncertainty"]["value"].values()
-                             if isinstance(f, dict)])
-                if worst > 0.5:
-                    note = f"overshoot {worst:.3g} % > the 0.5 % margin kept for b > 1"
+            note = _weight_margin_note(rb, bb != b_list[-1] and simulate)
             entry["setpoint_weights"].append({"b": bb, "status": rb.status if not note else "not kept",
                                               "reasons": [x[:160] for x in rb.reasons] + ([note] if note else [])})
             r = rb
@@ -997,6 +988,18 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     if by_default and model == "six-step-averaged" and not res.ok and not drive_limit_failed(res):
         return _fall_back_to_dc(profile, res, drive=drive, progress=progress, gamma=gamma, options=options)
     return res
+
+
+def _weight_margin_note(rb, above_one: bool) -> str:
+    """Why a verified law with a setpoint weight above 1 (``above_one``) is not kept: a weight above 1 is
+    kept only with the 0.5 % overshoot margin (mixed-pid's GA bound), at R nominal and -+ its uncertainty:
+    the model under-predicts the twin's overshoot by up to ~0.7 point (docs/design-fuzzy.md).  Empty: kept."""
+    if not (rb.ok and above_one):
+        return ""
+    v = rb.verification
+    worst = max([v["sim_overshoot_pct"]["value"]] +
+                [f["overshoot_pct"] for f in v["sim_resistance_uncertainty"]["value"].values() if isinstance(f, dict)])
+    return f"overshoot {worst:.3g} % > the 0.5 % margin kept for b > 1" if worst > 0.5 else ""
 
 
 def _fall_back_to_discrete(profile, failed, *, drive, progress, options):
@@ -1154,15 +1157,7 @@ def _design_discrete_at(profile, ts, model, model_opts, zero, b, effort_weight, 
         tb = _t.perf_counter()
         verify_design(profile, rb, drive=drive, simulate=simulate)
         t_ver += _t.perf_counter() - tb
-        note = ""
-        if rb.ok and bb != b_list[-1] and simulate:
-            # a weight above 1 is kept only with the 0.5 % overshoot margin, as the continuous design
-            v = rb.verification
-            worst = max([v["sim_overshoot_pct"]["value"]] +
-                        [f["overshoot_pct"] for f in v["sim_resistance_uncertainty"]["value"].values()
-                         if isinstance(f, dict)])
-            if worst > 0.5:
-                note = f"overshoot {worst:.3g} % > the 0.5 % margin kept for b > 1"
+        note = _weight_margin_note(rb, bb != b_list[-1] and simulate)
         tries.append({"b": bb, "status": rb.status if not note else "not kept",
                       "reasons": [x[:160] for x in rb.reasons] + ([note] if note else [])})
         out = rb
