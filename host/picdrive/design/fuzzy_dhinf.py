@@ -271,21 +271,16 @@ def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: floa
             if own.feasible:
                 best, G_last, fail = alternate(nxt, own, disk=False)
         if G_last is None:
-            out = fail if fail is not None else prev
-            out.feasible = False
-            out.extra["why"] = (f"no certificate on the vertex set of {nxt.nv} vertices per rule, neither from the "
-                                "previous stage's gains nor from its own structured solve")
-            return done(out, nb, nc)
+            return done(_no_certificate(fail, prev, f"no certificate on the vertex set of {nxt.nv} vertices per "
+                                        "rule, neither from the previous stage's gains nor from its own structured "
+                                        "solve"), nb, nc)
     if radius is not None and G_last is not None:
         # the pole disk last: from the disk-free optimum's gains (with the disk from the start the structured
         # solve is infeasible on the bundled motors)
         best, G_disk, fail = alternate(sm1, DiscreteSolution(True, "no disk", gamma=math.inf, K=best.K), disk=True)
         if G_disk is None:
-            out = fail if fail is not None else best
-            out.feasible = False
-            out.extra["why"] = (f"no certificate with every closed-loop pole inside |z| < {radius:g} from the "
-                                "disk-free design's gains")
-            return done(out, nb, nc)
+            return done(_no_certificate(fail, best, f"no certificate with every closed-loop pole inside "
+                                        f"|z| < {radius:g} from the disk-free design's gains"), nb, nc)
         G_last = G_disk
     best.extra["alternations_gamma"] = best.gamma
     if G_last is None:
@@ -316,6 +311,14 @@ def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: floa
     best.extra.update(gamma_min=g_min,
                       centring="the centred solve failed (" + "; ".join(why) + "): the minimising point is kept")
     return done(best, nb, nc)
+
+
+def _no_certificate(fail, last, why: str):
+    """A stage without a certificate: the failed solve (else the last good one) marked infeasible, with why."""
+    out = fail if fail is not None else last
+    out.feasible = False
+    out.extra["why"] = why
+    return out
 
 
 def _physical(sol: DiscreteSolution, nb: float, nc: float) -> DiscreteSolution:
