@@ -125,6 +125,7 @@ def test_the_certificate_holds_when_rebuilt_in_numpy(dc_solution):
             assert np.max(np.abs(np.linalg.eigvals(A))) < 1.0
 
 
+@pytest.mark.slow          # 60 s; the loop-rate design is not committed anywhere, so nothing pins its gains
 def test_the_centred_gains_do_not_move_with_the_last_digits(dc_solution):
     """The model's A and B perturbed at 1e-9 relative move the loop-rate gains by 4.4 % relative (measured on
     this profile; 10 % before the centred rounds): the alternation stops at a local optimum that the last
@@ -148,6 +149,7 @@ def test_the_centred_gains_do_not_move_with_the_last_digits(dc_solution):
     assert np.max(np.abs(g1 - g0) / np.abs(g0)) < 0.1
 
 
+@pytest.mark.slow          # 150 s: the whole default chain; the suite keeps the synthesis's certificate test
 def test_a_fast_winding_gets_a_verified_design():
     """maxon EC 13 305192: L/R 15.9 us against a 1 ms speed loop.  The continuous Theorem 1 has no certificate
     at any gamma there (the current mode cannot be held inside any pole disk the sampled law allows); at the
