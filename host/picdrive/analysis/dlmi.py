@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 
-__all__ = ["SampledTS", "sampled_model", "normalised", "rescaled", "brl_blocks", "disk_blocks", "dlmi_margins", "dhinf_norm",
+__all__ = ["SampledTS", "sampled_model", "sampled_stages", "normalised", "rescaled", "brl_blocks", "disk_blocks", "dlmi_margins", "dhinf_norm",
            "closed_loop_radius", "law_gains"]
 
 
@@ -444,3 +444,20 @@ def law_gains(sm: SampledTS, K) -> list[tuple[float, float, float]]:
         kc = float(-F[1] / sm.current_gain) if sm.n_meas == 3 else 0.0
         out.append((kp, ki, kc))
     return out
+
+
+def sampled_stages(profile, ts, model, zero, effort_weight: float = 0.0):
+    """The sampled model of the law's loop for a six-step TS model (:func:`picdrive.analysis.dlmi.sampled_model`)
+    and the synthesis's continuation stages: the rule plants at the nominal EMF, then with the EMF range, then
+    (the averaged model) with the DC equivalent added -- each stage starts from the previous one's gains."""
+    k_i = 1.0
+    if ts.n == 4:
+        from ..models.dqmodel import dq_params
+        k_i = dq_params(profile).ki_ibus_per_iq
+    dc = model == "six-step-averaged"
+    kw = dict(zero_gain_states=zero, current_gain=k_i, effort_weight=effort_weight)
+    sm = sampled_model(profile, ts, dc_vertices=dc, **kw)
+    stages = [sampled_model(profile, ts.with_(dA=None), **kw)]
+    if dc and ts.dA is not None:
+        stages.append(sampled_model(profile, ts, **kw))
+    return sm, stages

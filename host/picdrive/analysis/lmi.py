@@ -10,11 +10,12 @@ inequality out.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Sequence
 
 import numpy as np
 
-__all__ = ["nonzero", "xi_blocks", "assemble", "assemble_xi", "lmi_margins", "certified_gain"]
+__all__ = ["nonzero", "xi_blocks", "assemble", "assemble_xi", "lmi_margins", "certified_gain", "quiet_solve"]
 
 
 # ---------------------------------------------------------------------------
@@ -118,3 +119,30 @@ def certified_gain(ts, gamma: float, alpha: float) -> float:
     if not (nonzero(ts.H3) or nonzero(ts.H4)):
         return gamma / math.sqrt(alpha)
     return gamma
+
+
+def quiet_solve(prob, solver, **settings) -> tuple[str, list[str]]:
+    """Solve a cvxpy problem without letting the solver's or cvxpy's text reach the user.
+
+    cvxpy warns ("Solution may be inaccurate. Try another solver, adjusting the solver settings, or solve
+    with verbose=True ...") when the solver stops short of its tolerances and may log through the ``cvxpy``
+    logger; neither names anything a picdrive user can act on.  The status says the same (``optimal_inaccurate``)
+    and the callers act on it; the text is returned (``notes``) for the record, never printed.  A solver
+    exception is a status (``"solver error: ..."``)."""
+    import logging
+
+    import cvxpy as cp
+    log = logging.getLogger("cvxpy")
+    level = log.level
+    log.setLevel(logging.CRITICAL + 1)
+    try:
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            try:
+                prob.solve(solver=solver, **settings)
+                status = str(prob.status)
+            except cp.error.SolverError as e:
+                status = f"solver error: {e}"
+    finally:
+        log.setLevel(level)
+    return status, [str(w.message) for w in seen]

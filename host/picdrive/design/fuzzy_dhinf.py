@@ -183,7 +183,7 @@ def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: floa
     strictly feasible at ``back_off``, 2 ``back_off`` and 4 ``back_off``, the minimising point is kept
     with the reason in ``extra["centring"]``; an infeasible minimisation is returned as it ended.
     """
-    from .fuzzy_hinf import _quiet_solve
+    from ..analysis.lmi import quiet_solve as _quiet_solve
     from dataclasses import replace
     t0 = time.perf_counter()
     n_solves = 0

@@ -53,12 +53,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..analysis.lmi import assemble, certified_gain, lmi_margins, nonzero, xi_blocks
+from ..analysis.dlmi import sampled_stages
+from ..analysis.lmi import assemble, certified_gain, lmi_margins, nonzero, quiet_solve, xi_blocks
 from ..analysis.sampled import sampled_radius, six_step_equilibrium
 from ..control_law import ScheduledLaw
 from ..errors import PicdriveError
 from ..models.tsfuzzy import model_for
-from .verify import drive_limit_failed
 
 __all__ = ["Theorem1Solution", "solve_theorem1", "minimise_gamma", "design", "DEFAULT_SOLVER", "FuzzyHinfError",
            "OPTIONS"]
@@ -308,31 +308,7 @@ class _Problem:
         return sol
 
 
-def _quiet_solve(prob, solver, **settings) -> tuple[str, list[str]]:
-    """Solve a cvxpy problem without letting the solver's or cvxpy's text reach the user.
-
-    cvxpy warns ("Solution may be inaccurate. Try another solver, adjusting the solver settings, or solve
-    with verbose=True ...") when the solver stops short of its tolerances and may log through the ``cvxpy``
-    logger; neither names anything a picdrive user can act on.  The status says the same (``optimal_inaccurate``)
-    and the callers act on it; the text is returned (``notes``) for the record, never printed.  A solver
-    exception is a status (``"solver error: ..."``)."""
-    import logging
-
-    import cvxpy as cp
-    log = logging.getLogger("cvxpy")
-    level = log.level
-    log.setLevel(logging.CRITICAL + 1)
-    try:
-        with warnings.catch_warnings(record=True) as seen:
-            warnings.simplefilter("always")
-            try:
-                prob.solve(solver=solver, **settings)
-                status = str(prob.status)
-            except cp.error.SolverError as e:
-                status = f"solver error: {e}"
-    finally:
-        log.setLevel(level)
-    return status, [str(w.message) for w in seen]
+_quiet_solve = quiet_solve          # picdrive.analysis.lmi.quiet_solve
 
 
 def solve_theorem1(ts, gamma: float, delta: float | None = 1.0, alpha: float = 2.0, rho: float | None = None, *,
@@ -726,7 +702,7 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
     """
     import time as _t
     from ..result import DesignResult
-    from .verify import verify_design
+    from .verify import drive_limit_failed, verify_design      # verify reads this module's certificates
     if variant not in VARIANTS:
         raise FuzzyHinfError(f"unknown fuzzy-hinf variant {variant!r}; choose one of {', '.join(VARIANTS)}")
     unknown = sorted(set(options) - set(OPTIONS))
@@ -1024,22 +1000,7 @@ def _fall_back_to_discrete(profile, failed, *, drive, progress, options):
     return disc
 
 
-def _sampled_for(profile, ts, model, zero, effort_weight: float = 0.0):
-    """The sampled model of the law's loop for a six-step TS model (:func:`picdrive.analysis.dlmi.sampled_model`)
-    and the synthesis's continuation stages: the rule plants at the nominal EMF, then with the EMF range, then
-    (the averaged model) with the DC equivalent added -- each stage starts from the previous one's gains."""
-    from ..analysis.dlmi import sampled_model
-    k_i = 1.0
-    if ts.n == 4:
-        from ..models.dqmodel import dq_params
-        k_i = dq_params(profile).ki_ibus_per_iq
-    dc = model == "six-step-averaged"
-    kw = dict(zero_gain_states=zero, current_gain=k_i, effort_weight=effort_weight)
-    sm = sampled_model(profile, ts, dc_vertices=dc, **kw)
-    stages = [sampled_model(profile, ts.with_(dA=None), **kw)]
-    if dc and ts.dA is not None:
-        stages.append(sampled_model(profile, ts, **kw))
-    return sm, stages
+_sampled_for = sampled_stages      # picdrive.analysis.dlmi.sampled_stages
 
 
 def _design_discrete(profile, ts, model, model_opts, zero, b, *, drive, simulate, solver, res_opts, radius,

@@ -237,7 +237,7 @@ def _discrete_certificate_checks(profile, cert) -> dict:
     on the sampled model rebuilt from the profile: the LMIs re-assembled, the closed loop's spectral radius at
     every rule, blend and vertex, and each vertex closed loop's H-inf norm against the certified bound."""
     from ..analysis.dlmi import closed_loop_radius, dhinf_norm, dlmi_margins, normalised, rescaled
-    from .fuzzy_hinf import _sampled_for
+    from ..analysis.dlmi import sampled_stages as _sampled_for
     out: dict[str, Any] = {}
     ts = model_for(profile, cert["model"], cert.get("model_options", {}))
     sm, _ = _sampled_for(profile, ts, cert["model"], tuple(cert.get("zero_gain_states", ())),
