@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from picdrive.analysis.dlmi import (closed_loop_radius, dhinf_norm, dlmi_margins, law_gains, normalised,
-                                    rescaled, sampled_model)
+                                    rescaled, sampled_model, sampled_stages)
 from picdrive.analysis.sampled import six_step_closed_loop
 from picdrive.control_law import Rule
 from picdrive.design import fuzzy_hinf
@@ -81,7 +81,7 @@ def dc_solution():
                                    / p.motor.inertia_kg_m2})
     # design()'s second command weight, the full command priced as the full speed error (w_top / u_max)
     ew = ts.info["state_scale"][0] / (p.inverter.bus_voltage_v * p.max_duty())
-    sm, stages = fuzzy_hinf._sampled_for(p, ts, "six-step", (), ew)
+    sm, stages = sampled_stages(p, ts, "six-step", (), ew)
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
         sol = solve_discrete(sm, start=stages)
@@ -143,7 +143,7 @@ def test_the_centred_gains_do_not_move_with_the_last_digits(dc_solution):
         B = [b * (1 + 1e-9 * rng.standard_normal(b.shape)) for b in m.B[0]]
         return dataclasses.replace(m, A=[A] * m.r, B=[B] * m.r)
     sm_p = jiggle(sm)
-    _, stages = fuzzy_hinf._sampled_for(p, ts, "six-step", (), ew)
+    _, stages = sampled_stages(p, ts, "six-step", (), ew)
     s1 = solve_discrete(sm_p, start=[jiggle(x) for x in stages])
     g0, g1 = (np.array(law_gains(s.model, s.K)) for s in (sol, s1))
     assert np.max(np.abs(g1 - g0) / np.abs(g0)) < 0.1

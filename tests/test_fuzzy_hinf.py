@@ -266,7 +266,7 @@ def test_no_solver_text_reaches_the_user(caplog):
     """cvxpy's "Solution may be inaccurate ... verbose=True" warning and its log lines are captured: the status
     is returned (and acted on by the callers), the text kept for the record."""
     import logging
-    from picdrive.design.fuzzy_hinf import _quiet_solve
+    from picdrive.analysis.lmi import quiet_solve
 
     class Noisy:
         status = "optimal_inaccurate"
@@ -278,7 +278,7 @@ def test_no_solver_text_reaches_the_user(caplog):
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
         with caplog.at_level(logging.DEBUG):
-            status, notes = _quiet_solve(Noisy(), "CLARABEL")
+            status, notes = quiet_solve(Noisy(), "CLARABEL")
     assert seen == [] and caplog.records == []
     assert status == "optimal_inaccurate" and notes and "inaccurate" in notes[0]
 

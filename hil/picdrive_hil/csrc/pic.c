@@ -665,7 +665,7 @@ static double analog_volts(int ch)
     }
     case ASIG_BUS_VOLTAGE:
         /* the bus capacitor's voltage (it rises when the bridge returns energy the supply cannot take) */
-        return g.cfg.bus_sense_v_per_v * (g.ps.v_bus_v > 0.0 ? g.ps.v_bus_v : g.pp.bus_voltage_v);
+        return g.cfg.bus_sense_v_per_v * plant_bus_voltage(&g.pp, &g.ps);
     default:
         return 0.0;
     }

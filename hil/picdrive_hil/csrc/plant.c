@@ -293,9 +293,9 @@ static inline __attribute__((always_inline)) double next_speed(const plant_param
     return w1;
 }
 
-/* The bus voltage a step starts from: the capacitor's, or the supply's before the first step
- * and on a stiff bus. */
-static inline double bus_now(const plant_params_t *p, const plant_state_t *s)
+/* The bus voltage now (a step starts from it, the AN1 divider and the twin's state read it): the
+ * capacitor's, or the supply's before the first step and on a stiff bus. */
+double plant_bus_voltage(const plant_params_t *p, const plant_state_t *s)
 {
     return (p->bus_capacitance_f > 0.0 && s->v_bus_v > 0.0) ? s->v_bus_v : p->bus_voltage_v;
 }
@@ -310,7 +310,7 @@ static void bus_step(const plant_params_t *p, plant_state_t *s, double i_bus_a, 
     double vs = p->bus_voltage_v, C = p->bus_capacitance_f;
     s->i_brake_a = 0.0;
     if (!(C > 0.0)) { s->v_bus_v = vs; return; }
-    double v0 = bus_now(p, s);
+    double v0 = plant_bus_voltage(p, s);
     double v1 = v0 - h * i_bus_a / C;
     if (v1 <= vs) {                      /* the supply sources: the capacitor sits at its voltage */
         s->v_bus_v = vs;
@@ -332,7 +332,7 @@ static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3
                     double t_load_n_m, double h, plant_cache_t *cc)
 {
     const step_coef_t *c = coef_for(p, h, cc);
-    double P = (double)p->pole_pairs, J = p->inertia_kg_m2, vbus = bus_now(p, s);
+    double P = (double)p->pole_pairs, J = p->inertia_kg_m2, vbus = plant_bus_voltage(p, s);
     double vp[3], vm[3], foff[3], i0[3], f[3], e[3], i1[3], vn, tl_applied;
     for (int x = 0; x < 3; x++) {
         double fh = leg[x].f_hi, fl = leg[x].f_lo;
@@ -467,11 +467,10 @@ void plant_step_cached(const plant_params_t *p, plant_state_t *s, const leg_t le
         if (i0 == 0.0 || (i1 != 0.0 && (i1 > 0.0) == (i0 > 0.0)))
             continue;
         /* start-of-step mode: legs with current conduct at their current's rail */
-        double vn = 0.0, n = 0.0, v[3];
+        double vn = 0.0, n = 0.0, v[3], vb = plant_bus_voltage(p, &save);
         for (int y = 0; y < 3; y++) {
             double fh = leg[y].f_hi, fl = leg[y].f_lo, fo = 1.0 - fh - fl;
             if (fo < 0.0) fo = 0.0;
-            double vb = bus_now(p, &save);
             v[y] = save.i_a[y] > 0.0 ? vb * fh - p->diode_drop_v * fo
                                      : vb * (1.0 - fl) + p->diode_drop_v * fo;
             if (save.i_a[y] != 0.0) { vn += v[y] - s->e_v[y]; n += 1.0; }

@@ -182,7 +182,7 @@ static void trace_record(void)
     r->duty_max = dmax;
     r->hall = g.hall_pins;
     r->fault = (double)(g.flt_latched | (g.flt_cbc << 1) | (g.flta_asserted << 2));
-    r->v_bus_v = g.ps.v_bus_v > 0.0 ? g.ps.v_bus_v : g.pp.bus_voltage_v;
+    r->v_bus_v = plant_bus_voltage(&g.pp, &g.ps);
 }
 
 /* ------------------------------------------------------------ API */

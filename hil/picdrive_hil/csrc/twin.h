@@ -103,6 +103,7 @@ typedef struct {
     double sin_ref, sin_s, sin_c;  /* sinusoidal EMF: anchor angle, its sin and cos (libm) */
 } plant_cache_t;
 void plant_cache_reset(plant_cache_t *cc);
+double plant_bus_voltage(const plant_params_t *p, const plant_state_t *s);
 void plant_step_cached(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
                        double t_load_n_m, double h_s, plant_cache_t *cc);
 

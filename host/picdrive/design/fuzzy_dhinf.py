@@ -183,7 +183,7 @@ def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: floa
     strictly feasible at ``back_off``, 2 ``back_off`` and 4 ``back_off``, the minimising point is kept
     with the reason in ``extra["centring"]``; an infeasible minimisation is returned as it ended.
     """
-    from ..analysis.lmi import quiet_solve as _quiet_solve
+    from ..analysis.lmi import quiet_solve
     from dataclasses import replace
     t0 = time.perf_counter()
     n_solves = 0
@@ -200,7 +200,7 @@ def solve_discrete(sm: SampledTS, *, radius: float | None = 0.95, back_off: floa
         nonlocal n_solves
         t1 = time.perf_counter()
         prob, var = _problem(model, radius if disk else None, centre, sv, **kw)
-        status, notes = _quiet_solve(prob, sv, **({"max_iters": 4000} if sv == "SCS" else {}))
+        status, notes = quiet_solve(prob, sv, **({"max_iters": 4000} if sv == "SCS" else {}))
         n_solves += 1
         notes_all.extend(notes)
         s = _read(model, prob, var, status, radius if disk else None, time.perf_counter() - t1)

@@ -268,7 +268,7 @@ class _Problem:
         elif self.fixed_gamma:
             self.gamma.value = float(gamma)
         t0 = time.perf_counter()
-        status, notes = _quiet_solve(self.prob, self.solver)
+        status, notes = quiet_solve(self.prob, self.solver)
         dt = time.perf_counter() - t0
         g0 = float(gamma) if self.fixed_gamma else math.nan
         sol = Theorem1Solution(False, str(status), g0, self.delta if self.delta is not None else math.nan,
@@ -306,9 +306,6 @@ class _Problem:
         sol.extra["lmi_margins"] = marg
         sol.feasible = sol.max_eig < 0.0
         return sol
-
-
-_quiet_solve = quiet_solve          # picdrive.analysis.lmi.quiet_solve
 
 
 def solve_theorem1(ts, gamma: float, delta: float | None = 1.0, alpha: float = 2.0, rho: float | None = None, *,
@@ -1000,9 +997,6 @@ def _fall_back_to_discrete(profile, failed, *, drive, progress, options):
     return disc
 
 
-_sampled_for = sampled_stages      # picdrive.analysis.dlmi.sampled_stages
-
-
 def _design_discrete(profile, ts, model, model_opts, zero, b, *, drive, simulate, solver, res_opts, radius,
                      plant_note, timings, effort_weight=None):
     """The six-step law designed at the speed-loop rate (:mod:`picdrive.design.fuzzy_dhinf`), verified.
@@ -1060,7 +1054,7 @@ def _design_discrete_at(profile, ts, model, model_opts, zero, b, effort_weight, 
     from .fuzzy_dhinf import solve_discrete
     from .verify import verify_design
     t0 = _t.perf_counter()
-    sm, stages = _sampled_for(profile, ts, model, zero, effort_weight)
+    sm, stages = sampled_stages(profile, ts, model, zero, effort_weight)
     sol = solve_discrete(sm, radius=None if radius is None else float(radius), solver=solver, start=stages)
     t_lmi = _t.perf_counter() - t0
     opts = {**res_opts, "pole_disk_radius": radius}

@@ -236,12 +236,11 @@ def _discrete_certificate_checks(profile, cert) -> dict:
     """The sampled-loop certificate (``time_domain = "discrete"``, :mod:`picdrive.design.fuzzy_dhinf`) re-checked
     on the sampled model rebuilt from the profile: the LMIs re-assembled, the closed loop's spectral radius at
     every rule, blend and vertex, and each vertex closed loop's H-inf norm against the certified bound."""
-    from ..analysis.dlmi import closed_loop_radius, dhinf_norm, dlmi_margins, normalised, rescaled
-    from ..analysis.dlmi import sampled_stages as _sampled_for
+    from ..analysis.dlmi import closed_loop_radius, dhinf_norm, dlmi_margins, normalised, rescaled, sampled_stages
     out: dict[str, Any] = {}
     ts = model_for(profile, cert["model"], cert.get("model_options", {}))
-    sm, _ = _sampled_for(profile, ts, cert["model"], tuple(cert.get("zero_gain_states", ())),
-                         float(cert.get("effort_weight_rad_s_per_v") or 0.0))
+    sm, _ = sampled_stages(profile, ts, cert["model"], tuple(cert.get("zero_gain_states", ())),
+                           float(cert.get("effort_weight_rad_s_per_v") or 0.0))
     S = np.asarray(cert["state_scale"], float)
     smn, nb, nc = normalised(rescaled(sm, S / sm.S))
     K = [np.asarray(k, float) for k in cert["K"]]
