@@ -1,0 +1,835 @@
+"""The speed-loop core's law and control, described once as programs of accumulator operations.
+
+The integer law (``core_law``) and the sample's control around it (``core_control``: current
+limits, setpoint ramp, reference feedforward, the law, direction and duty) are lists of typed
+operations (:class:`Op` subclasses) over the fields of :mod:`picdrive.firmware.core_layout`'s
+structs, a few function locals and one 32-bit accumulator ``x`` (the C's ``core_acc.x``).  From
+these two programs come:
+
+* the bit-exact Python model: :func:`python_source` renders a program as a Python function,
+  compiled once (:func:`model`); ``fixedpoint.law_step`` and ``fixedpoint.core_control``
+  are those functions;
+* the C of ``drive_core.c`` (:func:`c_source`, rendered into the template as ``core_program.law``
+  and ``core_program.control``): the host build, XC8, and SDCC for plans whose law or control is
+  not in assembly;
+* the float rules of the averaged six-step simulation (:func:`walk_cap`, :func:`direction_hold`):
+  the same steps on volts.
+
+Operands (strings): ``s.<field>`` a member of ``core_s`` (``core_state_t``; ``s.law.integ`` a
+nested one), ``p.<field>`` of ``core_p`` (``core_params_t``), ``l.<name>`` a 32-bit static of the
+core (``l_q``), ``g.<name>`` a gain of this sample (``g_kp``), ``v.<name>`` a local of the
+function, ``K.<name>`` a generation-time constant (:data:`CONSTS`: its C macro and the plan's
+value), ``x`` the accumulator, or an int.
+
+Each operation states its overflow contract (:attr:`Op.contract`); the arithmetic rules are the
+firmware's: 16x16 products in 32 bits, floor right shifts, saturating left shifts, saturating
+32-bit sums and 16-bit results.  The PIC18 assembly of the plans the bundled designs use
+(``core_law_asm``, ``core_control_asm`` in ``drive_core.c.j2``) runs the same steps by hand; the
+chip's bit-exact test (tests/test_target_bitexact.py) holds it to the model generated here.
+
+To change the law: edit :data:`LAW` (or :data:`CONTROL`); the model, the C and the tests follow.
+The float law (:mod:`picdrive.control_law`) stays the specification.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["Op", "Load", "MulS", "Shift", "Asr", "ToQi", "MulQ15", "Add", "Sub", "Sat16", "Store", "Set", "If",
+           "When", "MaxInto", "MinInto", "Clamp", "ClampStore", "Schedule", "CallLaw", "WalkCap", "DirectionHold",
+           "Ramp", "Duty", "Function", "CONSTS", "LAW", "CONTROL", "c_source", "python_source", "model",
+           "walk_cap", "direction_hold"]
+
+#: generation-time constants: name -> (C macro of drive_params.h, the Python model's expression on ``plan``)
+CONSTS = {
+    "I_LIM": ("CORE_I_LIM", "plan.i_lim"),
+    "DI": ("CORE_QI - CORE_QU", "(plan.qi - plan.qu)"),
+    "DFILT_A": ("CORE_DFILT_A", "plan.dfilt_a"),
+    "CAP_STEP": ("CORE_CAP_STEP", "plan.cap_step"),
+    "U_LIMIT": ("CORE_U_LIMIT", "plan.u_limit"),
+    "R_CNT": ("CORE_R_CNT", "plan.r_cnt"),
+    "KB": ("CORE_KB", "plan.kb"),
+    "KFF": ("CORE_KFF", "plan.kff"),
+}
+#: the plan's shifts (x 2^-s: floor right for s >= 0, saturating left otherwise): name -> plan attribute
+SHIFTS = {"P": "shift_p", "I": "shift_i", "D": "shift_d", "C": "shift_c", "KB": "shift_kb", "R": "shift_r",
+          "FF": "shift_ff"}
+#: C preprocessor conditions of :class:`When` -> the plan's expression
+CONDS = {"CORE_DFILT_A": "plan.dfilt_a", "CORE_KFF": "plan.kff"}
+
+
+# ---------------------------------------------------------------------------
+# operand rendering
+# ---------------------------------------------------------------------------
+def _c(v, ctx) -> str:
+    if isinstance(v, int):
+        return str(v)
+    if v == "x":
+        return "ACC"
+    k, _, rest = v.partition(".")
+    if k == "s":
+        return "core_s." + rest
+    if k == "p":
+        return "core_p." + rest
+    if k == "l":
+        return "l_" + rest
+    if k == "g":
+        return "g_" + rest
+    if k == "v":
+        return rest
+    if k == "K":
+        return CONSTS[rest][0]
+    raise ValueError(f"operand {v!r}")
+
+
+def _py(v, ctx) -> str:
+    if isinstance(v, int):
+        return str(v)
+    if v == "x":
+        return "x"
+    if v in ctx.bind:
+        return ctx.bind[v]
+    for pre, to in ctx.prefix:
+        if v.startswith(pre):
+            return to + v[len(pre):]
+    k, _, rest = v.partition(".")
+    if k == "s":
+        return "st." + rest
+    if k == "p":
+        return "p." + rest
+    if k in ("l", "g", "v"):
+        return f"{k}_{rest}"
+    if k == "K":
+        return CONSTS[rest][1]
+    raise ValueError(f"operand {v!r}")
+
+
+class _Ctx:
+    """Rendering context: ``bind`` maps operands to the Python function's names (arguments)."""
+
+    def __init__(self, bind=(), prefix=()):
+        self.bind = dict(bind)
+        self.prefix = tuple(prefix)
+
+
+def _block(ops, ctx, lang: str, ind: int) -> list[str]:
+    out = []
+    for op in ops:
+        out += getattr(op, lang)(ctx, ind)
+    if lang == "py" and not out:
+        out = [" " * ind + "pass"]
+    return out
+
+
+# ---------------------------------------------------------------------------
+# the operations
+# ---------------------------------------------------------------------------
+class Op:
+    """One step.  ``c(ctx, indent)`` and ``py(ctx, indent)`` give its lines; ``contract`` its
+    overflow behaviour."""
+
+    contract = ""
+
+    def c(self, ctx, ind):
+        raise NotImplementedError
+
+    def py(self, ctx, ind):
+        raise NotImplementedError
+
+
+def _i(n):
+    return " " * n
+
+
+@dataclass(frozen=True)
+class Note(Op):
+    """A comment in the C (why the next steps are there)."""
+    text: str
+    contract = "no arithmetic"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}/* {self.text} */"]
+
+    def py(self, ctx, ind):
+        return []
+
+
+@dataclass(frozen=True)
+class Load(Op):
+    """x = src (sign-extended to 32 bits; ``cast``: the C's explicit cast)."""
+    src: object
+    cast: str = ""
+    contract = "exact"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}ACC = {self.cast}{_c(self.src, ctx)};"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}x = {_py(self.src, ctx)}"]
+
+
+@dataclass(frozen=True)
+class MulS(Op):
+    """x = a b, both int16: the product in 32 bits."""
+    a: object
+    b: object
+    contract = "exact: |a b| <= 2^30"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}ACC_MULS({_c(self.a, ctx)}, {_c(self.b, ctx)});"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}x = {_py(self.a, ctx)} * {_py(self.b, ctx)}"]
+
+
+@dataclass(frozen=True)
+class Shift(Op):
+    """x = x 2^-s, s the plan's shift ``name`` (:data:`SHIFTS`)."""
+    name: str
+    contract = "right: floor, exact in range; left: saturates at the int32 limits"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}(void)CORE_SHIFT_{self.name}(ACC);"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}x = shift32(x, plan.{SHIFTS[self.name]})"]
+
+
+@dataclass(frozen=True)
+class Asr(Op):
+    """x = floor(x / 2^n), n an int or a :data:`CONSTS` name."""
+    n: object
+    contract = "floor, never overflows"
+
+    def c(self, ctx, ind):
+        n = self.n if isinstance(self.n, int) else CONSTS[self.n][0]
+        return [f"{_i(ind)}ACC_ASR({n});"]
+
+    def py(self, ctx, ind):
+        n = self.n if isinstance(self.n, int) else CONSTS[self.n][1]
+        return [f"{_i(ind)}x = x >> {n}"]
+
+
+@dataclass(frozen=True)
+class ToQi(Op):
+    """x = x 2^(QI - QU): a voltage in the integrator's format."""
+    contract = "saturates at the int32 limits"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}(void)CORE_TO_QI(ACC);"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}x = shl_sat32(x, plan.qi - plan.qu)"]
+
+
+@dataclass(frozen=True)
+class MulQ15(Op):
+    """x = floor(x a / 2^15), a a :data:`CONSTS` name, 0 <= a <= 2^15."""
+    a: str
+    contract = "exact: |x a / 2^15| <= |x|"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}acc_mul_q15({CONSTS[self.a][0]});"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}x = (x * {CONSTS[self.a][1]}) >> 15"]
+
+
+@dataclass(frozen=True)
+class Add(Op):
+    """x = sat32(x + v)."""
+    v: object
+    contract = "saturates at the int32 limits"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}ACC_ADD({_c(self.v, ctx)});"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}x = sat32(x + {_py(self.v, ctx)})"]
+
+
+@dataclass(frozen=True)
+class Sub(Op):
+    """x = sat32(x - v)."""
+    v: object
+    contract = "saturates at the int32 limits"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}ACC_SUB({_c(self.v, ctx)});"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}x = sat32(x - {_py(self.v, ctx)})"]
+
+
+@dataclass(frozen=True)
+class Sat16(Op):
+    """x = sat16(x)."""
+    contract = "saturates at the int16 limits"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}ACC_SAT16();"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}x = -32768 if x < -32768 else 32767 if x > 32767 else x"]
+
+
+@dataclass(frozen=True)
+class Store(Op):
+    """dst = x (``cast``: the C's conversion, e.g. ``(int16_t)`` after :class:`Sat16`)."""
+    dst: str
+    cast: str = ""
+    contract = "exact: x fits dst (the steps before bound it)"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}{_c(self.dst, ctx)} = {self.cast}ACC;"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}{_py(self.dst, ctx)} = x"]
+
+
+@dataclass(frozen=True)
+class Set(Op):
+    """dst = a literal (``c``: its C spelling)."""
+    dst: str
+    value: int
+    c_value: str = ""
+    contract = "exact"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}{_c(self.dst, ctx)} = {self.c_value or self.value};"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}{_py(self.dst, ctx)} = {self.value}"]
+
+
+@dataclass(frozen=True)
+class If(Op):
+    """if (a rel b) then else orelse; ``b_c``: b's C spelling when it differs (``0u``)."""
+    a: object
+    rel: str
+    b: object
+    then: tuple
+    orelse: tuple = ()
+    b_c: str = ""
+    contract = "a comparison: exact"
+
+    def _cond(self, ctx, lang):
+        if lang == "c":
+            return f"{_c(self.a, ctx)} {self.rel} {self.b_c or _c(self.b, ctx)}"
+        return f"{_py(self.a, ctx)} {self.rel} {_py(self.b, ctx)}"
+
+    def c(self, ctx, ind):
+        out = [f"{_i(ind)}if ({self._cond(ctx, 'c')}) {{"] + _block(self.then, ctx, "c", ind + 4)
+        if self.orelse:
+            out += [f"{_i(ind)}}} else {{"] + _block(self.orelse, ctx, "c", ind + 4)
+        return out + [f"{_i(ind)}}}"]
+
+    def py(self, ctx, ind):
+        out = [f"{_i(ind)}if {self._cond(ctx, 'py')}:"] + _block(self.then, ctx, "py", ind + 4)
+        if self.orelse:
+            out += [f"{_i(ind)}else:"] + _block(self.orelse, ctx, "py", ind + 4)
+        return out
+
+
+@dataclass(frozen=True)
+class When(Op):
+    """Steps that exist only when a generation-time condition holds (C ``#if``)."""
+    cond: str
+    body: tuple
+    contract = "no arithmetic"
+
+    def c(self, ctx, ind):
+        return [f"#if {self.cond}"] + _block(self.body, ctx, "c", ind) + ["#endif"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}if {CONDS[self.cond]}:"] + _block(self.body, ctx, "py", ind + 4)
+
+
+@dataclass(frozen=True)
+class MaxInto(Op):
+    """dst = max(dst, src) (dst, src int32)."""
+    dst: str
+    src: str
+    contract = "exact"
+
+    def c(self, ctx, ind):
+        d, s = _c(self.dst, ctx), _c(self.src, ctx)
+        return [f"{_i(ind)}if ({s} > {d}) {{", f"{_i(ind + 4)}{d} = {s};", f"{_i(ind)}}}"]
+
+    def py(self, ctx, ind):
+        d, s = _py(self.dst, ctx), _py(self.src, ctx)
+        return [f"{_i(ind)}if {s} > {d}:", f"{_i(ind + 4)}{d} = {s}"]
+
+
+@dataclass(frozen=True)
+class MinInto(Op):
+    """dst = min(dst, src) (dst, src int32)."""
+    dst: str
+    src: str
+    contract = "exact"
+
+    def c(self, ctx, ind):
+        d, s = _c(self.dst, ctx), _c(self.src, ctx)
+        return [f"{_i(ind)}if ({s} < {d}) {{", f"{_i(ind + 4)}{d} = {s};", f"{_i(ind)}}}"]
+
+    def py(self, ctx, ind):
+        d, s = _py(self.dst, ctx), _py(self.src, ctx)
+        return [f"{_i(ind)}if {s} < {d}:", f"{_i(ind + 4)}{d} = {s}"]
+
+
+@dataclass(frozen=True)
+class LoadSel(Op):
+    """x = (a rel b) ? t : f, t and f int16 fields sign-extended."""
+    a: str
+    rel: str
+    b: int
+    t: str
+    f: str
+    contract = "exact"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}ACC = ({_c(self.a, ctx)} {self.rel} {self.b}) ? (int32_t){_c(self.t, ctx)} : "
+                f"(int32_t){_c(self.f, ctx)};"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}x = {_py(self.t, ctx)} if {_py(self.a, ctx)} {self.rel} {self.b} else {_py(self.f, ctx)}"]
+
+
+@dataclass(frozen=True)
+class LoadDiff(Op):
+    """x = a - b, both int16, in 32 bits."""
+    a: str
+    b: str
+    contract = "exact: |a - b| < 2^16"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}ACC = (int32_t){_c(self.a, ctx)} - (int32_t){_c(self.b, ctx)};"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}x = {_py(self.a, ctx)} - {_py(self.b, ctx)}"]
+
+
+@dataclass(frozen=True)
+class Move(Op):
+    """dst = src (same type)."""
+    dst: str
+    src: str
+    contract = "exact"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}{_c(self.dst, ctx)} = {_c(self.src, ctx)};"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}{_py(self.dst, ctx)} = {_py(self.src, ctx)}"]
+
+
+@dataclass(frozen=True)
+class Pick(Op):
+    """dst = min(a, b) (``rel`` "<") or max(a, b) (">"), as one conditional expression."""
+    dst: str
+    a: str
+    rel: str
+    b: str
+    contract = "exact"
+
+    def c(self, ctx, ind):
+        a, b = _c(self.a, ctx), _c(self.b, ctx)
+        return [f"{_i(ind)}{_c(self.dst, ctx)} = ({a} {self.rel} {b}) ? {a} : {b};"]
+
+    def py(self, ctx, ind):
+        a, b = _py(self.a, ctx), _py(self.b, ctx)
+        return [f"{_i(ind)}{_py(self.dst, ctx)} = {a} if {a} {self.rel} {b} else {b}"]
+
+
+@dataclass(frozen=True)
+class Clamp(Op):
+    """dst = dst clamped to [-lim, lim], lim a :data:`CONSTS` name (lim < 2^31)."""
+    dst: str
+    lim: str
+    contract = "exact"
+
+    def c(self, ctx, ind):
+        d, k = _c(self.dst, ctx), CONSTS[self.lim][0]
+        return [f"{_i(ind)}if ({d} > {k}) {{", f"{_i(ind + 4)}{d} = {k};", f"{_i(ind)}}} else if ({d} < -{k}) {{",
+                f"{_i(ind + 4)}{d} = -{k};", f"{_i(ind)}}}"]
+
+    def py(self, ctx, ind):
+        d, k = _py(self.dst, ctx), CONSTS[self.lim][1]
+        return [f"{_i(ind)}if {d} > {k}:", f"{_i(ind + 4)}{d} = {k}", f"{_i(ind)}elif {d} < -{k}:",
+                f"{_i(ind + 4)}{d} = -{k}"]
+
+
+@dataclass(frozen=True)
+class ClampStore(Op):
+    """dst = x clamped to [lo, hi] (int16 bounds, lo <= hi)."""
+    dst: str
+    lo: str
+    hi: str
+    contract = "exact: the result lies in [lo, hi]"
+
+    def c(self, ctx, ind):
+        d, lo, hi = _c(self.dst, ctx), _c(self.lo, ctx), _c(self.hi, ctx)
+        return [f"{_i(ind)}if (ACC < (int32_t){lo}) {{", f"{_i(ind + 4)}{d} = {lo};",
+                f"{_i(ind)}}} else if (ACC > (int32_t){hi}) {{", f"{_i(ind + 4)}{d} = {hi};",
+                f"{_i(ind)}}} else {{", f"{_i(ind + 4)}{d} = (int16_t)ACC;", f"{_i(ind)}}}"]
+
+    def py(self, ctx, ind):
+        d, lo, hi = _py(self.dst, ctx), _py(self.lo, ctx), _py(self.hi, ctx)
+        return [f"{_i(ind)}{d} = {lo} if x < {lo} else {hi} if x > {hi} else x"]
+
+
+_SCHEDULE_C = """\
+#if CORE_N_RULES > 1
+    if (core_p.controller == 0u) {
+#endif
+        g_kp = core_p.kp[0];
+        g_kits = core_p.kits[0];
+        g_kdts = core_p.kdts[0];
+        g_kc = core_p.kc[0];
+        core_s.law.mu1 = 4096;
+#if CORE_N_RULES > 1
+    } else {
+        uint16_t s = (y < 0) ? (uint16_t)(-(int32_t)y) : (uint16_t)y;
+        uint16_t lo = (uint16_t)core_p.premise_lo;
+        uint16_t pos;
+        uint8_t j;
+        if (s > (uint16_t)core_p.premise_hi) {
+            s = (uint16_t)core_p.premise_hi;
+        }
+        if (s < lo) {
+            s = lo;
+        }
+        ACC_MULU((uint16_t)(s - lo), core_p.mu_k);     /* < 2^31: the floor shift is the unsigned one */
+        ACC_ASR(CORE_MU_SH);
+        pos = ((uint32_t)ACC > CORE_MU_TOP) ? (uint16_t)CORE_MU_TOP : (uint16_t)(uint32_t)ACC;
+#if CORE_N_RULES == 2
+        j = 0u;
+        frac = pos;                                    /* pos <= 4096: rule 2's weight */
+#else
+        j = (uint8_t)(pos >> 12);
+        if (j >= (uint8_t)(CORE_N_RULES - 1u)) {
+            j = (uint8_t)(CORE_N_RULES - 2u);
+            frac = 4096u;
+        } else {
+            frac = (uint16_t)(pos & 4095u);
+        }
+#endif
+        bg0 = core_p.kp[j];
+        bg1 = core_p.kp[j + 1u];
+        g_kp = blend();
+        bg0 = core_p.kits[j];
+        bg1 = core_p.kits[j + 1u];
+        g_kits = blend();
+        bg0 = core_p.kdts[j];
+        bg1 = core_p.kdts[j + 1u];
+        g_kdts = blend();
+        bg0 = core_p.kc[j];
+        bg1 = core_p.kc[j + 1u];
+        g_kc = blend();
+        core_s.law.mu1 = (j == 0u) ? (int16_t)(4096u - frac) : 0;
+    }
+#endif"""
+
+_SCHEDULE_PY = """\
+if plan.n_rules == 1 or p.controller == 0:
+    g_kp, g_kits, g_kdts, g_kc = p.kp[0], p.kits[0], p.kdts[0], p.kc[0]
+    st.mu1 = 4096
+else:
+    nr = plan.n_rules
+    s = -{y} if {y} < 0 else {y}
+    lo, hi = p.premise_lo, p.premise_hi
+    if s > hi:
+        s = hi
+    if s < lo:
+        s = lo
+    pos = ((s - lo) * p.mu_k) >> plan.mu_sh
+    top = (nr - 1) << 12
+    if pos > top:
+        pos = top
+    j = pos >> 12
+    if j >= nr - 1:
+        j, frac = nr - 2, 4096
+    else:
+        frac = pos & 4095
+    w0 = 4096 - frac
+    g_kp = (p.kp[j] * w0 + p.kp[j + 1] * frac) >> 12
+    g_kits = (p.kits[j] * w0 + p.kits[j + 1] * frac) >> 12
+    g_kdts = (p.kdts[j] * w0 + p.kdts[j + 1] * frac) >> 12
+    g_kc = (p.kc[j] * w0 + p.kc[j + 1] * frac) >> 12
+    st.mu1 = w0 if j == 0 else 0"""
+
+
+@dataclass(frozen=True)
+class Schedule(Op):
+    """The gains of this sample, ``g.kp``, ``g.kits``, ``g.kdts``, ``g.kc``, and the membership
+    of rule 1, ``s.law.mu1`` (Q12): rule 1's gains when ``p.controller`` is 0 or the plan has one
+    rule; otherwise the speed |y| clamped to the premise, its position
+    ``(|y| - lo) mu_k / 2^MU_SH`` (at most ``(r - 1) 4096``) selects rules j, j + 1 and the weight
+    frac of rule j + 1 (Q12), and each gain is ``floor((g_j (4096 - frac) + g_j+1 frac) / 4096)``
+    (the C's blend(): one product when g_j+1 - g_j fits 16 bits)."""
+    y: str
+    contract = "exact: the blend lies between the two rules' gains (int16)"
+
+    def c(self, ctx, ind):
+        return _SCHEDULE_C.splitlines()
+
+    def py(self, ctx, ind):
+        return [_i(ind) + ln for ln in _SCHEDULE_PY.format(y=_py(self.y, ctx)).splitlines()]
+
+
+@dataclass(frozen=True)
+class CallLaw(Op):
+    """core_law on core_s (its contract: :data:`LAW`)."""
+    contract = "core_law's"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}core_law();"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}st.u = law_step(plan, p, st.law, st.r_applied, st.speed, st.current, st.umin, st.umax, "
+                f"st.ff if plan.kff else 0)"]
+
+
+def walk_cap(cap, over: bool, step, top):
+    """The backup current limiter's cap on |u|: down by ``step`` (not below 0) while the current
+    is over the limit, up by ``step`` (not above ``top``) otherwise.  The rule of
+    :class:`WalkCap`, on volts (the averaged simulation) or raw counts."""
+    if over:
+        return cap - step if cap > step else 0 * step
+    return cap + step if cap < top - step else top
+
+
+def direction_hold(u, dir_now: int) -> tuple[int, bool]:
+    """The applied table after an output u: ``(dir, hold)``, dir 0 forward, 1 reverse; a new
+    sign of a non-zero u changes the table and switches the outputs off this sample (hold).
+    The rule of :class:`DirectionHold`."""
+    newdir = 1 if u < 0 else 0
+    if u != 0 and newdir != dir_now:
+        return newdir, True
+    return dir_now, False
+
+
+@dataclass(frozen=True)
+class WalkCap(Op):
+    """s.cap walks down by CAP_STEP (to 0) while adc > p.ilim, up (to U_LIMIT) otherwise
+    (:func:`walk_cap`)."""
+    contract = "exact: 0 <= cap <= U_LIMIT"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}if ((int16_t)adc > core_p.ilim) {{",
+                f"{_i(ind + 4)}core_s.cap = (core_s.cap > CORE_CAP_STEP) ? (int16_t)(core_s.cap - CORE_CAP_STEP) : 0;",
+                f"{_i(ind)}}} else {{",
+                f"{_i(ind + 4)}core_s.cap = (core_s.cap < CORE_U_LIMIT - CORE_CAP_STEP) ? "
+                "(int16_t)(core_s.cap + CORE_CAP_STEP)",
+                f"{_i(ind + 4)}                                                        : CORE_U_LIMIT;",
+                f"{_i(ind)}}}"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}st.cap = walk_cap(st.cap, adc > p.ilim, plan.cap_step, plan.u_limit)"]
+
+
+@dataclass(frozen=True)
+class Window(Op):
+    """s.umax, s.umin: min(u_max, cap, max(hi, u_min)) and max(u_min, -cap, min(lo, u_max)),
+    then umin at most umax (``v.hi``, ``v.lo``: the back-EMF window)."""
+    contract = "exact (int16)"
+
+    def c(self, ctx, ind):
+        t = _i(ind)
+        return [f"{t}if (hi < core_p.u_min) {{", f"{t}    hi = core_p.u_min;", f"{t}}}",
+                f"{t}if (lo > core_p.u_max) {{", f"{t}    lo = core_p.u_max;", f"{t}}}",
+                f"{t}core_s.umax = core_p.u_max;",
+                f"{t}if (core_s.cap < core_s.umax) {{", f"{t}    core_s.umax = core_s.cap;", f"{t}}}",
+                f"{t}if (hi < core_s.umax) {{", f"{t}    core_s.umax = hi;", f"{t}}}",
+                f"{t}core_s.umin = core_p.u_min;",
+                f"{t}if ((int16_t)-core_s.cap > core_s.umin) {{", f"{t}    core_s.umin = (int16_t)-core_s.cap;",
+                f"{t}}}",
+                f"{t}if (lo > core_s.umin) {{", f"{t}    core_s.umin = lo;", f"{t}}}",
+                f"{t}if (core_s.umin > core_s.umax) {{", f"{t}    core_s.umin = core_s.umax;", f"{t}}}"]
+
+    def py(self, ctx, ind):
+        t = _i(ind)
+        return [f"{t}umax = min(p.u_max, st.cap, max(v_hi, p.u_min))",
+                f"{t}umin = max(p.u_min, -st.cap, min(v_lo, p.u_max))",
+                f"{t}st.umax = umax",
+                f"{t}st.umin = umax if umin > umax else umin"]
+
+
+@dataclass(frozen=True)
+class Ramp(Op):
+    """target moves at most p.accel_step from s.r_applied (p.accel_step 0: no ramp)."""
+    contract = "exact: |target - r_applied| <= 32767 + 65535 in 32 bits; the result is an int16"
+
+    def c(self, ctx, ind):
+        t = _i(ind)
+        return [f"{t}if (core_p.accel_step > 0u) {{",
+                f"{t}    int32_t d = (int32_t)target - (int32_t)core_s.r_applied;",
+                f"{t}    if (d > (int32_t)core_p.accel_step) {{",
+                f"{t}        target = (int16_t)((int32_t)core_s.r_applied + (int32_t)core_p.accel_step);",
+                f"{t}    }} else if (d < -(int32_t)core_p.accel_step) {{",
+                f"{t}        target = (int16_t)((int32_t)core_s.r_applied - (int32_t)core_p.accel_step);",
+                f"{t}    }}", f"{t}}}"]
+
+    def py(self, ctx, ind):
+        t = _i(ind)
+        return [f"{t}if p.accel_step > 0:", f"{t}    d = target - st.r_applied",
+                f"{t}    if d > p.accel_step:", f"{t}        target = st.r_applied + p.accel_step",
+                f"{t}    elif d < -p.accel_step:", f"{t}        target = st.r_applied - p.accel_step"]
+
+
+@dataclass(frozen=True)
+class DirectionHold(Op):
+    """s.hold, s.dir after s.u (:func:`direction_hold`)."""
+    contract = "exact"
+
+    def c(self, ctx, ind):
+        t = _i(ind)
+        return [f"{t}core_s.hold = 0u;", f"{t}if (core_s.u != 0) {{",
+                f"{t}    uint8_t newdir = (core_s.u < 0) ? 1u : 0u;", f"{t}    if (newdir != core_s.dir) {{",
+                f"{t}        core_s.dir = newdir;", f"{t}        core_s.hold = 1u;", f"{t}    }}", f"{t}}}"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}st.dir, hold = direction_hold(st.u, st.dir)", f"{_i(ind)}st.hold = 1 if hold else 0"]
+
+
+@dataclass(frozen=True)
+class Duty(Op):
+    """s.pdc = min(floor(|s.u| KDUTY / 2^DUTY_SH), PDC_MAX) (core_duty)."""
+    contract = "|u| KDUTY < 2^32 (the plan's check); saturates at PDC_MAX"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}core_s.pdc = core_duty(core_s.u);"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}st.pdc = duty_counts(plan, st.u)"]
+
+
+@dataclass(frozen=True)
+class Current(Op):
+    """s.current = adc signed by the applied direction."""
+    contract = "exact: adc <= 1023"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}core_s.current = (core_s.dir != 0u) ? (int16_t)-(int16_t)adc : (int16_t)adc;"]
+
+    def py(self, ctx, ind):
+        return [f"{_i(ind)}st.current = -adc if st.dir else adc"]
+
+
+@dataclass(frozen=True)
+class Function:
+    """A program: C signature, locals (``(C declaration, Python initialisation)``), steps, and the
+    Python model's signature, bindings and return."""
+    name: str
+    c_signature: str
+    c_locals: tuple
+    steps: tuple
+    py_signature: str
+    py_bind: tuple = ()
+    py_prefix: tuple = ()
+    py_prologue: tuple = ()
+    py_return: str = ""
+
+
+# ---------------------------------------------------------------------------
+# The law: core_law (drive_core.h's contract)
+# ---------------------------------------------------------------------------
+LAW = Function(
+    "core_law", "void core_law(void)", ("int16_t y = core_s.speed;", "int16_t ey, e, dy;"),
+    (
+        Schedule("v.y"),
+        Note("e = r - y, saturated"),
+        Load("s.r_applied"), Sub("v.y"), Sat16(), Store("v.e", "(int16_t)"),
+        Note("P on b r - y"),
+        MulS("p.b_q14", "s.r_applied"), Asr(14), Sub("v.y"), Sat16(), Store("v.ey", "(int16_t)"),
+        MulS("g.kp", "v.ey"), Shift("P"), Store("l.q"),
+        Note("D on the measurement"),
+        If("s.law.primed", "!=", 0, (Load("s.law.y_prev"), Sub("v.y"), Sat16(), Store("v.dy", "(int16_t)")),
+           (Set("v.dy", 0), Set("s.law.primed", 1, "1u")), b_c="0u"),
+        MulS("g.kdts", "v.dy"), Shift("D"),
+        When("CORE_DFILT_A", (Sub("s.law.d_filt"), MulQ15("DFILT_A"), Add("s.law.d_filt"))),
+        Store("s.law.d_filt"),
+        Note("current feedback: q = (P + D) - C, everything but the integral"),
+        MulS("g.kc", "s.current"), Shift("C"), Store("l.new"),
+        Load("l.q"), Add("s.law.d_filt"), Sub("l.new"), Store("l.q"),
+        Note("I, integrated only into the output headroom"),
+        MulS("g.kits", "v.e"), Shift("I"), Store("l.inc"),
+        Add("s.law.integ"), Store("l.new"),
+        If("l.inc", "!=", 0, (
+            LoadSel("l.inc", ">", 0, "s.umax", "s.umin"), Sub("l.q"), ToQi(),
+            If("l.inc", ">", 0, (MaxInto("x", "s.law.integ"), Pick("s.law.integ", "l.new", "<", "x")),
+               (MinInto("x", "s.law.integ"), Pick("s.law.integ", "l.new", ">", "x"))),
+        )),
+        When("CORE_KFF", (
+            Note("reference feedforward: the preload core_control set for this sample's change of r"),
+            Load("s.law.integ"), Add("s.ff"), Store("s.law.integ"))),
+        Clamp("s.law.integ", "I_LIM"),
+        Move("s.law.y_prev", "v.y"),
+        Load("s.law.integ"), Asr("DI"), Add("l.q"),
+        ClampStore("s.u", "s.umin", "s.umax"),
+    ),
+    "def law_step(plan, p, st, r, y, i, umin, umax, ff=0):",
+    py_bind=(("v.y", "y"), ("s.r_applied", "r"), ("s.speed", "y"), ("s.current", "i"), ("s.umin", "umin"),
+             ("s.umax", "umax"), ("s.ff", "ff"), ("s.u", "u")),
+    py_prefix=(("s.law.", "st."),),
+    py_return="u",
+)
+
+# ---------------------------------------------------------------------------
+# The control around it: core_control (drive_core.h's contract)
+# ---------------------------------------------------------------------------
+CONTROL = Function(
+    "core_control", "void core_control(int16_t target, uint16_t adc)", ("int16_t hi, lo;",),
+    (
+        Current(),
+        Note("backup current limiter: walk the |u| cap down while the bus current exceeds the limit"),
+        WalkCap(),
+        Note("the window that keeps |i| <= I_lim at the present speed: Kb y -+ R_line I_lim"),
+        MulS("K.R_CNT", "p.ilim"), Shift("R"), Store("l.new"),
+        MulS("K.KB", "s.speed"), Shift("KB"), Store("l.q"),
+        Add("l.new"), Sat16(), Store("v.hi", "(int16_t)"),
+        Load("l.q"), Sub("l.new"), Sat16(), Store("v.lo", "(int16_t)"),
+        Window(),
+        Note("setpoint ramp"),
+        Ramp(),
+        When("CORE_KFF", (
+            Note("reference feedforward: the integrator preload of the change of r (the multiply only then)"),
+            LoadDiff("v.target", "s.r_applied"), Sat16(),
+            If("x", "!=", 0, (MulS("K.KFF", "x"), Shift("FF"))),
+            Store("s.ff"))),
+        Move("s.r_applied", "v.target"),
+        CallLaw(),
+        DirectionHold(),
+        Duty(),
+    ),
+    "def core_control(plan, p, st, target, adc):",
+    py_bind=(("v.target", "target"),),
+    py_return="st.u",
+)
+
+
+def c_source(fn: Function) -> str:
+    """The C function of a program (drive_core.c)."""
+    ctx = _Ctx()
+    body = [f"    {d}" for d in fn.c_locals] + _block(fn.steps, ctx, "c", 4)
+    return "\n".join([fn.c_signature, "{"] + body + ["}"])
+
+
+def python_source(fn: Function) -> str:
+    """The Python model's function of a program."""
+    ctx = _Ctx(fn.py_bind, fn.py_prefix)
+    body = [f"    {ln}" for ln in fn.py_prologue] + _block(fn.steps, ctx, "py", 4)
+    if fn.py_return:
+        body.append(f"    return {fn.py_return}")
+    return "\n".join([fn.py_signature] + body)
+
+
+def model(prims: dict, fns=(LAW, CONTROL)) -> dict:
+    """The Python model's functions of the programs ``fns``, by name (``law_step``,
+    ``core_control``), compiled from :func:`python_source`; ``prims``: the integer primitives the
+    source calls (``sat32``, ``shift32``, ``shl_sat32``, ``duty_counts``: fixedpoint's)."""
+    ns = dict(prims, walk_cap=walk_cap, direction_hold=direction_hold)
+    out = {}
+    for fn in fns:
+        exec(compile(python_source(fn), f"<core_program {fn.name}>", "exec"), ns)
+        out[fn.py_signature.split()[1].split("(")[0]] = ns[fn.py_signature.split()[1].split("(")[0]]
+    return out
