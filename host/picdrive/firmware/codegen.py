@@ -489,7 +489,10 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                bit=p18f4431.bits(),    # bit positions by name, for the assembly: {{ bit.PIR1.RCIF }}
                layout=core_layout.render_context(plan.n_rules),   # the core's structs and offsets
                core_program={"law": core_program.c_source(core_program.LAW),   # the law and control's C
-                             "control": core_program.c_source(core_program.CONTROL)},
+                             "control": core_program.c_source(core_program.CONTROL),
+                             # and the law's assembly (the plans the template runs it for)
+                             "law_asm": (core_program.asm_source(core_program.LAW, plan, p18f4431.bits())
+                                         if plan.n_rules <= 2 and not plan.dfilt_a else "")},
                link_state={s.name: int(s) for s in protocol.State})   # the drive states, for the assembly
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(templates_dir())),
                              undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True,

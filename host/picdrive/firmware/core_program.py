@@ -12,8 +12,11 @@ these two programs come:
 * the C of ``drive_core.c`` (:func:`c_source`, rendered into the template as ``core_program.law``
   and ``core_program.control``): the host build, XC8, and SDCC for plans whose law or control is
   not in assembly;
-* the float rules of the averaged six-step simulation (:func:`walk_cap`, :func:`direction_hold`):
-  the same steps on volts.
+* the rules around the law that the averaged six-step simulation
+  (:func:`picdrive.models.simulate.simulate_six_step`) runs on volts: the cap walk-down
+  (:class:`WalkCap`) and the direction hold (:class:`DirectionHold`) call
+  :func:`picdrive.control_law.walk_cap` and :func:`~picdrive.control_law.direction_hold` in the
+  model, and the simulation calls the same functions.
 
 Operands (strings): ``s.<field>`` a member of ``core_s`` (``core_state_t``; ``s.law.integ`` a
 nested one), ``p.<field>`` of ``core_p`` (``core_params_t``), ``l.<name>`` a 32-bit static of the
@@ -34,10 +37,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..control_law import direction_hold, walk_cap
+
 __all__ = ["Op", "Load", "MulS", "Shift", "Asr", "ToQi", "MulQ15", "Add", "Sub", "Sat16", "Store", "Set", "If",
            "When", "MaxInto", "MinInto", "Clamp", "ClampStore", "Schedule", "CallLaw", "WalkCap", "DirectionHold",
-           "Ramp", "Duty", "Function", "CONSTS", "LAW", "CONTROL", "c_source", "python_source", "model",
-           "walk_cap", "direction_hold"]
+           "Ramp", "Duty", "Function", "CONSTS", "LAW", "CONTROL", "c_source", "asm_source", "python_source", "model"]
 
 #: generation-time constants: name -> (C macro of drive_params.h, the Python model's expression on ``plan``)
 CONSTS = {
@@ -120,6 +124,142 @@ def _block(ops, ctx, lang: str, ind: int) -> list[str]:
     return out
 
 
+
+# ---------------------------------------------------------------------------
+# PIC18 assembly (SDCC's gpasm syntax): operands by the layout's offset names, never numbers
+# ---------------------------------------------------------------------------
+#: where each operand lives on the chip: (symbol, bytes).  Locals without a home are kept in the
+#: accumulator (``None``: a value used once, by the next product) or in its operand a ("A").
+ASM_HOME = {
+    "s.": ("_core_s + CORE_S_", None), "p.": ("_core_p + CORE_P_", None),
+    "v.y": "_core_s + CORE_S_SPEED", "v.e": "_core_lw + CORE_LW_E", "v.ey": None, "v.dy": "A",
+    "g.kp": "_core_lw + CORE_LW_KP", "g.kits": "_core_lw + CORE_LW_KI", "g.kdts": "_core_lw + CORE_LW_KD",
+    "g.kc": "_core_lw + CORE_LW_KC", "l.q": "_core_lw + CORE_LW_Q", "l.inc": "_core_lw + CORE_LW_INC",
+    "l.new": "_core_lw + CORE_LW_NW",
+}
+ACC_X, ACC_Y, ACC_A, ACC_B = ("_core_acc + CORE_ACC_X", "_core_acc + CORE_ACC_Y", "_core_acc + CORE_ACC_A",
+                              "_core_acc + CORE_ACC_B")
+ACC_N, ACC_T = "_core_acc + CORE_ACC_N", "_core_acc + CORE_ACC_T"
+
+
+def _home(v):
+    """(symbol, bytes) of an operand on the chip; symbol None: in x (the value just computed)."""
+    from .core_layout import CORE_STATE, CORE_PARAMS, CTYPE_BYTES
+    if v in ASM_HOME:
+        h = ASM_HOME[v]
+        if h is None:
+            return None, 2
+        if h == "A":
+            return ACC_A, 2
+        nb = 4 if v.startswith("l.") else 2
+        return h, nb
+    k, _, rest = v.partition(".")
+    struct, sym = (CORE_STATE, "_core_s") if k == "s" else (CORE_PARAMS, "_core_p")
+    path = rest.split("[")[0]
+    f, t = None, struct
+    for part in path.split("."):
+        f = next(x for x in t.fields if x.name == part)
+        t = f.ctype
+    return f"{sym} + {struct.offset_name(path)}", CTYPE_BYTES[f.ctype]
+
+
+def mov(src, dst, nb):
+    return [f"    MOVFF   {src}{f' + {i}' if i else ''}, {dst}{f' + {i}' if i else ''}" for i in range(nb)]
+
+
+def lit(v, dst, nb):
+    u = v % (1 << (8 * nb))
+    out = []
+    for i in range(nb):
+        out += [f"    MOVLW   {(u >> (8 * i)) & 0xFF}", f"    MOVWF   {dst}{f' + {i}' if i else ''}, A"]
+    return out
+
+
+def asr_asm(n: int) -> list[str]:
+    """x = floor(x / 2^n), n a generation-time constant: k whole bytes then r bits right
+    (_core_acc_asr_b<k>), or for r >= 5 8 - r bits left through a fifth byte then k + 1 bytes
+    right (_core_acc_asrl<k+1>: fewer bit steps); 4 and 12: their own entries; 0: nothing."""
+    if n <= 0:
+        return []
+    k, r = divmod(n, 8)
+    if n in (4, 12):
+        return [f"    CALL    _core_acc_asr{n}"]
+    if r >= 5 and k < 3:
+        return [f"    MOVLW   {8 - r}", f"    MOVWF   {ACC_N}, A", f"    CALL    _core_acc_asrl{k + 1}"]
+    return [f"    MOVLW   {r}", f"    MOVWF   {ACC_N}, A", f"    CALL    _core_acc_asr_b{k}"]
+
+
+def shift_asm(s: int) -> list[str]:
+    """x 2^-s: floor right shift (s >= 0) or saturating left shift."""
+    if s >= 0:
+        return asr_asm(s)
+    return [f"    MOVLW   {-s}", f"    MOVWF   {ACC_N}, A", "    CALL    _core_acc_shlsat"]
+
+
+class _Asm:
+    """Assembly rendering state: the plan, the bit names, what x holds, a pending 16-bit load,
+    a label to place after the next step, and the subroutines the steps call (emitted after the
+    function's body, once each)."""
+
+    def __init__(self, plan, bit):
+        self.plan, self.bit = plan, bit
+        self.x_holds = None          # the operand x equals (None: unknown)
+        self.pending = None          # a 16-bit operand to sign-extend into x before the next sum
+        self.after_next = None       # a label to emit after the next step
+        self.trailers = {}           # name -> lines
+        self.returned = False
+
+
+def _flat(ops, plan):
+    """The steps with the generation-time conditions decided (When bodies in line or dropped)."""
+    out = []
+    for op in ops:
+        if isinstance(op, When):
+            if eval(CONDS[op.cond], {"plan": plan}):
+                out += _flat(op.body, plan)
+        else:
+            out.append(op)
+    return out
+
+
+def _sum_asm(a, v, call):
+    """x = x +- v, saturated; a pending 16-bit load enters with v through core_acc_sext_ab."""
+    out = []
+    hv, nb = _home(v)
+    if a.pending is not None:
+        out += mov(_home(a.pending)[0], ACC_A, 2)
+    if nb == 2:
+        out += mov(hv, ACC_B, 2) + ["    CALL    _core_acc_sext_ab" if a.pending is not None else
+                                    "    CALL    _core_acc_sext_b"]
+    else:
+        out += (["    CALL    _core_acc_sext_ab"] if a.pending is not None else []) + mov(hv, ACC_Y, 4)
+    a.pending = a.x_holds = None
+    return out + [f"    CALL    {call}"]
+
+
+#: carry clear iff x < y (signed 32-bit): x and y with their sign bits flipped, compared unsigned
+LAW_CMP = ["law_cmp:"] + [f"    MOVF    {ACC_Y}{f' + {i}' if i else ''}, W, A\n    "
+                          f"{'SUBWF ' if i == 0 else 'SUBWFB'}  {ACC_X}{f' + {i}' if i else ''}, W, A"
+                          for i in range(3)] + [
+    f"    MOVF    {ACC_Y} + 3, W, A", "    XORLW   0x80", f"    MOVWF   {ACC_T}, A", f"    MOVF    {ACC_X} + 3, W, A",
+    "    XORLW   0x80", f"    SUBFWB  {ACC_T}, W, A", "    RETURN"]
+
+
+def _asm_block(ops, a: "_Asm") -> list[str]:
+    ops = _flat(ops, a.plan)
+    out = []
+    for k, op in enumerate(ops):
+        nxt = ops[k + 1] if k + 1 < len(ops) else None
+        if isinstance(op, Store) and isinstance(nxt, Clamp) and nxt.dst == op.dst:
+            a.x_holds = op.dst                # the clamp stores it: this store is dead
+            continue
+        label, a.after_next = a.after_next, None
+        out += op.asm(a)
+        if label:
+            out.append(f"{label}:")
+    return out
+
+
 # ---------------------------------------------------------------------------
 # the operations
 # ---------------------------------------------------------------------------
@@ -152,6 +292,9 @@ class Note(Op):
     def py(self, ctx, ind):
         return []
 
+    def asm(self, a):
+        return [f"    ; {self.text}"]
+
 
 @dataclass(frozen=True)
 class Load(Op):
@@ -166,12 +309,26 @@ class Load(Op):
     def py(self, ctx, ind):
         return [f"{_i(ind)}x = {_py(self.src, ctx)}"]
 
+    def asm(self, a):
+        if a.x_holds == self.src:
+            return []
+        h, nb = _home(self.src)
+        a.x_holds = None
+        if nb == 2:
+            a.pending = self.src              # sign-extended by the next sum (core_acc_sext_ab)
+            return []
+        a.x_holds = self.src
+        return mov(h, ACC_X, 4)
+
 
 @dataclass(frozen=True)
 class MulS(Op):
-    """x = a b, both int16: the product in 32 bits."""
+    """x = a b, both int16: the product in 32 bits.  ``zero_skip`` (assembly labels (product,
+    after the next step)): on the chip, b = 0 gives x = 0 without the product and the shift that
+    follows it (a PI rule's kd: cycles saved, same result)."""
     a: object
     b: object
+    zero_skip: tuple = ()
     contract = "exact: |a b| <= 2^30"
 
     def c(self, ctx, ind):
@@ -179,6 +336,30 @@ class MulS(Op):
 
     def py(self, ctx, ind):
         return [f"{_i(ind)}x = {_py(self.a, ctx)} * {_py(self.b, ctx)}"]
+
+    def asm(self, a):
+        def load(v, dst):
+            if isinstance(v, str) and v.startswith("K."):
+                return lit(eval(CONSTS[v[2:]][1], {"plan": a.plan}), dst, 2)
+            return mov(_home(v)[0], dst, 2)
+        ops = (self.a, self.b)
+        held = next((v for v in ops if v == a.x_holds and _home(v)[0] is None), None)
+        in_a = next((v for v in ops if isinstance(v, str) and v in ASM_HOME and ASM_HOME[v] == "A"), None)
+        if held is not None:
+            out = mov(ACC_X, ACC_A, 2) + load(self.b if held == self.a else self.a, ACC_B)
+        elif in_a is not None:
+            out = load(self.b if in_a == self.a else self.a, ACC_B)
+        else:
+            out = load(self.a, ACC_A) + load(self.b, ACC_B)
+        if self.zero_skip:
+            mul, done = self.zero_skip
+            out += [f"    ; {self.b} = 0: 0 without the product and its shift (both give 0)",
+                    f"    MOVF    {ACC_B}, W, A", f"    IORWF   {ACC_B} + 1, W, A", f"    BNZ     {mul}"]
+            out += [f"    CLRF    {ACC_X}{f' + {i}' if i else ''}, A" for i in range(4)]
+            out += [f"    BRA     {done}", f"{mul}:"]
+            a.after_next = done
+        a.x_holds = a.pending = None
+        return out + ["    CALL    _core_acc_muls"]
 
 
 @dataclass(frozen=True)
@@ -192,6 +373,10 @@ class Shift(Op):
 
     def py(self, ctx, ind):
         return [f"{_i(ind)}x = shift32(x, plan.{SHIFTS[self.name]})"]
+
+    def asm(self, a):
+        a.x_holds = None
+        return shift_asm(getattr(a.plan, SHIFTS[self.name]))
 
 
 @dataclass(frozen=True)
@@ -208,6 +393,10 @@ class Asr(Op):
         n = self.n if isinstance(self.n, int) else CONSTS[self.n][1]
         return [f"{_i(ind)}x = x >> {n}"]
 
+    def asm(self, a):
+        a.x_holds = None
+        return asr_asm(self.n if isinstance(self.n, int) else eval(CONSTS[self.n][1], {"plan": a.plan}))
+
 
 @dataclass(frozen=True)
 class ToQi(Op):
@@ -219,6 +408,11 @@ class ToQi(Op):
 
     def py(self, ctx, ind):
         return [f"{_i(ind)}x = shl_sat32(x, plan.qi - plan.qu)"]
+
+    def asm(self, a):
+        a.x_holds = None
+        di = a.plan.qi - a.plan.qu
+        return [f"    MOVLW   {di}", f"    MOVWF   {ACC_N}, A", "    CALL    _core_acc_shlsat"] if di > 0 else []
 
 
 @dataclass(frozen=True)
@@ -246,6 +440,9 @@ class Add(Op):
     def py(self, ctx, ind):
         return [f"{_i(ind)}x = sat32(x + {_py(self.v, ctx)})"]
 
+    def asm(self, a):
+        return _sum_asm(a, self.v, "_core_acc_add")
+
 
 @dataclass(frozen=True)
 class Sub(Op):
@@ -259,6 +456,9 @@ class Sub(Op):
     def py(self, ctx, ind):
         return [f"{_i(ind)}x = sat32(x - {_py(self.v, ctx)})"]
 
+    def asm(self, a):
+        return _sum_asm(a, self.v, "_core_acc_sub")
+
 
 @dataclass(frozen=True)
 class Sat16(Op):
@@ -270,6 +470,10 @@ class Sat16(Op):
 
     def py(self, ctx, ind):
         return [f"{_i(ind)}x = -32768 if x < -32768 else 32767 if x > 32767 else x"]
+
+    def asm(self, a):
+        a.x_holds = None
+        return ["    CALL    _core_acc_sat16"]
 
 
 @dataclass(frozen=True)
@@ -284,6 +488,11 @@ class Store(Op):
 
     def py(self, ctx, ind):
         return [f"{_i(ind)}{_py(self.dst, ctx)} = x"]
+
+    def asm(self, a):
+        h, nb = _home(self.dst)
+        a.x_holds = self.dst
+        return [] if h is None else mov(ACC_X, h, nb)
 
 
 @dataclass(frozen=True)
@@ -300,6 +509,14 @@ class Set(Op):
     def py(self, ctx, ind):
         return [f"{_i(ind)}{_py(self.dst, ctx)} = {self.value}"]
 
+    def asm(self, a):
+        h, nb = _home(self.dst)
+        if h == ACC_A and self.value == 0:
+            return [f"    CLRF    {ACC_A}, A", f"    CLRF    {ACC_A} + 1, A"]
+        if nb == 1:                           # through t: MOVFF reaches banked RAM without the BSR
+            return [f"    MOVLW   {self.value}", f"    MOVWF   {ACC_T}, A", f"    MOVFF   {ACC_T}, {h}"]
+        raise NotImplementedError(f"Set {self.dst} in assembly")
+
 
 @dataclass(frozen=True)
 class If(Op):
@@ -310,6 +527,7 @@ class If(Op):
     then: tuple
     orelse: tuple = ()
     b_c: str = ""
+    labels: tuple = ()
     contract = "a comparison: exact"
 
     def _cond(self, ctx, lang):
@@ -327,6 +545,19 @@ class If(Op):
         out = [f"{_i(ind)}if {self._cond(ctx, 'py')}:"] + _block(self.then, ctx, "py", ind + 4)
         if self.orelse:
             out += [f"{_i(ind)}else:"] + _block(self.orelse, ctx, "py", ind + 4)
+        return out
+
+    def asm(self, a):
+        h, nb = _home(self.a)
+        if not (nb == 1 and self.rel == "!=" and self.b == 0 and self.labels):
+            raise NotImplementedError("If in assembly: a uint8 field != 0, with labels")
+        then, end = self.labels
+        out = [f"    MOVFF   {h}, {ACC_T}", f"    MOVF    {ACC_T}, F, A", f"    BNZ     {then}"]
+        a.x_holds = a.pending = None
+        out += _asm_block(self.orelse, a) + [f"    BRA     {end}", f"{then}:"]
+        a.x_holds = a.pending = None
+        out += _asm_block(self.then, a) + [f"{end}:"]
+        a.x_holds = a.pending = None
         return out
 
 
@@ -421,6 +652,10 @@ class Move(Op):
     def py(self, ctx, ind):
         return [f"{_i(ind)}{_py(self.dst, ctx)} = {_py(self.src, ctx)}"]
 
+    def asm(self, a):
+        hs, nb = _home(self.src)
+        return mov(hs, _home(self.dst)[0], nb)
+
 
 @dataclass(frozen=True)
 class Pick(Op):
@@ -457,6 +692,17 @@ class Clamp(Op):
         return [f"{_i(ind)}if {d} > {k}:", f"{_i(ind + 4)}{d} = {k}", f"{_i(ind)}elif {d} < -{k}:",
                 f"{_i(ind + 4)}{d} = -{k}"]
 
+    def asm(self, a):
+        h, _ = _home(self.dst)
+        lim = eval(CONSTS[self.lim][1], {"plan": a.plan})
+        out = [] if a.x_holds == self.dst else mov(h, ACC_X, 4)
+        out += lit(lim, ACC_Y, 4) + ["    CALL    law_cmp", "    BNC     law_not_hi"] + mov(ACC_Y, ACC_X, 4)
+        out += ["    BRA     law_lim_done", "law_not_hi:"] + lit(-lim, ACC_Y, 4)
+        out += ["    CALL    law_cmp", "    BC      law_lim_done"] + mov(ACC_Y, ACC_X, 4) + ["law_lim_done:"]
+        a.trailers.setdefault("law_cmp", LAW_CMP)
+        a.x_holds = self.dst
+        return out + mov(ACC_X, h, 4)
+
 
 @dataclass(frozen=True)
 class ClampStore(Op):
@@ -475,6 +721,16 @@ class ClampStore(Op):
     def py(self, ctx, ind):
         d, lo, hi = _py(self.dst, ctx), _py(self.lo, ctx), _py(self.hi, ctx)
         return [f"{_i(ind)}{d} = {lo} if x < {lo} else {hi} if x > {hi} else x"]
+
+    def asm(self, a):
+        d, lo, hi = _home(self.dst)[0], _home(self.lo)[0], _home(self.hi)[0]
+        out = mov(lo, ACC_B, 2) + ["    CALL    _core_acc_sext_b", "    CALL    law_cmp", "    BC      law_not_min"]
+        out += mov(lo, d, 2) + ["    RETURN", "law_not_min:"] + mov(hi, ACC_B, 2)
+        out += ["    CALL    _core_acc_sext_b", "    CALL    law_cmp", "    BNC     law_u_x"] + mov(hi, d, 2)
+        out += ["    RETURN", "law_u_x:"] + mov(ACC_X, d, 2) + ["    RETURN"]
+        a.trailers.setdefault("law_cmp", LAW_CMP)
+        a.returned = True
+        return out
 
 
 _SCHEDULE_C = """\
@@ -575,6 +831,93 @@ class Schedule(Op):
     def py(self, ctx, ind):
         return [_i(ind) + ln for ln in _SCHEDULE_PY.format(y=_py(self.y, ctx)).splitlines()]
 
+    def asm(self, a):
+        A, B, X = ACC_A, ACC_B, ACC_X
+        lw, sp = "_core_lw + CORE_LW_", "_core_p + CORE_P_"
+        out = []
+        if a.plan.n_rules == 2:
+            out += [f"    MOVFF   {sp}CONTROLLER, {ACC_T}", f"    MOVF    {ACC_T}, F, A",
+                    f"    BTFSC   _STATUS, {a.bit['STATUS']['Z']}, A", "    BRA     law_rule1",
+                    "    ; s = |y| clamped to [premise_lo, premise_hi] (unsigned)"]
+            out += mov(_home(self.y)[0], A, 2)
+            out += [f"    BTFSS   {A} + 1, 7, A", "    BRA     law_abs", f"    COMF    {A}, F, A",
+                    f"    COMF    {A} + 1, F, A", f"    INCF    {A}, F, A", "    MOVLW   0",
+                    f"    ADDWFC  {A} + 1, F, A", "law_abs:"] + mov(sp + "PREMISE_HI", B, 2)
+            out += [f"    MOVF    {A}, W, A", f"    SUBWF   {B}, W, A", f"    MOVF    {A} + 1, W, A",
+                    f"    SUBWFB  {B} + 1, W, A", "    BC      law_below_hi"] + mov(B, A, 2)
+            out += ["law_below_hi:"] + mov(sp + "PREMISE_LO", B, 2)
+            out += [f"    MOVF    {B}, W, A", f"    SUBWF   {A}, W, A", f"    MOVF    {B} + 1, W, A",
+                    f"    SUBWFB  {A} + 1, W, A", "    BC      law_above_lo"] + mov(B, A, 2)
+            out += ["law_above_lo:", "    ; pos = min((s - lo) mu_k >> MU_SH, 4096) = frac",
+                    f"    MOVF    {B}, W, A", f"    SUBWF   {A}, F, A", f"    MOVF    {B} + 1, W, A",
+                    f"    SUBWFB  {A} + 1, F, A"] + mov(sp + "MU_K", B, 2) + ["    CALL    _core_acc_mulu"]
+            out += asr_asm(a.plan.mu_sh)
+            out += [f"    MOVF    {X} + 3, W, A", f"    IORWF   {X} + 2, W, A", "    BNZ     law_pos_top",
+                    "    MOVLW   0", f"    SUBWF   {X}, W, A", "    MOVLW   0x10", f"    SUBWFB  {X} + 1, W, A",
+                    "    BNC     law_pos_ok", "law_pos_top:", f"    CLRF    {X}, A", "    MOVLW   0x10",
+                    f"    MOVWF   {X} + 1, A", "law_pos_ok:"] + mov(X, lw + "FRAC", 2)
+            out += ["    ; mu1 = 4096 - frac", f"    COMF    {X}, F, A", f"    COMF    {X} + 1, F, A",
+                    f"    INCF    {X}, F, A", "    MOVLW   0x10", f"    ADDWFC  {X} + 1, F, A"]
+            out += mov(X, "_core_s + CORE_S_LAW_MU1", 2) + ["    ; the four gains, blended"]
+            for g, home in (("KP", "KP"), ("KITS", "KI"), ("KDTS", "KD"), ("KC", "KC")):
+                out += mov(sp + g, lw + "G0", 2) + mov(sp + g + " + 2", lw + "G1", 2)
+                out += ["    CALL    _core_blend_asm"] + mov(X, lw + home, 2)
+            out += ["    BRA     law_gains", "law_rule1:"]
+        elif a.plan.n_rules != 1:
+            raise NotImplementedError("the assembly law holds at most 2 rules")
+        for g, home in (("KP", "KP"), ("KITS", "KI"), ("KDTS", "KD"), ("KC", "KC")):
+            out += mov(sp + g, lw + home, 2)
+        out += [f"    CLRF    {X}, A", "    MOVLW   0x10", f"    MOVWF   {X} + 1, A"]
+        out += mov(X, "_core_s + CORE_S_LAW_MU1", 2) + ["law_gains:"]
+        a.x_holds = a.pending = None
+        return out
+
+
+@dataclass(frozen=True)
+class Headroom(Op):
+    """The integrator, integrated only into the output headroom: with the increment ``l.inc``
+    and the new integral ``l.new = sat32(integ + inc)``, the headroom
+    ``head = (umax or umin) - l.q`` in the integrator's format (saturated), and
+    ``integ = min(new, max(integ, head))`` for inc > 0, ``max(new, min(integ, head))`` for
+    inc < 0: the integral moves toward the headroom and never past it, and is not pulled back
+    when it is already beyond (anti-windup without discharge)."""
+    contract = "exact: integ stays between its old value and new"
+
+    STEPS = (If("l.inc", "!=", 0, (
+        LoadSel("l.inc", ">", 0, "s.umax", "s.umin"), Sub("l.q"), ToQi(),
+        If("l.inc", ">", 0, (MaxInto("x", "s.law.integ"), Pick("s.law.integ", "l.new", "<", "x")),
+           (MinInto("x", "s.law.integ"), Pick("s.law.integ", "l.new", ">", "x"))),
+    )),)
+
+    def c(self, ctx, ind):
+        return _block(self.STEPS, ctx, "c", ind)
+
+    def py(self, ctx, ind):
+        return _block(self.STEPS, ctx, "py", ind)
+
+    def asm(self, a):
+        Y, X, A = ACC_Y, ACC_X, ACC_A
+        q, nw, integ = "_core_lw + CORE_LW_Q", "_core_lw + CORE_LW_NW", "_core_s + CORE_S_LAW_INTEG"
+        out = mov("_core_lw + CORE_LW_INC", Y, 4)
+        out += [f"    MOVF    {Y}, W, A", f"    IORWF   {Y} + 1, W, A", f"    IORWF   {Y} + 2, W, A",
+                f"    IORWF   {Y} + 3, W, A", "    BZ      law_clamp", f"    BTFSC   {Y} + 3, 7, A",
+                "    BRA     law_inc_neg"] + mov("_core_s + CORE_S_UMAX", A, 2) + ["    CALL    law_head"]
+        out += ["    ; cap = max(integ, head); integ = min(new, cap)", "    CALL    law_cmp",
+                "    BC      law_pos_cap"] + mov(Y, X, 4) + ["law_pos_cap:"] + mov(nw, Y, 4)
+        out += ["    CALL    law_cmp", "    BNC     law_store_x", "    BRA     law_store_y", "law_inc_neg:"]
+        out += mov("_core_s + CORE_S_UMIN", A, 2) + ["    CALL    law_head"]
+        out += ["    ; cap = min(integ, head); integ = max(new, cap)", "    CALL    law_cmp",
+                "    BNC     law_neg_cap"] + mov(Y, X, 4) + ["law_neg_cap:"] + mov(nw, Y, 4)
+        out += ["    CALL    law_cmp", "    BNC     law_store_y", "law_store_x:"] + mov(X, integ, 4)
+        out += ["    BRA     law_clamp", "law_store_y:"] + mov(Y, integ, 4) + ["law_clamp:"]
+        head = ["    ; x = the headroom sat(sext(a) - q) in the integrator format; y = integ", "law_head:",
+                "    CALL    _core_acc_sext_ab"] + mov(q, Y, 4) + ["    CALL    _core_acc_sub"]
+        head += ToQi().asm(a) + mov(integ, Y, 4) + ["    RETURN"]
+        a.trailers.setdefault("law_head", head)
+        a.trailers.setdefault("law_cmp", LAW_CMP)
+        a.x_holds = a.pending = None
+        return out
+
 
 @dataclass(frozen=True)
 class CallLaw(Op):
@@ -589,29 +932,10 @@ class CallLaw(Op):
                 f"st.ff if plan.kff else 0)"]
 
 
-def walk_cap(cap, over: bool, step, top):
-    """The backup current limiter's cap on |u|: down by ``step`` (not below 0) while the current
-    is over the limit, up by ``step`` (not above ``top``) otherwise.  The rule of
-    :class:`WalkCap`, on volts (the averaged simulation) or raw counts."""
-    if over:
-        return cap - step if cap > step else 0 * step
-    return cap + step if cap < top - step else top
-
-
-def direction_hold(u, dir_now: int) -> tuple[int, bool]:
-    """The applied table after an output u: ``(dir, hold)``, dir 0 forward, 1 reverse; a new
-    sign of a non-zero u changes the table and switches the outputs off this sample (hold).
-    The rule of :class:`DirectionHold`."""
-    newdir = 1 if u < 0 else 0
-    if u != 0 and newdir != dir_now:
-        return newdir, True
-    return dir_now, False
-
-
 @dataclass(frozen=True)
 class WalkCap(Op):
     """s.cap walks down by CAP_STEP (to 0) while adc > p.ilim, up (to U_LIMIT) otherwise
-    (:func:`walk_cap`)."""
+    (:func:`picdrive.control_law.walk_cap`)."""
     contract = "exact: 0 <= cap <= U_LIMIT"
 
     def c(self, ctx, ind):
@@ -678,7 +1002,7 @@ class Ramp(Op):
 
 @dataclass(frozen=True)
 class DirectionHold(Op):
-    """s.hold, s.dir after s.u (:func:`direction_hold`)."""
+    """s.hold, s.dir after s.u (:func:`picdrive.control_law.direction_hold`)."""
     contract = "exact"
 
     def c(self, ctx, ind):
@@ -744,8 +1068,8 @@ LAW = Function(
         MulS("g.kp", "v.ey"), Shift("P"), Store("l.q"),
         Note("D on the measurement"),
         If("s.law.primed", "!=", 0, (Load("s.law.y_prev"), Sub("v.y"), Sat16(), Store("v.dy", "(int16_t)")),
-           (Set("v.dy", 0), Set("s.law.primed", 1, "1u")), b_c="0u"),
-        MulS("g.kdts", "v.dy"), Shift("D"),
+           (Set("v.dy", 0), Set("s.law.primed", 1, "1u")), b_c="0u", labels=("law_primed", "law_dy")),
+        MulS("g.kdts", "v.dy", zero_skip=("law_dmul", "law_dstore")), Shift("D"),
         When("CORE_DFILT_A", (Sub("s.law.d_filt"), MulQ15("DFILT_A"), Add("s.law.d_filt"))),
         Store("s.law.d_filt"),
         Note("current feedback: q = (P + D) - C, everything but the integral"),
@@ -754,11 +1078,7 @@ LAW = Function(
         Note("I, integrated only into the output headroom"),
         MulS("g.kits", "v.e"), Shift("I"), Store("l.inc"),
         Add("s.law.integ"), Store("l.new"),
-        If("l.inc", "!=", 0, (
-            LoadSel("l.inc", ">", 0, "s.umax", "s.umin"), Sub("l.q"), ToQi(),
-            If("l.inc", ">", 0, (MaxInto("x", "s.law.integ"), Pick("s.law.integ", "l.new", "<", "x")),
-               (MinInto("x", "s.law.integ"), Pick("s.law.integ", "l.new", ">", "x"))),
-        )),
+        Headroom(),
         When("CORE_KFF", (
             Note("reference feedforward: the preload core_control set for this sample's change of r"),
             Load("s.law.integ"), Add("s.ff"), Store("s.law.integ"))),
@@ -812,6 +1132,18 @@ def c_source(fn: Function) -> str:
     ctx = _Ctx()
     body = [f"    {d}" for d in fn.c_locals] + _block(fn.steps, ctx, "c", 4)
     return "\n".join([fn.c_signature, "{"] + body + ["}"])
+
+
+def asm_source(fn: Function, plan, bit: dict) -> str:
+    """The PIC18 assembly of a program for ``plan`` (the body of a ``__naked`` function):
+    ``bit``: p18f4431.inc's bit positions by register (:func:`picdrive.firmware.p18f4431.bits`)."""
+    a = _Asm(plan, bit)
+    body = _asm_block(fn.steps, a)
+    if not a.returned:
+        body.append("    RETURN")
+    for lines in a.trailers.values():
+        body += [""] + lines
+    return "\n".join(body)
 
 
 def python_source(fn: Function) -> str:
