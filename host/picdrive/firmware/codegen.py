@@ -492,7 +492,10 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                              "control": core_program.c_source(core_program.CONTROL),
                              # and the law's assembly (the plans the template runs it for)
                              "law_asm": (core_program.asm_source(core_program.LAW, plan, p18f4431.bits())
-                                         if plan.n_rules <= 2 and not plan.dfilt_a else "")},
+                                         if plan.n_rules <= 2 and not plan.dfilt_a else ""),
+                             "control_asm": (core_program.asm_source(core_program.CONTROL, plan, p18f4431.bits())
+                                             if plan.n_rules <= 2 and not plan.dfilt_a
+                                             and 32768 * plan.kduty < 2 ** 31 else "")},
                link_state={s.name: int(s) for s in protocol.State})   # the drive states, for the assembly
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(templates_dir())),
                              undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True,

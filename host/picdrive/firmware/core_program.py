@@ -135,7 +135,7 @@ ASM_HOME = {
     "v.y": "_core_s + CORE_S_SPEED", "v.e": "_core_lw + CORE_LW_E", "v.ey": None, "v.dy": "A",
     "g.kp": "_core_lw + CORE_LW_KP", "g.kits": "_core_lw + CORE_LW_KI", "g.kdts": "_core_lw + CORE_LW_KD",
     "g.kc": "_core_lw + CORE_LW_KC", "l.q": "_core_lw + CORE_LW_Q", "l.inc": "_core_lw + CORE_LW_INC",
-    "l.new": "_core_lw + CORE_LW_NW",
+    "l.new": "_core_lw + CORE_LW_NW", "v.target": "_core_in + CORE_IN_TARGET",
 }
 ACC_X, ACC_Y, ACC_A, ACC_B = ("_core_acc + CORE_ACC_X", "_core_acc + CORE_ACC_Y", "_core_acc + CORE_ACC_A",
                               "_core_acc + CORE_ACC_B")
@@ -245,6 +245,16 @@ LAW_CMP = ["law_cmp:"] + [f"    MOVF    {ACC_Y}{f' + {i}' if i else ''}, W, A\n 
     "    XORLW   0x80", f"    SUBFWB  {ACC_T}, W, A", "    RETURN"]
 
 
+#: carry clear iff a < b (signed 16-bit); a = min(a, b), a = max(a, b)
+CTL_CMP16 = ["    ; carry clear iff a < b (signed 16-bit)", "ctl_cmp16:", f"    MOVF    {ACC_B}, W, A",
+             f"    SUBWF   {ACC_A}, W, A", f"    MOVF    {ACC_B} + 1, W, A", "    XORLW   0x80",
+             f"    MOVWF   {ACC_T}, A", f"    MOVF    {ACC_A} + 1, W, A", "    XORLW   0x80",
+             f"    SUBFWB  {ACC_T}, W, A", "    RETURN", "    ; a = min(a, b), a = max(a, b) (signed 16-bit)",
+             "ctl_min16:", "    RCALL   ctl_cmp16", "    BNC     ctl_keep", "    BRA     ctl_take", "ctl_max16:",
+             "    RCALL   ctl_cmp16", "    BC      ctl_keep", "ctl_take:"] + [
+    f"    MOVFF   {ACC_B}, {ACC_A}", f"    MOVFF   {ACC_B} + 1, {ACC_A} + 1", "ctl_keep:", "    RETURN"]
+
+
 def _asm_block(ops, a: "_Asm") -> list[str]:
     ops = _flat(ops, a.plan)
     out = []
@@ -343,6 +353,10 @@ class MulS(Op):
                 return lit(eval(CONSTS[v[2:]][1], {"plan": a.plan}), dst, 2)
             return mov(_home(v)[0], dst, 2)
         ops = (self.a, self.b)
+        if "x" in ops:                        # the value just computed (16 bits) into b
+            out = mov(ACC_X, ACC_B, 2) + load(self.b if self.a == "x" else self.a, ACC_A)
+            a.x_holds = a.pending = None
+            return out + ["    CALL    _core_acc_muls"]
         held = next((v for v in ops if v == a.x_holds and _home(v)[0] is None), None)
         in_a = next((v for v in ops if isinstance(v, str) and v in ASM_HOME and ASM_HOME[v] == "A"), None)
         if held is not None:
@@ -548,6 +562,13 @@ class If(Op):
         return out
 
     def asm(self, a):
+        if self.a == "x" and self.rel == "!=" and self.b == 0 and not self.orelse and len(self.labels) == 1:
+            # x after Sat16 (or any 16-bit value): its low 16 bits decide
+            end, = self.labels
+            out = [f"    MOVF    {ACC_X}, W, A", f"    IORWF   {ACC_X} + 1, W, A", f"    BZ      {end}"]
+            out += _asm_block(self.then, a) + [f"{end}:"]
+            a.x_holds = a.pending = None
+            return out
         h, nb = _home(self.a)
         if not (nb == 1 and self.rel == "!=" and self.b == 0 and self.labels):
             raise NotImplementedError("If in assembly: a uint8 field != 0, with labels")
@@ -637,6 +658,10 @@ class LoadDiff(Op):
 
     def py(self, ctx, ind):
         return [f"{_i(ind)}x = {_py(self.a, ctx)} - {_py(self.b, ctx)}"]
+
+    def asm(self, a):
+        a.pending = self.a
+        return _sum_asm(a, self.b, "_core_acc_sub")
 
 
 @dataclass(frozen=True)
@@ -931,6 +956,10 @@ class CallLaw(Op):
         return [f"{_i(ind)}st.u = law_step(plan, p, st.law, st.r_applied, st.speed, st.current, st.umin, st.umax, "
                 f"st.ff if plan.kff else 0)"]
 
+    def asm(self, a):
+        a.x_holds = a.pending = None
+        return ["    CALL    _core_law_asm"]
+
 
 @dataclass(frozen=True)
 class WalkCap(Op):
@@ -950,32 +979,77 @@ class WalkCap(Op):
     def py(self, ctx, ind):
         return [f"{_i(ind)}st.cap = walk_cap(st.cap, adc > p.ilim, plan.cap_step, plan.u_limit)"]
 
+    def asm(self, a):
+        A, B = ACC_A, ACC_B
+        cap, step, top = "_core_s + CORE_S_CAP", a.plan.cap_step, a.plan.u_limit
+        out = mov("_core_p + CORE_P_ILIM", A, 2) + mov("_core_in + CORE_IN_ADC", B, 2)
+        out += ["    CALL    ctl_cmp16", "    BC      ctl_cap_up", "    ; cap > STEP: cap - STEP, else 0"]
+        out += lit(step, A, 2) + mov(cap, B, 2) + ["    CALL    ctl_cmp16", "    BC      ctl_cap_zero"]
+        out += mov(cap, A, 2) + lit(step, B, 2)
+        out += [f"    MOVF    {B}, W, A", f"    SUBWF   {A}, F, A", f"    MOVF    {B} + 1, W, A",
+                f"    SUBWFB  {A} + 1, F, A", "    BRA     ctl_cap_store", "ctl_cap_zero:", f"    CLRF    {A}, A",
+                f"    CLRF    {A} + 1, A", "    BRA     ctl_cap_store", "ctl_cap_up:",
+                "    ; cap < U_LIMIT - STEP: cap + STEP, else U_LIMIT"]
+        out += mov(cap, A, 2) + lit(top - step, B, 2) + ["    CALL    ctl_cmp16", "    BC      ctl_cap_top"]
+        out += lit(step, B, 2) + [f"    MOVF    {B}, W, A", f"    ADDWF   {A}, F, A", f"    MOVF    {B} + 1, W, A",
+                                  f"    ADDWFC  {A} + 1, F, A", "    BRA     ctl_cap_store", "ctl_cap_top:"]
+        out += lit(top, A, 2) + ["ctl_cap_store:"] + mov(A, cap, 2)
+        a.trailers.setdefault("ctl_cmp16", CTL_CMP16)
+        a.x_holds = a.pending = None
+        return out
+
 
 @dataclass(frozen=True)
 class Window(Op):
-    """s.umax, s.umin: min(u_max, cap, max(hi, u_min)) and max(u_min, -cap, min(lo, u_max)),
-    then umin at most umax (``v.hi``, ``v.lo``: the back-EMF window)."""
-    contract = "exact (int16)"
+    """The output limits of this sample: the back-EMF window ``hi = sat16(l.q + l.new)``,
+    ``lo = sat16(l.q - l.new)`` (l.q = Kb y, l.new = R_line I_lim, shifted), then
+    ``umax = min(u_max, cap, max(hi, u_min))``, ``umin = max(u_min, -cap, min(lo, u_max))`` and
+    umin at most umax."""
+    contract = "exact: sums saturate at the int32 limits, hi and lo at the int16 limits"
+
+    STEPS = (Add("l.new"), Sat16(), Store("v.hi", "(int16_t)"),
+             Load("l.q"), Sub("l.new"), Sat16(), Store("v.lo", "(int16_t)"))
 
     def c(self, ctx, ind):
         t = _i(ind)
-        return [f"{t}if (hi < core_p.u_min) {{", f"{t}    hi = core_p.u_min;", f"{t}}}",
-                f"{t}if (lo > core_p.u_max) {{", f"{t}    lo = core_p.u_max;", f"{t}}}",
-                f"{t}core_s.umax = core_p.u_max;",
-                f"{t}if (core_s.cap < core_s.umax) {{", f"{t}    core_s.umax = core_s.cap;", f"{t}}}",
-                f"{t}if (hi < core_s.umax) {{", f"{t}    core_s.umax = hi;", f"{t}}}",
-                f"{t}core_s.umin = core_p.u_min;",
-                f"{t}if ((int16_t)-core_s.cap > core_s.umin) {{", f"{t}    core_s.umin = (int16_t)-core_s.cap;",
-                f"{t}}}",
-                f"{t}if (lo > core_s.umin) {{", f"{t}    core_s.umin = lo;", f"{t}}}",
-                f"{t}if (core_s.umin > core_s.umax) {{", f"{t}    core_s.umin = core_s.umax;", f"{t}}}"]
+        return _block(self.STEPS, ctx, "c", ind) + [
+            f"{t}if (hi < core_p.u_min) {{", f"{t}    hi = core_p.u_min;", f"{t}}}",
+            f"{t}if (lo > core_p.u_max) {{", f"{t}    lo = core_p.u_max;", f"{t}}}",
+            f"{t}core_s.umax = core_p.u_max;",
+            f"{t}if (core_s.cap < core_s.umax) {{", f"{t}    core_s.umax = core_s.cap;", f"{t}}}",
+            f"{t}if (hi < core_s.umax) {{", f"{t}    core_s.umax = hi;", f"{t}}}",
+            f"{t}core_s.umin = core_p.u_min;",
+            f"{t}if ((int16_t)-core_s.cap > core_s.umin) {{", f"{t}    core_s.umin = (int16_t)-core_s.cap;",
+            f"{t}}}",
+            f"{t}if (lo > core_s.umin) {{", f"{t}    core_s.umin = lo;", f"{t}}}",
+            f"{t}if (core_s.umin > core_s.umax) {{", f"{t}    core_s.umin = core_s.umax;", f"{t}}}"]
 
     def py(self, ctx, ind):
         t = _i(ind)
-        return [f"{t}umax = min(p.u_max, st.cap, max(v_hi, p.u_min))",
-                f"{t}umin = max(p.u_min, -st.cap, min(v_lo, p.u_max))",
-                f"{t}st.umax = umax",
-                f"{t}st.umin = umax if umin > umax else umin"]
+        return _block(self.STEPS, ctx, "py", ind) + [
+            f"{t}umax = min(p.u_max, st.cap, max(v_hi, p.u_min))",
+            f"{t}umin = max(p.u_min, -st.cap, min(v_lo, p.u_max))",
+            f"{t}st.umax = umax",
+            f"{t}st.umin = umax if umin > umax else umin"]
+
+    def asm(self, a):
+        X, Y, A, B = ACC_X, ACC_Y, ACC_A, ACC_B
+        lw, sp, ss = "_core_lw + CORE_LW_", "_core_p + CORE_P_", "_core_s + CORE_S_"
+        out = mov(lw + "NW", Y, 4) + ["    CALL    _core_acc_add", "    CALL    _core_acc_sat16",
+                                      "    ; hi = max(sat16(q + nw), u_min) -> lw.g0"]
+        out += mov(X, A, 2) + mov(sp + "U_MIN", B, 2) + ["    CALL    ctl_max16"] + mov(A, lw + "G0", 2)
+        out += ["    ; lo = min(sat16(q - nw), u_max) -> lw.g1"] + mov(lw + "Q", X, 4) + mov(lw + "NW", Y, 4)
+        out += ["    CALL    _core_acc_sub", "    CALL    _core_acc_sat16"] + mov(X, A, 2) + mov(sp + "U_MAX", B, 2)
+        out += ["    CALL    ctl_min16"] + mov(A, lw + "G1", 2) + ["    ; umax = min(u_max, cap, hi)"]
+        out += mov(sp + "U_MAX", A, 2) + mov(ss + "CAP", B, 2) + ["    CALL    ctl_min16"] + mov(lw + "G0", B, 2)
+        out += ["    CALL    ctl_min16"] + mov(A, ss + "UMAX", 2) + ["    ; umin = max(u_min, -cap, lo), then at most umax"]
+        out += mov(ss + "CAP", B, 2) + [f"    COMF    {B}, F, A", f"    COMF    {B} + 1, F, A", f"    INCF    {B}, F, A",
+                                        "    MOVLW   0", f"    ADDWFC  {B} + 1, F, A"]
+        out += mov(sp + "U_MIN", A, 2) + ["    CALL    ctl_max16"] + mov(lw + "G1", B, 2) + ["    CALL    ctl_max16"]
+        out += mov(ss + "UMAX", B, 2) + ["    CALL    ctl_min16"] + mov(A, ss + "UMIN", 2)
+        a.trailers.setdefault("ctl_cmp16", CTL_CMP16)
+        a.x_holds = a.pending = None
+        return out
 
 
 @dataclass(frozen=True)
@@ -999,6 +1073,25 @@ class Ramp(Op):
                 f"{t}    if d > p.accel_step:", f"{t}        target = st.r_applied + p.accel_step",
                 f"{t}    elif d < -p.accel_step:", f"{t}        target = st.r_applied - p.accel_step"]
 
+    def asm(self, a):
+        X, Y, A, B = ACC_X, ACC_Y, ACC_A, ACC_B
+        step, r, tgt, tmp = ("_core_p + CORE_P_ACCEL_STEP", "_core_s + CORE_S_R_APPLIED", "_core_in + CORE_IN_TARGET",
+                             "_core_lw + CORE_LW_TMP")
+        out = mov(step, Y, 2) + [f"    MOVF    {Y}, W, A", f"    IORWF   {Y} + 1, W, A", "    BZ      ctl_ramp_done"]
+        out += mov(tgt, A, 2) + mov(r, B, 2) + ["    CALL    _core_acc_sext_ab", "    CALL    _core_acc_sub"]
+        out += mov(X, tmp, 4) + ["    ; step - d < 0: d > step"] + mov(step, X, 2)
+        out += [f"    CLRF    {X} + 2, A", f"    CLRF    {X} + 3, A"] + mov(tmp, Y, 4) + ["    CALL    _core_acc_sub"]
+        out += mov(step, B, 2) + [f"    BTFSC   {X} + 3, 7, A", "    BRA     ctl_ramp_add",
+                                  "    ; step + d < 0: d < -step"] + mov(B, X, 2)
+        out += [f"    CLRF    {X} + 2, A", f"    CLRF    {X} + 3, A", "    CALL    _core_acc_add",
+                f"    BTFSS   {X} + 3, 7, A", "    BRA     ctl_ramp_done", "    ; r - step: r + (-step)",
+                f"    COMF    {B}, F, A", f"    COMF    {B} + 1, F, A", f"    INFSNZ  {B}, F, A",
+                f"    INCF    {B} + 1, F, A", "ctl_ramp_add:", "    ; r + step (the step negated for d < -step)"]
+        out += mov(r, A, 2) + [f"    MOVF    {B}, W, A", f"    ADDWF   {A}, F, A", f"    MOVF    {B} + 1, W, A",
+                               f"    ADDWFC  {A} + 1, F, A"] + mov(A, tgt, 2) + ["ctl_ramp_done:"]
+        a.x_holds = a.pending = None
+        return out
+
 
 @dataclass(frozen=True)
 class DirectionHold(Op):
@@ -1014,6 +1107,17 @@ class DirectionHold(Op):
     def py(self, ctx, ind):
         return [f"{_i(ind)}st.dir, hold = direction_hold(st.u, st.dir)", f"{_i(ind)}st.hold = 1 if hold else 0"]
 
+    def asm(self, a):
+        A, T, N = ACC_A, ACC_T, ACC_N
+        hold, d = "_core_s + CORE_S_HOLD", "_core_s + CORE_S_DIR"
+        out = [f"    CLRF    {T}, A", f"    MOVFF   {T}, {hold}"] + mov("_core_s + CORE_S_U", A, 2)
+        out += [f"    MOVF    {A}, W, A", f"    IORWF   {A} + 1, W, A", "    BZ      ctl_duty", "    MOVLW   0",
+                f"    BTFSC   {A} + 1, 7, A", "    MOVLW   1", f"    MOVWF   {N}, A", f"    MOVFF   {d}, {T}",
+                f"    XORWF   {T}, W, A", "    BZ      ctl_duty", f"    MOVFF   {N}, {d}", "    MOVLW   1",
+                f"    MOVWF   {T}, A", f"    MOVFF   {T}, {hold}", "ctl_duty:"]
+        a.x_holds = a.pending = None
+        return out
+
 
 @dataclass(frozen=True)
 class Duty(Op):
@@ -1026,6 +1130,10 @@ class Duty(Op):
     def py(self, ctx, ind):
         return [f"{_i(ind)}st.pdc = duty_counts(plan, st.u)"]
 
+    def asm(self, a):
+        a.x_holds = a.pending = None
+        return ["    CALL    _core_duty_asm"] + mov(ACC_X, "_core_s + CORE_S_PDC", 2)
+
 
 @dataclass(frozen=True)
 class Current(Op):
@@ -1037,6 +1145,15 @@ class Current(Op):
 
     def py(self, ctx, ind):
         return [f"{_i(ind)}st.current = -adc if st.dir else adc"]
+
+    def asm(self, a):
+        A = ACC_A
+        out = mov("_core_in + CORE_IN_ADC", A, 2) + [f"    MOVFF   _core_s + CORE_S_DIR, {ACC_T}",
+                                                   f"    MOVF    {ACC_T}, F, A", "    BZ      ctl_cur"]
+        out += [f"    COMF    {A}, F, A", f"    COMF    {A} + 1, F, A", f"    INCF    {A}, F, A", "    MOVLW   0",
+                f"    ADDWFC  {A} + 1, F, A", "ctl_cur:"] + mov(A, "_core_s + CORE_S_CURRENT", 2)
+        a.x_holds = a.pending = None
+        return out
 
 
 @dataclass(frozen=True)
@@ -1106,15 +1223,13 @@ CONTROL = Function(
         Note("the window that keeps |i| <= I_lim at the present speed: Kb y -+ R_line I_lim"),
         MulS("K.R_CNT", "p.ilim"), Shift("R"), Store("l.new"),
         MulS("K.KB", "s.speed"), Shift("KB"), Store("l.q"),
-        Add("l.new"), Sat16(), Store("v.hi", "(int16_t)"),
-        Load("l.q"), Sub("l.new"), Sat16(), Store("v.lo", "(int16_t)"),
         Window(),
         Note("setpoint ramp"),
         Ramp(),
         When("CORE_KFF", (
             Note("reference feedforward: the integrator preload of the change of r (the multiply only then)"),
             LoadDiff("v.target", "s.r_applied"), Sat16(),
-            If("x", "!=", 0, (MulS("K.KFF", "x"), Shift("FF"))),
+            If("x", "!=", 0, (MulS("K.KFF", "x"), Shift("FF")), labels=("ctl_ff_store",)),
             Store("s.ff"))),
         Move("s.r_applied", "v.target"),
         CallLaw(),
