@@ -285,6 +285,9 @@ class Op:
     def py(self, ctx, ind):
         raise NotImplementedError
 
+    def asm(self, a):
+        raise NotImplementedError(f"{type(self).__name__} has no assembly form (only inside a composite)")
+
 
 def _i(n):
     return " " * n
@@ -594,6 +597,9 @@ class When(Op):
 
     def py(self, ctx, ind):
         return [f"{_i(ind)}if {CONDS[self.cond]}:"] + _block(self.body, ctx, "py", ind + 4)
+
+    def asm(self, a):
+        return _asm_block(self.body, a) if eval(CONDS[self.cond], {"plan": a.plan}) else []
 
 
 @dataclass(frozen=True)
