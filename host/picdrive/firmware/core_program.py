@@ -306,6 +306,10 @@ class Note(Op):
         return []
 
     def asm(self, a):
+        # a quote in a comment of the assembly is an unterminated character constant to the C
+        # preprocessor of every other compiler (the assembly sits in #if __SDCC)
+        if "'" in self.text or '"' in self.text:
+            raise ValueError(f"no quotes in a note: {self.text!r}")
         return [f"    ; {self.text}"]
 
 
@@ -370,7 +374,7 @@ class MulS(Op):
             out = load(self.a, ACC_A) + load(self.b, ACC_B)
         if self.zero_skip:
             mul, done = self.zero_skip
-            out += [f"    ; {self.b} = 0: 0 without the product and its shift (both give 0)",
+            out += ["    ; b = 0 (a PI rule): 0 without the product and its shift (both give 0)",
                     f"    MOVF    {ACC_B}, W, A", f"    IORWF   {ACC_B} + 1, W, A", f"    BNZ     {mul}"]
             out += [f"    CLRF    {ACC_X}{f' + {i}' if i else ''}, A" for i in range(4)]
             out += [f"    BRA     {done}", f"{mul}:"]
@@ -1203,7 +1207,7 @@ LAW = Function(
         Add("s.law.integ"), Store("l.new"),
         Headroom(),
         When("CORE_KFF", (
-            Note("reference feedforward: the preload core_control set for this sample's change of r"),
+            Note("reference feedforward: the preload core_control set for the change of r of this sample"),
             Load("s.law.integ"), Add("s.ff"), Store("s.law.integ"))),
         Clamp("s.law.integ", "I_LIM"),
         Move("s.law.y_prev", "v.y"),
