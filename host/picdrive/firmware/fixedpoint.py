@@ -3,12 +3,15 @@
 The firmware runs :mod:`picdrive.control_law` (the float reference) in
 integers.  :func:`plan_fixed_point` chooses every Q format from the design's
 numbers with headroom, quantises every coefficient and reports its error,
-and refuses what cannot be represented.  The functions below the plan
-(:func:`law_step`, :func:`core_control`, :func:`speed_encoder`...) are the
-Python model of the C in ``firmware_templates/drive_core.c.j2``, operation
-for operation: the tests run both on the same random vectors and require 0
-LSB difference (the gcc/ctypes harness is tests/support/core_c.py; the
-fixed-point loop against the float law, tests/support/fixed_loop.py).
+and refuses what cannot be represented.  The functions below the plan are the
+Python model of the C in ``firmware_templates/drive_core.c.j2``: :func:`law_step`
+and :func:`core_control` are compiled from the programs of
+:mod:`picdrive.firmware.core_program` (which also render the C and the PIC18
+assembly of ``core_law`` / ``core_control``); :func:`speed_encoder`,
+:func:`speed_hall` and :func:`duty_counts` follow the C operation for operation.
+The tests run model and C on the same random vectors and require 0 LSB
+difference (the gcc/ctypes harness is tests/support/core_c.py; the fixed-point
+loop against the float law, tests/support/fixed_loop.py).
 
 Formats (``Q n`` = integer with LSB 2^-n of the unit):
 
