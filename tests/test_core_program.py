@@ -99,3 +99,15 @@ def test_the_drive_rules_are_the_same_on_volts_and_counts(over):
         assert walk_cap(float(cap), over, 7.0, 100.0) == float(walk_cap(cap, over, 7, 100))
     assert direction_hold(-3, 0) == (1, True) and direction_hold(0, 1) == (1, False)
     assert direction_hold(5, 1) == (0, True) and direction_hold(5, 0) == (0, False)
+
+
+def test_repeated_steps_get_their_own_labels():
+    """The same clamp twice (and a 16-bit load stored without a sum) still assembles: labels are
+    numbered per function, the pending load is sign-extended before the store."""
+    law = dataclasses.replace(cp.LAW, steps=cp.LAW.steps[:-1] + (
+        cp.Clamp("l.q", "I_LIM"), cp.Load("s.speed"), cp.Store("s.law.y_prev"), cp.LAW.steps[-1]))
+    text = cp.asm_source(law, _plan(2), {"STATUS": {"Z": 2}})
+    labels = [ln[:-1] for ln in text.splitlines() if ln.endswith(":")]
+    assert len(labels) == len(set(labels)) and "law_not_hi_2" in labels
+    i = text.index("law_lim_done_2:")
+    assert "CALL    _core_acc_sext_ab" in text[i:text.index("law_not_min:")]

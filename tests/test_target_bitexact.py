@@ -647,3 +647,31 @@ def test_a_one_lsb_change_of_the_description_is_caught(tmp_path, monkeypatch, pr
     verdict = compare(folder, tmp_path, plan, n=500, funcs=("law", "control"))
     assert verdict["law"] is not None and verdict["law"].startswith("first failing vector"), verdict
     assert verdict["control"] is not None, verdict
+
+
+@pytest.mark.parametrize("profile,nr", [("duy2008", 2), ("duy2008", 3)], ids=["asm-law", "c-law"])
+def test_a_law_change_is_one_edit(tmp_path, monkeypatch, profile, nr):
+    """A changed law (two new saturations: the P and the D term to int16) made once, in
+    core_program.LAW: the firmware generated from it and the model compiled from it agree on the
+    chip, for the assembly law and for SDCC's C law."""
+    import dataclasses
+    from picdrive.firmware import core_program as cp
+    steps = []
+    for op in cp.LAW.steps:
+        steps.append(op)
+        if op in (cp.Shift("P"), cp.Shift("D")):
+            steps.append(cp.Sat16())
+    law = dataclasses.replace(cp.LAW, steps=tuple(steps))
+    assert len(law.steps) == len(cp.LAW.steps) + 2
+    plan, folder = _synthetic(tmp_path, profile, nr, False, False)
+    before = model_run(plan, 2000, 0xFFFF, N_SLOTS)[0]            # the unchanged law's sums
+    monkeypatch.setattr(cp, "LAW", law)
+    model = cp.model({"sat32": fx.sat32, "shift32": fx.shift32, "shl_sat32": fx.shl_sat32,
+                      "duty_counts": fx.duty_counts}, (law, cp.CONTROL))
+    monkeypatch.setattr(fx, "law_step", model["law_step"])
+    monkeypatch.setattr(fx, "core_control", model["core_control"])
+    assert model_run(plan, 2000, 0xFFFF, N_SLOTS)[0][:4] != before[:4]   # the change changes the law
+    plan, folder = _synthetic(tmp_path / "changed", profile, nr, False, False)
+    assert "ACC_SAT16();\n    l_q = ACC;" in (folder / "drive_core.c").read_text()
+    verdict = compare(folder, tmp_path, plan, n=2000, funcs=("law", "control"))
+    assert verdict == {"law": None, "control": None}, verdict

@@ -208,6 +208,13 @@ class _Asm:
         self.after_next = None       # a label to emit after the next step
         self.trailers = {}           # name -> lines
         self.returned = False
+        self.used = {}               # label -> times used
+        self.last = None             # the function's last step
+
+    def label(self, name: str) -> str:
+        """A label of this function: ``name`` the first time, ``name_2``, ``name_3``... after."""
+        n = self.used[name] = self.used.get(name, 0) + 1
+        return name if n == 1 else f"{name}_{n}"
 
 
 def _flat(ops, plan):
@@ -263,6 +270,13 @@ def _asm_block(ops, a: "_Asm") -> list[str]:
         if isinstance(op, Store) and isinstance(nxt, Clamp) and nxt.dst == op.dst:
             a.x_holds = op.dst                # the clamp stores it: this store is dead
             continue
+        if a.pending is not None and not isinstance(op, (Add, Sub, Note)):
+            if isinstance(op, Load):
+                a.pending = None              # replaced before it was used
+            else:                             # x = sext(the pending 16-bit operand) now
+                out += mov(_home(a.pending)[0], ACC_A, 2) + ["    CALL    _core_acc_sext_ab"]
+                a.pending = None
+                a.x_holds = None
         label, a.after_next = a.after_next, None
         out += op.asm(a)
         if label:
@@ -373,7 +387,7 @@ class MulS(Op):
         else:
             out = load(self.a, ACC_A) + load(self.b, ACC_B)
         if self.zero_skip:
-            mul, done = self.zero_skip
+            mul, done = (a.label(x) for x in self.zero_skip)
             out += ["    ; b = 0 (a PI rule): 0 without the product and its shift (both give 0)",
                     f"    MOVF    {ACC_B}, W, A", f"    IORWF   {ACC_B} + 1, W, A", f"    BNZ     {mul}"]
             out += [f"    CLRF    {ACC_X}{f' + {i}' if i else ''}, A" for i in range(4)]
@@ -571,7 +585,7 @@ class If(Op):
     def asm(self, a):
         if self.a == "x" and self.rel == "!=" and self.b == 0 and not self.orelse and len(self.labels) == 1:
             # x after Sat16 (or any 16-bit value): its low 16 bits decide
-            end, = self.labels
+            end = a.label(self.labels[0])
             out = [f"    MOVF    {ACC_X}, W, A", f"    IORWF   {ACC_X} + 1, W, A", f"    BZ      {end}"]
             out += _asm_block(self.then, a) + [f"{end}:"]
             a.x_holds = a.pending = None
@@ -579,7 +593,7 @@ class If(Op):
         h, nb = _home(self.a)
         if not (nb == 1 and self.rel == "!=" and self.b == 0 and self.labels):
             raise NotImplementedError("If in assembly: a uint8 field != 0, with labels")
-        then, end = self.labels
+        then, end = (a.label(x) for x in self.labels)
         out = [f"    MOVFF   {h}, {ACC_T}", f"    MOVF    {ACC_T}, F, A", f"    BNZ     {then}"]
         a.x_holds = a.pending = None
         out += _asm_block(self.orelse, a) + [f"    BRA     {end}", f"{then}:"]
@@ -730,10 +744,11 @@ class Clamp(Op):
     def asm(self, a):
         h, _ = _home(self.dst)
         lim = eval(CONSTS[self.lim][1], {"plan": a.plan})
+        not_hi, done = a.label("law_not_hi"), a.label("law_lim_done")
         out = [] if a.x_holds == self.dst else mov(h, ACC_X, 4)
-        out += lit(lim, ACC_Y, 4) + ["    CALL    law_cmp", "    BNC     law_not_hi"] + mov(ACC_Y, ACC_X, 4)
-        out += ["    BRA     law_lim_done", "law_not_hi:"] + lit(-lim, ACC_Y, 4)
-        out += ["    CALL    law_cmp", "    BC      law_lim_done"] + mov(ACC_Y, ACC_X, 4) + ["law_lim_done:"]
+        out += lit(lim, ACC_Y, 4) + ["    CALL    law_cmp", f"    BNC     {not_hi}"] + mov(ACC_Y, ACC_X, 4)
+        out += [f"    BRA     {done}", f"{not_hi}:"] + lit(-lim, ACC_Y, 4)
+        out += ["    CALL    law_cmp", f"    BC      {done}"] + mov(ACC_Y, ACC_X, 4) + [f"{done}:"]
         a.trailers.setdefault("law_cmp", LAW_CMP)
         a.x_holds = self.dst
         return out + mov(ACC_X, h, 4)
@@ -759,12 +774,17 @@ class ClampStore(Op):
 
     def asm(self, a):
         d, lo, hi = _home(self.dst)[0], _home(self.lo)[0], _home(self.hi)[0]
-        out = mov(lo, ACC_B, 2) + ["    CALL    _core_acc_sext_b", "    CALL    law_cmp", "    BC      law_not_min"]
-        out += mov(lo, d, 2) + ["    RETURN", "law_not_min:"] + mov(hi, ACC_B, 2)
-        out += ["    CALL    _core_acc_sext_b", "    CALL    law_cmp", "    BNC     law_u_x"] + mov(hi, d, 2)
-        out += ["    RETURN", "law_u_x:"] + mov(ACC_X, d, 2) + ["    RETURN"]
+        not_min, take_x, done = a.label("law_not_min"), a.label("law_u_x"), a.label("law_u_done")
+        # the function's last step returns from each branch; elsewhere the branches meet after it
+        last = self is a.last
+        leave = ["    RETURN"] if last else [f"    BRA     {done}"]
+        out = mov(lo, ACC_B, 2) + ["    CALL    _core_acc_sext_b", "    CALL    law_cmp", f"    BC      {not_min}"]
+        out += mov(lo, d, 2) + leave + [f"{not_min}:"] + mov(hi, ACC_B, 2)
+        out += ["    CALL    _core_acc_sext_b", "    CALL    law_cmp", f"    BNC     {take_x}"] + mov(hi, d, 2)
+        out += leave + [f"{take_x}:"] + mov(ACC_X, d, 2) + (["    RETURN"] if last else [f"{done}:"])
         a.trailers.setdefault("law_cmp", LAW_CMP)
-        a.returned = True
+        a.returned = last
+        a.x_holds = a.pending = None
         return out
 
 
@@ -1263,6 +1283,7 @@ def asm_source(fn: Function, plan, bit: dict) -> str:
     """The PIC18 assembly of a program for ``plan`` (the body of a ``__naked`` function):
     ``bit``: p18f4431.inc's bit positions by register (:func:`picdrive.firmware.p18f4431.bits`)."""
     a = _Asm(plan, bit)
+    a.last = _flat(fn.steps, plan)[-1]
     body = _asm_block(fn.steps, a)
     if not a.returned:
         body.append("    RETURN")
