@@ -39,9 +39,11 @@ from dataclasses import dataclass
 
 from ..control_law import direction_hold, walk_cap
 
-__all__ = ["Op", "Load", "MulS", "Shift", "Asr", "ToQi", "MulQ15", "Add", "Sub", "Sat16", "Store", "Set", "If",
-           "When", "MaxInto", "MinInto", "Clamp", "ClampStore", "Schedule", "CallLaw", "WalkCap", "DirectionHold",
-           "Ramp", "Duty", "Function", "CONSTS", "LAW", "CONTROL", "c_source", "asm_source", "python_source", "model"]
+__all__ = ["Op", "Note", "Load", "LoadSel", "LoadDiff", "MulS", "Shift", "Asr", "ToQi", "MulQ15", "Add", "Sub",
+           "Sat16", "Store", "Set", "Move", "If", "When", "MaxInto", "MinInto", "Pick", "Clamp", "ClampStore",
+           "Schedule", "Headroom", "Current", "WalkCap", "Window", "Ramp", "CallLaw", "DirectionHold", "Duty",
+           "Function", "CONSTS", "SHIFTS", "CONDS", "ASM_HOME", "LAW", "CONTROL", "c_source", "asm_source",
+           "python_source", "model", "asr_asm", "shift_asm"]
 
 #: generation-time constants: name -> (C macro of drive_params.h, the Python model's expression on ``plan``)
 CONSTS = {
@@ -128,10 +130,9 @@ def _block(ops, ctx, lang: str, ind: int) -> list[str]:
 # ---------------------------------------------------------------------------
 # PIC18 assembly (SDCC's gpasm syntax): operands by the layout's offset names, never numbers
 # ---------------------------------------------------------------------------
-#: where each operand lives on the chip: (symbol, bytes).  Locals without a home are kept in the
-#: accumulator (``None``: a value used once, by the next product) or in its operand a ("A").
+#: where the locals and statics live on the chip (``s.`` and ``p.`` fields: their layout offsets).
+#: ``None``: kept in the accumulator (a value used once, by the next product); "A": in its operand a.
 ASM_HOME = {
-    "s.": ("_core_s + CORE_S_", None), "p.": ("_core_p + CORE_P_", None),
     "v.y": "_core_s + CORE_S_SPEED", "v.e": "_core_lw + CORE_LW_E", "v.ey": None, "v.dy": "A",
     "g.kp": "_core_lw + CORE_LW_KP", "g.kits": "_core_lw + CORE_LW_KI", "g.kdts": "_core_lw + CORE_LW_KD",
     "g.kc": "_core_lw + CORE_LW_KC", "l.q": "_core_lw + CORE_LW_Q", "l.inc": "_core_lw + CORE_LW_INC",
