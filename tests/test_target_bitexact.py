@@ -498,7 +498,7 @@ def test_a_changed_feedforward_constant_is_caught(design_ff):
     """KFF one LSB off in core_control's assembly must make the chip's control disagree with the model."""
     plan, folder, tmp = design_ff
     text = (folder / "drive_core.c").read_text()
-    start = text.index("    ; reference feedforward: ff = ")
+    start = text.index("ctl_ramp_done:")                 # core_control_asm: the feedforward follows the ramp
     m = re.compile(r"    MOVLW   (\d+)\n    MOVWF   _core_acc \+ CORE_ACC_A, A\n").search(text, start)
     assert m and m.start() - start < 900, "the feedforward's literal was not found"
     v = int(m[1])
