@@ -47,10 +47,10 @@ def test_every_operation_has_a_contract_and_three_forms():
     """Every operation: a contract, a C and a Python form; those the assembly emitter reaches (all
     but the inner steps of a composite such as Headroom, whose assembly is the composite's) an
     assembly form."""
-    kinds = {type(op) for fn in (cp.LAW, cp.CONTROL) for op in _ops(fn.steps)}
+    kinds = {type(op) for fn in (cp.LAW, cp.CONTROL, cp.SPEED_HALL) for op in _ops(fn.steps)}
     emitted = {type(op) for fn in (cp.LAW, cp.CONTROL) for op in _ops(fn.steps, ("then", "orelse", "body"))}
     emitted -= {cp.MulQ15}     # the derivative filter: plans with it run SDCC's C law, not the assembly
-    assert len(kinds) > 20 and len(emitted) > 15
+    assert len(kinds) > 23 and len(emitted) > 15
     for k in kinds:
         assert k.contract, k.__name__                    # the overflow behaviour is stated
         for form in ("c", "py") + (("asm",) if k in emitted else ()):
@@ -58,7 +58,8 @@ def test_every_operation_has_a_contract_and_three_forms():
 
 
 def test_the_model_is_the_program():
-    """fixedpoint's law_step and core_control are the functions compiled from the programs."""
+    """fixedpoint's law_step, core_control and speed_hall are the functions compiled from the programs."""
+    assert fx.speed_hall.__code__.co_filename == "<core_program core_speed_hall>"
     assert fx.law_step.__code__.co_filename == "<core_program core_law>"
     assert fx.core_control.__code__.co_filename == "<core_program core_control>"
     plan = _plan()

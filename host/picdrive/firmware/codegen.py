@@ -490,6 +490,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                layout=core_layout.render_context(plan.n_rules),   # the core's structs and offsets
                core_program={"law": core_program.c_source(core_program.LAW),   # the law and control's C
                              "control": core_program.c_source(core_program.CONTROL),
+                             "speed_hall": core_program.c_source(core_program.SPEED_HALL),
                              # and the law's assembly (the plans the template runs it for)
                              "law_asm": (core_program.asm_source(core_program.LAW, plan, p18f4431.bits())
                                          if plan.n_rules <= 2 and not plan.dfilt_a else ""),

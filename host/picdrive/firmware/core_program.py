@@ -42,7 +42,7 @@ from ..control_law import direction_hold, walk_cap
 __all__ = ["Op", "Note", "Load", "LoadSel", "LoadDiff", "MulS", "Shift", "Asr", "ToQi", "MulQ15", "Add", "Sub",
            "Sat16", "Store", "Set", "Move", "If", "When", "MaxInto", "MinInto", "Pick", "Clamp", "ClampStore",
            "Schedule", "Headroom", "Current", "WalkCap", "Window", "Ramp", "CallLaw", "DirectionHold", "Duty",
-           "Function", "CONSTS", "SHIFTS", "CONDS", "ASM_HOME", "LAW", "CONTROL", "c_source", "asm_source",
+           "Let", "Div15", "Neg", "Function", "CONSTS", "SHIFTS", "CONDS", "ASM_HOME", "LAW", "CONTROL", "SPEED_HALL", "c_source", "asm_source",
            "python_source", "model", "asr_asm", "shift_asm"]
 
 #: generation-time constants: name -> (C macro of drive_params.h, the Python model's expression on ``plan``)
@@ -55,6 +55,7 @@ CONSTS = {
     "R_CNT": ("CORE_R_CNT", "plan.r_cnt"),
     "KB": ("CORE_KB", "plan.kb"),
     "KFF": ("CORE_KFF", "plan.kff"),
+    "K_SPEED": ("CORE_K_SPEED", "plan.k_speed"),
 }
 #: the plan's shifts (x 2^-s: floor right for s >= 0, saturating left otherwise): name -> plan attribute
 SHIFTS = {"P": "shift_p", "I": "shift_i", "D": "shift_d", "C": "shift_c", "KB": "shift_kb", "R": "shift_r",
@@ -71,6 +72,8 @@ def _c(v, ctx) -> str:
         return str(v)
     if v == "x":
         return "ACC"
+    if v == "acc.a":
+        return "core_acc.a"
     k, _, rest = v.partition(".")
     if k == "s":
         return "core_s." + rest
@@ -92,6 +95,8 @@ def _py(v, ctx) -> str:
         return str(v)
     if v == "x":
         return "x"
+    if v == "acc.a":
+        return "acc_a"
     if v in ctx.bind:
         return ctx.bind[v]
     for pre, to in ctx.prefix:
@@ -564,12 +569,22 @@ class If(Op):
     orelse: tuple = ()
     b_c: str = ""
     labels: tuple = ()
+    and_: tuple = ()
     contract = "a comparison: exact"
 
     def _cond(self, ctx, lang):
+        """``a rel b``, and with ``and_`` = (a2, rel2, b2, b2's C spelling) ``... && a2 rel2 b2``."""
         if lang == "c":
-            return f"{_c(self.a, ctx)} {self.rel} {self.b_c or _c(self.b, ctx)}"
-        return f"{_py(self.a, ctx)} {self.rel} {_py(self.b, ctx)}"
+            out = f"{_c(self.a, ctx)} {self.rel} {self.b_c or _c(self.b, ctx)}"
+            if self.and_:
+                a2, r2, b2, b2c = self.and_
+                out += f" && {_c(a2, ctx)} {r2} {b2c or _c(b2, ctx)}"
+            return out
+        out = f"{_py(self.a, ctx)} {self.rel} {_py(self.b, ctx)}"
+        if self.and_:
+            a2, r2, b2, _ = self.and_
+            out += f" and {_py(a2, ctx)} {r2} {_py(b2, ctx)}"
+        return out
 
     def c(self, ctx, ind):
         out = [f"{_i(ind)}if ({self._cond(ctx, 'c')}) {{"] + _block(self.then, ctx, "c", ind + 4)
@@ -592,7 +607,7 @@ class If(Op):
             a.x_holds = a.pending = None
             return out
         h, nb = _home(self.a)
-        if not (nb == 1 and self.rel == "!=" and self.b == 0 and self.labels):
+        if not (nb == 1 and self.rel == "!=" and self.b == 0 and self.labels and not self.and_):
             raise NotImplementedError("If in assembly: a uint8 field != 0, with labels")
         then, end = (a.label(x) for x in self.labels)
         out = [f"    MOVFF   {h}, {ACC_T}", f"    MOVF    {ACC_T}, F, A", f"    BNZ     {then}"]
@@ -1188,6 +1203,61 @@ class Current(Op):
 
 
 @dataclass(frozen=True)
+class Let(Op):
+    """A local declared with its value: ``ctype name = value;`` or, with ``pick`` = (a, rel, b),
+    ``name = (a rel b) ? a : b`` (the larger or smaller of two)."""
+    ctype: str
+    name: str
+    value: object = 0
+    pick: tuple = ()
+    contract = "exact"
+
+    def c(self, ctx, ind):
+        if self.pick:
+            a, rel, b = (_c(v, ctx) if v not in ("<", ">") else v for v in self.pick)
+            return [f"{_i(ind)}{self.ctype} {self.name} = ({a} {rel} {b}) ? {a} : {b};"]
+        return [f"{_i(ind)}{self.ctype} {self.name} = {_c(self.value, ctx)};"]
+
+    def py(self, ctx, ind):
+        dst = _py("v." + self.name, ctx)
+        if self.pick:
+            a, rel, b = (_py(v, ctx) if v not in ("<", ">") else v for v in self.pick)
+            return [f"{_i(ind)}{dst} = {a} if {a} {rel} {b} else {b}"]
+        return [f"{_i(ind)}{dst} = {_py(self.value, ctx)}"]
+
+
+@dataclass(frozen=True)
+class Div15(Op):
+    """acc.a = min(floor(K / d), 32767), K a 32-bit :data:`CONSTS` constant, 1 <= d < 2^17 (the
+    accumulator's long division, ACC_DIV15)."""
+    k: str
+    d: str
+    contract = "saturates at 32767; d >= 1 (the caller tests it)"
+
+    def c(self, ctx, ind):
+        return [f"{_i(ind)}ACC_DIV15({CONSTS[self.k][0]}, {_c(self.d, ctx)});"]
+
+    def py(self, ctx, ind):
+        q = f"{CONSTS[self.k][1]} // {_py(self.d, ctx)}"
+        return [f"{_i(ind)}acc_a = {q}", f"{_i(ind)}if acc_a > 32767:", f"{_i(ind)}    acc_a = 32767"]
+
+
+@dataclass(frozen=True)
+class Neg(Op):
+    """dst = -dst (int16, |dst| <= 32767 here)."""
+    dst: str
+    contract = "exact: dst > -32768"
+
+    def c(self, ctx, ind):
+        d = _c(self.dst, ctx)
+        return [f"{_i(ind)}{d} = (int16_t)-{d};"]
+
+    def py(self, ctx, ind):
+        d = _py(self.dst, ctx)
+        return [f"{_i(ind)}{d} = -{d}"]
+
+
+@dataclass(frozen=True)
 class Function:
     """A program: C signature, locals (``(C declaration, Python initialisation)``), steps, and the
     Python model's signature, bindings and return."""
@@ -1273,6 +1343,26 @@ CONTROL = Function(
 )
 
 
+# ---------------------------------------------------------------------------
+# The speed from the halls: core_speed_hall (drive_core.h's contract)
+# ---------------------------------------------------------------------------
+SPEED_HALL = Function(
+    "core_speed_hall", "void core_speed_hall(uint16_t period, uint16_t elapsed, uint8_t valid, uint8_t forward)", (),
+    (
+        Let("uint16_t", "p", pick=("v.period", ">", "v.elapsed")),
+        Let("int16_t", "w", 0),
+        If("v.valid", "!=", 0, (
+            Div15("K_SPEED", "v.p"), Move("v.w", "acc.a"),
+            If("v.forward", "==", 0, (Neg("v.w"),), b_c="0u"),
+        ), b_c="0u", and_=("v.p", "!=", 0, "0u")),
+        Move("s.speed", "v.w"),
+    ),
+    "def speed_hall(plan, st, period, elapsed, valid, forward):",
+    py_bind=(("v.period", "period"), ("v.elapsed", "elapsed"), ("v.valid", "valid"), ("v.forward", "forward")),
+    py_return="st.speed",
+)
+
+
 def c_source(fn: Function) -> str:
     """The C function of a program (drive_core.c)."""
     ctx = _Ctx()
@@ -1302,7 +1392,7 @@ def python_source(fn: Function) -> str:
     return "\n".join([fn.py_signature] + body)
 
 
-def model(prims: dict, fns=(LAW, CONTROL)) -> dict:
+def model(prims: dict, fns=(LAW, CONTROL, SPEED_HALL)) -> dict:
     """The Python model's functions of the programs ``fns``, by name (``law_step``,
     ``core_control``), compiled from :func:`python_source`; ``prims``: the integer primitives the
     source calls (``sat32``, ``shift32``, ``shl_sat32``, ``duty_counts``: fixedpoint's)."""

@@ -5,10 +5,10 @@ integers.  :func:`plan_fixed_point` chooses every Q format from the design's
 numbers with headroom, quantises every coefficient and reports its error,
 and refuses what cannot be represented.  The functions below the plan are the
 Python model of the C in ``firmware_templates/drive_core.c.j2``: :func:`law_step`
-and :func:`core_control` are compiled from the programs of
-:mod:`picdrive.firmware.core_program` (which also render the C and the PIC18
-assembly of ``core_law`` / ``core_control``); :func:`speed_encoder`,
-:func:`speed_hall` and :func:`duty_counts` follow the C operation for operation.
+and :func:`core_control` and :func:`speed_hall` are compiled from the programs of
+:mod:`picdrive.firmware.core_program` (which also render the C of ``core_law``,
+``core_control``, ``core_speed_hall`` and the PIC18 assembly of the first two);
+:func:`speed_encoder` and :func:`duty_counts` follow the C operation for operation.
 The tests run model and C on the same random vectors and require 0 LSB
 difference (the gcc/ctypes harness is tests/support/core_c.py; the fixed-point
 loop against the float law, tests/support/fixed_loop.py).
@@ -759,18 +759,11 @@ def speed_encoder(plan: FixedPointPlan, st: CoreState, pos: int, t5: int, t2: in
     return st.speed
 
 
-def speed_hall(plan: FixedPointPlan, st: CoreState, period: int, elapsed: int, valid: int, forward: int) -> int:
-    """Speed (Q qs) from the hall-edge period (C: core_speed_hall)."""
-    p = period if period > elapsed else elapsed
-    w = 0
-    if valid and p:
-        w = plan.k_speed // p
-        if w > INT16_MAX:
-            w = INT16_MAX
-        if not forward:
-            w = -w
-    st.speed = w
-    return w
+speed_hall = _MODEL["speed_hall"]
+speed_hall.__doc__ = """Speed (Q qs) from the hall-edge period (C: core_speed_hall): ``speed_hall(plan, st,
+period, elapsed, valid, forward)``, generated from
+:data:`picdrive.firmware.core_program.SPEED_HALL`: ``min(K / max(period, elapsed), 32767)``,
+signed by the direction, 0 without a valid period."""
 
 
 def duty_counts(plan: FixedPointPlan, u: int) -> int:
