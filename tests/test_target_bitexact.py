@@ -1,9 +1,10 @@
 """Bit-exact on the target: drive_core.c compiled by SDCC's pic16 port and run on the PIC18 core
 in gpsim, against the Python model (picdrive.firmware.fixedpoint), on random vectors (10^4 per
 function).  Configurations: the bundled duy2008 fuzzy-hinf build (2 rules: the assembly law), the
-hall-speed mixed-pid build (1 rule), the reference feedforward, and (MORE) SDCC's C law with 3 and
-8 rules, the derivative filter with the feedforward on the hall speed, and 1 rule with the
-feedforward on the hall speed.
+hall-speed mixed-pid build (1 rule), the reference feedforward, and (MORE) one synthetic build
+per combination of the speed source, the derivative filter and the feedforward, 1 to 8 rules
+(SDCC's C law and the assembly law on both speed sources); every combination of 1 to 8 rules
+(ALL) under the slow mark.
 
 The chip generates its own vectors (xorshift32, biased to int16/int32 extremes and saturation) and
 folds every output into a checksum per function (rotate-xor and a sum, both 32-bit) and a 16-bit
@@ -497,7 +498,7 @@ def test_a_changed_feedforward_constant_is_caught(design_ff):
     """KFF one LSB off in core_control's assembly must make the chip's control disagree with the model."""
     plan, folder, tmp = design_ff
     text = (folder / "drive_core.c").read_text()
-    start = text.index("    ; reference feedforward: ff = ")
+    start = text.index("ctl_ramp_done:")                 # core_control_asm: the feedforward follows the ramp
     m = re.compile(r"    MOVLW   (\d+)\n    MOVWF   _core_acc \+ CORE_ACC_A, A\n").search(text, start)
     assert m and m.start() - start < 900, "the feedforward's literal was not found"
     v = int(m[1])
@@ -562,12 +563,18 @@ def test_a_lost_upper_partial_product_is_caught(design):
     assert verdict["speed"] is not None, verdict
 
 
-#: The configurations the fixtures above leave out, one build each: the C law (more than 2 rules
-#: or the derivative filter: the assembly law covers at most 2 rules without it) on both speed
-#: sources, the filter and the feedforward together, the most rules the protocol holds, and the
-#: assembly law with one rule and the feedforward on the hall speed.  (profile, rules, filter, ff)
-MORE = [("duy2008", 3, False, False), ("duy2008_halls", 2, True, True), ("duy2008", 8, True, False),
-        ("duy2008_halls", 1, False, True)]
+MAX_RULES = 8                   # protocol.build_table's limit
+#: The configurations the fixtures above leave out, one build each (about 6 s apiece): every
+#: combination of the speed source, the derivative filter and the reference feedforward once,
+#: with rule counts from 1 to the most the protocol holds, so both laws (the assembly one: at most
+#: 2 rules, no filter; SDCC's C one otherwise) run on both speed sources.  (profile, rules, filter, ff)
+MORE = [("duy2008", 3, False, False), ("duy2008", 8, True, False), ("duy2008", 1, False, True),
+        ("duy2008", 4, True, True), ("duy2008_halls", 2, False, False), ("duy2008_halls", 5, True, False),
+        ("duy2008_halls", 1, False, True), ("duy2008_halls", 2, True, True)]
+#: every configuration the generator can emit for these motors: 1 to MAX_RULES rules, with and
+#: without the filter and the feedforward, both speed sources (the slow test; MORE in the suite)
+ALL = [(pn, nr, d, f) for pn in ("duy2008", "duy2008_halls") for nr in range(1, MAX_RULES + 1)
+       for d in (False, True) for f in (False, True)]
 
 
 def _synthetic(tmp, profile: str, nr: int, dfilt: bool, ff: bool):
@@ -585,9 +592,11 @@ def _synthetic(tmp, profile: str, nr: int, dfilt: bool, ff: bool):
     return fw.plan, codegen.write_firmware(fw, tmp / "fw", check=False)
 
 
-@pytest.mark.parametrize("profile,nr,dfilt,ff", MORE, ids=[f"{p}-r{n}{'-dfilt' if d else ''}{'-ff' if f else ''}"
-                                                           for p, n, d, f in MORE])
-def test_pic18_code_matches_the_model_in_more_configurations(tmp_path, profile, nr, dfilt, ff):
+def _ids(cfgs):
+    return [f"{p}-r{n}{'-dfilt' if d else ''}{'-ff' if f else ''}" for p, n, d, f in cfgs]
+
+
+def _matches(tmp_path, profile, nr, dfilt, ff):
     plan, folder = _synthetic(tmp_path, profile, nr, dfilt, ff)
     assert (plan.n_rules, bool(plan.dfilt_a), bool(plan.kff)) == (nr, dfilt, ff)
     assert plan.speed_source == ("hall" if profile.endswith("halls") else "encoder")
@@ -595,3 +604,74 @@ def test_pic18_code_matches_the_model_in_more_configurations(tmp_path, profile, 
     assert ("#define CORE_LAW_ASM 1" in (folder / "drive_core.c").read_text()) == (nr <= 2 and not dfilt)
     verdict = compare(folder, tmp_path, plan)
     assert verdict == {f: None for f in CHECKED}, verdict
+
+
+@pytest.mark.parametrize("profile,nr,dfilt,ff", MORE, ids=_ids(MORE))
+def test_pic18_code_matches_the_model_in_more_configurations(tmp_path, profile, nr, dfilt, ff):
+    _matches(tmp_path, profile, nr, dfilt, ff)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("profile,nr,dfilt,ff", [c for c in ALL if c not in MORE], ids=_ids([c for c in ALL if c not in MORE]))
+def test_pic18_code_matches_the_model_in_every_configuration(tmp_path, profile, nr, dfilt, ff):
+    _matches(tmp_path, profile, nr, dfilt, ff)
+
+
+def _mutated_law(name):
+    """core_program.LAW with one LSB changed: the setpoint weight's shift (b r / 2^14) by one, or
+    the integrator's bound +-I_lim by one."""
+    import dataclasses
+    from picdrive.firmware import core_program as cp
+    if name == "shift":
+        assert cp.Asr(14) in cp.LAW.steps
+        return dataclasses.replace(cp.LAW, steps=tuple(cp.Asr(15) if op == cp.Asr(14) else op for op in cp.LAW.steps))
+    assert name == "bound"
+    assert cp.Clamp("s.law.integ", "I_LIM") in cp.LAW.steps
+    return dataclasses.replace(cp.LAW, steps=tuple(cp.Clamp("s.law.integ", "I_LIM_1") if op == cp.Clamp("s.law.integ", "I_LIM")
+                                                   else op for op in cp.LAW.steps))
+
+
+@pytest.mark.parametrize("profile,nr,dfilt,mutation", [("duy2008", 2, False, "shift"), ("duy2008", 2, False, "bound"),
+                                                       ("duy2008", 3, False, "shift")],
+                         ids=["asm-law-shift", "asm-law-bound", "c-law-shift"])
+def test_a_one_lsb_change_of_the_description_is_caught(tmp_path, monkeypatch, profile, nr, dfilt, mutation):
+    """The firmware generated from a description of the law one LSB off (core_program.LAW: a
+    shift by one, a saturation bound by one) must make the chip disagree with the model of the
+    unchanged description, on the assembly law (2 rules) and on SDCC's C law (3 rules): the
+    chip's comparison sees every step the description emits."""
+    from picdrive.firmware import core_program as cp
+    monkeypatch.setattr(cp, "LAW", _mutated_law(mutation))
+    monkeypatch.setitem(cp.CONSTS, "I_LIM_1", ("(CORE_I_LIM - 1)", "(plan.i_lim - 1)"))
+    plan, folder = _synthetic(tmp_path, profile, nr, dfilt, False)
+    assert ("#define CORE_LAW_ASM 1" in (folder / "drive_core.c").read_text()) == (nr <= 2 and not dfilt)
+    verdict = compare(folder, tmp_path, plan, n=500, funcs=("law", "control"))
+    assert verdict["law"] is not None and verdict["law"].startswith("first failing vector"), verdict
+    assert verdict["control"] is not None, verdict
+
+
+@pytest.mark.parametrize("profile,nr", [("duy2008", 2), ("duy2008", 3)], ids=["asm-law", "c-law"])
+def test_a_law_change_is_one_edit(tmp_path, monkeypatch, profile, nr):
+    """A changed law (two new saturations: the P and the D term to int16) made once, in
+    core_program.LAW: the firmware generated from it and the model compiled from it agree on the
+    chip, for the assembly law and for SDCC's C law."""
+    import dataclasses
+    from picdrive.firmware import core_program as cp
+    steps = []
+    for op in cp.LAW.steps:
+        steps.append(op)
+        if op in (cp.Shift("P"), cp.Shift("D")):
+            steps.append(cp.Sat16())
+    law = dataclasses.replace(cp.LAW, steps=tuple(steps))
+    assert len(law.steps) == len(cp.LAW.steps) + 2
+    plan, folder = _synthetic(tmp_path, profile, nr, False, False)
+    before = model_run(plan, 2000, 0xFFFF, N_SLOTS)[0]            # the unchanged law's sums
+    monkeypatch.setattr(cp, "LAW", law)
+    model = cp.model({"sat32": fx.sat32, "shift32": fx.shift32, "shl_sat32": fx.shl_sat32,
+                      "duty_counts": fx.duty_counts}, (law, cp.CONTROL))
+    monkeypatch.setattr(fx, "law_step", model["law_step"])
+    monkeypatch.setattr(fx, "core_control", model["core_control"])
+    assert model_run(plan, 2000, 0xFFFF, N_SLOTS)[0][:4] != before[:4]   # the change changes the law
+    plan, folder = _synthetic(tmp_path / "changed", profile, nr, False, False)
+    assert "ACC_SAT16();\n    l_q = ACC;" in (folder / "drive_core.c").read_text()
+    verdict = compare(folder, tmp_path, plan, n=2000, funcs=("law", "control"))
+    assert verdict == {"law": None, "control": None}, verdict

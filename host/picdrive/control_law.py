@@ -67,7 +67,8 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-__all__ = ["Rule", "ScheduledLaw", "LawState", "memberships", "law_step", "law_from_dict", "reference_ff_gain"]
+__all__ = ["Rule", "ScheduledLaw", "LawState", "memberships", "law_step", "law_from_dict", "reference_ff_gain",
+           "walk_cap", "direction_hold"]
 
 
 @dataclass(frozen=True)
@@ -282,3 +283,34 @@ def reference_ff_gain(law: ScheduledLaw, w_rad_s: float, u_ss_v: float, i_ss_a: 
         raise ValueError("reference_ff_gain: the speed must be positive")
     g = law.gains_at(w_rad_s)
     return (u_ss_v + g.kc * i_ss_a) / w_rad_s + g.kp * (1.0 - law.setpoint_weight)
+
+
+# ---------------------------------------------------------------------------
+# The drive's rules around the law (the firmware's core_control runs them on raw values,
+# picdrive.firmware.core_program; the averaged six-step simulation on volts)
+# ---------------------------------------------------------------------------
+def walk_cap(cap, over: bool, step, top):
+    """The backup current limiter's cap on |u| after one sample: down by ``step`` (not below 0)
+    while the measured current is over the limit, up by ``step`` (not above ``top``) otherwise.
+
+    Parameters
+    ----------
+    cap, step, top : int or float
+        The cap, its step per sample and its ceiling (the bridge's |u|), in one unit (V, or the
+        firmware's Q qu counts).
+    over : bool
+        The sample's current exceeds the limit.
+
+    The firmware's C forms the same values in int16 without overflow (``cap > step ? cap - step
+    : 0``, ``cap < top - step ? cap + step : top``)."""
+    return max(0 * step, cap - step) if over else min(top, cap + step)
+
+
+def direction_hold(u, dir_now: int) -> tuple[int, bool]:
+    """The bridge table after an output ``u``: ``(dir, hold)``, dir 0 forward, 1 reverse.  A new
+    sign of a non-zero u changes the table and switches all outputs off for this sample (hold);
+    u = 0 keeps the table."""
+    newdir = 1 if u < 0 else 0
+    if u != 0 and newdir != dir_now:
+        return newdir, True
+    return dir_now, False

@@ -436,7 +436,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     """
     import jinja2
 
-    from . import core_layout, fixedpoint, p18f4431, pcpwm, pinmap
+    from . import core_layout, core_program, fixedpoint, p18f4431, pcpwm, pinmap
     from .. import outputs
     from ..link import protocol, protocol_c
     from ..paths import templates_dir
@@ -488,6 +488,15 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                signal_index={e.name: i for i, e in enumerate(table.signals)},
                bit=p18f4431.bits(),    # bit positions by name, for the assembly: {{ bit.PIR1.RCIF }}
                layout=core_layout.render_context(plan.n_rules),   # the core's structs and offsets
+               core_program={"law": core_program.c_source(core_program.LAW),   # the law and control's C
+                             "control": core_program.c_source(core_program.CONTROL),
+                             "speed_hall": core_program.c_source(core_program.SPEED_HALL),
+                             # and the law's assembly (the plans the template runs it for)
+                             "law_asm": (core_program.asm_source(core_program.LAW, plan, p18f4431.bits())
+                                         if plan.n_rules <= 2 and not plan.dfilt_a else ""),
+                             "control_asm": (core_program.asm_source(core_program.CONTROL, plan, p18f4431.bits())
+                                             if plan.n_rules <= 2 and not plan.dfilt_a
+                                             and 32768 * plan.kduty < 2 ** 31 else "")},
                link_state={s.name: int(s) for s in protocol.State})   # the drive states, for the assembly
     env = jinja2.Environment(loader=jinja2.FileSystemLoader(str(templates_dir())),
                              undefined=jinja2.StrictUndefined, trim_blocks=True, lstrip_blocks=True,

@@ -3,12 +3,15 @@
 The firmware runs :mod:`picdrive.control_law` (the float reference) in
 integers.  :func:`plan_fixed_point` chooses every Q format from the design's
 numbers with headroom, quantises every coefficient and reports its error,
-and refuses what cannot be represented.  The functions below the plan
-(:func:`law_step`, :func:`core_control`, :func:`speed_encoder`...) are the
-Python model of the C in ``firmware_templates/drive_core.c.j2``, operation
-for operation: the tests run both on the same random vectors and require 0
-LSB difference (the gcc/ctypes harness is tests/support/core_c.py; the
-fixed-point loop against the float law, tests/support/fixed_loop.py).
+and refuses what cannot be represented.  The functions below the plan are the
+Python model of the C in ``firmware_templates/drive_core.c.j2``: :func:`law_step`
+and :func:`core_control` and :func:`speed_hall` are compiled from the programs of
+:mod:`picdrive.firmware.core_program` (which also render the C of ``core_law``,
+``core_control``, ``core_speed_hall`` and the PIC18 assembly of the first two);
+:func:`speed_encoder` and :func:`duty_counts` follow the C operation for operation.
+The tests run model and C on the same random vectors and require 0 LSB
+difference (the gcc/ctypes harness is tests/support/core_c.py; the fixed-point
+loop against the float law, tests/support/fixed_loop.py).
 
 Formats (``Q n`` = integer with LSB 2^-n of the unit):
 
@@ -42,6 +45,7 @@ from dataclasses import dataclass, field
 
 from ..board import FCY_HZ
 from ..errors import PicdriveError
+from . import core_program
 from .core_layout import CORE_LAW, CORE_PARAMS, CORE_STATE, MU_ONE, model_class
 
 __all__ = ["FixedPointError", "Coef", "FixedPointPlan", "plan_fixed_point", "ParamSpec",
@@ -670,75 +674,15 @@ def law_params_from_plan(plan: FixedPointPlan) -> LawParams:
                      controller=0 if plan.n_rules == 1 else 1, ilim=plan.ilim)
 
 
-def _blend(g: list, j: int, frac: int) -> int:
-    return asr32(g[j] * (MU_ONE - frac) + g[j + 1] * frac, 12)
+_MODEL = core_program.model({"sat32": sat32, "shift32": shift32, "shl_sat32": shl_sat32,
+                             "duty_counts": lambda plan, u: duty_counts(plan, u)})
+law_step = _MODEL["law_step"]
+law_step.__doc__ = """One sample of the fixed-point law (C: core_law).  Returns u (Q qu).
 
-
-def law_step(plan: FixedPointPlan, p: LawParams, st: LawState, r: int, y: int, i: int,
-             umin: int, umax: int, ff: int = 0) -> int:
-    """One sample of the fixed-point law (C: core_law).  Returns u (Q qu).
-
-    ``ff``: the reference feedforward of the sample (Q qi, C: core_s.ff, :func:`reference_ff`),
-    added to the integrator after the headroom rule and before its clamp (plans with kff only)."""
-    nr = plan.n_rules
-    if nr == 1 or p.controller == 0:
-        kp, kits, kdts, kc = p.kp[0], p.kits[0], p.kdts[0], p.kc[0]
-        st.mu1 = MU_ONE
-    else:
-        s = -y if y < 0 else y
-        lo, hi = p.premise_lo, p.premise_hi
-        if s > hi:
-            s = hi
-        if s < lo:
-            s = lo
-        pos = ((s - lo) * p.mu_k) >> plan.mu_sh
-        top = (nr - 1) << 12
-        if pos > top:
-            pos = top
-        j = pos >> 12
-        if j >= nr - 1:
-            j, frac = nr - 2, MU_ONE
-        else:
-            frac = pos & (MU_ONE - 1)
-        kp = _blend(p.kp, j, frac)
-        kits = _blend(p.kits, j, frac)
-        kdts = _blend(p.kdts, j, frac)
-        kc = _blend(p.kc, j, frac)
-        st.mu1 = (MU_ONE - frac) if j == 0 else 0
-    br = asr32(p.b_q14 * r, 14)
-    ey = sat16(br - y)
-    e = sat16(r - y)
-    P = shift32(kp * ey, plan.shift_p)
-    if st.primed:
-        dy = sat16(st.y_prev - y)
-    else:
-        dy = 0
-        st.primed = 1
-    d_raw = shift32(kdts * dy, plan.shift_d)
-    if plan.dfilt_a:
-        st.d_filt = sat32(st.d_filt + mul_q15(sat32(d_raw - st.d_filt), plan.dfilt_a))
-    else:
-        st.d_filt = d_raw
-    C = shift32(kc * i, plan.shift_c)
-    di = plan.qi - plan.qu
-    q = sat32(sat32(P + st.d_filt) - C)           # everything but the integral
-    inc = shift32(kits * e, plan.shift_i)
-    i_new = sat32(st.integ + inc)
-    if inc > 0:                                    # integrate only into the output headroom
-        head = shl_sat32(sat32(umax - q), di) if di else sat32(umax - q)
-        st.integ = min(i_new, max(st.integ, head))
-    elif inc < 0:
-        head = shl_sat32(sat32(umin - q), di) if di else sat32(umin - q)
-        st.integ = max(i_new, min(st.integ, head))
-    if plan.kff:
-        st.integ = sat32(st.integ + ff)
-    if st.integ > plan.i_lim:
-        st.integ = plan.i_lim
-    elif st.integ < -plan.i_lim:
-        st.integ = -plan.i_lim
-    st.y_prev = y
-    u = sat32(q + asr32(st.integ, di))
-    return umin if u < umin else umax if u > umax else u
+Generated from :data:`picdrive.firmware.core_program.LAW` (the program the C is rendered from):
+``law_step(plan, p, st, r, y, i, umin, umax, ff=0)``, ``st`` a :class:`LawState`; ``ff``: the
+reference feedforward of the sample (Q qi, C: core_s.ff, :func:`reference_ff`), added to the
+integrator after the headroom rule and before its clamp (plans with kff only)."""
 
 
 CoreState = model_class(CORE_STATE, "CoreState", "core_state_t of the C: core_layout.CORE_STATE.",
@@ -815,18 +759,11 @@ def speed_encoder(plan: FixedPointPlan, st: CoreState, pos: int, t5: int, t2: in
     return st.speed
 
 
-def speed_hall(plan: FixedPointPlan, st: CoreState, period: int, elapsed: int, valid: int, forward: int) -> int:
-    """Speed (Q qs) from the hall-edge period (C: core_speed_hall)."""
-    p = period if period > elapsed else elapsed
-    w = 0
-    if valid and p:
-        w = plan.k_speed // p
-        if w > INT16_MAX:
-            w = INT16_MAX
-        if not forward:
-            w = -w
-    st.speed = w
-    return w
+speed_hall = _MODEL["speed_hall"]
+speed_hall.__doc__ = """Speed (Q qs) from the hall-edge period (C: core_speed_hall): ``speed_hall(plan, st,
+period, elapsed, valid, forward)``, generated from
+:data:`picdrive.firmware.core_program.SPEED_HALL`: ``min(K / max(period, elapsed), 32767)``,
+signed by the direction, 0 without a valid period."""
 
 
 def duty_counts(plan: FixedPointPlan, u: int) -> int:
@@ -842,44 +779,11 @@ def reference_ff(plan: FixedPointPlan, dr: int) -> int:
     return shift32(plan.kff * dr, plan.shift_ff) if plan.kff and dr else 0
 
 
-def core_control(plan: FixedPointPlan, p: LawParams, st: CoreState, target: int, adc: int) -> int:
-    """C: core_control: current limits, setpoint ramp, law, duty and direction.  Returns u.
+core_control = _MODEL["core_control"]
+core_control.__doc__ = """C: core_control: current limits, setpoint ramp, law, duty and direction.  Returns u.
 
-    Current limits: the output window ``Kb y -+ R_line I_lim`` (in steady state
-    the current stays within +-I_lim; I_lim = the ``current_limit`` parameter)
-    and, as a backup on the measured bus current, a cap on |u| walked down
-    while the current exceeds I_lim and back up when it does not.
-    """
-    i = -adc if st.dir else adc
-    st.current = i
-    if adc > p.ilim:
-        st.cap = st.cap - plan.cap_step if st.cap > plan.cap_step else 0
-    else:
-        st.cap = st.cap + plan.cap_step if st.cap < plan.u_limit - plan.cap_step else plan.u_limit
-    # voltage window that keeps |i| <= I_lim at the present speed: Kb w -+ R I_lim
-    emf = shift32(plan.kb * st.speed, plan.shift_kb)
-    ri = shift32(plan.r_cnt * p.ilim, plan.shift_r)
-    hi = sat16(sat32(emf + ri))
-    lo = sat16(sat32(emf - ri))
-    umax = min(p.u_max, st.cap, max(hi, p.u_min))
-    umin = max(p.u_min, -st.cap, min(lo, p.u_max))
-    if umin > umax:
-        umin = umax
-    t = target
-    if p.accel_step > 0:
-        d = t - st.r_applied
-        if d > p.accel_step:
-            t = st.r_applied + p.accel_step
-        elif d < -p.accel_step:
-            t = st.r_applied - p.accel_step
-    ff = reference_ff(plan, t - st.r_applied)
-    st.r_applied = t
-    u = law_step(plan, p, st.law, t, st.speed, i, umin, umax, ff)
-    st.u = u
-    newdir = 1 if u < 0 else 0
-    st.hold = 0
-    if u != 0 and newdir != st.dir:
-        st.dir = newdir
-        st.hold = 1
-    st.pdc = duty_counts(plan, u)
-    return u
+Generated from :data:`picdrive.firmware.core_program.CONTROL`: ``core_control(plan, p, st,
+target, adc)``, ``st`` a :class:`CoreState`.  Current limits: the output window ``Kb y -+
+R_line I_lim`` (in steady state the current stays within +-I_lim; I_lim = the
+``current_limit`` parameter) and, as a backup on the measured bus current, a cap on |u| walked
+down while the current exceeds I_lim and back up when it does not."""

@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..control_law import LawState, law_step
+from ..control_law import LawState, direction_hold, law_step, walk_cap
 from .dqmodel import DqParams, derivatives, dq_params
 
 __all__ = ["SimResult", "simulate_law", "disturbances_2016", "step_load",
@@ -478,17 +478,14 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
         else:
             i_m, over = 0.0, False
         # the firmware's walk-down backup on the measured current
-        cap = max(0.0, cap - cap_step) if over else min(pl.u_bridge_v, cap + cap_step)
+        cap = walk_cap(cap, over, cap_step, pl.u_bridge_v)
         r = rfun(t) * rpm
         lo, hi = law.output_limits(y)
         u_law = law_step(law, st, r, y, i_m)
         u = min(max(u_law, -cap, -pl.u_bridge_v), cap, pl.u_bridge_v)
         cap_on[k] = cap < pl.u_bridge_v - 1e-9
         cap_cut[k] = abs(u_law) > cap + 1e-9       # the backup, not the window, set the output
-        newdir = 1 if u < 0 else 0
-        hold = False
-        if u != 0.0 and newdir != dir_fw:
-            dir_fw, hold = newdir, True
+        dir_fw, hold = direction_hold(u, dir_fw)
         n_dir = 0 if hold else (-1 if dir_fw else 1)
         n_duty = abs(u) / vbus
         tl = lfun(t)
