@@ -35,6 +35,8 @@ TWIN_SOURCES = ("plant.c", "pic.c", "twin.c")
 # the twin's C is compiled as one unit (twin_all.c includes the three), so that the
 # inner loop's calls between plant, peripheral model and event loop inline
 TWIN_UNITY = "twin_all.c"
+# the library's writable data, for the restore between twins (picdrive_hil.twin): its own unit
+REGION = "region.c"
 
 # -ffp-contract=off: no fused multiply-adds, whatever the target, so the arithmetic
 # (and every result) is the same as written; -fvisibility=hidden: only the C API
@@ -189,7 +191,7 @@ def build_library(groups: Sequence[Group], *, name: str = "libtwin") -> Path:
 
 def twin_group(gen_dir: Path) -> Group:
     """The twin's own C: plant, peripheral model, event loop."""
-    return Group((CSRC / TWIN_UNITY,), (CSRC, Path(gen_dir)), twin_cflags(),
+    return Group((CSRC / TWIN_UNITY, CSRC / REGION), (CSRC, Path(gen_dir)), twin_cflags(),
                  tuple(CSRC / s for s in TWIN_SOURCES) + (CSRC / "twin.h", CSRC / "pic_internal.h"))
 
 
@@ -207,7 +209,7 @@ def pil_group(gen_dir: Path, *, enlarged: bool = False) -> Group:
     flags = twin_cflags() + core_cflags() + ("-DTWIN_PIL", "-DPIC18_TRACK_RAM")
     if enlarged:
         flags += (f"-DPIC18_FLASH_BYTES=0x{ENLARGED_FLASH_BYTES:X}u", f"-DPIC18_RAM_END=0x{ENLARGED_RAM_END:X}u")
-    return Group((CSRC / PIL_UNITY,), (CSRC, Path(gen_dir)), flags,
+    return Group((CSRC / PIL_UNITY, CSRC / REGION), (CSRC, Path(gen_dir)), flags,
                  tuple(CSRC / s for s in TWIN_SOURCES) +
                  tuple(CSRC / s for s in ("pil.c", "pic18cpu.c", "pic18cpu.h", "twin.h", "pic_internal.h")))
 

@@ -245,6 +245,7 @@ int  twin_trace_count(void);
 uint8_t twin_sfr_get(uint16_t idx);
 void twin_set_plant_state(double w_rad_s, double theta_rad);
 int  twin_sizeof(int which);
+int  twin_data_region(uint64_t out[2]);   /* this library's writable data: address, bytes (0: found) */
 /* processor twin only (-DTWIN_PIL) */
 int  pil_load(const uint8_t *flash, uint32_t n, const uint8_t *config14);
 uint32_t pil_flash_bytes(void);
