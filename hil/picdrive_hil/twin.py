@@ -38,6 +38,8 @@ from .plant import PlantModel, plant_from_profile
 
 PORTS = "ABCDE"
 PS = 1_000_000_000_000
+# the trace records' layout, as numpy reads them (built once: deriving it from the ctypes type costs ~1 ms)
+_TRACE_DTYPE = np.dtype(cmodel.TraceRec)
 
 
 @dataclass(frozen=True)
@@ -613,7 +615,7 @@ class Twin:
             finally:
                 cnt = self._lib.twin_trace_count()
                 self._lib.twin_trace_start(0.0, None, 0)
-        arr = np.ctypeslib.as_array(buf)[:cnt]
+        arr = np.frombuffer(buf, dtype=_TRACE_DTYPE, count=cnt)
         return {name: np.array(arr[name]) for name in cmodel.TRACE_FIELDS}
 
     # -- endpoint -------------------------------------------------------------
