@@ -684,12 +684,15 @@ def _acquire(lib_path: Path, processor: bool) -> _Loaded:
             raise TwinError(f"ctypes mirror {st.__name__} ({C.sizeof(st)} B) differs from the C struct ({n} B)")
     region = (C.c_uint64 * 2)()
     if lib.twin_data_region(region) != 0:
-        raise TwinError(f"{copy}: the twin library's writable data segment was not found")
+        # a layout region.c does not know: this copy serves its twin only (no restore, no reuse)
+        return _Loaded(key, copy, lib, 0, b"")
     return _Loaded(key, copy, lib, int(region[0]), C.string_at(int(region[0]), int(region[1])))
 
 
 def _release(ld: _Loaded) -> None:
     """A closed twin's library back to the pool (its data is restored when it is taken again)."""
+    if not ld.pristine:
+        return
     with _POOL_LOCK:
         free = _POOL.setdefault(ld.path, [])
         if len(free) < POOL_KEEP:
