@@ -4,8 +4,10 @@ register-shim contract): UART byte timing, timer interrupts and priorities,
 EEPROM unlock and write time, PCPWM override commutation against the plant
 alone, QEI counts, FLTA latching, hall faults, deliberate firmware bugs the
 twin must catch."""
+import ctypes
 import math
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +17,7 @@ from support import plant_reference as ref
 from picdrive_hil.plant import plant_from_profile
 from support.testfw import make_twin
 from support.twin_uart import command
+from picdrive_hil import twin as twin_module
 from picdrive_hil.twin import Twin, TwinError
 
 warnings.simplefilter("ignore", ProfileWarning)
@@ -258,6 +261,35 @@ def test_twins_in_one_process_are_independent():
     assert a.state()["speed_rad_s"] > 50.0 and b.state()["speed_rad_s"] == 0.0
     assert b.model.r_phase_ohm == pytest.approx(1.1 * a.model.r_phase_ohm)
     a.close(), b.close()
+
+
+def test_a_closed_twins_library_serves_the_next_twin_as_if_freshly_loaded():
+    """A closed twin's loaded library goes to the next twin of the same build, its data written
+    back as loaded: the same run gives the same bits as on a fresh copy; the closed twin refuses
+    further calls."""
+    a, b = make_twin("duy2008"), make_twin("duy2008")      # two copies loaded at once
+    drive(b, 0.5)
+    b.run(0.05)                                            # b's data far from its state as loaded
+    libs = (a._lib, b._lib)
+    loaded = b._loaded
+    drive(a, 0.8)
+    ref = a.record(0.03, 1e-4)
+    a.close(), b.close()
+    with pytest.raises(TwinError, match="closed"):
+        b.state()
+    # taken again, every byte of its writable data (the twin's, the firmware's) is as loaded
+    again = twin_module._acquire(Path(loaded.path), False)
+    assert again is loaded
+    assert ctypes.string_at(loaded.data_at, len(loaded.pristine)) == loaded.pristine
+    twin_module._release(again)
+    c = make_twin("duy2008")
+    assert c._lib is libs[1]                               # b's copy, restored
+    drive(c, 0.8)
+    got = c.record(0.03, 1e-4)
+    c.close()
+    assert ref["w_rad_s"][-1] > 10.0
+    for k in ref:
+        np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
 
 
 def test_twin_refuses_firmware_of_another_profile(tmp_path):

@@ -35,6 +35,8 @@ TWIN_SOURCES = ("plant.c", "pic.c", "twin.c")
 # the twin's C is compiled as one unit (twin_all.c includes the three), so that the
 # inner loop's calls between plant, peripheral model and event loop inline
 TWIN_UNITY = "twin_all.c"
+# the library's writable data, for the restore between twins (picdrive_hil.twin): its own unit
+REGION = "region.c"
 
 # -ffp-contract=off: no fused multiply-adds, whatever the target, so the arithmetic
 # (and every result) is the same as written; -fvisibility=hidden: only the C API
@@ -151,10 +153,44 @@ def _group_inputs(g: Group) -> list[Path]:
     return files
 
 
+def _inputs_signature(groups: Sequence[Group]) -> tuple:
+    """What the inputs of a build are on disk now, cheaply: each include folder's modification
+    time and each input file's size, modification time and inode (a file written or replaced, or
+    a header added to or removed from a folder, changes it)."""
+    sig = []
+    for g in groups:
+        for d in g.include_dirs:
+            sig.append((str(d), os.stat(d).st_mtime_ns))
+        for f in _group_inputs(g):
+            st = os.stat(f)
+            sig.append((str(f), st.st_size, st.st_mtime_ns, st.st_ino))
+    return tuple(sig)
+
+
+# per process: (name, compiler, groups) -> (inputs' signature, built library): a library asked for
+# again with unchanged inputs is not hashed again (a tolerance study starts thousands of twins)
+_BUILT: dict[tuple, tuple[tuple, Path]] = {}
+
+
 def build_library(groups: Sequence[Group], *, name: str = "libtwin") -> Path:
     """Compile each group with its flags and link all into one shared library
     (cached); returns its path."""
     cc = os.environ.get("CC", "gcc")
+    key = (name, cc, tuple(groups))
+    try:
+        sig = _inputs_signature(groups)
+    except OSError:
+        sig = None                       # a missing input: the build below says which
+    got = _BUILT.get(key)
+    if sig is not None and got is not None and got[0] == sig and got[1].exists():
+        return got[1]
+    out = _build_library(groups, name, cc)
+    if sig is not None:
+        _BUILT[key] = (sig, out)
+    return out
+
+
+def _build_library(groups: Sequence[Group], name: str, cc: str) -> Path:
     h = hashlib.sha256(_compiler_id(cc).encode())
     for g in groups:
         for f in _group_inputs(g):
@@ -189,7 +225,7 @@ def build_library(groups: Sequence[Group], *, name: str = "libtwin") -> Path:
 
 def twin_group(gen_dir: Path) -> Group:
     """The twin's own C: plant, peripheral model, event loop."""
-    return Group((CSRC / TWIN_UNITY,), (CSRC, Path(gen_dir)), twin_cflags(),
+    return Group((CSRC / TWIN_UNITY, CSRC / REGION), (CSRC, Path(gen_dir)), twin_cflags(),
                  tuple(CSRC / s for s in TWIN_SOURCES) + (CSRC / "twin.h", CSRC / "pic_internal.h"))
 
 
@@ -207,7 +243,7 @@ def pil_group(gen_dir: Path, *, enlarged: bool = False) -> Group:
     flags = twin_cflags() + core_cflags() + ("-DTWIN_PIL", "-DPIC18_TRACK_RAM")
     if enlarged:
         flags += (f"-DPIC18_FLASH_BYTES=0x{ENLARGED_FLASH_BYTES:X}u", f"-DPIC18_RAM_END=0x{ENLARGED_RAM_END:X}u")
-    return Group((CSRC / PIL_UNITY,), (CSRC, Path(gen_dir)), flags,
+    return Group((CSRC / PIL_UNITY, CSRC / REGION), (CSRC, Path(gen_dir)), flags,
                  tuple(CSRC / s for s in TWIN_SOURCES) +
                  tuple(CSRC / s for s in ("pil.c", "pic18cpu.c", "pic18cpu.h", "twin.h", "pic_internal.h")))
 

@@ -191,4 +191,6 @@ def bind_twin(lib: C.CDLL) -> C.CDLL:
     lib.twin_set_plant_state.restype = None
     lib.twin_sizeof.argtypes = [C.c_int]
     lib.twin_sizeof.restype = C.c_int
+    lib.twin_data_region.argtypes = [C.POINTER(C.c_uint64)]
+    lib.twin_data_region.restype = C.c_int
     return lib

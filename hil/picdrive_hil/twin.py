@@ -13,11 +13,13 @@ seam 5).
     srv = tw.serve(port=0, realtime=True)
 
 The inner loop runs in C (``csrc/``); Python only sets it up and moves bytes.
-Each Twin loads a private copy of the library, so several twins (different
-perturbations, different firmware) can live in one process.
+Each Twin runs on a private copy of the library, so several twins (different
+perturbations, different firmware) can live in one process; a closed Twin's copy
+serves the next Twin of the same build, its data restored as loaded.
 """
 from __future__ import annotations
 
+import atexit
 import ctypes as C
 import math
 import shutil
@@ -36,6 +38,8 @@ from .plant import PlantModel, plant_from_profile
 
 PORTS = "ABCDE"
 PS = 1_000_000_000_000
+# the trace records' layout, as numpy reads them (built once: deriving it from the ctypes type costs ~1 ms)
+_TRACE_DTYPE = np.dtype(cmodel.TraceRec)
 
 
 @dataclass(frozen=True)
@@ -252,19 +256,9 @@ class Twin:
             lib_path = build.build_library([firmware, build.twin_group(gen_dir())])
         self.model: PlantModel = plant_from_profile(self.profile, perturb, load_mode=load_mode,
                                                     diode_drop_v=diode_drop_v, hall_error_deg=hall_error_deg)
-        self._copy = build.private_copy(lib_path)
-        self._lib = cmodel.bind_twin(C.CDLL(str(self._copy)))
-        if self._pil_img is not None:
-            from . import pil
-            pil.bind(self._lib)
-            if self._lib.pil_sizeof() != C.sizeof(pil.PilStats):
-                raise TwinError(f"ctypes mirror PilStats ({C.sizeof(pil.PilStats)} B) differs from the C struct "
-                                f"({self._lib.pil_sizeof()} B)")
-        for i, st in enumerate((cmodel.TwinConfig, cmodel.TwinState, cmodel.TraceRec,
-                                cmodel.PlantParams, cmodel.PlantState, cmodel.Leg)):
-            n = self._lib.twin_sizeof(i)
-            if n != C.sizeof(st):
-                raise TwinError(f"ctypes mirror {st.__name__} ({C.sizeof(st)} B) differs from the C struct ({n} B)")
+        self._loaded = _acquire(lib_path, self._pil_img is not None)
+        self._copy = self._loaded.copy
+        self._lib = self._loaded.lib
         self._lock = threading.RLock()
         self._rx_buf = C.create_string_buffer(65536)
         noise_rpm = self.profile.sensors.speed_noise_rpm if speed_noise_rpm is None else speed_noise_rpm
@@ -335,11 +329,15 @@ class Twin:
             self._check(self._lib.twin_power_on())
 
     def close(self) -> None:
-        """Forget the library copy (the process keeps it mapped; the file is removed)."""
-        d = getattr(self, "_copy", None)
-        if d is not None:
-            shutil.rmtree(d.parent, ignore_errors=True)
+        """End this twin: its loaded library goes back to the process's pool, where the next twin of
+        the same build takes it, its data as loaded (:func:`_acquire`); the twin's methods then
+        raise TwinError."""
+        ld = getattr(self, "_loaded", None)
+        if ld is not None:
+            self._loaded = None
             self._copy = None
+            self._lib = _ClosedLibrary()
+            _release(ld)
 
     def __enter__(self):
         return self
@@ -617,7 +615,7 @@ class Twin:
             finally:
                 cnt = self._lib.twin_trace_count()
                 self._lib.twin_trace_start(0.0, None, 0)
-        arr = np.ctypeslib.as_array(buf)[:cnt]
+        arr = np.frombuffer(buf, dtype=_TRACE_DTYPE, count=cnt)
         return {name: np.array(arr[name]) for name in cmodel.TRACE_FIELDS}
 
     # -- endpoint -------------------------------------------------------------
@@ -630,6 +628,75 @@ class Twin:
         srv = TwinServer(self, port=port, host=host, realtime=realtime, pty=pty, stop_after_s=stop_after_s)
         srv.start()
         return srv
+
+
+@dataclass
+class _Loaded:
+    """A private copy of a built library, loaded and bound, with its writable data as it was loaded."""
+
+    path: str                  # the built library it is a copy of
+    copy: Path                 # the copy's file (removed when the process ends)
+    lib: C.CDLL
+    data_at: int               # address and content of the library's writable data right after the load
+    pristine: bytes
+
+
+# per process: the loaded libraries no twin uses, by the built library's path.  Loading a private
+# copy costs a few milliseconds and stays mapped until the process ends (ctypes never unloads):
+# a process that runs thousands of twins one after another (a tolerance study's worker) loads one
+# copy and restores its data for each twin instead
+_POOL: dict[str, list[_Loaded]] = {}
+_POOL_LOCK = threading.Lock()
+#: the most idle loaded copies of one library a process keeps (more are dropped, still mapped)
+POOL_KEEP = 4
+
+
+class _ClosedLibrary:
+    """The library of a closed twin: every call says so."""
+
+    def __getattr__(self, name):
+        raise TwinError("this twin is closed (Twin.close()); start a new Twin")
+
+
+def _acquire(lib_path: Path, processor: bool) -> _Loaded:
+    """A loaded copy of ``lib_path`` no other twin uses, its writable data exactly as a fresh load
+    leaves it: an idle one from the pool with that data written back, or a new private copy."""
+    key = str(lib_path)
+    with _POOL_LOCK:
+        free = _POOL.get(key)
+        ld = free.pop() if free else None
+    if ld is not None:
+        C.memmove(ld.data_at, ld.pristine, len(ld.pristine))
+        return ld
+    copy = build.private_copy(lib_path)
+    atexit.register(shutil.rmtree, copy.parent, True)
+    lib = cmodel.bind_twin(C.CDLL(str(copy)))
+    if processor:
+        from . import pil
+        pil.bind(lib)
+        if lib.pil_sizeof() != C.sizeof(pil.PilStats):
+            raise TwinError(f"ctypes mirror PilStats ({C.sizeof(pil.PilStats)} B) differs from the C struct "
+                            f"({lib.pil_sizeof()} B)")
+    for i, st in enumerate((cmodel.TwinConfig, cmodel.TwinState, cmodel.TraceRec,
+                            cmodel.PlantParams, cmodel.PlantState, cmodel.Leg)):
+        n = lib.twin_sizeof(i)
+        if n != C.sizeof(st):
+            raise TwinError(f"ctypes mirror {st.__name__} ({C.sizeof(st)} B) differs from the C struct ({n} B)")
+    region = (C.c_uint64 * 2)()
+    if lib.twin_data_region(region) != 0:
+        # a layout region.c does not know: this copy serves its twin only (no restore, no reuse)
+        return _Loaded(key, copy, lib, 0, b"")
+    return _Loaded(key, copy, lib, int(region[0]), C.string_at(int(region[0]), int(region[1])))
+
+
+def _release(ld: _Loaded) -> None:
+    """A closed twin's library back to the pool (its data is restored when it is taken again)."""
+    if not ld.pristine:
+        return
+    with _POOL_LOCK:
+        free = _POOL.setdefault(ld.path, [])
+        if len(free) < POOL_KEEP:
+            free.append(ld)
 
 
 def read_load_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:

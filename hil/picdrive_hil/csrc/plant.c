@@ -172,28 +172,34 @@ static void step_coef(const plant_params_t *p, double h, step_coef_t *c)
     }
 }
 
-/* the coefficients for h, from the cache: its slot 0 holds a step length seen twice
-   in a row (the PWM period, most steps), slot 1 the last other one (split steps) */
+/* a hash of a double's bits, for the caches' direct-mapped slots */
+static inline unsigned slot_of(double x, unsigned n)
+{
+    uint64_t u;
+    memcpy(&u, &x, sizeof u);
+    u *= 0x9E3779B97F4A7C15ULL;
+    return (unsigned)(u >> 40) & (n - 1u);
+}
+
+/* the coefficients for h, from the cache (plant_cache_t), computed into its slot on a miss */
 static const step_coef_t *coef_for(const plant_params_t *p, double h, plant_cache_t *cc)
 {
     double R = p->r_phase_ohm, L = p->l_phase_h, J = p->inertia_kg_m2, B = p->friction_n_m_s;
-    for (int m = 0; m < 2; m++) {
-        step_coef_t *c = &cc->slot[m];
-        if (c->h == h && c->r == R && c->l == L && c->j == J && c->b == B) {
-            if (m == 1 && h == cc->last_h) {          /* twice in a row: to slot 0 */
-                step_coef_t t = cc->slot[0];
-                cc->slot[0] = *c;
-                *c = t;
-                c = &cc->slot[0];
-            }
-            cc->last_h = h;
-            return c;
-        }
-    }
-    int m = h == cc->last_h ? 0 : 1;
-    cc->last_h = h;
-    step_coef(p, h, &cc->slot[m]);
-    return &cc->slot[m];
+    step_coef_t *c = &cc->slot[slot_of(h, PLANT_COEF_SLOTS)];
+    if (!(c->h == h && c->r == R && c->l == L && c->j == J && c->b == B))
+        step_coef(p, h, c);
+    return c;
+}
+
+/* exp(x), from the cache (plant_cache_t) when it computed it before */
+static inline double exp_cached(double x, plant_cache_t *cc)
+{
+    unsigned k = slot_of(x, PLANT_EXP_SLOTS);
+    if (cc->exp_x[k] == x) return cc->exp_v[k];
+    double v = exp(x);
+    cc->exp_x[k] = x;
+    cc->exp_v[k] = v;
+    return v;
 }
 
 static void solve_currents(const double i0[3], const double vp[3], const double vm[3],
@@ -408,7 +414,7 @@ static void substep(const plant_params_t *p, plant_state_t *s, const leg_t leg[3
                the rest, tau = L/R) peaks (Vbus/2R) ((1-a)/(1-ab) - d) above its mean
                (picdrive.models.simulate.pwm_ripple_peak_a); the comparator sees that peak */
             double tau = p->l_phase_h / p->r_phase_ohm;
-            double a = exp(-hi * h / tau), b = exp(-(1.0 - hi) * h / tau);
+            double a = exp_cached(-hi * h / tau, cc), b = exp_cached(-(1.0 - hi) * h / tau, cc);
             double pk = i1[x] + vbus / (2.0 * p->r_phase_ohm) * ((1.0 - a) / (1.0 - a * b) - hi);
             if (pk > ipk) ipk = pk;
         }
@@ -514,6 +520,9 @@ void plant_step(const plant_params_t *p, plant_state_t *s, const leg_t leg[3],
 void plant_cache_reset(plant_cache_t *cc)
 {
     memset(cc, 0, sizeof *cc);
-    cc->slot[0].h = cc->slot[1].h = -1.0;       /* no step has a negative length */
+    for (int k = 0; k < PLANT_COEF_SLOTS; k++)
+        cc->slot[k].h = -1.0;                   /* no step has a negative length */
+    for (int k = 0; k < PLANT_EXP_SLOTS; k++)
+        cc->exp_x[k] = NAN;                     /* equal to no argument */
     cc->sin_ref = NAN;                          /* no anchor: the first sin_cos() makes one */
 }

@@ -97,9 +97,17 @@ typedef struct {
     double a, k;                   /* exp(-h R/L), (1 - a)/R */
     double hj[2], hb[2], den[2];   /* over h and h/2: h/J, h B/(2J), 1/(1 + h B/(2J)) */
 } step_coef_t;
+/* The step lengths of a run repeat: the PWM period, and the pieces the events inside it (the
+ * ADC's conversions, the speed loop's timer, UART frames) cut from it at the same phases period
+ * after period.  PLANT_COEF_SLOTS coefficient sets, direct-mapped by the step length's bits;
+ * and the two exponentials of a PWM'd high side's ripple peak (plant.c, substep), which repeat
+ * while the duty and the pieces do, in PLANT_EXP_SLOTS (argument, value) pairs.  Either cache
+ * returns exactly what it would compute. */
+#define PLANT_COEF_SLOTS 32
+#define PLANT_EXP_SLOTS 64
 typedef struct {
-    step_coef_t slot[2];
-    double last_h;
+    step_coef_t slot[PLANT_COEF_SLOTS];
+    double exp_x[PLANT_EXP_SLOTS], exp_v[PLANT_EXP_SLOTS];
     double sin_ref, sin_s, sin_c;  /* sinusoidal EMF: anchor angle, its sin and cos (libm) */
 } plant_cache_t;
 void plant_cache_reset(plant_cache_t *cc);
@@ -245,6 +253,7 @@ int  twin_trace_count(void);
 uint8_t twin_sfr_get(uint16_t idx);
 void twin_set_plant_state(double w_rad_s, double theta_rad);
 int  twin_sizeof(int which);
+int  twin_data_region(uint64_t out[2]);   /* this library's writable data: address, bytes (0: found) */
 /* processor twin only (-DTWIN_PIL) */
 int  pil_load(const uint8_t *flash, uint32_t n, const uint8_t *config14);
 uint32_t pil_flash_bytes(void);

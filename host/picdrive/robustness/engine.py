@@ -153,8 +153,14 @@ def open_client(scheduler: str | None, workers: int | None, *, timeout_s: float 
     main = threading.current_thread() is threading.main_thread()
     old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
     try:
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                               silence_logs=logging.ERROR)
+        import dask
+        # the workers' statistical profiler samples the running task's stack every 10 ms and the system
+        # monitors poll psutil every 0.5 s: off / every 2 s (no dashboard shows them); about 1 % of each
+        # worker's core (the workers take the configuration in force when they start)
+        with dask.config.set({"distributed.worker.profile.enabled": False,
+                              "distributed.admin.system-monitor.interval": "2s"}):
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+                                   silence_logs=logging.ERROR)
     finally:
         if main:
             signal.signal(signal.SIGINT, old)
