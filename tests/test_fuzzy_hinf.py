@@ -285,7 +285,7 @@ def test_no_solver_text_reaches_the_user(caplog):
 
 
 def test_the_bundled_duy2008_design_schedules_distinct_rules():
-    """Issue 14 "Done when": the committed duy2008 fuzzy design is verified on the averaged model and its
+    """The committed duy2008 fuzzy design is verified on the averaged model and its
     rules differ (the DC-equivalent design's were equal to 1e-9), by more than the solver's accuracy.  The
     averaged model it was designed on agrees with the twin at 5 speeds x 2 loads (docs/scheduling.md,
     bench/averaged.py; tests/test_averaged.py holds three of the points)."""

@@ -24,7 +24,7 @@ the stack is reported as not bounded instead of guessed).
 The software stack is then linked at exactly the computed worst case (a
 second link), so the RAM the map shows is the RAM the firmware needs.
 
-Budgets (issue 9) are defined once here: ``BUDGETS``.
+Budgets are defined once here: ``BUDGETS``.
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ SDCC_FLAGS = ("-mpic16", "-p18f4431", "--std-c99", "--no-warn-non-free", "--oban
 
 @dataclass(frozen=True)
 class Budgets:
-    """What a firmware may use on the 18F4431 (issue 9's 'done when')."""
+    """What a firmware may use on the 18F4431."""
 
     flash_bytes: int = 14_336             # 16 KB less 2 KB headroom
     ram_stack_bytes: int = 700            # static RAM + worst-case software stack, of 768
@@ -476,7 +476,7 @@ def _write_device_table(tc: Toolchain, work: Path) -> None:
     says 0x60 (right: 0xF60-0xF7F, the PCPWM/QEI/capture SFRs, are in the access bank) and
     then emits their accesses with no BANKSEL; gpasm 1.4 assembles any SFR below 0xF80 as
     BANKED, so on the chip those writes went to the GPR bank BSR selected and the PCPWM was
-    never configured (found by the processor twin, issue 10).  With 0x80 SDCC emits a
+    never configured (found by the processor twin).  With 0x80 SDCC emits a
     BANKSEL (MOVLB 0xF) before them, which is what gpasm encodes."""
     src = tc.sdcc.parent.parent / "share" / "sdcc" / "include" / "pic16" / "pic16devices.txt"
     if not src.is_file():
