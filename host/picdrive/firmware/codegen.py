@@ -39,7 +39,8 @@ from .. import __version__
 from ..board import FCY_HZ, FOSC_HZ
 from ..errors import PicdriveError
 from .target import EEPROM_GPTR_STUBS
-from .pcpwm import ident_hall_registers, ident_vector_registers
+from ..commutation import hall_positions as _ident_pos
+from .pcpwm import ident_vector_registers
 
 __all__ = ["CodegenError", "Firmware", "generate", "write_firmware", "build_check", "host_build",
            "HOST_SOURCES", "XC8_ONLY_SOURCES", "register", "uart_brg", "bus_sense"]
@@ -240,10 +241,9 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
         _d("FW_IDENT_OVD", ", ".join(f"{_hex8(cs)}, {_hex8(cd)}" for cs, cd in ident_vector_registers()),
            "identification vectors m = 0..11 (commutation.IDENT_VECTORS, current at -30 + 30 m deg): "
            "OVDCONS, OVDCOND at 2 m, 2 m + 1"),
-        _d("FW_IDENT_HALL_OVD", ", ".join(f"{_hex8(cs)}, {_hex8(cd)}"
-                                          for cs, cd in ident_hall_registers(t.hall_spacing_deg)),
-           "hall-driven identification: OVDCONS, OVDCOND at 2 k, 2 k + 1 for k = sel << 3 | code "
-           "(commutation.ident_hall_vector)"),
+        _d("FW_IDENT_POS", ", ".join(f"{_ident_pos(t.hall_spacing_deg).get(c, 255)}u" for c in range(8)),
+           "hall code -> place in the forward sequence at offset 0 (0xFF outside it): the hall-driven "
+           "identification selections (commutation.ident_hall_vector)"),
     ]})
     hall_int = pm.hall_input == "int"
     tr = pm.tris()

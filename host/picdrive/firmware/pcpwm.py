@@ -25,11 +25,11 @@ import math
 from dataclasses import dataclass, field
 
 from ..board import FCY_HZ, FOSC_HZ
-from ..commutation import IDENT_HALL_SELECTIONS, IDENT_VECTORS, PHASES, hall_table, ident_hall_vector
+from ..commutation import IDENT_VECTORS, PHASES, hall_table
 from ..errors import PicdriveError
 
 __all__ = ["PwmError", "FOSC_HZ", "FCY_HZ", "PwmPeriod", "DeadTime", "CommutationTable", "PwmPlan",
-           "pwm_period", "dead_time", "duty_limit", "commutation_table", "drive_state_registers", "ident_vector_registers", "ident_hall_registers",
+           "pwm_period", "dead_time", "duty_limit", "commutation_table", "drive_state_registers", "ident_vector_registers",
            "plan_pwm", "PHASES"]
 
 _PTCKPS = {1: 0b00, 4: 0b01, 16: 0b10, 64: 0b11}
@@ -146,19 +146,6 @@ def ident_vector_registers() -> tuple[tuple[int, int], ...]:
         cond = sum(drive_state_registers(s, sinks[0])[0] for s in sources)
         cons = sum(drive_state_registers(sources[0], k)[1] for k in sinks)
         out.append((cons, cond))
-    return tuple(out)
-
-
-def ident_hall_registers(hall_spacing_deg: int) -> tuple[tuple[int, int], ...]:
-    """(OVDCONS, OVDCOND) at index ``8 sel + code`` for the hall-driven identification selections
-    (:func:`picdrive.commutation.ident_hall_vector`); 0, 0 (outputs off) for a code outside the
-    build's hall sequence."""
-    vec = ident_vector_registers()
-    out = []
-    for sel in range(IDENT_HALL_SELECTIONS):
-        for code in range(8):
-            m = ident_hall_vector(sel, code, hall_spacing_deg)
-            out.append((0, 0) if m is None else vec[m])
     return tuple(out)
 
 

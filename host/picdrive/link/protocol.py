@@ -378,16 +378,14 @@ COMMANDS: tuple[Command, ...] = (
     Command("ident", 0x12,
             "Identification drive (state IDENT, from IDLE or IDENT; arms the link watchdog): apply "
             "identification vector `vector` at `duty`.  0..11: the current at -30 + 30 vector electrical "
-            "degrees (even: two phases, odd: three), held, or stepped by one (30 deg) every |step_ms| ms, "
-            "forward for step_ms > 0; 12..23: hall-driven, selection vector - 12 "
-            "(picdrive.commutation.ident_hall_vector).  The overcurrent trip, the current limit (a fault "
-            "above it), the hall, overspeed and bus checks and the watchdog act as in RUN.  Refused: "
-            "vector > 23, duty above the build's limit or sample beyond the PWM period (OUT_OF_RANGE), "
-            "running or braking (WRONG_STATE), a fault latched (FAULT_ACTIVE).",
+            "degrees (even: two phases, odd: three; picdrive.commutation.IDENT_VECTORS), held, or stepped "
+            "by one (30 deg) every |step_ms| ms, forward for step_ms > 0; 12..23: hall-driven, selection "
+            "vector - 12 (picdrive.commutation.ident_hall_vector).  The overcurrent trip, the current limit "
+            "(a fault above it), the hall, overspeed and bus checks and the link watchdog act as in RUN.  "
+            "Refused: vector > 23 or duty above the build's limit (OUT_OF_RANGE), running or braking "
+            "(WRONG_STATE), a fault latched (FAULT_ACTIVE).",
             args=(_F("vector", "B"), _F("duty", "H", "PDC counts"),
-                  _F("sample", "H", "bus-current conversion instant, PWM time-base counts after the period "
-                                    "start; 0 = mid on-time"),
-                  _F("step_ms", "h", "0 = hold; the sign is the direction")),
+                  _F("step_ms", "b", "0 = hold; ms per 30-degree step, the sign the direction")),
             app=True),
 )
 COMMAND_BY_NAME = {c.name: c for c in COMMANDS}
