@@ -349,11 +349,18 @@ def _spin_to(b: _Board, sel: int, duty: float, rpm: float, limit_rpm: float, tim
     return cur_d, s
 
 
-def _point(b: _Board) -> tuple[float, float, float]:
-    """Mean current (A), its standard error and mean speed (rad/s) over 40 reads."""
-    i, si = b.mean("current", 40)
-    s, _ = b.mean("speed", 20)
-    return i, si, float(b.speed_rad_s(s))
+def _point(b: _Board, seconds: float = 0.6) -> tuple[float, float, float]:
+    """Mean current (A), its standard error and mean speed (rad/s) over ``seconds`` of telemetry."""
+    d = _record(b, seconds)
+    if len(d) < 20:
+        i, si = b.mean("current", 60)
+        s, _ = b.mean("speed", 30)
+        return i, si, float(b.speed_rad_s(s))
+    i = np.asarray(d["current"], float)
+    # the samples are correlated over a hall sector: the standard error from 10 blocks
+    blocks = np.array_split(i, 10)
+    si = float(np.std([x.mean() for x in blocks]) / math.sqrt(len(blocks)))
+    return float(i.mean()), si, float(b.speed_rad_s(np.mean(d["speed"])))
 
 
 def _spins(b: _Board, res: Identification) -> None:
@@ -377,7 +384,7 @@ def _spins(b: _Board, res: Identification) -> None:
     # low speed first: a hall sector of at least 8 L/R, so that the winding's lag does not shift the
     # commutation the offset and Kb are read from
     tau_e = b.tau if getattr(b, "tau", None) else m.l_line_h / m.r_line_ohm
-    rpm_a = min(60.0 / (m.pole_pairs * 6 * 8 * tau_e), 0.25 * limit_rpm)
+    rpm_a = min(60.0 / (m.pole_pairs * 6 * 8 * tau_e), 0.2 * limit_rpm)
     b.say(f"spins: hall-driven selections {sel_a} and {sel_b} at about {rpm_a:.0f} rpm (the offset from their "
           "speed ratio)")
     d1, _ = _spin_to(b, sel_a, d_top, rpm_a, limit_rpm, timeout)
@@ -411,11 +418,11 @@ def _spins(b: _Board, res: Identification) -> None:
     ga = g(sel_a, o_fin)
     b.say(f"  {w_a * RPM:.0f} / {w_b * RPM:.0f} rpm: hall offset {o_est:.1f} deg -> {o_fin:g} deg; "
           f"commutation factor {ga:.4f}")
-    # Kb from three low speeds, friction from those and a high one, J from the acceleration to it
+    # Kb from three low speeds (1, 2, 3 x), friction from those and a high one, J from the acceleration to it
     b.ident(12 + sel_a, d1)
     _steady(b, timeout)
     pts = [(d1,) + _point(b)]
-    for mult in (1.5, 2.0):
+    for mult in (2.0, 3.0):
         d, _ = _spin_to(b, sel_a, d_top, mult * rpm_a, limit_rpm, timeout)
         pts.append((d,) + _point(b))
     for d, i, si, w in pts:
