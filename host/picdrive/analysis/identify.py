@@ -20,7 +20,7 @@ from ..commutation import (IDENT_HALL_SELECTIONS, IDENT_VECTORS, emf_unit, hall_
 
 __all__ = ["Measured", "HallFit", "lock_angle_deg", "fit_halls", "fit_encoder", "hall_selection",
            "commutation_factor", "fit_resistance", "fit_time_constant", "fit_back_emf", "fit_friction",
-           "inertia_from_transient", "torque_factor"]
+           "inertia_from_transient", "torque_factor", "fit_coast"]
 
 
 @dataclass(frozen=True)
@@ -125,7 +125,7 @@ def fit_halls(codes, spacing_deg: int, *, edge_tol_deg: float = 3.0, snap_deg: f
                    snapped=snapped)
 
 
-def fit_encoder(positions, pole_pairs: int):
+def fit_encoder(positions, pole_pairs: int, modulus: int = 65536):
     """Encoder counts per electrical turn, lines and direction from the lock positions.
 
     Parameters
@@ -135,6 +135,9 @@ def fit_encoder(positions, pole_pairs: int):
         after a full forward electrical turn).
     pole_pairs : int
         From the profile.
+    modulus : int
+        Where the position counter wraps: the firmware's quadrature counter resets at 4 x its
+        build's encoder lines (65536 for a free-running 16-bit count).
 
     Returns
     -------
@@ -144,7 +147,8 @@ def fit_encoder(positions, pole_pairs: int):
         quadrature x4), ``steps`` (the 12 signed step sizes, counts).
     """
     p = np.asarray(positions, dtype=np.int64)
-    steps = ((np.diff(p) + 32768) % 65536) - 32768
+    half = modulus // 2
+    steps = ((np.diff(p) + half) % modulus) - half
     total = int(steps.sum())
     lines = abs(total) * pole_pairs / 4.0
     spread = float(np.std(steps)) if len(steps) > 1 else 0.0
@@ -398,3 +402,46 @@ def torque_factor(v_pair: float, r_ohm: float, l_h: float, kb: float, w_rad_s: f
     if im <= 0:
         return 1.0
     return float((ep * i).mean()) / (kb * w_rad_s * im)
+
+
+def fit_coast(t_s, speed_rad_s, b_viscous: Measured):
+    """Coast-down with the outputs off: ``J dw/dt = -B w - Tc`` gives
+    ``w(t) = (w0 + c) exp(-t / tau) - c`` with ``tau = J / B`` and ``c = Tc / B``; with B from the
+    steady spins, ``J = B tau`` and ``Tc = B c``.  Only the part above 5 % of the first speed is
+    fitted.  None when the speed fell by less than a quarter (tau and c not separable).
+
+    Returns
+    -------
+    (Measured, Measured) or None
+        J (kg m^2) and Tc (N m)."""
+    from scipy.optimize import curve_fit
+    t = np.asarray(t_s, float)
+    w = np.asarray(speed_rad_s, float)
+    if len(t) < 20:
+        return None
+    w0 = float(np.mean(w[:5]))
+    keep = w > 0.05 * w0
+    # from the first sample that is clearly falling (the outputs went off a little after recording began)
+    t, w = t[keep], w[keep]
+    if len(t) < 20 or w[-1] > 0.75 * w0:
+        return None
+    t = t - t[0]
+
+    def model(x, a, tau, c):
+        return a * np.exp(-x / tau) - c
+    tau0 = float(t[-1]) / max(math.log(w0 / max(w[-1], 1e-9)), 0.1)
+    try:
+        p, cov = curve_fit(model, t, w, p0=(w0, tau0, 0.0), maxfev=5000)
+    except (RuntimeError, ValueError):
+        return None
+    a, tau, c = (float(x) for x in p)
+    if not (tau > 0 and np.all(np.isfinite(cov))):
+        return None
+    s_tau, s_c = math.sqrt(max(cov[1, 1], 0.0)), math.sqrt(max(cov[2, 2], 0.0))
+    j = b_viscous.value * tau
+    sj = j * math.hypot(b_viscous.rel, s_tau / tau)
+    tc = b_viscous.value * c
+    stc = math.hypot(b_viscous.sigma * abs(c), b_viscous.value * s_c)
+    how = (f"coast-down {w0:.0f} -> {w[-1]:.0f} rad/s: w(t) = (w0 + c) exp(-t/tau) - c fitted, tau = "
+           f"{tau:.4g} s, J = B tau")
+    return Measured(j, sj, how), Measured(tc, stc, how + ", Tc = B c")

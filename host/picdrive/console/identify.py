@@ -132,19 +132,20 @@ def _settle_lock(b: _Board, timeout_s: float = 2.0) -> tuple[int, int]:
 
 
 def _steady(b: _Board, timeout_s: float) -> float:
-    """Wait until the speed holds within 0.5 % over four reads 50 ms apart; returns the speed (rpm)."""
+    """Wait until the speed holds within 0.3 % over six reads 100 ms apart while the winding
+    conducts (a coasting rotor, faster than the duty holds, is not steady); the speed (rpm)."""
     t0 = time.monotonic()
     hist = []
     while True:
-        time.sleep(0.05)
-        s = float(b.read("speed")["speed"])
-        hist.append(s)
-        if len(hist) >= 4:
-            w = hist[-4:]
-            if max(w) - min(w) <= 0.005 * max(abs(np.mean(w)), 1.0):
-                return s
+        time.sleep(0.1)
+        v = b.read("speed", "current")
+        hist.append(float(v["speed"]))
+        if len(hist) >= 6 and float(v["current"]) > 1.5 * b.lsb:
+            w = hist[-6:]
+            if max(w) - min(w) <= 0.003 * max(abs(np.mean(w)), 1.0):
+                return hist[-1]
         if time.monotonic() - t0 > timeout_s:
-            return s
+            return hist[-1]
 
 
 def _record(b: _Board, seconds: float) -> np.ndarray:
@@ -248,7 +249,8 @@ def _hall_sweep(b: _Board, res: Identification) -> None:
         raise IdentifyError(f"hall code {bad[0]:03b} seen with the rotor held: a 120-degree hall set never gives "
                             "000 or 111; a hall line is open or shorted, or the sensors are unpowered")
     if b.has_encoder:
-        enc = fit.fit_encoder(pos, m.pole_pairs)
+        # the firmware's counter resets at 4 x the lines it was built for (QEI with MAXCNT reset)
+        enc = fit.fit_encoder(pos, m.pole_pairs, modulus=4 * b.lines_fw if b.lines_fw else 65536)
         cpt = enc["counts_per_turn"]
         if cpt == 0:
             raise IdentifyError("the encoder does not count: the position stayed "
@@ -418,13 +420,15 @@ def _spins(b: _Board, res: Identification) -> None:
     ga = g(sel_a, o_fin)
     b.say(f"  {w_a * RPM:.0f} / {w_b * RPM:.0f} rpm: hall offset {o_est:.1f} deg -> {o_fin:g} deg; "
           f"commutation factor {ga:.4f}")
-    # Kb from three low speeds (1, 2, 3 x), friction from those and a high one, J from the acceleration to it
-    b.ident(12 + sel_a, d1)
-    _steady(b, timeout)
-    pts = [(d1,) + _point(b)]
+    # Kb from three low speeds (the first spin's, then 2 and 3 x faster: each approached from below, as
+    # the other selection may have spun the rotor faster), friction from those and a high one, J from
+    # the acceleration to it and the coast-down from it
+    pts = [(d1, i_a, si_a, w_a)]
+    fastest = max(abs(w_a), abs(w_b)) * RPM
     for mult in (2.0, 3.0):
-        d, _ = _spin_to(b, sel_a, d_top, mult * rpm_a, limit_rpm, timeout)
+        d, _ = _spin_to(b, sel_a, d_top, max(mult * rpm_a, 1.25 * fastest), limit_rpm, timeout)
         pts.append((d,) + _point(b))
+        fastest = max(fastest, abs(pts[-1][3]) * RPM)
     for d, i, si, w in pts:
         b.say(f"  duty {d:.3f}: {w * RPM:.0f} rpm, {i:.4g} A")
     volts = [d * (b.vbus + b.vd) - b.vd for d, *_ in pts]
@@ -460,9 +464,17 @@ def _spins(b: _Board, res: Identification) -> None:
     b.link.configure_telemetry(["speed", "current"], decimation=1)
     b.off()
     t_coast = min(max(1.0, 0.7 * m.inertia_kg_m2 / max(m.viscous_friction_n_m_s, 1e-12)), 3.0)
-    time.sleep(t_coast)
+    t_end = time.monotonic() + t_coast
+    while time.monotonic() < t_end:        # the link stays in use: the client's keep-alive holds
+        time.sleep(0.2)
+        b.read("state")
     coast = b.link.read_samples(seconds=0.0)
     b.link.stop_telemetry()
+    cf = fit.fit_coast(coast["t"], b.speed_rad_s(coast["speed"]), bv) if coast is not None else None
+    if cf is not None:
+        res.values["inertia_kg_m2"], res.values["coulomb_friction_n_m"] = cf
+        b.say(f"  J from the coast-down fit: {cf[0].value:.4g} +- {cf[0].sigma:.2g} kg m^2, Tc {cf[1].value:.3g} N m")
+        return
     js = []
     for name, data, torque in (("acceleration", acc, True), ("coast-down", coast, False)):
         if data is None or len(data) < 10:
