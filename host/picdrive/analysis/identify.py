@@ -151,8 +151,9 @@ def fit_encoder(positions, pole_pairs: int, modulus: int = 65536):
     steps = ((np.diff(p) + half) % modulus) - half
     total = int(steps.sum())
     lines = abs(total) * pole_pairs / 4.0
+    # each lock's angle scatters by about the steps' spread / sqrt 2; the turn is the difference of two
     spread = float(np.std(steps)) if len(steps) > 1 else 0.0
-    sigma = max(0.5, spread * math.sqrt(len(steps)) / 4.0 * pole_pairs / max(len(steps), 1))
+    sigma = max(0.5, spread * pole_pairs / 4.0)
     return {"counts_per_turn": total, "steps": steps.tolist(),
             "lines": Measured(lines, sigma, f"encoder counts over one forward electrical turn of the locked "
                                             f"vector ({total} counts) x pole_pairs {pole_pairs} / 4 (quadrature)")}

@@ -259,12 +259,19 @@ def _hall_sweep(b: _Board, res: Identification) -> None:
             raise IdentifyError(f"the encoder counts the wrong way: {cpt} counts over a forward electrical turn "
                                 "(swap its A and B lines)")
         lines = enc["lines"]
-        res.values["encoder_lines"] = Measured(float(round(lines.value)), lines.sigma, lines.how)
+        # the lock angles scatter by a few counts (a rotor creeping to its lock): a count within three
+        # standard deviations of the profile's is the profile's, confirmed; else the nearest whole one
+        sig = max(lines.sigma, 0.5)
+        if se.encoder_lines and abs(lines.value - se.encoder_lines) <= 3.0 * sig:
+            res.values["encoder_lines"] = Measured(float(se.encoder_lines), sig, lines.how + f": {lines.value:.1f}, "
+                                                   f"the profile's {se.encoder_lines} within 3 sigma")
+        else:
+            res.values["encoder_lines"] = Measured(float(round(lines.value)), sig, lines.how)
         if abs(lines.value - round(lines.value)) > 0.25 * max(lines.value / 100.0, 1.0):
             res.notes.append(f"encoder: {lines.value:.2f} lines is not a whole number (pole_pairs "
                              f"{m.pole_pairs} from the profile may be wrong)")
-        if se.encoder_lines and round(lines.value) != se.encoder_lines:
-            b.speed_scale = se.encoder_lines / round(lines.value)
+        if se.encoder_lines and res.values["encoder_lines"].value != se.encoder_lines:
+            b.speed_scale = se.encoder_lines / res.values["encoder_lines"].value
         b.say(f"  encoder: {cpt} counts per electrical turn -> {lines.value:.1f} lines")
     hf = fit.fit_halls(codes, se.hall_spacing_deg)
     if hf is None:
@@ -389,6 +396,11 @@ def _spins(b: _Board, res: Identification) -> None:
     rpm_a = min(60.0 / (m.pole_pairs * 6 * 8 * tau_e), 0.2 * limit_rpm)
     b.say(f"spins: hall-driven selections {sel_a} and {sel_b} at about {rpm_a:.0f} rpm (the offset from their "
           "speed ratio)")
+    # from the held vector to a hall-driven one through one off period: no leg goes from its high
+    # side to its low side directly (the spins' own changes are between neighbouring vectors)
+    b.off()
+    time.sleep(0.01)
+    b.spin_duty = 0.0
     d1, _ = _spin_to(b, sel_a, d_top, rpm_a, limit_rpm, timeout)
     i_a, si_a, w_a = _point(b)
     b.ident(12 + sel_b, d1)
