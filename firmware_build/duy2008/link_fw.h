@@ -3,7 +3,7 @@
  * Rendered by picdrive.link.protocol_c.render_c() from host/picdrive/link/protocol.py.  DO NOT EDIT.
  *
  * protocol 2.0, 30 table entries (2 rules),
- * table hash 0x7A506044UL, build id 0xDDCEA695UL, profile hash 0x4B0E5FBAUL
+ * table hash 0x7A506044UL, build id 0x78FD314DUL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -49,7 +49,7 @@
 
 #define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0xDDCEA695UL
+#define LINK_BUILD_ID           0x78FD314DUL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
 #define LINK_TABLE_HASH         0x7A506044UL
 #define LINK_SAMPLE_HZ          1000u

@@ -444,6 +444,11 @@ def _spins(b: _Board, res: Identification) -> None:
     for d, i, si, w in pts:
         b.say(f"  duty {d:.3f}: {w * RPM:.0f} rpm, {i:.4g} A")
     volts = [d * (b.vbus + b.vd) - b.vd for d, *_ in pts]
+    ks = [(v - b.r.value * p[1]) / (ga * p[3]) for v, p in zip(volts, pts)]
+    if min(ks) <= 0 or (max(ks) - min(ks)) > 0.1 * abs(float(np.mean(ks))):
+        raise IdentifyError("the steady spins disagree (back-EMF constant " + ", ".join(f"{k:.4g}" for k in ks)
+                            + " V s/rad at " + ", ".join(f"{p[3] * RPM:.0f}" for p in pts) + " rpm): the speed did "
+                            "not settle or the load changed; run identify again with the rotor free")
     kb = fit.fit_back_emf(volts, [p[1] for p in pts], [p[3] for p in pts], b.r, ga)
     res.values["back_emf_constant_v_s"] = kb
     res.values["torque_constant_n_m_per_a"] = Measured(kb.value, kb.sigma, "= Kb (SI units, six-step DC equivalent)")
