@@ -162,7 +162,7 @@ def test_malformed_length_every_command(peer, name):
 
 
 def test_unknown_command_and_board_only_types(peer):
-    for t in (0x00, 0x12, 0x3F, 0x5F):
+    for t in (0x00, max(c.code for c in P.COMMANDS) + 1, 0x3F, 0x5F):
         peer.b.feed(codec.encode_frame(t, 9, b""))
         (f,) = peer.frames()
         assert f.is_nack and f.seq == 9 and codec.decode_nack(f.payload) == (t, Nack.UNKNOWN_COMMAND)

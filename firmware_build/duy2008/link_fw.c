@@ -56,7 +56,7 @@
 #define BODY_OVERHEAD      5u                        /* LEN, TYPE, SEQ, CRC high, CRC low */
 #define R(i)               rx_buf[PL + (i)]          /* command arguments (decoded body in rx_buf) */
 #define A(i)               tx_buf[1u + PL + (i)]     /* reply payload (body in tx_buf[1..], COBS code at 0) */
-#define N_CMDS             17u
+#define N_CMDS             18u
 #define SIG_INDEX          11u          /* table index of the first signal */
 #define CMD_IDLE           0x80u                     /* cmd spec: refused while the motor runs or brakes */
 #define CMD_ANY_LEN        0x7Fu                     /* cmd spec: argument length checked by the handler */
@@ -76,11 +76,11 @@ link_params_t link_params;
 #define ROM_SIZE           450u   /* 30 B */
 #define ROM_NAME_LEN       480u   /* 30 B */
 #define ROM_HELLO          510u   /* 20 B */
-#define ROM_CMD            530u   /* 17 B */
-#define ROM_NAMES          547u   /* 251 B */
-#define ROM_EE_HEAD        798u   /* 8 B */
-#define ROM_PERSIST        806u   /* 18 B */
-static const uint8_t link_rom[824] = {
+#define ROM_CMD            530u   /* 18 B */
+#define ROM_NAMES          548u   /* 251 B */
+#define ROM_EE_HEAD        799u   /* 8 B */
+#define ROM_PERSIST        807u   /* 18 B */
+static const uint8_t link_rom[825] = {
     /* ROM_ROWS */
     0x00u, 0x04u, 0x01u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0xEFu, 0xBBu, 0x11u, 0x44u, 0x00u, 0x00u,   /* speed_setpoint */
     0x01u, 0x01u, 0x03u, 0x0Cu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x00u, 0x01u, 0x00u, 0x01u, 0x00u,   /* controller */
@@ -137,7 +137,7 @@ static const uint8_t link_rom[824] = {
     (uint8_t)LINK_HELLO_CAPTURE_WORDS, (uint8_t)(LINK_HELLO_CAPTURE_WORDS >> 8u), (uint8_t)LINK_SAMPLE_HZ, (uint8_t)(LINK_SAMPLE_HZ >> 8u),
     /* ROM_CMD */
     0x00u, 0x01u, 0x7Fu, 0x05u, 0x04u, 0x00u, 0x00u, 0x00u, 0x01u, 0x05u, 0x0Bu, 0x03u,
-    0x80u, 0x80u, 0x00u, 0x00u, 0x00u,
+    0x80u, 0x80u, 0x00u, 0x00u, 0x00u, 0x04u,
     /* ROM_NAMES */
     0x73u, 0x70u, 0x65u, 0x65u, 0x64u, 0x5Fu, 0x73u, 0x65u, 0x74u, 0x70u, 0x6Fu, 0x69u, 0x6Eu, 0x74u, 0x63u, 0x6Fu,
     0x6Eu, 0x74u, 0x72u, 0x6Fu, 0x6Cu, 0x6Cu, 0x65u, 0x72u, 0x70u, 0x72u, 0x65u, 0x6Du, 0x69u, 0x73u, 0x65u, 0x5Fu,
@@ -1669,7 +1669,8 @@ static void tx_drain(void)
 static uint8_t drive_busy(void)
 {
     int16_t st = app_signal(LINK_SIG_STATE);
-    return (uint8_t)(st == (int16_t)LINK_STATE_RUN || st == (int16_t)LINK_STATE_BRAKE);
+    return (uint8_t)(st == (int16_t)LINK_STATE_RUN || st == (int16_t)LINK_STATE_BRAKE
+                     || st == (int16_t)LINK_STATE_IDENT);
 }
 
 #if defined(__SDCC_pic16)
@@ -1762,7 +1763,7 @@ static uint8_t h_param_info(void) __naked
     MOVWF   (_link_hot + LH_RO), A
     MOVLW   1
     MOVWF   (_link_hot + LH_RO + 1), A
-    MOVLW   35             ; PROD = ROM_NAMES
+    MOVLW   36             ; PROD = ROM_NAMES
     MOVWF   _PRODL, A
     MOVLW   2
     MOVWF   _PRODH, A
@@ -2451,6 +2452,7 @@ static const link_handler_t cmd_fn[N_CMDS] = {
     h_app,
     h_status,
     h_none,
+    h_app,
 };
 
 static uint8_t run_command(uint8_t c) LINK_WPARAM  /* the handler of command code c + 1: 0 or a NACK code */
@@ -2544,7 +2546,8 @@ static uint8_t send_event(void)
 
 static void wd_arm(void)
 {
-    S.wd_armed = (uint8_t)(app_signal(LINK_SIG_STATE) == (int16_t)LINK_STATE_RUN);
+    int16_t st = app_signal(LINK_SIG_STATE);
+    S.wd_armed = (uint8_t)(st == (int16_t)LINK_STATE_RUN || st == (int16_t)LINK_STATE_IDENT);
 }
 
 #if defined(__SDCC_pic16)

@@ -3,7 +3,7 @@
  * Rendered by picdrive.link.protocol_c.render_c() from host/picdrive/link/protocol.py.  DO NOT EDIT.
  *
  * protocol 2.0, 30 table entries (2 rules),
- * table hash 0x7A506044UL, build id 0x747C4103UL, profile hash 0x4B0E5FBAUL
+ * table hash 0x7A506044UL, build id 0xA4BE8978UL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -49,7 +49,7 @@
 
 #define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0x747C4103UL
+#define LINK_BUILD_ID           0xA4BE8978UL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
 #define LINK_TABLE_HASH         0x7A506044UL
 #define LINK_SAMPLE_HZ          1000u
@@ -117,6 +117,7 @@
 #define LINK_CMD_FAULT_CLEAR         0x0Fu   /* fault_clear */
 #define LINK_CMD_STATUS              0x10u   /* status */
 #define LINK_CMD_HEARTBEAT           0x11u   /* heartbeat */
+#define LINK_CMD_IDENT               0x12u   /* ident */
 #define LINK_MSG_TELEMETRY           0x60u
 #define LINK_MSG_EVENT               0x61u
 #define LINK_MSG_NACK                0x7Fu
@@ -150,6 +151,7 @@
 #define LINK_STATE_RUN                 1u
 #define LINK_STATE_BRAKE               2u
 #define LINK_STATE_FAULT               3u
+#define LINK_STATE_IDENT               4u
 
 /* ---- events ---- */
 #define LINK_EVENT_BOOT                1u

@@ -39,6 +39,8 @@ from .. import __version__
 from ..board import FCY_HZ, FOSC_HZ
 from ..errors import PicdriveError
 from .target import EEPROM_GPTR_STUBS
+from ..commutation import hall_positions as _ident_pos
+from .pcpwm import ident_vector_registers
 
 __all__ = ["CodegenError", "Firmware", "generate", "write_firmware", "build_check", "host_build",
            "HOST_SOURCES", "XC8_ONLY_SOURCES", "register", "uart_brg", "bus_sense"]
@@ -236,6 +238,12 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
            "the low side of the sink phase; one table pointer reads both"),
         _d("FW_HALL_NEXT", ", ".join(str(_next_code(t, c)) for c in range(8)),
            "next code in forward rotation (hall-speed direction)"),
+        _d("FW_IDENT_OVD", ", ".join(f"{_hex8(cs)}, {_hex8(cd)}" for cs, cd in ident_vector_registers()),
+           "identification vectors m = 0..11 (commutation.IDENT_VECTORS, current at -30 + 30 m deg): "
+           "OVDCONS, OVDCOND at 2 m, 2 m + 1"),
+        _d("FW_IDENT_POS", ", ".join(f"{_ident_pos(t.hall_spacing_deg).get(c, 255)}u" for c in range(8)),
+           "hall code -> place in the forward sequence at offset 0 (0xFF outside it): the hall-driven "
+           "identification selections (commutation.ident_hall_vector)"),
     ]})
     hall_int = pm.hall_input == "int"
     tr = pm.tris()
