@@ -482,6 +482,7 @@ SIGNALS: tuple[ParamDef, ...] = tuple(
         ("fault", "code", 1.0, "latched fault", tuple(f.name.lower() for f in Fault)),
         ("mu1", "1", _Q14, "membership of rule 1, 0..1", ()),
         ("position", "counts", 1.0, "encoder position (wraps at 16 bits)", ()),
+        ("bus_voltage", "V", 1.0, "DC bus voltage measured on AN1 (scaled from the divider)", ()),
     )))
 
 
