@@ -1,11 +1,13 @@
-"""The bus voltage as a telemetry signal: the generated firmware on the software twin reports
-AN1, scaled from the profile's divider, over the link, while an overhauling load pumps the bus
-capacitor up through the body diodes (simulated time)."""
+"""The bus voltage as a telemetry signal: the generated firmware reports AN1, scaled from the
+profile's divider, over the link, while an overhauling load pumps the bus capacitor up through the
+body diodes, on the software twin (the generated C) and the processor twin (the bundled HEX on the
+PIC18 core), in simulated time."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from picdrive.firmware import target
 from picdrive.link import codec
 from picdrive.link import protocol as P
 from picdrive.paths import firmware_build_dir
@@ -33,10 +35,20 @@ def _entry(tw, name):
     raise AssertionError(f"{name} not in the board's table")
 
 
-def test_the_twin_reports_the_bus_rising_under_an_overhauling_load():
+@pytest.fixture(scope="module")
+def build(tmp_path_factory):
+    return target.build_measured(FW, tmp_path_factory.mktemp("bus-telemetry-hex"))
+
+
+@pytest.mark.parametrize("kind", ["sil", "pil"])
+def test_the_twin_reports_the_bus_rising_under_an_overhauling_load(kind, request):
     prof = load_profile("duy2008")
     g = bus_guard(prof.inverter)
-    tw = Twin("duy2008", FW, seed=0, load_mode="active")
+    kw = {}
+    if kind == "pil":
+        b = request.getfixturevalue("build")
+        kw = dict(hex_file=b.hex_path, enlarged_memory=not b.on_chip)
+    tw = Twin("duy2008", FW, seed=0, load_mode="active", **kw)
     tw.run(0.01)
     e = _entry(tw, "bus_voltage")
     assert e.signal and e.unit == "V" and not e.writable
@@ -56,7 +68,7 @@ def test_the_twin_reports_the_bus_rising_under_an_overhauling_load():
                 _, vals = codec.decode_telemetry(f.payload, 1)
                 got.append((tw.t, vals[-1, 0] * e.scale))
     got, truth = np.array(got), np.array(truth)
-    print(f"bus over the link: {got[0, 1]:.2f} V .. {got[:, 1].max():.2f} V in {len(got)} frames; "
+    print(f"{kind}: bus over the link: {got[0, 1]:.2f} V .. {got[:, 1].max():.2f} V in {len(got)} frames; "
           f"true {truth[0, 1]:.2f} .. {truth[:, 1].max():.2f} V")
     assert len(got) > 50
     assert got[:, 1].max() > prof.inverter.bus_voltage_v + 3.0          # the pumping is seen
