@@ -517,7 +517,7 @@ def test_telemetry_counter_generation_drops_and_decimation(peer):
 
 @pytest.mark.parametrize("args", [
     {"mask": 0, "decimation": 1, "samples_per_frame": 1},
-    {"mask": 1 << 11, "decimation": 1, "samples_per_frame": 1},
+    {"mask": 1 << len(P.SIGNALS), "decimation": 1, "samples_per_frame": 1},   # beyond the table
     {"mask": 1, "decimation": 1, "samples_per_frame": 0},
     {"mask": 0x7FF, "decimation": 1, "samples_per_frame": 2},           # 2 + 44 > 40
     {"mask": 0xF, "decimation": 1, "samples_per_frame": 5},             # 2 + 40 > 40
