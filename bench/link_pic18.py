@@ -252,10 +252,12 @@ EXCHANGE = r"""
 #include <stdint.h>
 #include <xc.h>
 #include "link_fw.h"
+#define N_IDS %(n_ids)su
+#define PI16_AT %(pi16_at)s
 __at(0x400) uint8_t txlog[240];
 __at(0x4F0) uint8_t txn;
 __at(0x4F1) uint8_t txn_hi;
-__at(0x3C0) int16_t pi16[32];                   /* link_param_i16(f_ids[i]), at the end */
+__at(PI16_AT) int16_t pi16[N_IDS];              /* link_param_i16(f_ids[i]), below txlog */
 __at(0x500) uint8_t ee[256];
 int16_t sig[16];
 uint8_t app_command(uint8_t cmd, const uint8_t *arg, uint8_t n) { (void)cmd; (void)arg; (void)n; return 0; }
@@ -293,7 +295,7 @@ void main(void)
             sig[0] = (int16_t)(sig[0] + RAMP);  /* the speed moves by RAMP a sample */
         }
     }
-    for (i = 0; i < 32; i++) {
+    for (i = 0; i < N_IDS; i++) {
         pi16[i] = link_param_i16(f_ids[i]);
     }
     done();
@@ -304,7 +306,8 @@ void main(void)
 
 
 I16_IDS = [e.id for e in P.build_table(2).entries] + [0x0B, 0x7F]   # every id of a 2-rule table, 2 unknown
-assert len(I16_IDS) == 32
+PI16_AT = 0x400 - 2 * len(I16_IDS)      # the results end where txlog starts
+assert 0x380 <= PI16_AT
 
 
 def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[int] | None = None,
@@ -326,11 +329,11 @@ def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[i
             f"static const uint8_t f_bytes[{max(1, len(data))}] = {{ {', '.join(str(b) for b in data) or '0'} }};\n"
             f"static const uint16_t f_start[{len(starts)}] = {{ {', '.join(map(str, starts))} }};\n"
             f"static const uint8_t f_samples[{len(frames)}] = {{ {', '.join(map(str, samples))} }};\n"
-            f"static const uint8_t f_ids[32] = {{ {', '.join(map(str, I16_IDS))} }};")
+            f"static const uint8_t f_ids[N_IDS] = {{ {', '.join(map(str, I16_IDS))} }};")
     with tempfile.TemporaryDirectory() as td:
         d = Path(td)
         _write_sources(d, c_text, h_text)
-        (d / "x.c").write_text(EXCHANGE % {"frames": decl})
+        (d / "x.c").write_text(EXCHANGE % {"frames": decl, "n_ids": len(I16_IDS), "pi16_at": hex(PI16_AT)})
         (d / "eestub.c").write_text(EESTUB)
         for f in ("link_fw.c", "x.c", "xc_sfr.c", "eestub.c"):
             _run([str(SDCC / "bin/sdcc"), *CFLAGS, f"-DTX_ROOM={int(tx_room)}u", "-I.", "-c", f], d)
@@ -346,7 +349,8 @@ def chip_exchange(c_text: str, h_text: str, frames: list[bytes], samples: list[i
     if mem[0x4F1] & 4:
         raise AssertionError("link_poll queued more bytes than app_tx_free() reported")
     chip_exchange.eeprom = bytes(mem.get(0x500 + i, 0) for i in range(256))
-    chip_exchange.param_i16 = {k: ((mem.get(0x3C0 + 2 * i, 0) | mem.get(0x3C1 + 2 * i, 0) << 8) ^ 0x8000) - 0x8000
+    chip_exchange.param_i16 = {k: ((mem.get(PI16_AT + 2 * i, 0) | mem.get(PI16_AT + 1 + 2 * i, 0) << 8) ^ 0x8000)
+                               - 0x8000
                                for i, k in enumerate(I16_IDS)}
     return bytes(mem[0x400 + i] for i in range(mem[0x4F0]))
 

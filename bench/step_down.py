@@ -12,7 +12,8 @@ load (passive: it stops the rotor); and the bound of braking at the current limi
 (J w' = -Kt I_lim - B w - T_load), what a bridge that can reverse the current below the back-EMF allows;
 and the same plant braked by a low-side braking table (low_side_brake_run: the scheme docs/scheduling.md
 proposes for the PIC18F4431, open loop at the current window's braking edge), its peak phase current
-and the energy it returns to the bus.
+and the energy it returns to the bus; beside each run the peak DC-bus voltage (the plant's bus
+capacitor, ``inverter.bus_capacitance_f``, behind a supply that cannot sink current).
 
     PYTHONPATH=$PWD/host:$PWD/hil python3 bench/step_down.py
 """
@@ -70,7 +71,8 @@ def low_side_brake_run(profile, plant, w0: float, goal: float, load: float, t_ma
     limit), applied from the true speed every PWM period, until ``w <= goal``; then every switch off.
     ``plug_below``: below ``R I_lim / Kb`` (where the window's braking edge is negative) plug instead: the
     reverse table with its source's high side at duty ``(R I_lim - Kb w)/Vbus``, as the law's window does.
-    Returns the time to the goal (s), the peak phase current (A) and the energy returned to the bus (J)."""
+    Returns the time to the goal (s), the peak phase current (A), the energy returned to the bus (J) and
+    the peak bus voltage (V: the plant's capacitor behind a supply that cannot sink)."""
     from picdrive.commutation import hall_table
     m, inv, se = profile.motor, profile.inverter, profile.sensors
     ht = hall_table(se.hall_spacing_deg, se.hall_offset_deg, m.back_emf_shape)
@@ -78,10 +80,11 @@ def low_side_brake_run(profile, plant, w0: float, goal: float, load: float, t_ma
     h = 1.0 / inv.pwm_frequency_hz
     plant.state.w_rad_s = w0
     t = e_bus = i_pk = 0.0
+    v_pk = plant.state.v_bus_v
     while t < t_max:
         w = plant.state.w_rad_s
         if w <= goal:
-            return {"t_s": t, "i_peak_a": i_pk, "e_bus_j": e_bus}
+            return {"t_s": t, "i_peak_a": i_pk, "e_bus_j": e_bus, "v_bus_peak_v": v_pk}
         u = m.kb_v_s_per_rad * w - m.r_line_ohm * inv.current_limit_a
         legs = [(0.0, 0.0)] * 3
         if u < 0.0 and plug_below:
@@ -98,8 +101,9 @@ def low_side_brake_run(profile, plant, w0: float, goal: float, load: float, t_ma
         plant.step(legs, load if w > 0.0 else 0.0, h)
         t += h
         i_pk = max(i_pk, plant.state.i_peak_a)
+        v_pk = max(v_pk, plant.state.v_bus_v)
         e_bus -= inv.bus_voltage_v * plant.state.i_bus_a * h
-    return {"t_s": math.inf, "i_peak_a": i_pk, "e_bus_j": e_bus}
+    return {"t_s": math.inf, "i_peak_a": i_pk, "e_bus_j": e_bus, "v_bus_peak_v": v_pk}
 
 
 def main(argv):
@@ -111,7 +115,8 @@ def main(argv):
     from picdrive.result import load_design
     warnings.simplefilter("ignore")
     drive = BuiltDrive()
-    print("design                         load   from->to rpm | law: settle ms  min current A | coast (all off) to the band: ms")
+    print("design                         load   from->to rpm | law: settle ms  min current A  peak bus V | "
+          "coast (all off) to the band: ms")
     for prof_name in ("duy2008", "assawinchaichote2016"):
         p = load_profile(str(ROOT / f"examples/{prof_name}.toml"))
         hi = min(2400.0, p.speed_step_rpm())
@@ -143,11 +148,15 @@ def main(argv):
                     else:
                         t_s = settle_after(sim.t, sim.rpm, t1, 0.0, 0.02 * hi)
                     i_min = float(np.min(sim.i[sim.t >= t1]))
-                    print(f"{path.name[:-12]:30} {load:5.3g} {hi:6.0f}->{lo:4.0f} | {1e3 * t_s:14.1f} {i_min:14.3f} |"
+                    v_pk = float(np.max(sim.v_bus_fine[sim.t_fine >= t1]))
+                    print(f"{path.name[:-12]:30} {load:5.3g} {hi:6.0f}->{lo:4.0f} | {1e3 * t_s:14.1f} {i_min:14.3f} "
+                          f"{v_pk:11.1f} |"
                           f" {1e3 * t_coast:10.1f} (J/B ln: {1e3 * t_an:.1f}) | braking at I_lim: "
                           f"{1e3 * brake_bound_s(p, hi * rad, goal * rad, load):.1f} | low-side braking table: "
-                          f"{1e3 * lsb['t_s']:.1f} ms, peak {lsb['i_peak_a']:.2f} A, to the bus {lsb['e_bus_j']:.3f} J"
-                          f" | with plugging below R I_lim/Kb: {1e3 * lsp['t_s']:.1f} ms, peak {lsp['i_peak_a']:.2f} A",
+                          f"{1e3 * lsb['t_s']:.1f} ms, peak {lsb['i_peak_a']:.2f} A, to the bus {lsb['e_bus_j']:.3f} J, "
+                          f"bus peak {lsb['v_bus_peak_v']:.1f} V"
+                          f" | with plugging below R I_lim/Kb: {1e3 * lsp['t_s']:.1f} ms, peak {lsp['i_peak_a']:.2f} A, "
+                          f"bus peak {lsp['v_bus_peak_v']:.1f} V",
                           flush=True)
 
 

@@ -55,7 +55,8 @@ def test_cli_writes_the_folder_and_prints_what_it_chose(tmp_path, monkeypatch, c
     out = tmp_path / "fw"
     assert run_cli(monkeypatch, "--profile", "duy2008", "--design", design, "-o", out) == 0
     text = capsys.readouterr().out
-    for what in ("PTPER = 499", "20000.0 Hz", "DTCON = 0x14", "1000 ns", "max duty", "0.9200", "pin map",
+    for what in ("taper_start    52.8 V", "taper_end      57.6 V", "trip           60.0 V", "0.80 x switch 100 V",
+                 "PTPER = 499", "20000.0 Hz", "DTCON = 0x14", "1000 ns", "max duty", "0.9200", "pin map",
                  "RC3", "Q formats", "error", "build id", "encoder M/T"):
         assert what in text, what
     for f in ("drive.c", "drive_core.c", "drive_params.h", "link_fw.c", "link_fw.h", "main_xc8.c",
@@ -67,6 +68,16 @@ def test_cli_writes_the_folder_and_prints_what_it_chose(tmp_path, monkeypatch, c
     assert [Path(s).name for s in hb["sources"]] == list(codegen.HOST_SOURCES)
     assert hb["include_dirs"][0].endswith("host")
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".fw.")]     # no temp folder left
+
+
+def test_a_bus_without_a_regeneration_window_is_refused(tmp_path, monkeypatch, capsys):
+    prof_path = profile_file(tmp_path, "tight", bus_voltage_v="80")          # 80 V on 100 V switches
+    design = fixture_design(tmp_path, load_profile(prof_path))
+    out = tmp_path / "fw"
+    assert run_cli(monkeypatch, "--profile", prof_path, "--design", design, "-o", out) == 2
+    err = capsys.readouterr().err
+    assert "leave no regeneration window" in err and "switches rated at least 105 V" in err
+    assert "Traceback" not in err and not out.exists()
 
 
 def test_generation_is_deterministic(tmp_path):

@@ -162,7 +162,7 @@ def test_malformed_length_every_command(peer, name):
 
 
 def test_unknown_command_and_board_only_types(peer):
-    for t in (0x00, 0x12, 0x3F, 0x5F):
+    for t in (0x00, max(c.code for c in P.COMMANDS) + 1, 0x3F, 0x5F):
         peer.b.feed(codec.encode_frame(t, 9, b""))
         (f,) = peer.frames()
         assert f.is_nack and f.seq == 9 and codec.decode_nack(f.payload) == (t, Nack.UNKNOWN_COMMAND)
@@ -517,7 +517,7 @@ def test_telemetry_counter_generation_drops_and_decimation(peer):
 
 @pytest.mark.parametrize("args", [
     {"mask": 0, "decimation": 1, "samples_per_frame": 1},
-    {"mask": 1 << 11, "decimation": 1, "samples_per_frame": 1},
+    {"mask": 1 << len(P.SIGNALS), "decimation": 1, "samples_per_frame": 1},   # beyond the table
     {"mask": 1, "decimation": 1, "samples_per_frame": 0},
     {"mask": 0x7FF, "decimation": 1, "samples_per_frame": 2},           # 2 + 44 > 40
     {"mask": 0xF, "decimation": 1, "samples_per_frame": 5},             # 2 + 40 > 40

@@ -161,3 +161,28 @@ def test_the_bus_divider_is_the_profiles_and_must_show_the_overvoltage_trip():
     with pytest.raises(ProfileError, match=r"puts the overvoltage trip \(60.0 V\) at 6.00 V on AN1, beyond the "
                                            r"ADC's 5 V: the firmware could not see it; a divider of at most 0.08167"):
         loads_profile(base.replace("[inverter]\n", "[inverter]\nbus_sense_v_per_v = 0.1\n"))
+
+
+def test_the_bus_guard_levels_are_fractions_of_the_switch_rating_above_the_supply():
+    from picdrive.profile import BUS_GUARD_LEVELS, BUS_SUPPLY_MARGIN, bus_guard
+    p = load_profile("duy2008")                       # 48 V bus, 100 V switches
+    g = bus_guard(p.inverter)
+    assert (g.taper_start_v, g.taper_end_v, g.trip_v) == pytest.approx((52.8, 57.6, 60.0))
+    assert BUS_SUPPLY_MARGIN * 48 <= g.taper_start_v < g.taper_end_v < g.trip_v <= 0.9 * 100
+    assert g.uv < g.taper_start < g.taper_end < g.trip < 1023 and g.problem == ""
+    # a 310 V bus on 500 V switches: the switch fractions bind
+    hv = bus_guard(p.replace(inverter={"bus_voltage_v": 310.0, "switch_vds_max_v": 500.0}).inverter)
+    assert (hv.taper_start_v, hv.taper_end_v, hv.trip_v) == pytest.approx(
+        tuple(min(BUS_GUARD_LEVELS[k][0] * 310, BUS_GUARD_LEVELS[k][1] * 500) for k in ("taper_start", "taper_end", "trip")))
+    assert hv.taper_start_v == pytest.approx(341.0) and hv.trip_v == pytest.approx(387.5)
+
+
+def test_a_bus_too_close_to_the_switch_rating_leaves_no_guard_window():
+    from picdrive.profile import ProfileError, bus_guard
+    p = load_profile("duy2008").replace(inverter={"bus_voltage_v": 80.0})      # 80 V on 100 V switches
+    with pytest.raises(ProfileError, match=r"'inverter.bus_voltage_v' = 80 V and 'inverter.switch_vds_max_v' = "
+                                           r"100 V leave no regeneration window: braking would taper from 80.0 V "
+                                           r"\(0.80 x the switch rating\), less than 1.05 x the bus \(84.0 V\); use "
+                                           r"switches rated at least 105 V or a lower bus"):
+        bus_guard(p.inverter)
+    assert bus_guard(p.inverter, strict=False).problem.startswith("profile fields")

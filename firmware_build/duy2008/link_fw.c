@@ -3,7 +3,7 @@
  * duplicate-SEQ replay, parameter store with range checks, EEPROM image, telemetry, triggered
  * capture, link-loss watchdog.
  * Rendered by picdrive.link.protocol_c.render_c() from host/picdrive/link/protocol.py.  DO NOT EDIT.
- * protocol 2.0, table hash 0x7A506044UL
+ * protocol 2.0, table hash 0xA892BE6EUL
  *
  * Written for an 8-bit core (PIC18, SDCC or XC8): no heap, no floating point (scales are
  * float32 bit patterns, only reported), no run-time multiplication or division (sizes are
@@ -39,7 +39,7 @@
 #error "EEPROM image does not fit 256 B at LINK_EE_BASE"
 #endif
 
-#define SIG_ALL            0x07FFu
+#define SIG_ALL            0x0FFFu
 #define NONE               0xFFu
 #define NACK_ARMED         1u                        /* S.nack: a bad frame may be NACKed */
 #define NACK_PENDING       2u                        /* S.nack: a BAD_CRC NACK to send */
@@ -56,7 +56,7 @@
 #define BODY_OVERHEAD      5u                        /* LEN, TYPE, SEQ, CRC high, CRC low */
 #define R(i)               rx_buf[PL + (i)]          /* command arguments (decoded body in rx_buf) */
 #define A(i)               tx_buf[1u + PL + (i)]     /* reply payload (body in tx_buf[1..], COBS code at 0) */
-#define N_CMDS             17u
+#define N_CMDS             18u
 #define SIG_INDEX          11u          /* table index of the first signal */
 #define CMD_IDLE           0x80u                     /* cmd spec: refused while the motor runs or brakes */
 #define CMD_ANY_LEN        0x7Fu                     /* cmd spec: argument length checked by the handler */
@@ -71,16 +71,16 @@
 link_params_t link_params;
 
 /* ---- flash: one byte table, read through rom_next() only ---- */
-#define ROM_ROWS           0u   /* 420 B */
-#define ROM_OFF            420u   /* 30 B */
-#define ROM_SIZE           450u   /* 30 B */
-#define ROM_NAME_LEN       480u   /* 30 B */
-#define ROM_HELLO          510u   /* 20 B */
-#define ROM_CMD            530u   /* 17 B */
-#define ROM_NAMES          547u   /* 251 B */
-#define ROM_EE_HEAD        798u   /* 8 B */
-#define ROM_PERSIST        806u   /* 18 B */
-static const uint8_t link_rom[824] = {
+#define ROM_ROWS           0u   /* 434 B */
+#define ROM_OFF            434u   /* 31 B */
+#define ROM_SIZE           465u   /* 31 B */
+#define ROM_NAME_LEN       496u   /* 31 B */
+#define ROM_HELLO          527u   /* 20 B */
+#define ROM_CMD            547u   /* 18 B */
+#define ROM_NAMES          565u   /* 262 B */
+#define ROM_EE_HEAD        827u   /* 8 B */
+#define ROM_PERSIST        835u   /* 18 B */
+static const uint8_t link_rom[853] = {
     /* ROM_ROWS */
     0x00u, 0x04u, 0x01u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0xEFu, 0xBBu, 0x11u, 0x44u, 0x00u, 0x00u,   /* speed_setpoint */
     0x01u, 0x01u, 0x03u, 0x0Cu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x00u, 0x01u, 0x00u, 0x01u, 0x00u,   /* controller */
@@ -104,6 +104,7 @@ static const uint8_t link_rom[824] = {
     0x28u, 0x04u, 0x04u, 0x0Bu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* fault */
     0x29u, 0x04u, 0x04u, 0x00u, 0x00u, 0x00u, 0x80u, 0x39u, 0x00u, 0x00u, 0x00u, 0x10u, 0x00u, 0x10u,   /* mu1 */
     0x2Au, 0x04u, 0x04u, 0x0Au, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* position */
+    0x2Bu, 0x04u, 0x04u, 0x03u, 0x00u, 0x00u, 0xC0u, 0x3Du, 0x00u, 0x00u, 0xFFu, 0x03u, 0x00u, 0x00u,   /* bus_voltage */
     0x40u, 0x04u, 0x03u, 0x05u, 0x00u, 0x00u, 0x80u, 0x39u, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x49u, 0x23u,   /* rule1_kp */
     0x41u, 0x04u, 0x03u, 0x06u, 0x00u, 0x00u, 0x7Au, 0x3Cu, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0xD9u, 0x2Fu,   /* rule1_ki */
     0x42u, 0x04u, 0x03u, 0x07u, 0x6Fu, 0x12u, 0x83u, 0x32u, 0x00u, 0x80u, 0xFFu, 0x7Fu, 0x00u, 0x00u,   /* rule1_kd */
@@ -118,17 +119,17 @@ static const uint8_t link_rom[824] = {
     (uint8_t)offsetof(link_params_t, accel_limit), (uint8_t)offsetof(link_params_t, link_timeout), (uint8_t)offsetof(link_params_t, stall_timeout), NONE,
     NONE, NONE, NONE, NONE,
     NONE, NONE, NONE, NONE,
-    NONE, NONE, (uint8_t)offsetof(link_params_t, rule1_kp), (uint8_t)offsetof(link_params_t, rule1_ki),
-    (uint8_t)offsetof(link_params_t, rule1_kd), (uint8_t)offsetof(link_params_t, rule1_kc), (uint8_t)offsetof(link_params_t, rule2_kp), (uint8_t)offsetof(link_params_t, rule2_ki),
-    (uint8_t)offsetof(link_params_t, rule2_kd), (uint8_t)offsetof(link_params_t, rule2_kc),
+    NONE, NONE, NONE, (uint8_t)offsetof(link_params_t, rule1_kp),
+    (uint8_t)offsetof(link_params_t, rule1_ki), (uint8_t)offsetof(link_params_t, rule1_kd), (uint8_t)offsetof(link_params_t, rule1_kc), (uint8_t)offsetof(link_params_t, rule2_kp),
+    (uint8_t)offsetof(link_params_t, rule2_ki), (uint8_t)offsetof(link_params_t, rule2_kd), (uint8_t)offsetof(link_params_t, rule2_kc),
     /* ROM_SIZE */
     0x82u, 0x01u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x02u, 0x02u, 0x02u, 0x82u,
     0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u,
-    0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u,
+    0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u, 0x82u,
     /* ROM_NAME_LEN */
     14u, 10u, 11u, 12u, 15u, 5u, 5u, 13u, 11u, 12u, 13u, 5u,
-    8u, 7u, 7u, 10u, 4u, 4u, 5u, 5u, 3u, 8u, 8u, 8u,
-    8u, 8u, 8u, 8u, 8u, 8u,
+    8u, 7u, 7u, 10u, 4u, 4u, 5u, 5u, 3u, 8u, 11u, 8u,
+    8u, 8u, 8u, 8u, 8u, 8u, 8u,
     /* ROM_HELLO */
     LINK_PROTO_MAJOR, LINK_PROTO_MINOR, (uint8_t)LINK_BUILD_ID, (uint8_t)(LINK_BUILD_ID >> 8u),
     (uint8_t)(LINK_BUILD_ID >> 16u), (uint8_t)(LINK_BUILD_ID >> 24u), (uint8_t)LINK_PROFILE_HASH, (uint8_t)(LINK_PROFILE_HASH >> 8u),
@@ -137,7 +138,7 @@ static const uint8_t link_rom[824] = {
     (uint8_t)LINK_HELLO_CAPTURE_WORDS, (uint8_t)(LINK_HELLO_CAPTURE_WORDS >> 8u), (uint8_t)LINK_SAMPLE_HZ, (uint8_t)(LINK_SAMPLE_HZ >> 8u),
     /* ROM_CMD */
     0x00u, 0x01u, 0x7Fu, 0x05u, 0x04u, 0x00u, 0x00u, 0x00u, 0x01u, 0x05u, 0x0Bu, 0x03u,
-    0x80u, 0x80u, 0x00u, 0x00u, 0x00u,
+    0x80u, 0x80u, 0x00u, 0x00u, 0x00u, 0x04u,
     /* ROM_NAMES */
     0x73u, 0x70u, 0x65u, 0x65u, 0x64u, 0x5Fu, 0x73u, 0x65u, 0x74u, 0x70u, 0x6Fu, 0x69u, 0x6Eu, 0x74u, 0x63u, 0x6Fu,
     0x6Eu, 0x74u, 0x72u, 0x6Fu, 0x6Cu, 0x6Cu, 0x65u, 0x72u, 0x70u, 0x72u, 0x65u, 0x6Du, 0x69u, 0x73u, 0x65u, 0x5Fu,
@@ -150,16 +151,17 @@ static const uint8_t link_rom[824] = {
     0x74u, 0x70u, 0x6Fu, 0x69u, 0x6Eu, 0x74u, 0x76u, 0x6Fu, 0x6Cu, 0x74u, 0x61u, 0x67u, 0x65u, 0x63u, 0x75u, 0x72u,
     0x72u, 0x65u, 0x6Eu, 0x74u, 0x69u, 0x6Eu, 0x74u, 0x65u, 0x67u, 0x72u, 0x61u, 0x74u, 0x6Fu, 0x72u, 0x64u, 0x75u,
     0x74u, 0x79u, 0x68u, 0x61u, 0x6Cu, 0x6Cu, 0x73u, 0x74u, 0x61u, 0x74u, 0x65u, 0x66u, 0x61u, 0x75u, 0x6Cu, 0x74u,
-    0x6Du, 0x75u, 0x31u, 0x70u, 0x6Fu, 0x73u, 0x69u, 0x74u, 0x69u, 0x6Fu, 0x6Eu, 0x72u, 0x75u, 0x6Cu, 0x65u, 0x31u,
-    0x5Fu, 0x6Bu, 0x70u, 0x72u, 0x75u, 0x6Cu, 0x65u, 0x31u, 0x5Fu, 0x6Bu, 0x69u, 0x72u, 0x75u, 0x6Cu, 0x65u, 0x31u,
-    0x5Fu, 0x6Bu, 0x64u, 0x72u, 0x75u, 0x6Cu, 0x65u, 0x31u, 0x5Fu, 0x6Bu, 0x63u, 0x72u, 0x75u, 0x6Cu, 0x65u, 0x32u,
-    0x5Fu, 0x6Bu, 0x70u, 0x72u, 0x75u, 0x6Cu, 0x65u, 0x32u, 0x5Fu, 0x6Bu, 0x69u, 0x72u, 0x75u, 0x6Cu, 0x65u, 0x32u,
-    0x5Fu, 0x6Bu, 0x64u, 0x72u, 0x75u, 0x6Cu, 0x65u, 0x32u, 0x5Fu, 0x6Bu, 0x63u,
+    0x6Du, 0x75u, 0x31u, 0x70u, 0x6Fu, 0x73u, 0x69u, 0x74u, 0x69u, 0x6Fu, 0x6Eu, 0x62u, 0x75u, 0x73u, 0x5Fu, 0x76u,
+    0x6Fu, 0x6Cu, 0x74u, 0x61u, 0x67u, 0x65u, 0x72u, 0x75u, 0x6Cu, 0x65u, 0x31u, 0x5Fu, 0x6Bu, 0x70u, 0x72u, 0x75u,
+    0x6Cu, 0x65u, 0x31u, 0x5Fu, 0x6Bu, 0x69u, 0x72u, 0x75u, 0x6Cu, 0x65u, 0x31u, 0x5Fu, 0x6Bu, 0x64u, 0x72u, 0x75u,
+    0x6Cu, 0x65u, 0x31u, 0x5Fu, 0x6Bu, 0x63u, 0x72u, 0x75u, 0x6Cu, 0x65u, 0x32u, 0x5Fu, 0x6Bu, 0x70u, 0x72u, 0x75u,
+    0x6Cu, 0x65u, 0x32u, 0x5Fu, 0x6Bu, 0x69u, 0x72u, 0x75u, 0x6Cu, 0x65u, 0x32u, 0x5Fu, 0x6Bu, 0x64u, 0x72u, 0x75u,
+    0x6Cu, 0x65u, 0x32u, 0x5Fu, 0x6Bu, 0x63u,
     /* ROM_EE_HEAD */
     0x50u, 0x44u, 0x01u, (uint8_t)LINK_TABLE_HASH, (uint8_t)(LINK_TABLE_HASH >> 8u), (uint8_t)(LINK_TABLE_HASH >> 16u), (uint8_t)(LINK_TABLE_HASH >> 24u), EE_DATA_BYTES,
     /* ROM_PERSIST */
-    1u, 2u, 3u, 4u, 5u, 6u, 7u, 8u, 9u, 10u, 22u, 23u,
-    24u, 25u, 26u, 27u, 28u, 29u,
+    1u, 2u, 3u, 4u, 5u, 6u, 7u, 8u, 9u, 10u, 23u, 24u,
+    25u, 26u, 27u, 28u, 29u, 30u,
 };
 
 /* ---- buffers ---- */
@@ -561,7 +563,7 @@ static uint8_t mask_nsig(void) __naked     /* PROD shifts, TABLAT counts */
     __asm
     MOVFF   (_rx_buf + 3), _PRODL   ; PRODL, PRODH = R(0), R(1)
     MOVFF   (_rx_buf + 4), _PRODH
-    MOVLW   0xF8
+    MOVLW   0xF0
     ANDWF   _PRODH, W, A
     BNZ     lmn_bad
     MOVLW   0x00
@@ -703,11 +705,11 @@ static uint8_t entry_index(uint8_t id) LINK_WPARAM
     if ((uint8_t)(id - 0x00u) < 11u) {
         return (uint8_t)(id - 0u);
     }
-    if ((uint8_t)(id - 0x20u) < 11u) {
+    if ((uint8_t)(id - 0x20u) < 12u) {
         return (uint8_t)(id - 21u);
     }
     if ((uint8_t)(id - 0x40u) < 8u) {
-        return (uint8_t)(id - 42u);
+        return (uint8_t)(id - 41u);
     }
     return NONE;
 }
@@ -735,7 +737,7 @@ static void row_of(uint8_t idx) LINK_WPARAM        /* link_hot.ro = the entry's 
 
 #if defined(__SDCC_pic16)
 typedef char link_entry_layout[(ROM_SIZE == ROM_OFF + LINK_N_ENTRIES
-                                && ROM_OFF == 420u) ? 1 : -1];
+                                && ROM_OFF == 434u) ? 1 : -1];
 /* PIC18 assembly (the C below, step for step): ROM_SIZE + idx is one table further on */
 /* Contract: in idx (W) < LINK_N_ENTRIES; out link_hot.e_off, .e_sz (.ro just past e_sz's byte);
  * clobbers W, STATUS, TBLPTR, TABLAT (PROD kept). */
@@ -743,7 +745,7 @@ static void entry_load(uint8_t idx) LINK_WPARAM __naked   /* link_hot.e_off, lin
 {
     (void)idx;
     __asm
-    ADDLW   164                 ; rom_at(ROM_OFF + idx)
+    ADDLW   178                 ; rom_at(ROM_OFF + idx)
     MOVWF   (_link_hot + LH_RO), A
     MOVLW   1
     BTFSC   _STATUS, 0, A
@@ -751,7 +753,7 @@ static void entry_load(uint8_t idx) LINK_WPARAM __naked   /* link_hot.e_off, lin
     MOVWF   (_link_hot + LH_RO + 1), A
     CALL    _rom_next
     MOVWF   (_link_hot + LH_E_OFF), A
-    MOVLW   29                  ; rom_at(ROM_SIZE + idx): LINK_N_ENTRIES - 1 past the byte read
+    MOVLW   30                  ; rom_at(ROM_SIZE + idx): LINK_N_ENTRIES - 1 past the byte read
     ADDWF   (_link_hot + LH_RO), F, A
     MOVLW   0
     ADDWFC  (_link_hot + LH_RO + 1), F, A
@@ -1077,10 +1079,10 @@ static uint8_t id_of(uint8_t idx) LINK_WPARAM
     if (idx < 11u) {
         return (uint8_t)(idx + 0u);
     }
-    if (idx < 22u) {
+    if (idx < 23u) {
         return (uint8_t)(idx + 21u);
     }
-    return (uint8_t)(idx + 42u);
+    return (uint8_t)(idx + 41u);
 }
 
 static uint8_t ee_next(void)           /* the next image byte, CRC'd */
@@ -1669,7 +1671,8 @@ static void tx_drain(void)
 static uint8_t drive_busy(void)
 {
     int16_t st = app_signal(LINK_SIG_STATE);
-    return (uint8_t)(st == (int16_t)LINK_STATE_RUN || st == (int16_t)LINK_STATE_BRAKE);
+    return (uint8_t)(st == (int16_t)LINK_STATE_RUN || st == (int16_t)LINK_STATE_BRAKE
+                     || st == (int16_t)LINK_STATE_IDENT);
 }
 
 #if defined(__SDCC_pic16)
@@ -1707,9 +1710,9 @@ static uint8_t h_hello(void) __naked
 {
     __asm
     CLRF    (_link_hot + LH_N), A      ; link_hot.n = 0
-    MOVLW   254              ; rom_at(ROM_HELLO)
+    MOVLW   15              ; rom_at(ROM_HELLO)
     MOVWF   (_link_hot + LH_RO), A
-    MOVLW   1
+    MOVLW   2
     MOVWF   (_link_hot + LH_RO + 1), A
     MOVLW   20
     CALL    _rom_copy
@@ -1755,14 +1758,14 @@ static uint8_t h_param_info(void) __naked
     __asm
     MOVFF   (_rx_buf + 3), _FSR0L   ; FSR0L = idx = R(0): the lengths to add
     MOVF    _FSR0L, W, A
-    SUBLW   29
+    SUBLW   30
     BNC     lpi_bad                 ; idx >= LINK_N_ENTRIES
     MOVFF   _FSR0L, _POSTDEC1       ; push idx
-    MOVLW   224              ; rom_at(ROM_NAME_LEN)
+    MOVLW   240              ; rom_at(ROM_NAME_LEN)
     MOVWF   (_link_hot + LH_RO), A
     MOVLW   1
     MOVWF   (_link_hot + LH_RO + 1), A
-    MOVLW   35             ; PROD = ROM_NAMES
+    MOVLW   53             ; PROD = ROM_NAMES
     MOVWF   _PRODL, A
     MOVLW   2
     MOVWF   _PRODH, A
@@ -2451,6 +2454,7 @@ static const link_handler_t cmd_fn[N_CMDS] = {
     h_app,
     h_status,
     h_none,
+    h_app,
 };
 
 static uint8_t run_command(uint8_t c) LINK_WPARAM  /* the handler of command code c + 1: 0 or a NACK code */
@@ -2544,7 +2548,8 @@ static uint8_t send_event(void)
 
 static void wd_arm(void)
 {
-    S.wd_armed = (uint8_t)(app_signal(LINK_SIG_STATE) == (int16_t)LINK_STATE_RUN);
+    int16_t st = app_signal(LINK_SIG_STATE);
+    S.wd_armed = (uint8_t)(st == (int16_t)LINK_STATE_RUN || st == (int16_t)LINK_STATE_IDENT);
 }
 
 #if defined(__SDCC_pic16)

@@ -2,8 +2,8 @@
  * link_fw.h -- picdrive serial link, C side.
  * Rendered by picdrive.link.protocol_c.render_c() from host/picdrive/link/protocol.py.  DO NOT EDIT.
  *
- * protocol 2.0, 30 table entries (2 rules),
- * table hash 0x7A506044UL, build id 0x747C4103UL, profile hash 0x4B0E5FBAUL
+ * protocol 2.0, 31 table entries (2 rules),
+ * table hash 0xA892BE6EUL, build id 0xEDA7E672UL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -49,13 +49,13 @@
 
 #define LINK_PROTO_MAJOR        2u
 #define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0x747C4103UL
+#define LINK_BUILD_ID           0xEDA7E672UL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
-#define LINK_TABLE_HASH         0x7A506044UL
+#define LINK_TABLE_HASH         0xA892BE6EUL
 #define LINK_SAMPLE_HZ          1000u
 #define LINK_N_RULES            2u
-#define LINK_N_ENTRIES          30u
-#define LINK_N_SIGNALS          11u
+#define LINK_N_ENTRIES          31u
+#define LINK_N_SIGNALS          12u
 
 #define LINK_DELIMITER          0x00u
 #define LINK_MAX_PAYLOAD        40u
@@ -117,6 +117,7 @@
 #define LINK_CMD_FAULT_CLEAR         0x0Fu   /* fault_clear */
 #define LINK_CMD_STATUS              0x10u   /* status */
 #define LINK_CMD_HEARTBEAT           0x11u   /* heartbeat */
+#define LINK_CMD_IDENT               0x12u   /* ident */
 #define LINK_MSG_TELEMETRY           0x60u
 #define LINK_MSG_EVENT               0x61u
 #define LINK_MSG_NACK                0x7Fu
@@ -150,6 +151,7 @@
 #define LINK_STATE_RUN                 1u
 #define LINK_STATE_BRAKE               2u
 #define LINK_STATE_FAULT               3u
+#define LINK_STATE_IDENT               4u
 
 /* ---- events ---- */
 #define LINK_EVENT_BOOT                1u
@@ -209,6 +211,7 @@
 #define LINK_ID_FAULT                0x28u   /* code, scale 1, read-only signal */
 #define LINK_ID_MU1                  0x29u   /* 1, scale 0.000244140625, read-only signal */
 #define LINK_ID_POSITION             0x2Au   /* counts, scale 1, read-only signal */
+#define LINK_ID_BUS_VOLTAGE          0x2Bu   /* V, scale 0.09375, read-only signal */
 #define LINK_ID_RULE1_KP             0x40u   /* V/(rad/s), scale 0.000244140625 */
 #define LINK_ID_RULE1_KI             0x41u   /* V/rad, scale 0.0152587891 */
 #define LINK_ID_RULE1_KD             0x42u   /* V s^2/rad, scale 1.52587898e-08 */
@@ -230,6 +233,7 @@
 #define LINK_SIG_FAULT                 8u
 #define LINK_SIG_MU1                   9u
 #define LINK_SIG_POSITION              10u
+#define LINK_SIG_BUS_VOLTAGE           11u
 
 /* ---- parameter store: read the fields freely; write only via link_param_set() ---- */
 typedef struct {

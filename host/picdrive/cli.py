@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "picdrive.firmware.codegen",   # picdrive firmware
     "picdrive_hil.cli",            # picdrive twin
     "picdrive.console.session",    # picdrive console
+    "picdrive.console.identify",   # picdrive identify
     "picdrive.robustness.study",   # picdrive robustness
     "picdrive.demo",               # picdrive demo
 ]

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["PHASES", "DRIVE_STATES", "HallTable", "emf_unit", "hall_code_at", "hall_table"]
+__all__ = ["PHASES", "DRIVE_STATES", "HallTable", "emf_unit", "hall_code_at", "hall_table", "IDENT_VECTORS",
+           "IDENT_HALL_SELECTIONS", "ident_vector_angle_deg", "hall_positions", "ident_hall_vector"]
 
 PHASES = "ABC"
 
@@ -119,3 +120,51 @@ def hall_table(hall_spacing_deg: int, hall_offset_deg: float, back_emf_shape: st
             seen.add(int(c))
     return HallTable(hall_spacing_deg=hall_spacing_deg, hall_offset_deg=float(hall_offset_deg),
                      forward=tuple(fwd), reverse=tuple(rev), valid_mask=valid, sequence=tuple(order))
+
+
+# ---------------------------------------------------------------------------
+# Identification vectors: the stator current directions the bridge can apply
+# ---------------------------------------------------------------------------
+#: The twelve identification vectors, index ``m`` = 0..11, as ``(sources, sinks)`` phase-index
+#: tuples: the sources' high sides modulated (all at one duty), the sinks' low sides on.  Even
+#: ``m`` is the two-phase drive state ``m / 2`` of the forward six-step order (A+B-, A+C-, B+C-,
+#: B+A-, C+A-, C+B-), odd ``m`` the three-phase state between its neighbours.  The current
+#: vector of ``m`` points at ``ident_vector_angle_deg(m)`` = -30 + 30 m electrical degrees
+#: (phase A's axis at 0, B at 120, C at 240).
+IDENT_VECTORS: tuple[tuple[tuple[int, ...], tuple[int, ...]], ...] = (
+    ((0,), (1,)), ((0,), (1, 2)), ((0,), (2,)), ((0, 1), (2,)), ((1,), (2,)), ((1,), (0, 2)),
+    ((1,), (0,)), ((1, 2), (0,)), ((2,), (0,)), ((2,), (0, 1)), ((2,), (1,)), ((0, 2), (1,)),
+)
+
+#: hall-driven selections: ``sel`` = 0..11 applies, at hall code ``c``, the two-phase vector
+#: ``2 ((s pos(c) + shift) mod 6)`` with ``s = +1`` for sel < 6, ``-1`` above, ``shift = sel mod 6``
+#: and ``pos(c)`` the code's place in the build's forward hall sequence (hall_spacing_deg, offset 0).
+IDENT_HALL_SELECTIONS = 12
+
+
+def ident_vector_angle_deg(m: int) -> float:
+    """Electrical angle (deg) of identification vector ``m``'s current: -30 + 30 m.
+
+    A rotor held by this current settles where its magnet's axis points along it, at the
+    electrical angle (the back-EMF convention above) ``ident_vector_angle_deg(m) + 180``:
+    the torque of a current at angle ``phi`` on a rotor at ``th`` is proportional to
+    ``sin(th - phi)``, zero with a negative slope at ``th = phi + 180``."""
+    return -30.0 + 30.0 * (int(m) % 12)
+
+
+def hall_positions(hall_spacing_deg: int) -> dict[int, int]:
+    """Each valid hall code's place 0..5 in the forward sequence at hall offset 0."""
+    seq = hall_table(hall_spacing_deg, 0.0).sequence
+    start = seq.index(min(seq))
+    seq = seq[start:] + seq[:start]
+    return {c: i for i, c in enumerate(seq)}
+
+
+def ident_hall_vector(sel: int, code: int, hall_spacing_deg: int) -> int | None:
+    """The identification vector (even ``m``) hall-driven selection ``sel`` applies at ``code``,
+    or None for a code outside the build's hall sequence (outputs off)."""
+    pos = hall_positions(hall_spacing_deg)
+    if code not in pos:
+        return None
+    s = 1 if sel < 6 else -1
+    return 2 * ((s * pos[code] + sel % 6) % 6)

@@ -38,7 +38,8 @@ SCHEMA_ID = "picdrive.profile/1"
 __all__ = [
     "ProfileError", "ProfileWarning", "Profile", "Motor", "Inverter",
     "Sensors", "Control", "Uart", "load_profile", "loads_profile",
-    "bundled_profiles", "resolve_profile_path", "SCHEMA", "hash32",
+    "bundled_profiles", "resolve_profile_path", "SCHEMA", "hash32", "BusGuard", "bus_guard",
+    "BUS_GUARD_LEVELS", "BUS_SUPPLY_MARGIN",
 ]
 
 
@@ -478,6 +479,115 @@ class Profile:
 
 
 # ---------------------------------------------------------------------------
+# The bus guard: sense divider and regeneration levels, derived once
+# ---------------------------------------------------------------------------
+BUS_GUARD_LEVELS: dict[str, tuple[float, float]] = {
+    "taper_start": (1.10, 0.80),
+    "taper_end": (1.20, 0.85),
+    "trip": (1.25, 0.90),
+}
+"""Each bus level as (fraction of ``inverter.bus_voltage_v``, fraction of
+``inverter.switch_vds_max_v``): the level is the lower of the two.  Braking
+current is full up to ``taper_start``, scaled down linearly to 0 at
+``taper_end``; above ``trip`` an OVERVOLTAGE fault latches (outputs off).  The
+switch fraction keeps the peak below 90 % of the rating; the bus fraction
+keeps the capacitors and the supply within 125 % of the nominal bus (VESC's
+``l_battery_regen_cut_start``/``_end`` and ``l_max_vin``, ODrive's
+``dc_bus_overvoltage_trip_level``)."""
+
+BUS_SUPPLY_MARGIN = 1.05
+"""The taper must start at least this factor above the supply's bus voltage:
+below it supply tolerance and ripple would cut braking that returns nothing."""
+
+BUS_UNDERVOLTAGE = 0.70
+"""Undervoltage level while running, fraction of ``inverter.bus_voltage_v``."""
+
+_ADC_COUNTS, _ADC_VREF_V = 1024, 5.0     # the PIC18F4431's 10-bit converter on AN1
+
+
+@dataclass(frozen=True)
+class BusGuard:
+    """Bus sense and guard levels of one inverter (V, and ADC counts on AN1).
+
+    ``source`` says where the divider came from (``"inverter.bus_sense_v_per_v"``
+    or ``"assumed"``); ``problem`` is empty when the guard window is sensible,
+    else the reason it is not (:func:`bus_guard` with ``strict=True`` raises it).
+    """
+    bus_sense_v_per_v: float
+    source: str
+    counts_per_v: float
+    bus_v: float
+    switch_v: float
+    uv_v: float
+    taper_start_v: float
+    taper_end_v: float
+    trip_v: float
+    uv: int
+    taper_start: int
+    taper_end: int
+    trip: int
+    problem: str = ""
+
+    def lines(self) -> list[str]:
+        """The levels as text, each with its derivation (``picdrive firmware`` prints them)."""
+        def one(name, v, c):
+            fb, fs = BUS_GUARD_LEVELS[name]
+            return (f"{name:<12}{v:7.1f} V = {c:4d} counts  (min of {fb:.2f} x bus {self.bus_v:g} V, "
+                    f"{fs:.2f} x switch {self.switch_v:g} V)")
+        return [one("taper_start", self.taper_start_v, self.taper_start),
+                one("taper_end", self.taper_end_v, self.taper_end),
+                one("trip", self.trip_v, self.trip),
+                f"{'undervolt':<12}{self.uv_v:7.1f} V = {self.uv:4d} counts  ({BUS_UNDERVOLTAGE:.2f} x bus, running)"]
+
+
+def bus_guard(inverter: "Inverter", strict: bool = True) -> BusGuard:
+    """Bus-voltage sense on AN1 and the regeneration guard's levels.
+
+    Parameters
+    ----------
+    inverter : Inverter
+        ``bus_voltage_v``, ``switch_vds_max_v`` (V) and ``bus_sense_v_per_v``
+        (V/V; 0: a divider that puts the nominal bus at 2.5 V is assumed).
+    strict : bool
+        Raise :class:`ProfileError` when no sensible window exists (the taper
+        would start less than :data:`BUS_SUPPLY_MARGIN` above the supply, the
+        levels would not be distinct ADC counts, or the trip would be beyond
+        the ADC's range).
+
+    Returns
+    -------
+    BusGuard
+        Levels in V (:data:`BUS_GUARD_LEVELS`) and in ADC counts.
+    """
+    vb, vs = inverter.bus_voltage_v, inverter.switch_vds_max_v
+    given = inverter.bus_sense_v_per_v > 0.0
+    ratio = inverter.bus_sense_v_per_v if given else 2.5 / vb
+    cpv = ratio * _ADC_COUNTS / _ADC_VREF_V
+    lv = {k: min(fb * vb, fs * vs) for k, (fb, fs) in BUS_GUARD_LEVELS.items()}
+    cnt = {k: min(1023, int(math.ceil(v * cpv))) for k, v in lv.items()}
+    problem = ""
+    if lv["taper_start"] < BUS_SUPPLY_MARGIN * vb:
+        problem = (f"profile fields 'inverter.bus_voltage_v' = {vb:g} V and 'inverter.switch_vds_max_v' = {vs:g} V "
+                   f"leave no regeneration window: braking would taper from {lv['taper_start']:.1f} V "
+                   f"({BUS_GUARD_LEVELS['taper_start'][1]:.2f} x the switch rating), less than "
+                   f"{BUS_SUPPLY_MARGIN:.2f} x the bus ({BUS_SUPPLY_MARGIN * vb:.1f} V); use switches rated at least "
+                   f"{BUS_SUPPLY_MARGIN * vb / BUS_GUARD_LEVELS['taper_start'][1]:.0f} V or a lower bus")
+    elif not cnt["taper_start"] < cnt["taper_end"] < cnt["trip"] < 1023:
+        problem = (f"profile field 'inverter.bus_sense_v_per_v' = {ratio:.5g} V/V: the bus guard's levels "
+                   f"({lv['taper_start']:.1f}, {lv['taper_end']:.1f}, {lv['trip']:.1f} V) come out as ADC counts "
+                   f"{cnt['taper_start']}, {cnt['taper_end']}, {cnt['trip']}, not distinct below full scale 1023: "
+                   f"a divider of at most {4.9 / lv['trip']:.4g} V/V that still resolves them")
+    if problem and strict:
+        raise ProfileError(problem)
+    uv_v = BUS_UNDERVOLTAGE * vb
+    return BusGuard(bus_sense_v_per_v=ratio, source="inverter.bus_sense_v_per_v" if given else "assumed",
+                    counts_per_v=cpv, bus_v=vb, switch_v=vs, uv_v=uv_v,
+                    taper_start_v=lv["taper_start"], taper_end_v=lv["taper_end"], trip_v=lv["trip"],
+                    uv=int(math.floor(uv_v * cpv)), taper_start=cnt["taper_start"], taper_end=cnt["taper_end"],
+                    trip=cnt["trip"], problem=problem)
+
+
+# ---------------------------------------------------------------------------
 # Loading and validation
 # ---------------------------------------------------------------------------
 def _fail(where: str, value: Any, expect: str) -> ProfileError:
@@ -642,7 +752,7 @@ def _build(raw: dict[str, Any], path: Path | None, sha: str) -> Profile:
         raise _fail("inverter.brake_chopper_v", inv["brake_chopper_v"],
                     "has no effect without inverter.brake_resistor_ohm: set the resistor too, or remove it")
     if inv["bus_sense_v_per_v"] > 0.0:
-        ov_v = min(1.25 * inv["bus_voltage_v"], 0.9 * inv["switch_vds_max_v"])
+        ov_v = min(f * inv[k] for f, k in zip(BUS_GUARD_LEVELS["trip"], ("bus_voltage_v", "switch_vds_max_v")))
         if inv["bus_sense_v_per_v"] * ov_v >= 5.0:
             raise _fail("inverter.bus_sense_v_per_v", inv["bus_sense_v_per_v"],
                         f"puts the overvoltage trip ({ov_v:.1f} V) at {inv['bus_sense_v_per_v'] * ov_v:.2f} V on AN1, "

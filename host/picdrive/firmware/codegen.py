@@ -39,6 +39,9 @@ from .. import __version__
 from ..board import FCY_HZ, FOSC_HZ
 from ..errors import PicdriveError
 from .target import EEPROM_GPTR_STUBS
+from ..commutation import hall_positions as _ident_pos
+from ..profile import ProfileError, bus_guard
+from .pcpwm import ident_vector_registers
 
 __all__ = ["CodegenError", "Firmware", "generate", "write_firmware", "build_check", "host_build",
            "HOST_SOURCES", "XC8_ONLY_SOURCES", "register", "uart_brg", "bus_sense"]
@@ -110,24 +113,18 @@ def uart_brg(baud: int) -> tuple[int, float]:
 
 
 def bus_sense(profile) -> dict:
-    """Bus-voltage sense on AN1: divider, thresholds in ADC counts.
-
-    The divider is ``inverter.bus_sense_v_per_v``; when the profile leaves it
-    at 0 the board is assumed to have one that puts the nominal bus at 2.5 V
-    (half of the 5 V ADC reference), so that 2 x the nominal bus is full
-    scale (``"source"`` says which).  Undervoltage below 70 % of nominal while
-    running; overvoltage above min(125 % of nominal, 90 % of the switch
-    rating).
-    """
-    inv = profile.inverter
-    given = getattr(inv, "bus_sense_v_per_v", 0.0) > 0.0
-    ratio = inv.bus_sense_v_per_v if given else 2.5 / inv.bus_voltage_v
-    counts_per_v = ratio * 1024 / 5.0
-    uv_v = 0.70 * inv.bus_voltage_v
-    ov_v = min(1.25 * inv.bus_voltage_v, 0.9 * inv.switch_vds_max_v)
-    return {"bus_sense_v_per_v": ratio, "source": "inverter.bus_sense_v_per_v" if given else "assumed",
-            "counts_per_v": counts_per_v, "uv_v": uv_v, "ov_v": ov_v,
-            "uv": int(math.floor(uv_v * counts_per_v)), "ov": min(1023, int(math.ceil(ov_v * counts_per_v)))}
+    """Bus-voltage sense on AN1 and the guard's levels (:func:`picdrive.profile.bus_guard`) as a
+    dict: divider, ``counts_per_v``, levels in V (``uv_v``, ``taper_start_v``, ``taper_end_v``,
+    ``ov_v`` the trip) and in ADC counts (``uv``, ``taper_start``, ``taper_end``, ``ov``).
+    Raises :class:`CodegenError` when the profile leaves no sensible guard window."""
+    try:
+        g = bus_guard(profile.inverter)
+    except ProfileError as e:
+        raise CodegenError(f"{e}: the firmware could not protect the switches from regeneration") from None
+    return {"bus_sense_v_per_v": g.bus_sense_v_per_v, "source": g.source, "counts_per_v": g.counts_per_v,
+            "uv_v": g.uv_v, "ov_v": g.trip_v, "taper_start_v": g.taper_start_v, "taper_end_v": g.taper_end_v,
+            "uv": g.uv, "ov": g.trip, "taper_start": g.taper_start, "taper_end": g.taper_end,
+            "lines": g.lines()}
 
 
 # ---------------------------------------------------------------------------
@@ -236,6 +233,12 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
            "the low side of the sink phase; one table pointer reads both"),
         _d("FW_HALL_NEXT", ", ".join(str(_next_code(t, c)) for c in range(8)),
            "next code in forward rotation (hall-speed direction)"),
+        _d("FW_IDENT_OVD", ", ".join(f"{_hex8(cs)}, {_hex8(cd)}" for cs, cd in ident_vector_registers()),
+           "identification vectors m = 0..11 (commutation.IDENT_VECTORS, current at -30 + 30 m deg): "
+           "OVDCONS, OVDCOND at 2 m, 2 m + 1"),
+        _d("FW_IDENT_POS", ", ".join(f"{_ident_pos(t.hall_spacing_deg).get(c, 255)}u" for c in range(8)),
+           "hall code -> place in the forward sequence at offset 0 (0xFF outside it): the hall-driven "
+           "identification selections (commutation.ident_hall_vector)"),
     ]})
     hall_int = pm.hall_input == "int"
     tr = pm.tris()
@@ -292,7 +295,7 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
            + (" -- beyond the ADC range: never" if plan.itrip >= 1024 else "")),
         _d("FW_BUS_UV", f"{bus['uv']}u", f"undervoltage below {bus['uv_v']:.1f} V (70 % of bus_voltage_v) x "
            f"{bus['counts_per_v']:.2f} counts/V (divider {bus['bus_sense_v_per_v']:.5f} V/V, {bus['source']})"),
-        _d("FW_BUS_OV", f"{bus['ov']}u", f"overvoltage above {bus['ov_v']:.1f} V"),
+        _d("FW_BUS_OV", f"{bus['ov']}u", f"overvoltage trip above {bus['ov_v']:.1f} V"),
         _d("FW_BUS_DEBOUNCE", "10u", "consecutive samples"),
     ]})
     # overspeed trip: OVERSPEED_FACTOR x speed_max_rpm in the speed format (saturated to int16)
@@ -508,9 +511,11 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                f"build id    0x{build_id:08X} (sha256 of the inputs {digest[:16]}...), table hash "
                f"0x{table.hash:08X}"]
     summary += pwm.lines() + plan.lines() + pm.lines()
-    summary.append(f"uart        SPBRG = {brg}: {baud:.0f} baud; bus sense on AN1 "
-                   + ("assumed " if bus["source"] == "assumed" else "")
-                   + f"{bus['bus_sense_v_per_v']:.5f} V/V, UV {bus['uv_v']:.1f} V, OV {bus['ov_v']:.1f} V")
+    summary.append(f"uart        SPBRG = {brg}: {baud:.0f} baud")
+    summary.append("bus guard   AN1 " + ("assumed " if bus["source"] == "assumed" else "")
+                   + f"divider {bus['bus_sense_v_per_v']:.5f} V/V ({bus['counts_per_v']:.2f} counts/V); braking "
+                   f"current full up to taper_start, linearly to 0 at taper_end; OVERVOLTAGE latches above trip")
+    summary += ["            " + ln for ln in bus["lines"]]
     summary.append("link        " + (f"capture ({capture_bytes} B buffer)" if link_capture else "no capture (--no-capture)")
                    + ", " + ("EEPROM persistence" if link_eeprom else "no EEPROM persistence (--no-eeprom)"))
     files["board.json"] = json.dumps(_board(profile, plan, pwm, pm, bus, build_id, table), indent=1,

@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 
 from ..board import FCY_HZ
 from ..errors import PicdriveError
+from ..profile import bus_guard
 from . import core_program
 from .core_layout import CORE_LAW, CORE_PARAMS, CORE_STATE, MU_ONE, model_class
 
@@ -194,6 +195,9 @@ class FixedPointPlan:
     stall_ms: int
     link_timeout_ms: int
     bus_voltage_v: float
+    bus_counts_per_v: float = 0.0  # AN1 counts per V of bus (profile.bus_guard)
+    bus_taper_start: int = 0     # AN1 counts: braking current full up to here (profile.bus_guard)
+    bus_taper_end: int = 0       # AN1 counts: braking current 0 from here
     kff: int = 0                 # reference feedforward, Q q_kff V/(rad/s); 0 = off
     q_kff: int = 0
     shift_ff: int = 0            # q_kff + qs - qi
@@ -363,6 +367,7 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
     the coefficient and the fix when something cannot be represented.
     """
     inv, se, co, mo = profile.inverter, profile.sensors, profile.control, profile.motor
+    guard = bus_guard(inv, strict=False)     # codegen refuses a profile without a guard window
     ts = law.sample_time_s
     loop_hz = co.speed_loop_hz
     if abs(ts * loop_hz - 1.0) > 1e-6:
@@ -549,7 +554,8 @@ def plan_fixed_point(profile, law, pwm_plan) -> FixedPointPlan:
         kb=kb_raw, q_kb=q_kb, shift_kb=shift_kb, r_cnt=r_raw, q_r=q_r, shift_r=shift_r,
         t2_pre=pre, t2_post=post, pr2=pr2, loop_div=div, tcy_per_tick=ticks, loop_hz=achieved,
         stall_ms=int(round(co.stall_timeout_ms)), link_timeout_ms=int(round(profile.uart.link_timeout_ms)),
-        bus_voltage_v=inv.bus_voltage_v, kff=kff, q_kff=q_kff, shift_ff=shift_ff,
+        bus_voltage_v=inv.bus_voltage_v, bus_counts_per_v=guard.counts_per_v,
+        bus_taper_start=guard.taper_start, bus_taper_end=guard.taper_end, kff=kff, q_kff=q_kff, shift_ff=shift_ff,
         coefs=tuple(coefs), notes=tuple(notes))
 
 
@@ -655,6 +661,7 @@ def signal_specs(plan: FixedPointPlan) -> dict[str, ParamSpec]:
         "fault": ParamSpec("fault", "uint8", 1.0, "", 0, 255, 0),
         "mu1": ParamSpec("mu1", "int16", 1.0 / MU_ONE, "1", 0, MU_ONE, MU_ONE),
         "position": ParamSpec("position", "int16", 1.0, "counts", INT16_MIN, INT16_MAX, 0),
+        "bus_voltage": ParamSpec("bus_voltage", "int16", 1.0 / plan.bus_counts_per_v, "V", 0, 1023, 0),
     }
 
 

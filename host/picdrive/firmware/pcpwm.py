@@ -25,11 +25,11 @@ import math
 from dataclasses import dataclass, field
 
 from ..board import FCY_HZ, FOSC_HZ
-from ..commutation import PHASES, hall_table
+from ..commutation import IDENT_VECTORS, PHASES, hall_table
 from ..errors import PicdriveError
 
 __all__ = ["PwmError", "FOSC_HZ", "FCY_HZ", "PwmPeriod", "DeadTime", "CommutationTable", "PwmPlan",
-           "pwm_period", "dead_time", "duty_limit", "commutation_table", "drive_state_registers",
+           "pwm_period", "dead_time", "duty_limit", "commutation_table", "drive_state_registers", "ident_vector_registers",
            "plan_pwm", "PHASES"]
 
 _PTCKPS = {1: 0b00, 4: 0b01, 16: 0b10, 64: 0b11}
@@ -136,6 +136,17 @@ def duty_limit(period: PwmPeriod, dt: DeadTime, bootstrap_refresh_ns: float,
 def drive_state_registers(source: int, sink: int) -> tuple[int, int]:
     """(OVDCOND, OVDCONS) for high side of ``source`` modulated, low side of ``sink`` on."""
     return 1 << (2 * source + 1), 1 << (2 * sink)
+
+
+def ident_vector_registers() -> tuple[tuple[int, int], ...]:
+    """(OVDCONS, OVDCOND) of each identification vector (:data:`picdrive.commutation.IDENT_VECTORS`):
+    the sources' high sides duty-driven, the sinks' low sides forced on."""
+    out = []
+    for sources, sinks in IDENT_VECTORS:
+        cond = sum(drive_state_registers(s, sinks[0])[0] for s in sources)
+        cons = sum(drive_state_registers(sources[0], k)[1] for k in sinks)
+        out.append((cons, cond))
+    return tuple(out)
 
 
 @dataclass(frozen=True)

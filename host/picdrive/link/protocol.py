@@ -226,11 +226,12 @@ class Fault(enum.IntEnum):
 
 
 class State(enum.IntEnum):
-    """Drive state (signal ``state``).  The watchdog is armed only in RUN."""
+    """Drive state (signal ``state``).  The watchdog is armed in RUN and IDENT."""
     IDLE = 0               # outputs off
     RUN = 1                # speed loop closed
     BRAKE = 2              # low sides on, braking
     FAULT = 3              # outputs off, fault latched
+    IDENT = 4              # identification: the `ident` command's vector at its duty, trips armed
 
 
 class Event(enum.IntEnum):
@@ -374,6 +375,20 @@ COMMANDS: tuple[Command, ...] = (
                    _F("uptime_ms", "I")),
             side_effects=False),
     Command("heartbeat", 0x11, "Keep the link watchdog fed; no effect otherwise.", side_effects=False),
+    Command("ident", 0x12,
+            "Identification drive (state IDENT, from IDLE or IDENT; arms the link watchdog): apply "
+            "identification vector `vector` at `duty`.  0..11: the current at -30 + 30 vector electrical "
+            "degrees (even: two phases, odd: three; picdrive.commutation.IDENT_VECTORS), held, or stepped "
+            "by one (30 deg) every |step_ms| ms, forward for step_ms > 0; 12..23: hall-driven, selection "
+            "vector - 12 (picdrive.commutation.ident_hall_vector).  The overcurrent trip, the current limit "
+            "(a fault above it), the hall, overspeed and bus checks and the link watchdog act as in RUN.  "
+            "Refused: vector > 23 or duty above the build's limit (OUT_OF_RANGE), running or braking "
+            "(WRONG_STATE), a fault latched (FAULT_ACTIVE).  A new vector applies at once: the host "
+            "changes between vectors that are not neighbours (30 deg apart, or 60 between two-phase ones) "
+            "through stop, so that no leg goes from its high side to its low side without an off period.",
+            args=(_F("vector", "B"), _F("duty", "H", "PDC counts"),
+                  _F("step_ms", "b", "0 = hold; ms per 30-degree step, the sign the direction")),
+            app=True),
 )
 COMMAND_BY_NAME = {c.name: c for c in COMMANDS}
 COMMAND_BY_CODE = {c.code: c for c in COMMANDS}
@@ -467,6 +482,7 @@ SIGNALS: tuple[ParamDef, ...] = tuple(
         ("fault", "code", 1.0, "latched fault", tuple(f.name.lower() for f in Fault)),
         ("mu1", "1", _Q14, "membership of rule 1, 0..1", ()),
         ("position", "counts", 1.0, "encoder position (wraps at 16 bits)", ()),
+        ("bus_voltage", "V", 1.0, "DC bus voltage measured on AN1 (scaled from the divider)", ()),
     )))
 
 

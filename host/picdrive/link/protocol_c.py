@@ -47,7 +47,7 @@ def _u32(name: str, v: int) -> int:
 
 _C_ROW_BYTES = 20       # id, ctype, flags, unit, scale bits, min, max, default: the param_info reply head
 _C_ROW16_BYTES = 14     # the same with min, max and default as 16 bits (widened by the entry's size code)
-_C_HANDLERS = {"start": "h_app", "stop": "h_app", "brake": "h_app", "fault_clear": "h_app",
+_C_HANDLERS = {"start": "h_app", "stop": "h_app", "brake": "h_app", "fault_clear": "h_app", "ident": "h_app",
                "heartbeat": "h_none"}
 _C_IDLE_COMMANDS = ("eeprom_save", "eeprom_load")   # refused while the motor runs or brakes
 

@@ -287,6 +287,9 @@ class SixStepResult:
     i_peak_fine: np.ndarray = field(default_factory=lambda: np.zeros(0))   # |i| + the PWM ripple above the
                                                                             # period average (pwm_ripple_peak_a)
     cap_cut: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # the backup cap cut the law's output
+    v_bus_fine: np.ndarray = field(default_factory=lambda: np.zeros(0))   # DC bus, V, every PWM period (the
+                                                                          # three-phase plant's capacitor; else
+                                                                          # the profile's bus_voltage_v)
 
     @property
     def rpm(self) -> np.ndarray:
@@ -417,6 +420,7 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     cap_cut = np.zeros(n, bool)
     nf = n * n_sub
     tf, wf, jf, pf = np.zeros(nf), np.zeros(nf), np.zeros(nf), np.zeros(nf)
+    vf = np.full(nf, float(vbus))
     ripple = {}                                      # duty -> the PWM ripple above the period average
     i, w, th = float(x0[0]), float(x0[1]), 0.0
     st = LawState(integ_v=float(integrator0_v), y_prev=w if w != 0.0 else None)
@@ -566,6 +570,7 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
             pk = abs(i)
             if cp is not None:
                 pk = pk3
+                vf[kf] = cp.state.v_bus_v
             elif v is not None and d_dir != 0 and (v == v_pos if d_dir > 0 else v == v_neg) and 0.0 < d_duty < 1.0:
                 ex = ripple.get(d_duty)
                 if ex is None:
@@ -578,7 +583,7 @@ def simulate_six_step(profile, law, *, t_end: float, ref_rpm: float | Callable[[
     return SixStepResult(t=o["t"], omega=o["omega"], y=o["y"], i=o["i"], i_meas=o["im"], u=o["u"], u_lo=o["lo"],
                          u_hi=o["hi"], direction=o["dir"], integ=o["I"], ref=o["ref"], load=o["load"],
                          cap_active=cap_on, t_fine=tf[:kf], omega_fine=wf[:kf], i_fine=jf[:kf],
-                         i_peak_fine=pf[:kf], cap_cut=cap_cut)
+                         i_peak_fine=pf[:kf], cap_cut=cap_cut, v_bus_fine=vf[:kf])
 
 
 def simulate_six_step_batch(profile, kp, ki, kd, *, t_end_s: float, ref_rad_s: float, load_n_m: float = 0.0,
