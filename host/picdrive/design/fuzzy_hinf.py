@@ -544,6 +544,27 @@ OPTIONS: dict[str, str] = {
 }
 
 
+def loop_bandwidth_rad_s(profile) -> float:
+    """The speed bandwidth the sampled loop can carry, rad/s: a quarter of the inverse of its delays.
+
+    The delays: the zero-order hold and the command applied one sample after its measurement (1.5 Ts at
+    ``control.speed_loop_hz``) and the speed measurement's lag -- half a sample for the encoder's M/T
+    measurement (a mean over the sample), half a hall sector at half the step target for the speed from
+    the halls (a sector's mean; the verification judges the drive at half the target too).  At
+    ``1 / (4 tau)`` a pure delay ``tau`` costs 0.25 rad (14 degrees) of phase, the usual allowance that keeps
+    a loop's phase margin for its own dynamics.  duy2008 (1 kHz, encoder): 125 rad/s; a 4-pole-pair motor
+    at a 3000 rpm step from the halls: 107 rad/s.
+    """
+    ts = 1.0 / float(profile.control.speed_loop_hz)
+    if profile.sensors.speed_source == "hall":
+        n_half = 0.5 * profile.speed_step_rpm()
+        sector_s = 60.0 / (max(n_half, 1.0) * profile.motor.pole_pairs * 6.0)
+        lag = 0.5 * sector_s
+    else:
+        lag = 0.5 * ts
+    return 1.0 / (4.0 * (1.5 * ts + lag))
+
+
 def default_pole_disk(profile, ts) -> float:
     """Pole-disk radius, rad/s: a quarter of the sample rate in rad/s
     (``pi/(2 Ts)``: the hold's half-sample delay costs at most 22 deg there),
@@ -716,7 +737,8 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
                       **{k: v for k, v in options.items() if k not in discrete_only}, time_domain="continuous")
         if cont.ok or drive_limit_failed(cont):
             return cont
-        return _fall_back_to_discrete(profile, cont, drive=drive, progress=progress, options=options)
+        return _fall_back_to_discrete(profile, cont, drive=drive, progress=progress, options=options,
+                                      limit_failed=drive_limit_failed)
     d = profile.design
     alpha = float(options.get("alpha", d.get("alpha", 2.0)))
     rho = float(options.get("rho", d.get("rho", 1.0)))
@@ -975,7 +997,7 @@ def _weight_margin_note(rb, above_one: bool) -> str:
     return f"overshoot {worst:.3g} % > the 0.5 % margin kept for b > 1" if worst > 0.5 else ""
 
 
-def _fall_back_to_discrete(profile, failed, *, drive, progress, options):
+def _fall_back_to_discrete(profile, failed, *, drive, progress, options, limit_failed):
     """The default continuous design failed for the law's sake: the synthesis at the loop rate, judged by the
     same verification; when it verifies it is returned with the reason in ``certificate.time_domain_fallback``
     and a warning (never silently), else the continuous failure with the loop-rate design's reason added.
@@ -983,14 +1005,37 @@ def _fall_back_to_discrete(profile, failed, *, drive, progress, options):
     the loop rate (docs/design-fuzzy.md)."""
     why = "; ".join(x[:200] for x in failed.reasons[:2]) or failed.status
     continuous_only = ("pole_disk_rad_s",)
-    disc = design(profile, drive=drive, progress=progress, variant="six-step",
-                  **{**{k: v for k, v in options.items() if k not in continuous_only}, "time_domain": "discrete"})
+    disc_opts = {**{k: v for k, v in options.items() if k not in continuous_only}, "time_domain": "discrete"}
+    disc = design(profile, drive=drive, progress=progress, variant="six-step", **disc_opts)
+    weight_note = ""
+    if not disc.ok and not limit_failed(disc) and options.get("integral_weight_rad_s") is None:
+        # the default integral weight is the motor's mechanical corner; where that is faster than the loop
+        # with its delays and speed measurement can follow, the H-inf optimum is an integrator-dominated law
+        # that overshoots (kp near 0): the design asks again for the bandwidth the loop can carry
+        m = profile.motor
+        corner = (m.viscous_friction_n_m_s + m.kt_n_m_per_a * m.kb_v_s_per_rad / m.r_line_ohm) / m.inertia_kg_m2
+        cap = loop_bandwidth_rad_s(profile)
+        if cap < corner:
+            capped = design(profile, drive=drive, progress=progress, variant="six-step",
+                            **{**disc_opts, "integral_weight_rad_s": cap})
+            weight_note = (f"integral weight {cap:.4g} rad/s (loop_bandwidth_rad_s: the loop's delays and speed "
+                           f"measurement) instead of the motor's mechanical corner {corner:.4g} rad/s, at which "
+                           f"the loop-rate design failed ({'; '.join(x[:160] for x in disc.reasons[:1]) or disc.status})")
+            capped.timings_s = {"corner_weight_attempt": float(sum(disc.timings_s.values())), **capped.timings_s}
+            if capped.ok:
+                capped.certificate["integral_weight_note"] = weight_note
+            else:
+                capped.reasons.append("at the mechanical corner's integral weight it fails too: "
+                                      + ("; ".join(x[:200] for x in disc.reasons[:1]) or disc.status))
+            disc = capped
     if not disc.ok:
         failed.reasons.append("the synthesis at the loop rate (time_domain 'discrete') fails too: "
                               + ("; ".join(x[:200] for x in disc.reasons[:1]) or disc.status))
         failed.timings_s = {"discrete_attempt": float(sum(disc.timings_s.values())), **failed.timings_s}
         return failed
     note = f"designed at the loop rate, not by the continuous Theorem 1: the continuous design failed ({why})"
+    if weight_note:
+        note += "; " + weight_note
     disc.certificate["time_domain_fallback"] = note
     disc.timings_s = {"continuous_attempt": float(sum(failed.timings_s.values())), **disc.timings_s}
     warnings.warn(f"fuzzy-hinf, profile {profile.name!r}: {note}", stacklevel=3)
