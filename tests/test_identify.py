@@ -140,3 +140,62 @@ def test_identify_on_the_processor_twin_running_the_hex():
     assert v["encoder_lines"].value == TRUE.sensors.encoder_lines
     expect = (TRUE.sensors.hall_offset_deg - 120.0 + 180.0) % 360.0 - 180.0
     assert v["hall_offset_deg"].value == pytest.approx(expect, abs=1e-9)
+
+
+# -- the fits alone, on synthetic data --------------------------------------------------------
+from picdrive.analysis import identify as fit                           # noqa: E402
+from picdrive.commutation import hall_code_at                           # noqa: E402
+import numpy as np                                                      # noqa: E402
+
+
+@pytest.mark.parametrize("offset", [-47.0, -12.5, 0.0, 17.0, 30.0, 55.0, 150.0])
+def test_hall_fit_holds_the_true_offset_and_snaps_only_a_multiple_of_30(offset):
+    codes = [int(hall_code_at(fit.lock_angle_deg(m) - 0.5, 120, offset)) for m in range(12)]
+    h = fit.fit_halls(codes, 120)
+    lo, hi = h.interval
+    assert lo - 1e-9 <= offset <= hi + 1e-9 or lo - 1e-9 <= offset - 360 <= hi + 1e-9
+    assert hi - lo <= 36.0
+    if h.snapped:
+        assert h.offset.value % 30.0 == 0.0
+
+
+def test_hall_fit_refuses_the_other_sensor_order():
+    codes = [int(hall_code_at(fit.lock_angle_deg(m), 120, 30.0)) for m in range(12)]
+    swapped = [((c & 1) << 1) | ((c >> 1) & 1) | (c & 4) for c in codes]        # sensors A and B swapped
+    assert fit.fit_halls(swapped, 120) is None
+
+
+def test_resistance_fit_removes_the_freewheel_drop():
+    r, vbus, vd = 2.5, 24.0, 0.7
+    d = np.array([0.05, 0.1, 0.15])
+    i = (d * (vbus + vd) - vd) / r
+    rr, dd = fit.fit_resistance(d, i, vbus, 1e-6)
+    assert rr.value == pytest.approx(r, rel=1e-9) and dd.value == pytest.approx(vd, rel=1e-6)
+
+
+def test_time_constant_from_residual_ratios_whatever_the_step_instant():
+    tau, lsb = 2.4e-3, 0.002
+    t = np.arange(64) * 1e-3
+    for t0 in (0.0103, 0.01057, 0.01099):        # the step lands anywhere within a sample period
+        i = np.where(t >= t0, 1.0 * (1 - np.exp(-(t - t0) / tau)), 0.0)
+        i = np.round(i / lsb) * lsb
+        got = fit.fit_time_constant(t, i, 1.0, lsb)
+        assert got.value == pytest.approx(tau, rel=0.02)
+
+
+def test_commutation_and_torque_factors_are_one_at_the_ideal_points():
+    for shape in ("trapezoidal", "sinusoidal"):
+        codes = [int(hall_code_at(fit.lock_angle_deg(m) - 0.5, 120, 30.0)) for m in range(12)]
+        sel, _ = fit.hall_selection(codes, 120, 1)
+        assert fit.commutation_factor(sel, 120, 30.0, shape) == pytest.approx(1.0, abs=1e-3)
+    assert fit.torque_factor(10.0, 1.0, 0.0, 0.1, 50.0, sel, 120, 30.0, "trapezoidal", 4) == pytest.approx(1.0, abs=1e-3)
+
+
+def test_coast_fit_recovers_inertia_and_coulomb_friction():
+    j, b, tc = 2e-4, 1e-4, 2e-3
+    t = np.arange(0, 3.0, 1e-3)
+    w0 = 300.0
+    w = (w0 + tc / b) * np.exp(-t * b / j) - tc / b
+    keep = w > 0
+    got_j, got_tc = fit.fit_coast(t[keep], w[keep], fit.Measured(b, 0.0, ""))
+    assert got_j.value == pytest.approx(j, rel=1e-3) and got_tc.value == pytest.approx(tc, rel=1e-2)
