@@ -299,6 +299,11 @@ def fit_time_constant(t_s, current, i_final: float, lsb_a: float, *, min_points:
     if slope >= 0:
         return None
     tau = -1.0 / slope
+    # the first sample showing current comes at most one period after the step: a larger share of the
+    # final current than one period of this tau allows means the residuals are not the step's
+    dt = float(t[1] - t[0])
+    if i[k0] > i_final * (1.0 - math.exp(-dt / tau)) * 1.15 + 2.0 * lsb_a:
+        return None
     return Measured(tau, tau * ss / abs(slope),
                     f"locked-rotor current step sampled at {1.0 / (t[1] - t[0]):.0f} Hz: log-linear fit of "
                     f"the {n} residuals over 4 LSB")

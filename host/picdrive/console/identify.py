@@ -341,7 +341,8 @@ def _spin_to(b: _Board, sel: int, duty: float, rpm: float, limit_rpm: float, tim
     while True:
         v = b.read("speed", "current")
         sp = abs(float(v["speed"])) * b.speed_scale
-        if sp >= min(rpm, limit_rpm) or cur_d >= duty or time.monotonic() - t0 > timeout_s:
+        # (a speed read before any duty is the estimator's last value, not this spin's)
+        if (cur_d > 0 and sp >= min(rpm, limit_rpm)) or cur_d >= duty or time.monotonic() - t0 > timeout_s:
             break
         if float(v["current"]) > 0.6 * b.i_max:
             time.sleep(0.03)
@@ -393,7 +394,7 @@ def _spins(b: _Board, res: Identification) -> None:
     # low speed first: a hall sector of at least 8 L/R, so that the winding's lag does not shift the
     # commutation the offset and Kb are read from
     tau_e = b.tau if getattr(b, "tau", None) else m.l_line_h / m.r_line_ohm
-    rpm_a = min(60.0 / (m.pole_pairs * 6 * 8 * tau_e), 0.2 * limit_rpm)
+    rpm_a = min(max(60.0 / (m.pole_pairs * 6 * 8 * tau_e), 0.05 * limit_rpm), 0.2 * limit_rpm)
     b.say(f"spins: hall-driven selections {sel_a} and {sel_b} at about {rpm_a:.0f} rpm (the offset from their "
           "speed ratio)")
     # from the held vector to a hall-driven one through one off period: no leg goes from its high
@@ -450,6 +451,16 @@ def _spins(b: _Board, res: Identification) -> None:
                             + " V s/rad at " + ", ".join(f"{p[3] * RPM:.0f}" for p in pts) + " rpm): the speed did "
                             "not settle or the load changed; run identify again with the rotor free")
     kb = fit.fit_back_emf(volts, [p[1] for p in pts], [p[3] for p in pts], b.r, ga)
+    # at light load the winding current may fall to zero within each PWM period (discontinuous
+    # conduction): the winding then sees more than d Vbus on average and Kb reads low
+    l_chk = res.values["inductance_line_h"].value if "inductance_line_h" in res.values else m.l_line_h
+    t_pwm = 1.0 / prof.inverter.pwm_frequency_hz
+    dcm = [p for p, v in zip(pts, volts)
+           if p[1] < 0.5 * (b.vbus - v) * p[0] * t_pwm / max(l_chk, 1e-12)]
+    if dcm:
+        res.notes.append(f"the spins at {', '.join(f'{p[3] * RPM:.0f}' for p in dcm)} rpm drew less current than half "
+                         "the PWM ripple (discontinuous conduction with L = "
+                         f"{l_chk * 1e3:.3g} mH): the back-EMF constant may read low by several %")
     res.values["back_emf_constant_v_s"] = kb
     res.values["torque_constant_n_m_per_a"] = Measured(kb.value, kb.sigma, "= Kb (SI units, six-step DC equivalent)")
     b.say(f"  Kb = Kt = {kb.value:.5g} +- {kb.sigma:.2g} V s/rad")
