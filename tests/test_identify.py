@@ -199,3 +199,57 @@ def test_coast_fit_recovers_inertia_and_coulomb_friction():
     keep = w > 0
     got_j, got_tc = fit.fit_coast(t[keep], w[keep], fit.Measured(b, 0.0, ""))
     assert got_j.value == pytest.approx(j, rel=1e-3) and got_tc.value == pytest.approx(tc, rel=1e-2)
+
+
+# -- the firmware's identification mode, in simulated time ------------------------------------
+from picdrive.link import codec                                          # noqa: E402
+from picdrive.link.protocol import Fault, Nack, State                    # noqa: E402
+from support.twin_uart import command                                    # noqa: E402
+
+
+def _nack(tw, name, seq, args):
+    tw.uart_write(codec.encode_command(name, seq, args))
+    dec, t_end = codec.StreamDecoder(), tw.t + 0.1
+    while tw.t < t_end:
+        tw.run(1e-3)
+        for f in dec.feed(tw.uart_read()):
+            if f.seq == seq and (f.is_nack or f.is_reply):
+                assert f.is_nack, (name, f.payload)
+                return codec.decode_nack(f.payload)[1]
+    raise AssertionError("no answer")
+
+
+def test_ident_mode_holds_steps_and_stops_on_link_loss(fw_dir):
+    tw = twin_for(TRUE, fw_dir)
+    try:
+        tw.run(0.05)
+        # out of range and in the wrong state: refused, nothing changes
+        assert _nack(tw, "ident", 1, {"vector": 24, "duty": 100, "step_ms": 0}) == Nack.OUT_OF_RANGE
+        assert _nack(tw, "ident", 2, {"vector": 0, "duty": 60000, "step_ms": 0}) == Nack.OUT_OF_RANGE
+        tw.run(0.01)
+        assert not tw.state()["outputs_active"]
+        command(tw, "start", 3)
+        assert _nack(tw, "ident", 4, {"vector": 0, "duty": 100, "step_ms": 0}) == Nack.WRONG_STATE
+        command(tw, "stop", 5)
+        # a held vector turns the rotor to its lock, a stepped one spins it forward
+        command(tw, "ident", 6, {"vector": 4, "duty": 200, "step_ms": 0})
+        for k in range(6):                   # heartbeats keep the watchdog fed while the rotor settles
+            tw.run(0.2)
+            command(tw, "heartbeat", 20 + k)
+        st = tw.state()
+        assert st["outputs_active"]
+        th = math.degrees(st["angle_rad"] * TRUE.motor.pole_pairs) % 360.0
+        assert abs((th - fit.lock_angle_deg(4) + 180.0) % 360.0 - 180.0) < 5.0
+        command(tw, "ident", 7, {"vector": 4, "duty": 300, "step_ms": 5})
+        tw.run(0.4)
+        # 30 electrical degrees every 5 ms: 1 / (12 x 5 ms x P) turns/s
+        assert tw.state()["speed_rad_s"] == pytest.approx(2 * math.pi / (12 * 5e-3 * TRUE.motor.pole_pairs), rel=0.05)
+        # no command for longer than the link timeout: the watchdog latches link_lost, outputs off
+        tw.run(0.6)
+        st = tw.state()
+        assert not st["outputs_active"] and not st["shoot_through"]
+        command(tw, "status", 8)
+        assert command(tw, "status", 9)["fault"] == Fault.LINK_LOST
+        assert command(tw, "status", 10)["state"] == State.FAULT
+    finally:
+        tw.close()
