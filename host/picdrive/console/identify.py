@@ -72,8 +72,13 @@ class _Board:
 
     # -- commands -----------------------------------------------------------
     def ident(self, vector: int, duty: float, step_ms: int = 0) -> None:
+        from ..link.client import NackError
         pdc = int(round(min(max(duty, 0.0), self.pdc_max / self.full) * self.full))
-        self.link.request("ident", {"vector": int(vector), "duty": pdc, "step_ms": int(step_ms)})
+        try:
+            self.link.request("ident", {"vector": int(vector), "duty": pdc, "step_ms": int(step_ms)})
+        except NackError:
+            self.check(f"vector {vector}")          # a latched fault, named
+            raise
 
     def off(self) -> None:
         self.link.stop()
@@ -184,6 +189,10 @@ def identify(link, profile, *, progress: Callable[[str], None] = print) -> Ident
     except IdentifyError as e:
         e.partial = res
         raise
+    except PicdriveError as e:                 # the link: a timeout, a refused command
+        err = IdentifyError(f"the board stopped answering as expected: {e}; the motor was told to stop")
+        err.partial = res
+        raise err from None
     except KeyboardInterrupt:
         res.notes.append("interrupted (Ctrl-C): the motor was stopped")
         raise
@@ -232,6 +241,10 @@ def _hall_sweep(b: _Board, res: Identification) -> None:
     b.say("hall sweep: the rotor held at 12 vectors, 30 electrical degrees apart")
     codes, pos = [], []
     for k in range(13):
+        # a third of the holding current first: the rotor moves to the new lock gently (a snap at full
+        # current can pass the overspeed trip of a hall-speed build), then the full current holds it
+        b.ident(k % 12, b.align_duty / 3.0)
+        time.sleep(0.06)
         b.ident(k % 12, b.align_duty)
         code, p = _settle_lock(b)
         b.check(f"hall sweep, vector {k % 12}")
@@ -338,11 +351,13 @@ def _spin_to(b: _Board, sel: int, duty: float, rpm: float, limit_rpm: float, tim
     cur_d = getattr(b, "spin_duty", 0.0)
     step = max(0.1 * b.i_max * b.r.value / b.vbus, 1.0 / b.full)
     t0 = time.monotonic()
+    above = 0
     while True:
         v = b.read("speed", "current")
         sp = abs(float(v["speed"])) * b.speed_scale
-        # (a speed read before any duty is the estimator's last value, not this spin's)
-        if (cur_d > 0 and sp >= min(rpm, limit_rpm)) or cur_d >= duty or time.monotonic() - t0 > timeout_s:
+        # two reads in a row at the target (one can be the speed estimator's last value from before)
+        above = above + 1 if (cur_d > 0 and sp >= min(rpm, limit_rpm)) else 0
+        if above >= 2 or cur_d >= duty or time.monotonic() - t0 > timeout_s:
             break
         if float(v["current"]) > 0.6 * b.i_max:
             time.sleep(0.03)
@@ -402,6 +417,9 @@ def _spins(b: _Board, res: Identification) -> None:
     b.off()
     time.sleep(0.01)
     b.spin_duty = 0.0
+    t_end = time.monotonic() + 1.0          # the speed estimate back at rest after the sweep's moves
+    while time.monotonic() < t_end and abs(float(b.read("speed")["speed"])) > 0.01 * limit_rpm:
+        time.sleep(0.05)
     d1, _ = _spin_to(b, sel_a, d_top, rpm_a, limit_rpm, timeout)
     i_a, si_a, w_a = _point(b)
     b.ident(12 + sel_b, d1)
