@@ -328,6 +328,7 @@ def _inductance(b: _Board, res: Identification) -> None:
     b.ident(0, d)
     cap = link.capture_read(timeout=5.0)
     b.check("inductance")
+    b.off()                                  # outputs off while the host computes
     t = cap.data["t"]
     i = cap.data["current"]
     i_final = float(np.mean(i[-max(4, n // 4):]))
@@ -394,14 +395,22 @@ def _spins(b: _Board, res: Identification) -> None:
     hf = b.hall
     spacing = se.hall_spacing_deg
     lo, hi = hf.interval
-    offs = np.arange(lo, hi + 1e-9, 0.25)
+    offs = np.arange(lo, hi + 1e-9, 0.5)
+
+    cache: dict = {}
 
     def g(sel, o):
-        return fit.commutation_factor(sel, spacing, o, m.back_emf_shape)
+        key = (sel, round(float(o), 6))
+        if key not in cache:
+            cache[key] = fit.commutation_factor(sel, spacing, o, m.back_emf_shape)
+        return cache[key]
     # the selection best over the whole interval, and its neighbour that says most about the offset
     sel_a = max(range(12), key=lambda s: min(g(s, o) for o in (lo, 0.5 * (lo + hi), hi)))
     nb = [(sel_a // 6) * 6 + (sel_a % 6 + k) % 6 for k in (1, 5)]
     sel_b = max(nb, key=lambda s: g(s, 0.5 * (lo + hi)))
+    # the ratio the offset is read from, computed before the motor turns: no long computation while
+    # it spins (the link's keep-alive stops when the program stops calling it)
+    gr = np.array([g(sel_b, o) / g(sel_a, o) for o in offs])
     limit_rpm = 0.8 * prof.control.speed_max_rpm
     tau_m = m.inertia_kg_m2 * m.r_line_ohm / max(m.kt_n_m_per_a ** 2, 1e-12)
     timeout = min(max(3.0, 16 * tau_m), 12.0)
@@ -432,7 +441,6 @@ def _spins(b: _Board, res: Identification) -> None:
                             f"{w_b * RPM:.0f} rpm at duty {d1:.3f}): a stalled rotor or a load too large for the "
                             "test current")
     ratio = ((v1 - b.r.value * i_b) / w_b) / ((v1 - b.r.value * i_a) / w_a)
-    gr = np.array([g(sel_b, o) / g(sel_a, o) for o in offs])
     k = int(np.argmin(np.abs(gr - ratio)))
     o_est = float(offs[k])
     slope = float(np.gradient(gr, offs)[k]) if len(offs) > 2 else 0.0
