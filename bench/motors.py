@@ -110,6 +110,8 @@ def judge(case: dict) -> list[str]:
     """What a case breaks (empty: fine).  A refusal must name a reason; a verified design must be
     flashable (its chip build within every budget) and behave in the twin within the tolerances
     above of its verification and pass its limits."""
+    if case["outcome"] == "error":
+        return [f"raised instead of refusing: {case['reason']}"]
     if case["outcome"] == "refused":
         return [] if case.get("reason", "").strip() else ["refused without a reason"]
     tw, mo, tgt = case["twin"], case["model"], case["target_rpm"]
@@ -139,19 +141,41 @@ def judge(case: dict) -> list[str]:
     return bad
 
 
+def checked_case(profile_path: str, method: str) -> dict:
+    """:func:`run_case`, with an exception picdrive raised where it should have refused recorded as the
+    case's outcome ``error`` (a bug: :func:`judge` fails it), so one crash does not lose the other cases."""
+    import traceback
+    try:
+        return run_case(profile_path, method)
+    except Exception as e:          # noqa: BLE001 -- recorded and judged as a failure, never hidden
+        where = traceback.extract_tb(e.__traceback__)[-1]
+        return {"profile": Path(profile_path).stem, "method": method, "source": "", "outcome": "error",
+                "stage": "design", "reason": f"{type(e).__name__}: {e} (at {Path(where.filename).name}:{where.lineno})"}
+
+
 def run_all(names=None, jobs: int | None = None) -> list[dict]:
+    """Every case; each one's outcome printed to stderr as it ends (a full run is about an hour)."""
     paths = [p for p in profiles() if not names or p.stem in names]
     cases = [(str(p), m) for p in paths for m in METHODS]
     jobs = jobs or min(2, os.cpu_count() or 1)
+    out = []
+
+    def seen(c):
+        out.append(c)
+        print(f"[{len(out)}/{len(cases)}] {c['profile']} {c['method']}: {c['outcome']}"
+              f"{' (' + c['stage'] + ')' if c['outcome'] != 'verified' else ''}", file=sys.stderr, flush=True)
+        return c
     if jobs <= 1:
-        return [run_case(*c) for c in cases]
+        return [seen(checked_case(*c)) for c in cases]
     with ProcessPoolExecutor(max_workers=jobs) as ex:
-        return list(ex.map(run_case, *zip(*cases)))
+        return [seen(c) for c in ex.map(checked_case, *zip(*cases))]
 
 
 def cell(case: dict) -> str:
     if case["outcome"] == "refused":
         return f"refused ({case['stage']}): {_short(case['reason']).replace('|', '/')}"
+    if case["outcome"] == "error":
+        return f"ERROR ({case['stage']}): {_short(case['reason']).replace('|', '/')}"
     tw, mo = case["twin"], case["model"]
     plant = {"six-step-averaged": "averaged model; ", "six-step": "DC equivalent; "}.get(case.get("plant_model"), "")
     if case.get("plant_model_fallback"):

@@ -166,7 +166,14 @@ def _read(sm, prob, var, status, radius, dt) -> DiscreteSolution:
     # K_j = [K_m, 0] exactly (the structure makes the unmeasured part zero up to rounding)
     K = [np.hstack([k[:, :nm], np.zeros((1, k.shape[1] - nm))]) for k in K]
     sol.K = K
-    marg = dlmi_margins(sm, sol.Q, G, Y, sol.gamma, Qd=sol.Qd, radius=radius)
+    try:
+        marg = dlmi_margins(sm, sol.Q, G, Y, sol.gamma, Qd=sol.Qd, radius=radius)
+    except np.linalg.LinAlgError:
+        # a point with finite entries so large (SCS's, seen at 1e300) that the LMIs' eigenvalues do not
+        # converge: no certificate, said as such rather than raised
+        sol.K = []
+        sol.extra["why"] = "the solver's point is numerically unusable (the LMIs' eigenvalues do not converge there)"
+        return sol
     sol.max_eig = max(marg.values())
     sol.extra["lmi_margins"] = marg
     sol.feasible = sol.max_eig < 0.0
