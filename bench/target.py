@@ -24,6 +24,8 @@ Usage:
   python3 bench/target.py --design duy2008.fuzzy-hinf --no-baseline
   python3 bench/target.py --no-baseline --reference-feedforward   # also each design with the
       # reference feedforward compiled in ("today+ff": control.reference_feedforward, the DC gain)
+  python3 bench/target.py --no-baseline --identify   # also each design's identification build
+      # ("today+id": picdrive firmware --identify)
 
 A design whose profile takes the speed from the halls is also built with the halls on the
 input-capture pins ("today-ic", picdrive firmware --hall-input ic) beside the default INT0..INT2;
@@ -48,7 +50,8 @@ BASELINE_COMMIT = "c0631cc"
 HERE = Path(__file__).resolve().parent
 
 
-def generate_new(design: Path, out: Path, reference_ff: bool = False, hall_input: str = "auto") -> tuple[Path, str]:
+def generate_new(design: Path, out: Path, reference_ff: bool = False, hall_input: str = "auto",
+                 identify: bool = False) -> tuple[Path, str]:
     profile = load_profile(json.loads(design.read_text())["profile"]["name"])
     if reference_ff:                # the design's law with the reference feedforward's gain set
         import dataclasses
@@ -58,7 +61,7 @@ def generate_new(design: Path, out: Path, reference_ff: bool = False, hall_input
         res = dataclasses.replace(res, law=with_reference_ff(profile, res.law))
         out.parent.mkdir(parents=True, exist_ok=True)
         design = save_design(res, out.parent / "ff.design.json")
-    fw = codegen.generate(profile, design, hall_input=hall_input)
+    fw = codegen.generate(profile, design, hall_input=hall_input, identify=identify)
     codegen.write_firmware(fw, out)
     return out, fw.name
 
@@ -122,6 +125,8 @@ def main() -> int:
     ap.add_argument("--no-baseline", action="store_true", help="skip today's-build-before-the-rewrite baseline")
     ap.add_argument("--reference-feedforward", action="store_true",
                     help="also measure each design with the reference feedforward compiled in (today+ff)")
+    ap.add_argument("--identify", action="store_true",
+                    help="also measure each design's identification build (today+id: picdrive firmware --identify)")
     a = ap.parse_args()
     designs = sorted((repo_root() / "examples").glob("*.design.json"))
     if a.design:
@@ -150,6 +155,9 @@ def main() -> int:
             if a.reference_feedforward:
                 folder, name = generate_new(d, work / stem / "ff" / "fw", reference_ff=True)
                 runs["today+ff"] = measure(folder, name, work / stem / "ff")
+            if a.identify:
+                folder, name = generate_new(d, work / stem / "id" / "fw", identify=True)
+                runs["today+id"] = measure(folder, name, work / stem / "id")
             if not a.no_baseline and (baseline_tree(work) / "examples" / d.name).is_file():
                 folder, name = generate_baseline(d, work / stem / "base" / "fw", work)
                 runs["baseline"] = measure(folder, name, work / stem / "base",
@@ -157,7 +165,7 @@ def main() -> int:
             for mode in gpsim.TELEMETRY_MODES:
                 print(f"{stem}, telemetry {mode}")
                 print(head)
-                for label in ("baseline", "today", "today-ic", "today+ff"):
+                for label in ("baseline", "today", "today-ic", "today+ff", "today+id"):
                     if label in runs:
                         b, cm = runs[label]
                         print(_row(label, b, cm[mode], period))

@@ -122,11 +122,12 @@ def test_cli_refuses_bad_input_and_writes_nothing(tmp_path):
 
 
 @pytest.mark.slow
-def test_identify_on_the_processor_twin_running_the_hex():
-    """The bundled firmware's HEX on the PIC18 simulator (built from the true profile; identify
-    starts from the wrong one): the same values within the targets as on the software twin."""
-    fw = REPO / "firmware_build" / "duy2008"
-    tw = twin_for(TRUE, fw, hall_perm=(2, 0, 1), hex_file=fw / "duy2008.hex")
+def test_identify_on_the_processor_twin_running_the_hex(tmp_path):
+    """The identification build's HEX (picdrive firmware --identify, from the true profile;
+    identify starts from the wrong one) on the PIC18 simulator: the same values within the
+    targets as on the software twin."""
+    fw = firmware_for(TRUE, tmp_path, hex_build=True)
+    tw = twin_for(TRUE, fw, hall_perm=(2, 0, 1), hex_file=fw / f"{TRUE.name}.hex")
     try:
         res = _run(tw, wrong_profile(TRUE))
         st = tw.state()
@@ -252,4 +253,79 @@ def test_ident_mode_holds_steps_and_stops_on_link_loss(fw_dir):
         assert command(tw, "status", 9)["fault"] == Fault.LINK_LOST
         assert command(tw, "status", 10)["state"] == State.FAULT
     finally:
+        tw.close()
+
+
+# -- a drive build (without --identify) has no identification mode --------------------------------
+@pytest.fixture(scope="module")
+def drive_fw_dir(tmp_path_factory):
+    return firmware_for(TRUE, tmp_path_factory.mktemp("drivefw"), identify=False)
+
+
+def test_drive_build_has_no_ident_mode_and_nacks_the_command(drive_fw_dir):
+    """The default build: none of the mode's code, tables or RAM in the sources, hello's features
+    say so, and ident is NACKed UNKNOWN_COMMAND with nothing changed on the board."""
+    for f in ("drive.c", "drive_params.h", "link_fw.c"):
+        text = (drive_fw_dir / f).read_text()
+        for sym in ("ident_ovd", "ident_pos", "ident_m", "ident_step", "FW_IDENT_", "LINK_STATE_IDENT"):
+            assert sym not in text, (f, sym)
+    assert "case LINK_CMD_IDENT" not in (drive_fw_dir / "drive.c").read_text()
+    assert "#define LINK_FEATURES           0u" in (drive_fw_dir / "link_fw.h").read_text()
+    tw = twin_for(TRUE, drive_fw_dir)
+    try:
+        tw.run(0.05)
+        assert command(tw, "hello", 1)["features"] == [0]
+        assert _nack(tw, "ident", 2, {"vector": 4, "duty": 200, "step_ms": 0}) == Nack.UNKNOWN_COMMAND
+        tw.run(0.05)
+        assert not tw.state()["outputs_active"]
+        assert command(tw, "status", 3)["state"] == State.IDLE
+    finally:
+        tw.close()
+
+
+def test_ident_build_says_so_in_hello(fw_dir):
+    assert "#define LINK_FEATURES           1u" in (fw_dir / "link_fw.h").read_text()
+    tw = twin_for(TRUE, fw_dir)
+    try:
+        tw.run(0.05)
+        assert command(tw, "hello", 1)["features"] == [1]
+    finally:
+        tw.close()
+
+
+def test_identify_refuses_a_build_without_the_mode_before_any_command(drive_fw_dir):
+    """Against the drive build: refused from hello alone (the board sees only hello and the
+    table's param_info reads), outputs stay off, the fix named."""
+    tw = twin_for(TRUE, drive_fw_dir)
+    srv = tw.serve(port=0, realtime=True)
+    link = Link.open(srv.url)
+    try:
+        link.handshake()
+        assert link.info.has_ident is False
+        sent = []
+        request = link.request
+        link.request = lambda cmd, *a, **k: (sent.append(cmd), request(cmd, *a, **k))[1]
+        with pytest.raises(IdentifyError, match=r"no identification mode.*picdrive firmware --identify"):
+            identify(link, wrong_profile(TRUE), progress=lambda s: None)
+        assert sent == []
+        assert not tw.state()["outputs_active"]
+    finally:
+        link.close()
+        srv.stop()
+        tw.close()
+
+
+def test_cli_refuses_a_build_without_the_mode_and_writes_nothing(drive_fw_dir, tmp_path):
+    tw = twin_for(TRUE, drive_fw_dir)
+    srv = tw.serve(port=0, realtime=True)
+    out = tmp_path / "m.toml"
+    try:
+        r = subprocess.run([sys.executable, "-m", "picdrive", "identify", srv.url, "--profile", "duy2008",
+                            "-o", str(out)], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        assert "no identification mode" in r.stderr and "picdrive firmware --identify" in r.stderr
+        assert not out.exists()
+        assert not tw.state()["outputs_active"]
+    finally:
+        srv.stop()
         tw.close()

@@ -3,7 +3,7 @@
  * duplicate-SEQ replay, parameter store with range checks, EEPROM image, telemetry, triggered
  * capture, link-loss watchdog.
  * Rendered by picdrive.link.protocol_c.render_c() from host/picdrive/link/protocol.py.  DO NOT EDIT.
- * protocol 2.0, table hash 0xA892BE6EUL
+ * protocol 2.1, table hash 0xA892BE6EUL
  *
  * Written for an 8-bit core (PIC18, SDCC or XC8): no heap, no floating point (scales are
  * float32 bit patterns, only reported), no run-time multiplication or division (sizes are
@@ -75,12 +75,12 @@ link_params_t link_params;
 #define ROM_OFF            434u   /* 31 B */
 #define ROM_SIZE           465u   /* 31 B */
 #define ROM_NAME_LEN       496u   /* 31 B */
-#define ROM_HELLO          527u   /* 20 B */
-#define ROM_CMD            547u   /* 18 B */
-#define ROM_NAMES          565u   /* 262 B */
-#define ROM_EE_HEAD        827u   /* 8 B */
-#define ROM_PERSIST        835u   /* 18 B */
-static const uint8_t link_rom[853] = {
+#define ROM_HELLO          527u   /* 21 B */
+#define ROM_CMD            548u   /* 18 B */
+#define ROM_NAMES          566u   /* 262 B */
+#define ROM_EE_HEAD        828u   /* 8 B */
+#define ROM_PERSIST        836u   /* 18 B */
+static const uint8_t link_rom[854] = {
     /* ROM_ROWS */
     0x00u, 0x04u, 0x01u, 0x01u, 0xEBu, 0xC9u, 0x18u, 0x3Eu, 0xEFu, 0xBBu, 0x11u, 0x44u, 0x00u, 0x00u,   /* speed_setpoint */
     0x01u, 0x01u, 0x03u, 0x0Cu, 0x00u, 0x00u, 0x80u, 0x3Fu, 0x00u, 0x00u, 0x01u, 0x00u, 0x01u, 0x00u,   /* controller */
@@ -136,6 +136,7 @@ static const uint8_t link_rom[853] = {
     (uint8_t)(LINK_PROFILE_HASH >> 16u), (uint8_t)(LINK_PROFILE_HASH >> 24u), (uint8_t)LINK_TABLE_HASH, (uint8_t)(LINK_TABLE_HASH >> 8u),
     (uint8_t)(LINK_TABLE_HASH >> 16u), (uint8_t)(LINK_TABLE_HASH >> 24u), LINK_N_ENTRIES, LINK_MAX_PAYLOAD,
     (uint8_t)LINK_HELLO_CAPTURE_WORDS, (uint8_t)(LINK_HELLO_CAPTURE_WORDS >> 8u), (uint8_t)LINK_SAMPLE_HZ, (uint8_t)(LINK_SAMPLE_HZ >> 8u),
+    LINK_FEATURES,
     /* ROM_CMD */
     0x00u, 0x01u, 0x7Fu, 0x05u, 0x04u, 0x00u, 0x00u, 0x00u, 0x01u, 0x05u, 0x0Bu, 0x03u,
     0x80u, 0x80u, 0x00u, 0x00u, 0x00u, 0x04u,
@@ -1671,8 +1672,7 @@ static void tx_drain(void)
 static uint8_t drive_busy(void)
 {
     int16_t st = app_signal(LINK_SIG_STATE);
-    return (uint8_t)(st == (int16_t)LINK_STATE_RUN || st == (int16_t)LINK_STATE_BRAKE
-                     || st == (int16_t)LINK_STATE_IDENT);
+    return (uint8_t)(st == (int16_t)LINK_STATE_RUN || st == (int16_t)LINK_STATE_BRAKE);
 }
 
 #if defined(__SDCC_pic16)
@@ -1714,7 +1714,7 @@ static uint8_t h_hello(void) __naked
     MOVWF   (_link_hot + LH_RO), A
     MOVLW   2
     MOVWF   (_link_hot + LH_RO + 1), A
-    MOVLW   20
+    MOVLW   21
     CALL    _rom_copy
     RETLW   0
     __endasm;
@@ -1765,7 +1765,7 @@ static uint8_t h_param_info(void) __naked
     MOVWF   (_link_hot + LH_RO), A
     MOVLW   1
     MOVWF   (_link_hot + LH_RO + 1), A
-    MOVLW   53             ; PROD = ROM_NAMES
+    MOVLW   54             ; PROD = ROM_NAMES
     MOVWF   _PRODL, A
     MOVLW   2
     MOVWF   _PRODH, A
@@ -1819,7 +1819,7 @@ static uint8_t h_hello(void)
 {
     link_hot.n = 0u;
     rom_at(ROM_HELLO);
-    rom_copy(20u);
+    rom_copy(21u);
     return 0u;
 }
 
@@ -2549,7 +2549,7 @@ static uint8_t send_event(void)
 static void wd_arm(void)
 {
     int16_t st = app_signal(LINK_SIG_STATE);
-    S.wd_armed = (uint8_t)(st == (int16_t)LINK_STATE_RUN || st == (int16_t)LINK_STATE_IDENT);
+    S.wd_armed = (uint8_t)(st == (int16_t)LINK_STATE_RUN);
 }
 
 #if defined(__SDCC_pic16)

@@ -2,8 +2,8 @@
  * link_fw.h -- picdrive serial link, C side.
  * Rendered by picdrive.link.protocol_c.render_c() from host/picdrive/link/protocol.py.  DO NOT EDIT.
  *
- * protocol 2.0, 31 table entries (2 rules),
- * table hash 0xA892BE6EUL, build id 0xEDA7E672UL, profile hash 0x4B0E5FBAUL
+ * protocol 2.1, 31 table entries (2 rules),
+ * table hash 0xA892BE6EUL, build id 0xBA71C15AUL, profile hash 0x4B0E5FBAUL
  *
  * Frame on the wire: COBS(body) then the delimiter 0x00, which never occurs inside a frame; the
  * host also sends a 0x00 before each command.  Body: LEN (0..40), TYPE, SEQ, payload,
@@ -48,8 +48,8 @@
 #endif
 
 #define LINK_PROTO_MAJOR        2u
-#define LINK_PROTO_MINOR        0u
-#define LINK_BUILD_ID           0xEDA7E672UL
+#define LINK_PROTO_MINOR        1u
+#define LINK_BUILD_ID           0xBA71C15AUL
 #define LINK_PROFILE_HASH       0x4B0E5FBAUL
 #define LINK_TABLE_HASH         0xA892BE6EUL
 #define LINK_SAMPLE_HZ          1000u
@@ -83,6 +83,8 @@
 #else
 #define LINK_HELLO_CAPTURE_WORDS 0u        /* hello: no capture in this build */
 #endif
+/* hello's features (bit 0: the application implements ident, the identification mode) */
+#define LINK_FEATURES           0u
 #ifndef LINK_ACCESS_AT            /* SDCC: access-bank address of the link's hot scalars (27 B at most), */
 #define LINK_ACCESS_AT          0x25  /* ending at 0x3F: SDCC's registers and drive_core's access RAM below */
 #endif

@@ -16,11 +16,12 @@ from picdrive.result import DesignResult, save_design
 PERMUTATIONS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
 
 
-def firmware_for(profile, root: Path, *, hex_build: bool = False) -> Path:
-    """A firmware folder of ``profile`` (a PI law), generated once under ``root``."""
+def firmware_for(profile, root: Path, *, hex_build: bool = False, identify: bool = True) -> Path:
+    """The identification firmware (``picdrive firmware --identify``) of ``profile`` (a PI law),
+    generated once under ``root``; ``identify=False``: the drive firmware, without the mode."""
     from picdrive.firmware import codegen
     tag = hashlib.sha256(profile.sha256.encode()).hexdigest()[:10]
-    out = Path(root) / f"{profile.name}.{tag}"
+    out = Path(root) / f"{profile.name}.{tag}" if not identify else Path(root) / f"{profile.name}.{tag}.ident"
     if (out / "board.json").exists() and (not hex_build or (out / f"{profile.name}.hex").exists()):
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -33,7 +34,7 @@ def firmware_for(profile, root: Path, *, hex_build: bool = False) -> Path:
     d = DesignResult(method="zn", status="verified", profile_name=profile.name, profile_sha256=profile.sha256,
                      law=law, variant="six-step")
     dpath = save_design(d, Path(root) / f"{profile.name}.{tag}.design.json")
-    fw = codegen.generate(profile, dpath)
+    fw = codegen.generate(profile, dpath, identify=identify)
     return codegen.write_firmware(fw, out, check=False, hex_build=hex_build)
 
 

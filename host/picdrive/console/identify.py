@@ -73,10 +73,13 @@ class _Board:
     # -- commands -----------------------------------------------------------
     def ident(self, vector: int, duty: float, step_ms: int = 0) -> None:
         from ..link.client import NackError
+        from ..link.protocol import Nack
         pdc = int(round(min(max(duty, 0.0), self.pdc_max / self.full) * self.full))
         try:
             self.link.request("ident", {"vector": int(vector), "duty": pdc, "step_ms": int(step_ms)})
-        except NackError:
+        except NackError as e:
+            if e.code == Nack.UNKNOWN_COMMAND:      # a build that does not say in hello (protocol 2.0)
+                raise IdentifyError(NO_IDENT_MODE) from None
             self.check(f"vector {vector}")          # a latched fault, named
             raise
 
@@ -162,10 +165,20 @@ def _record(b: _Board, seconds: float) -> np.ndarray:
         b.link.stop_telemetry()
 
 
+NO_IDENT_MODE = ("the board's firmware has no identification mode (hello: no ident feature); nothing was "
+                 "commanded. Generate the identification build with 'picdrive firmware --identify --profile P "
+                 "--design D', flash it, run 'picdrive identify' again, then flash the drive firmware (built "
+                 "without --identify) back")
+
+
 def identify(link, profile, *, progress: Callable[[str], None] = print) -> Identification:
     """Run the measurement on a connected board (handshake done).  Raises :class:`IdentifyError`
     on a refusal or fault; the :class:`Identification` passed in ``exc.partial`` holds what was
-    measured before it.  The motor is stopped on every exit."""
+    measured before it.  The motor is stopped on every exit.  A build without the identification
+    mode (hello's features) is refused before any command."""
+    info = getattr(link, "info", None)
+    if info is not None and info.has_ident is False:
+        raise IdentifyError(NO_IDENT_MODE)
     res = Identification()
     b = _Board(link, profile, progress)
     old_limit = None
@@ -661,8 +674,9 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "identify", help="measure the motor on the board and write the profile it makes",
         description="Measure the motor's hall table and offset, encoder lines, R and L (line-to-line), Kb = Kt, "
-                    "J and friction on the board (any picdrive firmware of this profile's board), and write "
-                    "a profile with those values that 'picdrive design' takes.")
+                    "J and friction on the board, and write a profile with those values that 'picdrive design' "
+                    "takes.  The board runs the identification firmware of this profile ('picdrive firmware "
+                    "--identify'); flash the drive firmware back afterwards.")
     p.add_argument("url", help="serial URL of the board or the twin (/dev/ttyUSB0, COM5, socket://HOST:PORT)")
     p.add_argument("--profile", required=True, help="the drive profile (name or path): its [inverter], [sensors] "
                                                    "and [control] describe the board; its [motor] may be rough")

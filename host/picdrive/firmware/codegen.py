@@ -196,7 +196,7 @@ def _config_bits(pm, speed_loop_hz: float) -> list[tuple[str, str, str]]:
     return cfg
 
 
-def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
+def _sections(profile, design, plan, pwm, pm, brg, baud, bus, ident=False) -> list[dict]:
     inv, co = profile.inverter, profile.control
     t = pwm.table
     per, dt = pwm.period, pwm.dead
@@ -233,13 +233,14 @@ def _sections(profile, design, plan, pwm, pm, brg, baud, bus) -> list[dict]:
            "the low side of the sink phase; one table pointer reads both"),
         _d("FW_HALL_NEXT", ", ".join(str(_next_code(t, c)) for c in range(8)),
            "next code in forward rotation (hall-speed direction)"),
+    ] + ([
         _d("FW_IDENT_OVD", ", ".join(f"{_hex8(cs)}, {_hex8(cd)}" for cs, cd in ident_vector_registers()),
            "identification vectors m = 0..11 (commutation.IDENT_VECTORS, current at -30 + 30 m deg): "
            "OVDCONS, OVDCOND at 2 m, 2 m + 1"),
         _d("FW_IDENT_POS", ", ".join(f"{_ident_pos(t.hall_spacing_deg).get(c, 255)}u" for c in range(8)),
            "hall code -> place in the forward sequence at offset 0 (0xFF outside it): the hall-driven "
            "identification selections (commutation.ident_hall_vector)"),
-    ]})
+    ] if ident else [])})
     hall_int = pm.hall_input == "int"
     tr = pm.tris()
     S.append({"title": "pins (pinmap.choose_pinmap)", "defines": [
@@ -401,7 +402,7 @@ def _protocol_overrides(plan, profile):
 
 def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str = "RC1",
              name: str | None = None, link_capture: bool = True, link_eeprom: bool = True,
-             capture_bytes: int = CAPTURE_BYTES) -> Firmware:
+             capture_bytes: int = CAPTURE_BYTES, identify: bool = False) -> Firmware:
     """Plan and render the firmware (nothing is written).
 
     Parameters
@@ -424,6 +425,11 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
         answers eeprom_save/eeprom_load EEPROM_ERROR and boots with the defaults).
     capture_bytes : int
         The capture buffer, B (even, 16..256).
+    identify : bool
+        Generate the identification mode (``picdrive identify``: the ``ident`` command, state
+        IDENT, its vector tables and hall-driven selection; about 0.8 kB of flash and 2 B of RAM).
+        Without it the build has none of that code, NACKs ``ident`` UNKNOWN_COMMAND and says so
+        in hello's ``features``.
 
     Returns
     -------
@@ -463,7 +469,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     options = {"hall_input": hall_input, "fault_pin": fault_pin}
     # link options enter the build id only when they differ from the default (ids stay as they were)
     for k, v, d in (("link_capture", bool(link_capture), True), ("link_eeprom", bool(link_eeprom), True),
-                    ("capture_bytes", capture_bytes, CAPTURE_BYTES)):
+                    ("capture_bytes", capture_bytes, CAPTURE_BYTES), ("identify", bool(identify), False)):
         if v != d:
             options[k] = v
     build_id, digest = _inputs_hash(profile, design_bytes, options)
@@ -474,7 +480,7 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
         table = protocol.build_table(plan.n_rules, _protocol_overrides(plan, profile), profile=profile)
         link = protocol_c.render_c(table, build_id, profile_hash, sample_hz=plan.loop_hz,
                                    capture_bytes=capture_bytes, capture=bool(link_capture),
-                                   eeprom=bool(link_eeprom),
+                                   eeprom=bool(link_eeprom), identify=bool(identify),
                                    critical_begin="extern void fw_lock(void); fw_lock();",
                                    critical_end="extern void fw_unlock(void); fw_unlock();",
                                    sfr_bits=p18f4431.bits())
@@ -485,7 +491,8 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
                    + f", {design.law.n_rules} rule(s), status {design.status}")
     gen_note = f"profile {profile.name}, design {design_path.name}, build 0x{build_id:08X}"
     ctx = dict(gen_note=gen_note, profile_name=profile.name, profile_sha=profile.sha256, design_desc=design_desc,
-               build_id=build_id, sections=_sections(profile, design, plan, pwm, pm, brg, baud, bus),
+               build_id=build_id, sections=_sections(profile, design, plan, pwm, pm, brg, baud, bus, bool(identify)),
+               ident=bool(identify),
                config=_config_bits(pm, profile.control.speed_loop_hz), eeprom_gptr_stubs=EEPROM_GPTR_STUBS, n_rules=plan.n_rules,
                link_id={e.name: e.id for e in table.entries}, link_off=_store_offsets(table),
                signal_index={e.name: i for i, e in enumerate(table.signals)},
@@ -518,6 +525,8 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     summary += ["            " + ln for ln in bus["lines"]]
     summary.append("link        " + (f"capture ({capture_bytes} B buffer)" if link_capture else "no capture (--no-capture)")
                    + ", " + ("EEPROM persistence" if link_eeprom else "no EEPROM persistence (--no-eeprom)"))
+    summary.append("ident       " + ("identification mode (--identify: picdrive identify; flash the drive build "
+                                     "back after it)" if identify else "no identification mode (--identify adds it)"))
     files["board.json"] = json.dumps(_board(profile, plan, pwm, pm, bus, build_id, table), indent=1,
                                      sort_keys=True) + "\n"
     files["Makefile"] = _makefile(name)
@@ -757,7 +766,8 @@ def _cmd(args) -> int:
     out = dir_output(args.output if args.output else Path("firmware_build") / profile.name,
                      what="firmware folder")
     fw = generate(profile, args.design, hall_input=args.hall_input, fault_pin=args.fault_pin,
-                  link_capture=not args.no_capture, link_eeprom=not args.no_eeprom, capture_bytes=args.capture_bytes)
+                  link_capture=not args.no_capture, link_eeprom=not args.no_eeprom, capture_bytes=args.capture_bytes,
+                  identify=args.identify)
     for line in fw.summary:
         print(line)
     report: list[str] = []
@@ -787,6 +797,9 @@ def register(sub) -> None:
     p.add_argument("--no-eeprom", action="store_true",
                    help="leave the EEPROM persistence of the parameters out (about 0.8 kB of flash; "
                         "eeprom_save/eeprom_load answer EEPROM_ERROR)")
+    p.add_argument("--identify", action="store_true",
+                   help="build the identification firmware: add the mode picdrive identify drives (the ident "
+                        "command; about 0.8 kB of flash). Flash the build made without it back afterwards")
     p.add_argument("--capture-bytes", type=int, default=CAPTURE_BYTES,
                    help=f"capture buffer, bytes (even, 16..256; default {CAPTURE_BYTES})")
     p.add_argument("--allow-over-budget", action="store_true",

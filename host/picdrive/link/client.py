@@ -157,6 +157,12 @@ class BoardInfo:
     max_payload: int
     capture_words: int
     sample_hz: int           # 0 = not stated by the build
+    features: int | None = None   # hello's features byte (protocol.FEATURE_*); None: a 2.0 build, not stated
+
+    @property
+    def has_ident(self) -> bool | None:
+        """The build has the identification mode (None: a build before protocol 2.1 does not say)."""
+        return None if self.features is None else bool(self.features & P.FEATURE_IDENT)
 
 
 @dataclass(frozen=True)
@@ -611,7 +617,8 @@ class Link:
     def hello(self) -> BoardInfo:
         d = self.request("hello")
         return BoardInfo((d["proto_major"], d["proto_minor"]), d["build_id"], d["profile_hash"], d["table_hash"],
-                         d["n_entries"], d["max_payload"], d["capture_words"], d["sample_hz"])
+                         d["n_entries"], d["max_payload"], d["capture_words"], d["sample_hz"],
+                         d["features"][0] if d["features"] else None)
 
     def read_table(self, n_entries: int) -> P.Table:
         """The board's table, read with param_info (host docs and enum names attached)."""

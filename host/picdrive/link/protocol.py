@@ -64,9 +64,14 @@ class ProtocolError(PicdriveError, ValueError):
 # ---------------------------------------------------------------------------
 # Frame
 # ---------------------------------------------------------------------------
-PROTOCOL_VERSION = (2, 0)
+PROTOCOL_VERSION = (2, 1)
 """(major, minor).  A host refuses a board with another major version.  2.0: COBS framing with
-a 0x00 delimiter (1.x: start byte 0xA5 without stuffing)."""
+a 0x00 delimiter (1.x: start byte 0xA5 without stuffing).  2.1: hello ends with the features byte
+(2.0 builds send none)."""
+
+FEATURE_IDENT = 0x01
+"""hello ``features`` bit: the build has the identification mode (the ``ident`` command, state
+IDENT; generated with ``picdrive firmware --identify``)."""
 
 DELIMITER = 0x00
 """Frame delimiter.  Frames are COBS-encoded, so it never occurs inside a frame: a receiver
@@ -327,6 +332,8 @@ COMMANDS: tuple[Command, ...] = (
                    _F("n_entries", "B", "entries in the table (param_info index range)"),
                    _F("max_payload", "B"), _F("capture_words", "H", "capture buffer, 16-bit words"),
                    _F("sample_hz", "H", "link_sample() rate (speed loop), Hz; 0 = not stated")),
+            reply_tail=_F("features", "B", "one byte from protocol 2.1 on (none before): bit 0 the "
+                                           "identification mode (ident)"),
             side_effects=False),
     Command("param_info", 0x02, "Describe table entry number `index` (0..n_entries-1, in id order).",
             args=(_F("index", "B"),),

@@ -14,7 +14,7 @@ import struct
 from .protocol import (ACK_BIT, BOARD_FRAMES, CAPTURE_BYTES_DEFAULT, CAPTURE_READ_HEADER_BYTES, COMMANDS,
                        COMMAND_BY_CODE, COMMAND_BY_NAME, CTYPES, CaptureState, Controller,
                        EEPROM_HEADER_BYTES, EEPROM_LAYOUT_VERSION, EEPROM_MAGIC, EepromResult, Entry, Event,
-                       FLAG_PERSISTED, FLAG_SIGNAL, FLAG_WRITABLE, Fault, MAX_BODY, MAX_FRAME, MAX_PAYLOAD,
+                       FEATURE_IDENT, FLAG_PERSISTED, FLAG_SIGNAL, FLAG_WRITABLE, Fault, MAX_BODY, MAX_FRAME, MAX_PAYLOAD,
                        MSG_EVENT, MSG_NACK, MSG_TELEMETRY, NAME_MAX, Nack, PARAM_GET_MAX, PROTOCOL_VERSION,
                        ProtocolError, REPLAY_BYTES, RX_BUFFER_BYTES, RX_SPILL_BYTES, STATE_BYTES, State,
                        TELEMETRY_HEADER_BYTES, Table, Trigger, ram_budget)
@@ -47,6 +47,7 @@ def _u32(name: str, v: int) -> int:
 
 _C_ROW_BYTES = 20       # id, ctype, flags, unit, scale bits, min, max, default: the param_info reply head
 _C_ROW16_BYTES = 14     # the same with min, max and default as 16 bits (widened by the entry's size code)
+HELLO_BYTES = COMMAND_BY_NAME["hello"].reply_size + 1   # the fixed fields and the features byte
 _C_HANDLERS = {"start": "h_app", "stop": "h_app", "brake": "h_app", "fault_clear": "h_app", "ident": "h_app",
                "heartbeat": "h_none"}
 _C_IDLE_COMMANDS = ("eeprom_save", "eeprom_load")   # refused while the motor runs or brakes
@@ -91,8 +92,8 @@ def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, ca
     rows = [_c_bytes(row(e)) + f",   /* {e.name} */" for e in ents]
     hello = (["LINK_PROTO_MAJOR", "LINK_PROTO_MINOR"] + le("LINK_BUILD_ID", 4) + le("LINK_PROFILE_HASH", 4)
              + le("LINK_TABLE_HASH", 4) + ["LINK_N_ENTRIES", "LINK_MAX_PAYLOAD"] + le("LINK_HELLO_CAPTURE_WORDS", 2)
-             + le("LINK_SAMPLE_HZ", 2))
-    assert len(hello) == 20
+             + le("LINK_SAMPLE_HZ", 2) + ["LINK_FEATURES"])
+    assert len(hello) == HELLO_BYTES
     cmd_spec = [f"0x{(0x7F if c.args_tail else c.args_size) | (0x80 if c.name in _C_IDLE_COMMANDS else 0):02X}u"
                 for c in COMMANDS]
     names = [f"0x{b:02X}u" for e in ents for b in e.name.encode("ascii")]
@@ -102,7 +103,7 @@ def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, ca
                               4), len(ents)),
             ("ROM_SIZE", lines([f"0x{size_code(e):02X}u" for e in ents]), len(ents)),
             ("ROM_NAME_LEN", lines([f"{len(e.name)}u" for e in ents]), len(ents)),
-            ("ROM_HELLO", lines(hello, 4), 20),
+            ("ROM_HELLO", lines(hello, 4), HELLO_BYTES),
             ("ROM_CMD", lines(cmd_spec), len(cmd_spec)),
             ("ROM_NAMES", lines(names, 16), len(names)),
             ("ROM_EE_HEAD", lines([_c_bytes(EEPROM_MAGIC + bytes((EEPROM_LAYOUT_VERSION,)))] + le("LINK_TABLE_HASH", 4)
@@ -128,7 +129,7 @@ def _c_tables(table: Table, build_id: int, profile_hash: int, sample_hz: int, ca
 def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float | None = None,
              capture_bytes: int = CAPTURE_BYTES_DEFAULT, critical_begin: str = "",
              critical_end: str = "", capture: bool = True, eeprom: bool = True,
-             sfr_bits: dict | None = None) -> dict[str, str]:
+             identify: bool = False, sfr_bits: dict | None = None) -> dict[str, str]:
     """Render the C link module for ``table``.
 
     Returns ``{"link_fw.h": text, "link_fw.c": text}``.  ``build_id`` and
@@ -145,6 +146,8 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
     persistence, or leave them out to save flash (``LINK_WITH_CAPTURE``/``LINK_WITH_EEPROM``;
     a build without capture NACKs its commands UNKNOWN_COMMAND and reports 0 capture words in
     hello; one without EEPROM refuses eeprom_save and loads nothing).
+    ``identify``: hello's features say the build has the identification mode (the application,
+    ``app_command``, implements ``ident``; without it the command is NACKed UNKNOWN_COMMAND).
     ``sfr_bits``: the device's bit positions by register and bit name
     (``picdrive.firmware.p18f4431.bits()``), for the PIC18 assembly's bit operands; the
     firmware layer owns the device description, so its caller passes it in.
@@ -182,7 +185,8 @@ def render_c(table: Table, build_id: int, profile_hash: int, *, sample_hz: float
         ee_image=table.eeprom_image_bytes, telem_header=TELEMETRY_HEADER_BYTES,
         capread_header=CAPTURE_READ_HEADER_BYTES, budget=ram_budget(table, capture_bytes), state_bytes=STATE_BYTES,
         critical_begin=critical_begin, critical_end=critical_end, c_int=_c_int, bit=sfr_bits,
-        with_capture=bool(capture), with_eeprom=bool(eeprom),
+        with_capture=bool(capture), with_eeprom=bool(eeprom), hello_bytes=HELLO_BYTES,
+        features=FEATURE_IDENT if identify else 0,
         cmd=COMMAND_BY_NAME, hexu=lambda v: f"0x{v:08X}UL", **_c_tables(table, build_id, profile_hash, hz,
                                                                           capture_bytes // 2),
     )
