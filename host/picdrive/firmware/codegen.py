@@ -426,10 +426,11 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     capture_bytes : int
         The capture buffer, B (even, 16..256).
     identify : bool
-        Generate the identification mode (``picdrive identify``: the ``ident`` command, state
-        IDENT, its vector tables and hall-driven selection; about 0.8 kB of flash and 2 B of RAM).
-        Without it the build has none of that code, NACKs ``ident`` UNKNOWN_COMMAND and says so
-        in hello's ``features``.
+        Generate the identification build: the identification mode (``picdrive identify``: the
+        ``ident`` command, state IDENT, its vector tables and hall-driven selection; about 0.8 kB
+        of flash and 4 B of RAM) without the EEPROM persistence (identification saves nothing;
+        0.8 kB, so that every design's identification build fits the chip).  Without it the build
+        has none of the mode, NACKs ``ident`` UNKNOWN_COMMAND and says so in hello's ``features``.
 
     Returns
     -------
@@ -467,6 +468,8 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
         raise CodegenError(f"capture buffer of {capture_bytes!r} B: give an even number of bytes in [16, 256] "
                            "(--capture-bytes)")
     options = {"hall_input": hall_input, "fault_pin": fault_pin}
+    if identify:            # the identification build leaves the EEPROM persistence out to fit (said below)
+        link_eeprom = False
     # link options enter the build id only when they differ from the default (ids stay as they were)
     for k, v, d in (("link_capture", bool(link_capture), True), ("link_eeprom", bool(link_eeprom), True),
                     ("capture_bytes", capture_bytes, CAPTURE_BYTES), ("identify", bool(identify), False)):
@@ -525,8 +528,10 @@ def generate(profile, design_path, *, hall_input: str = "auto", fault_pin: str =
     summary += ["            " + ln for ln in bus["lines"]]
     summary.append("link        " + (f"capture ({capture_bytes} B buffer)" if link_capture else "no capture (--no-capture)")
                    + ", " + ("EEPROM persistence" if link_eeprom else "no EEPROM persistence (--no-eeprom)"))
-    summary.append("ident       " + ("identification mode (--identify: picdrive identify; flash the drive build "
-                                     "back after it)" if identify else "no identification mode (--identify adds it)"))
+    summary.append("ident       " + ("identification build (--identify): the mode picdrive identify drives, and "
+                                     "no EEPROM persistence to fit (the board's EEPROM is left as it is); flash "
+                                     "the drive build (without --identify) back after identify" if identify
+                                     else "no identification mode (--identify builds it)"))
     files["board.json"] = json.dumps(_board(profile, plan, pwm, pm, bus, build_id, table), indent=1,
                                      sort_keys=True) + "\n"
     files["Makefile"] = _makefile(name)
@@ -798,8 +803,9 @@ def register(sub) -> None:
                    help="leave the EEPROM persistence of the parameters out (about 0.8 kB of flash; "
                         "eeprom_save/eeprom_load answer EEPROM_ERROR)")
     p.add_argument("--identify", action="store_true",
-                   help="build the identification firmware: add the mode picdrive identify drives (the ident "
-                        "command; about 0.8 kB of flash). Flash the build made without it back afterwards")
+                   help="build the identification firmware: the mode picdrive identify drives (the ident "
+                        "command; about 0.8 kB of flash), without EEPROM persistence (--no-eeprom) to fit. "
+                        "Flash the build made without --identify back afterwards")
     p.add_argument("--capture-bytes", type=int, default=CAPTURE_BYTES,
                    help=f"capture buffer, bytes (even, 16..256; default {CAPTURE_BYTES})")
     p.add_argument("--allow-over-budget", action="store_true",
