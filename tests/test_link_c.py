@@ -102,7 +102,7 @@ def test_hello_bytes_identical(peer):
     want = codec.reply_payload("hello", dict(
         proto_major=P.PROTOCOL_VERSION[0], proto_minor=P.PROTOCOL_VERSION[1], build_id=DEFAULT_BUILD_ID,
         profile_hash=DEFAULT_PROFILE_HASH, table_hash=TABLE.hash, n_entries=len(TABLE), max_payload=P.MAX_PAYLOAD,
-        capture_words=P.CAPTURE_BYTES_DEFAULT // 2, sample_hz=1000))
+        capture_words=P.CAPTURE_BYTES_DEFAULT // 2, sample_hz=1000, features=[0]))
     assert peer.b.take_tx() == b""
     # the whole frame, byte for byte, as Python encodes it
     peer.b.feed(codec.encode_command("hello", 0x43))
@@ -731,3 +731,24 @@ def test_firmware_generation_options_reach_the_link_module():
     assert any("no capture" in line for line in lean.summary)
     with pytest.raises(PicdriveError, match="capture buffer of 300 B"):
         codegen.generate(prof, design, capture_bytes=300)
+
+
+def test_identification_build_is_a_generation_option():
+    """`picdrive firmware --identify`: the identification mode only in that build, which leaves
+    the EEPROM persistence out and says so; hello's features tell the builds apart."""
+    from picdrive.firmware import codegen
+    from picdrive.paths import repo_root
+    from picdrive.profile import load_profile
+    prof, design = load_profile("duy2008"), repo_root() / "examples" / "duy2008.fuzzy-hinf.design.json"
+    drive = codegen.generate(prof, design)
+    ident = codegen.generate(prof, design, identify=True)
+    assert drive.build_id != ident.build_id
+    assert "#define LINK_FEATURES           0u" in drive.files["link_fw.h"]
+    assert f"#define LINK_FEATURES           {P.FEATURE_IDENT}u" in ident.files["link_fw.h"]
+    assert "#define LINK_WITH_EEPROM        1" in drive.files["link_fw.h"]
+    assert "#define LINK_WITH_EEPROM        0" in ident.files["link_fw.h"]
+    for sym in ("ident_ovd", "ident_pos", "ident_m", "FW_IDENT_OVD", "LINK_CMD_IDENT:", "LINK_STATE_IDENT"):
+        assert not any(sym in drive.files[f] for f in ("drive.c", "drive_params.h", "link_fw.c")), sym
+        assert sym in ident.files["drive.c"] + ident.files["drive_params.h"], sym
+    assert any("no identification mode" in line for line in drive.summary)
+    assert any("identification build" in line and "no EEPROM" in line for line in ident.summary)

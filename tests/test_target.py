@@ -108,6 +108,32 @@ def test_a_design_over_budget_is_refused_and_nothing_is_written(tmp_path, monkey
 
 
 @pytest.mark.parametrize("design", [d.name for d in DESIGNS])
+def test_drive_build_links_none_of_the_identification_mode(built, design):
+    """The drive firmware (without --identify): no identification table or variable in the map."""
+    b, _ = built[design]
+    symbols = target.parse_map(b.hex_path.with_suffix(".map").read_text())[1]
+    names = {sym.name for sym in symbols}
+    assert "_comm_ovd" in names                      # the map lists the drive's tables
+    assert not {n for n in names if n.startswith("_ident_")}
+
+
+@pytest.mark.parametrize("stem", ["duy2008.fuzzy-hinf", "duy2008_halls.fuzzy-hinf"])
+def test_identification_build_keeps_the_budgets(tmp_path, stem):
+    """picdrive firmware --identify of the largest designs (most flash; most RAM: the halls-only
+    one) fits the chip's budgets, with the mode linked in."""
+    design = EXAMPLES / f"{stem}.design.json"
+    profile = load_profile(json.loads(design.read_text())["profile"]["name"])
+    fw = codegen.generate(profile, design, identify=True)
+    codegen.write_firmware(fw, tmp_path / "fw")
+    b = target.build_measured(tmp_path / "fw", tmp_path / "hex", name=fw.name)
+    symbols = target.parse_map(b.hex_path.with_suffix(".map").read_text())[1]
+    names = {sym.name for sym in symbols}
+    assert {"_ident_ovd", "_ident_pos", "_ident_m"} <= names
+    got = _figures(b, gpsim.measure_modes(tmp_path / "fw", tmp_path / "timing"))
+    assert b.on_chip and target.over_budget(b, got) == [], "\n".join(target.budget_lines(b, got))
+
+
+@pytest.mark.parametrize("design", [d.name for d in DESIGNS])
 def test_interrupts_save_the_table_pointer_when_they_read_tables(built, design):
     b, _ = built[design]
     assert target.unsaved_table_pointer(b) == {}
