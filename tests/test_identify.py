@@ -315,6 +315,28 @@ def test_identify_refuses_a_build_without_the_mode_before_any_command(drive_fw_d
         tw.close()
 
 
+def test_identify_refuses_at_the_first_vector_a_build_that_does_not_say(drive_fw_dir):
+    """A build of protocol 2.0 says nothing about the mode in hello: the drive build's NACK
+    (UNKNOWN_COMMAND) to the first ident ends the run, named, outputs off, current_limit restored."""
+    from dataclasses import replace
+    tw = twin_for(TRUE, drive_fw_dir)
+    srv = tw.serve(port=0, realtime=True)
+    link = Link.open(srv.url)
+    try:
+        link.handshake()
+        limit = link.get("current_limit")
+        link.info = replace(link.info, features=None)
+        assert link.info.has_ident is None
+        with pytest.raises(IdentifyError, match=r"answered ident UNKNOWN_COMMAND.*picdrive firmware --identify"):
+            identify(link, wrong_profile(TRUE), progress=lambda s: None)
+        assert link.get("current_limit") == limit
+        assert not tw.state()["outputs_active"]
+    finally:
+        link.close()
+        srv.stop()
+        tw.close()
+
+
 def test_cli_refuses_a_build_without_the_mode_and_writes_nothing(drive_fw_dir, tmp_path):
     tw = twin_for(TRUE, drive_fw_dir)
     srv = tw.serve(port=0, realtime=True)

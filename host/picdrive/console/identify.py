@@ -79,7 +79,7 @@ class _Board:
             self.link.request("ident", {"vector": int(vector), "duty": pdc, "step_ms": int(step_ms)})
         except NackError as e:
             if e.code == Nack.UNKNOWN_COMMAND:      # a build that does not say in hello (protocol 2.0)
-                raise IdentifyError(NO_IDENT_MODE) from None
+                raise IdentifyError(NO_IDENT_COMMAND) from None
             self.check(f"vector {vector}")          # a latched fault, named
             raise
 
@@ -165,10 +165,13 @@ def _record(b: _Board, seconds: float) -> np.ndarray:
         b.link.stop_telemetry()
 
 
+_FLASH_IDENT = ("Generate the identification build with 'picdrive firmware --identify --profile P --design D', "
+                "flash it, run 'picdrive identify' again, then flash the drive firmware (built without "
+                "--identify) back")
 NO_IDENT_MODE = ("the board's firmware has no identification mode (hello: no ident feature); nothing was "
-                 "commanded. Generate the identification build with 'picdrive firmware --identify --profile P "
-                 "--design D', flash it, run 'picdrive identify' again, then flash the drive firmware (built "
-                 "without --identify) back")
+                 "commanded. " + _FLASH_IDENT)
+NO_IDENT_COMMAND = ("the board's firmware has no identification mode (it answered ident UNKNOWN_COMMAND; the "
+                    "outputs stayed off). " + _FLASH_IDENT)
 
 
 def identify(link, profile, *, progress: Callable[[str], None] = print) -> Identification:

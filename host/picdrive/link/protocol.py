@@ -392,7 +392,9 @@ COMMANDS: tuple[Command, ...] = (
             "Refused: vector > 23 or duty above the build's limit (OUT_OF_RANGE), running or braking "
             "(WRONG_STATE), a fault latched (FAULT_ACTIVE).  A new vector applies at once: the host "
             "changes between vectors that are not neighbours (30 deg apart, or 60 between two-phase ones) "
-            "through stop, so that no leg goes from its high side to its low side without an off period.",
+            "through stop, so that no leg goes from its high side to its low side without an off period.  "
+            "Only in the identification build (picdrive firmware --identify; hello's features bit 0): "
+            "any other build answers UNKNOWN_COMMAND.",
             args=(_F("vector", "B"), _F("duty", "H", "PDC counts"),
                   _F("step_ms", "b", "0 = hold; ms per 30-degree step, the sign the direction")),
             app=True),
