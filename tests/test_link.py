@@ -318,11 +318,11 @@ def test_handshake_mismatch_wrong_announced_hash_and_protocol_version():
             Link.open(url, baudrate=FAST)
     finally:
         b.close()
-    major = P.PROTOCOL_VERSION[0]
+    major, minor = P.PROTOCOL_VERSION[:2]
     h = files["link_fw.h"].replace(f"#define LINK_PROTO_MAJOR        {major}u", f"#define LINK_PROTO_MAJOR        {major + 1}u")
     b, url = _served({**files, "link_fw.h": h})
     try:
-        with pytest.raises(HandshakeMismatch, match=f"the board speaks protocol {major + 1}.0, this host {major}.0"):
+        with pytest.raises(HandshakeMismatch, match=f"the board speaks protocol {major + 1}.{minor}, this host {major}.{minor}"):
             Link.open(url, baudrate=FAST)
     finally:
         b.close()
