@@ -208,17 +208,18 @@ def test_loop_bandwidth_counts_the_hold_the_command_delay_and_the_speed_measurem
     assert fuzzy_hinf.loop_bandwidth_rad_s(slow) < fuzzy_hinf.loop_bandwidth_rad_s(hall)
 
 
-@pytest.mark.slow          # about 8 min: the default chain, continuous, then the loop rate twice
+@pytest.mark.slow          # about 13 min: the default chain, continuous, then the loop rate at three weights
 def test_a_fast_mechanism_on_hall_speed_gets_the_loop_bandwidth_as_its_integral_weight():
     """Nanotec DF45L024048-A, speed from the halls: its mechanical corner (1,314 rad/s) is ten times what a
     1 kHz loop measuring a hall sector's mean can follow; at that integral weight every design is an
-    integrator-dominated law (kp near 0) that overshoots 17-54 %.  At the loop's bandwidth it verifies."""
+    integrator-dominated law (kp near 0) that overshoots 17-54 %.  At the loop's bandwidth (107 rad/s) the
+    loop-rate design overshoots 2.3 % under the injected disturbance; at half of it, it verifies."""
     p = _profile(str(repo_root() / "tests" / "motors" / "nanotec_df45l024048a.toml"))
     with pytest.warns(UserWarning, match="integral weight"):
         r = fuzzy_hinf.design(p, drive=DRIVE, progress=False)
     assert r.ok, r.reasons
     assert r.certificate["time_domain"] == "discrete"
-    assert r.certificate["model_options"]["integral_weight_rad_s"] == pytest.approx(
-        fuzzy_hinf.loop_bandwidth_rad_s(p))
+    w = r.certificate["model_options"]["integral_weight_rad_s"]
+    assert w <= fuzzy_hinf.loop_bandwidth_rad_s(p) * (1 + 1e-12)
     assert "mechanical corner" in r.certificate["integral_weight_note"]
     assert r.verification["sim_overshoot_pct"]["ok"] and r.verification["sim_half_speed"]["ok"]

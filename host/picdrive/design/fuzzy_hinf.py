@@ -1016,17 +1016,26 @@ def _fall_back_to_discrete(profile, failed, *, drive, progress, options, limit_f
         corner = (m.viscous_friction_n_m_s + m.kt_n_m_per_a * m.kb_v_s_per_rad / m.r_line_ohm) / m.inertia_kg_m2
         cap = loop_bandwidth_rad_s(profile)
         if cap < corner:
-            capped = design(profile, drive=drive, progress=progress, variant="six-step",
-                            **{**disc_opts, "integral_weight_rad_s": cap})
-            weight_note = (f"integral weight {cap:.4g} rad/s (loop_bandwidth_rad_s: the loop's delays and speed "
-                           f"measurement) instead of the motor's mechanical corner {corner:.4g} rad/s, at which "
-                           f"the loop-rate design failed ({'; '.join(x[:160] for x in disc.reasons[:1]) or disc.status})")
-            capped.timings_s = {"corner_weight_attempt": float(sum(disc.timings_s.values())), **capped.timings_s}
+            # the loop's bandwidth, then half of it: the first that verifies is kept (as the continuous design
+            # walks its pole disk down and the loop-rate design its effort weight up)
+            spent = float(sum(disc.timings_s.values()))
+            why_corner = "; ".join(x[:160] for x in disc.reasons[:1]) or disc.status
+            for w in (cap, 0.5 * cap):
+                capped = design(profile, drive=drive, progress=progress, variant="six-step",
+                                **{**disc_opts, "integral_weight_rad_s": w})
+                capped.timings_s = {"corner_weight_attempt": spent, **capped.timings_s}
+                spent += float(sum(v for k, v in capped.timings_s.items() if k != "corner_weight_attempt"))
+                if capped.ok or limit_failed(capped):
+                    break
+            weight_note = (f"integral weight {w:.4g} rad/s ({w / cap:g} x loop_bandwidth_rad_s: the loop's delays "
+                           f"and speed measurement) instead of the motor's mechanical corner {corner:.4g} rad/s, at "
+                           f"which the loop-rate design failed ({why_corner})")
             if capped.ok:
                 capped.certificate["integral_weight_note"] = weight_note
             else:
-                capped.reasons.append("at the mechanical corner's integral weight it fails too: "
-                                      + ("; ".join(x[:200] for x in disc.reasons[:1]) or disc.status))
+                capped.reasons.append(f"at integral weights {cap:.4g} and {0.5 * cap:.4g} rad/s (the loop's bandwidth "
+                                      f"and half of it) and at the mechanical corner's {corner:.4g} it fails too: "
+                                      + why_corner)
             disc = capped
     if not disc.ok:
         failed.reasons.append("the synthesis at the loop rate (time_domain 'discrete') fails too: "
