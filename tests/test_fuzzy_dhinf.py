@@ -208,7 +208,7 @@ def test_loop_bandwidth_counts_the_hold_the_command_delay_and_the_speed_measurem
     assert fuzzy_hinf.loop_bandwidth_rad_s(slow) < fuzzy_hinf.loop_bandwidth_rad_s(hall)
 
 
-@pytest.mark.slow          # about 13 min: the default chain, continuous, then the loop rate at three weights
+@pytest.mark.slow          # about 8 min: the default chain, continuous, then the loop rate at three weights
 def test_a_fast_mechanism_on_hall_speed_gets_the_loop_bandwidth_as_its_integral_weight():
     """Nanotec DF45L024048-A, speed from the halls: its mechanical corner (1,314 rad/s) is ten times what a
     1 kHz loop measuring a hall sector's mean can follow; at that integral weight every design is an
