@@ -200,19 +200,26 @@ def commutation_factor(sel: int, spacing_deg: int, offset_deg: float, shape: str
     The DC-equivalent relations ``V = R I + Kb w`` and ``T = Kt I`` hold with ``Kb g`` and
     ``Kt g`` when the commutation is shifted from the ideal points (a 30-degree shift of a
     trapezoid: g = 0.875)."""
-    th = (np.arange(7200) + 0.5) * (360.0 / 7200)
+    e, ideal = _pair_emf(sel, spacing_deg, offset_deg, shape, 7200)
+    return float(e.mean()) / ideal
+
+
+def _pair_emf(sel: int, spacing_deg: int, offset_deg: float, shape: str, n: int) -> tuple[np.ndarray, float]:
+    """Back-EMF of the phase pair hall-driven selection ``sel`` energises, per unit of the phase
+    EMF's peak, at ``n`` electrical angles over a turn (0 where the selection energises nothing),
+    and the ideal six-step's mean of it."""
+    th = (np.arange(n) + 0.5) * (360.0 / n)
     codes = hall_code_at(th, spacing_deg, offset_deg)
     f = [emf_unit(shape, np.radians(th) - k * 2 * math.pi / 3) for k in range(3)]
-    e = np.zeros_like(th)
+    e = np.zeros(n)
     for c in set(codes.tolist()):
         m = ident_hall_vector(sel, int(c), spacing_deg)
         if m is None:
             continue
         (src,), (snk,) = IDENT_VECTORS[m]
-        sel_c = codes == c
-        e[sel_c] = f[src][sel_c] - f[snk][sel_c]
-    ideal = 2.0 if shape != "sinusoidal" else 3.0 * math.sqrt(3.0) / math.pi
-    return float(e.mean()) / ideal
+        s = codes == c
+        e[s] = f[src][s] - f[snk][s]
+    return e, (2.0 if shape != "sinusoidal" else 3.0 * math.sqrt(3.0) / math.pi)
 
 
 def _linfit(x, y):
@@ -377,18 +384,8 @@ def torque_factor(v_pair: float, r_ohm: float, l_h: float, kb: float, w_rad_s: f
     electrical turns at the steady speed until periodic, and ``mean(e_pair i) / (w Kb mean(i))``
     returned."""
     n = 720
-    th = (np.arange(n) + 0.5) * (360.0 / n)
-    codes = hall_code_at(th, spacing_deg, offset_deg)
-    f = [emf_unit(shape, np.radians(th) - k * 2 * math.pi / 3) for k in range(3)]
-    ideal = 2.0 if shape != "sinusoidal" else 3.0 * math.sqrt(3.0) / math.pi
-    ep = np.zeros(n)
-    for c in set(codes.tolist()):
-        m = ident_hall_vector(sel, int(c), spacing_deg)
-        if m is None:
-            continue
-        (src,), (snk,) = IDENT_VECTORS[m]
-        s = codes == c
-        ep[s] = (f[src][s] - f[snk][s]) / ideal * kb * w_rad_s
+    e, ideal = _pair_emf(sel, spacing_deg, offset_deg, shape, n)
+    ep = e / ideal * kb * w_rad_s
     we = abs(w_rad_s) * pole_pairs
     if we <= 0 or l_h <= 0:
         i = np.maximum((v_pair - ep) / r_ohm, 0.0)

@@ -58,7 +58,7 @@ from ..analysis.lmi import assemble, certified_gain, lmi_margins, nonzero, quiet
 from ..analysis.sampled import sampled_radius, six_step_equilibrium
 from ..control_law import ScheduledLaw
 from ..errors import PicdriveError
-from ..models.tsfuzzy import model_for
+from ..models.tsfuzzy import mechanical_corner_rad_s, model_for
 
 __all__ = ["Theorem1Solution", "solve_theorem1", "minimise_gamma", "design", "DEFAULT_SOLVER", "FuzzyHinfError",
            "OPTIONS"]
@@ -798,9 +798,7 @@ def design(profile, *, drive=None, progress: bool = True, variant: str = "six-st
         if options.get("emf_polytope") is not None:
             model_opts["emf_polytope"] = bool(options["emf_polytope"])
         if model_opts["integral_weight_rad_s"] is None:
-            m = profile.motor
-            model_opts["integral_weight_rad_s"] = (m.viscous_friction_n_m_s + m.kt_n_m_per_a * m.kb_v_s_per_rad
-                                                   / m.r_line_ohm) / m.inertia_kg_m2
+            model_opts["integral_weight_rad_s"] = mechanical_corner_rad_s(profile.motor)
         # a winding no pole disk can hold (no_certificate_reason: R/L alone decides) is refused before the
         # identification, which would cost seconds for nothing (the continuous design only: at the loop rate
         # the current mode is a sampled pole like any other)
@@ -1012,8 +1010,7 @@ def _fall_back_to_discrete(profile, failed, *, drive, progress, options, limit_f
         # the default integral weight is the motor's mechanical corner; where that is faster than the loop
         # with its delays and speed measurement can follow, the H-inf optimum is an integrator-dominated law
         # that overshoots (kp near 0): the design asks again for the bandwidth the loop can carry
-        m = profile.motor
-        corner = (m.viscous_friction_n_m_s + m.kt_n_m_per_a * m.kb_v_s_per_rad / m.r_line_ohm) / m.inertia_kg_m2
+        corner = mechanical_corner_rad_s(profile.motor)
         cap = loop_bandwidth_rad_s(profile)
         if cap < corner:
             # the loop's bandwidth, then half of it: the first that verifies is kept (as the continuous design

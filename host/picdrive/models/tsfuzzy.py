@@ -33,8 +33,8 @@ from ..control_law import memberships
 from .dqmodel import DqParams, dq_params, equilibrium, jacobian, max_speed_rad_s
 from .tfmodel import motor_ss
 
-__all__ = ["TSModel", "rule_centres", "paper_model", "tracking_model", "six_step_model", "operating_region",
-           "emf_range", "model_for", "paper_as_printed_model", "PAPER_TABLE1", "PAPER_PREMISE_RAD_S"]
+__all__ = ["TSModel", "mechanical_corner_rad_s", "rule_centres", "paper_model", "tracking_model", "six_step_model",
+           "operating_region", "emf_range", "model_for", "paper_as_printed_model", "PAPER_TABLE1", "PAPER_PREMISE_RAD_S"]
 
 
 @dataclass(frozen=True)
@@ -91,6 +91,13 @@ class TSModel:
 
     def with_(self, **kw) -> "TSModel":
         return replace(self, **kw)
+
+
+def mechanical_corner_rad_s(motor) -> float:
+    """The motor's open-loop mechanical corner ``(B + Kt Kb / R_line) / J``, rad/s: the inverse of
+    its mechanical time constant with the winding's back-EMF damping."""
+    m = motor
+    return (m.viscous_friction_n_m_s + m.kt_n_m_per_a * m.kb_v_s_per_rad / m.r_line_ohm) / m.inertia_kg_m2
 
 
 def rule_centres(premise_rad_s, r: int) -> np.ndarray:
@@ -212,8 +219,7 @@ def tracking_model(profile, *, inputs: str = "six-step", rules: int | None = Non
     if integral_weight_rad_s is None:
         # integral weight: the open-loop mechanical corner (B + K_t K_b / R_line)/J, so that
         # the integral of the speed error is weighed on the motor's own time scale
-        m_ = profile.motor
-        integral_weight_rad_s = 0.2 * (m_.viscous_friction_n_m_s + m_.kt_n_m_per_a * m_.kb_v_s_per_rad / m_.r_line_ohm) / m_.inertia_kg_m2
+        integral_weight_rad_s = 0.2 * mechanical_corner_rad_s(profile.motor)
     wi = float(integral_weight_rad_s)
     C = np.zeros((r, 2, n))
     C[:, 0, 0] = 1.0
